@@ -2,8 +2,8 @@
 
 use std::f64::consts::{PI, TAU};
 use willow::flow::curve::{
-    dual_lengths, edge_lengths, turning_angles, Curve, CurveError, CurveFlow, CurveParams,
-    CurvePoisson,
+    dual_inner, dual_lengths, edge_lengths, project_out_closure_constraints, turning_angles,
+    ConstraintBasis, Curve, CurveError, CurveFlow, CurveParams, CurvePoisson,
 };
 
 /// Deterministic xorshift64* in [−1, 1): the tests need reproducible jitter, not a crate.
@@ -299,6 +299,49 @@ fn poisson_solve_satisfies_the_full_laplacian() {
                 assert!((lf - b[i][c]).abs() < 1e-12, "closed = {closed}, row {i}");
             }
         }
+    }
+}
+
+#[test]
+fn closed_form_projection_matches_modified_gram_schmidt() {
+    // The flow projects with moments; ConstraintBasis is the textbook MGS of {1, fˣ, fʸ}.
+    // Far from the origin on purpose: centring must keep the moments accurate.
+    let mut curve = noisy_closed_curve();
+    for p in &mut curve.points {
+        p[0] = 1e3 + 0.5 * p[0];
+        p[1] = -2e3 + 2.0 * p[1];
+    }
+    let n = curve.points.len();
+    let mut dual = vec![0.0; n];
+    dual_lengths(&curve.edge_lengths(), true, &mut dual);
+    let mut basis = ConstraintBasis::with_len(n).expect("small");
+    basis.rebuild(&curve.points, &dual);
+    assert_eq!(basis.len(), 3);
+    for i in 0..3 {
+        for j in 0..3 {
+            let g = dual_inner(basis.vector(i), basis.vector(j), &dual);
+            assert!(
+                (g - if i == j { 1.0 } else { 0.0 }).abs() < 1e-9,
+                "<<c{i}, c{j}>> = {g}"
+            );
+        }
+    }
+    let v0: Vec<f64> = (0..n).map(|i| (i as f64 * 0.7).sin() + 3.0).collect();
+    let mut by_mgs = v0.clone();
+    basis.project_out(&mut by_mgs, &dual);
+    let mut by_moments = v0.clone();
+    project_out_closure_constraints(&curve.points, &dual, &mut by_moments);
+    let scale = v0.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    for (a, b) in by_mgs.iter().zip(&by_moments) {
+        assert!((a - b).abs() < 1e-9 * scale, "{a} vs {b}");
+    }
+    // And the result is orthogonal to 1, fˣ, fʸ.
+    let ones = vec![1.0; n];
+    let xs: Vec<f64> = curve.points.iter().map(|p| p[0]).collect();
+    let ys: Vec<f64> = curve.points.iter().map(|p| p[1]).collect();
+    for c in [&ones, &xs, &ys] {
+        let norm = dual_inner(c, c, &dual).sqrt();
+        assert!(dual_inner(&by_moments, c, &dual).abs() < 1e-9 * norm * scale);
     }
 }
 

@@ -451,9 +451,13 @@ pub fn turning_number(total_curvature: f64) -> i64 {
 /// Edge lengths `ℓ_{i,i+1} = |f_{i+1} − f_i|` (§5.2) into `out` (length [`edge_count`]).
 pub fn edge_lengths(points: &[[f64; 2]], closed: bool, out: &mut [f64]) {
     debug_assert_eq!(out.len(), edge_count(points.len(), closed));
-    for (i, l) in out.iter_mut().enumerate() {
-        let e = edge_vector(points, i);
+    for (l, w) in out.iter_mut().zip(points.windows(2)) {
+        let e = [w[1][0] - w[0][0], w[1][1] - w[0][1]];
         *l = (e[0] * e[0] + e[1] * e[1]).sqrt();
+    }
+    if closed && !points.is_empty() {
+        let e = edge_vector(points, points.len() - 1);
+        out[points.len() - 1] = (e[0] * e[0] + e[1] * e[1]).sqrt();
     }
 }
 
@@ -514,11 +518,9 @@ pub fn curvature(turning_angles: &[f64], dual_lengths: &[f64], out: &mut [f64]) 
 /// Weighted inner product `⟨⟨a, b⟩⟩ = Σ a_i b_i ℓ*_i` (§4, §5), the discrete `∫ a b dl`.
 #[inline]
 pub fn dual_inner(a: &[f64], b: &[f64], dual_lengths: &[f64]) -> f64 {
-    a.iter()
-        .zip(b)
-        .zip(dual_lengths)
-        .map(|((x, y), w)| x * y * w)
-        .sum()
+    let n = a.len().min(b.len()).min(dual_lengths.len());
+    let (a, b, w) = (&a[..n], &b[..n], &dual_lengths[..n]);
+    sum4(n, |i| a[i] * b[i] * w[i])
 }
 
 /// Curve fairing energy `E_C = Σ κ_i² ℓ*_i = ‖κ‖²` (§5).
@@ -530,19 +532,12 @@ pub fn curvature_energy(kappa: &[f64], dual_lengths: &[f64]) -> f64 {
 /// 0 for a circle. A straight curve (σ = 0) gives 0; a curve with κ̄ = 0 but σ > 0 (an open
 /// wiggle, a figure-eight) gives `+∞`.
 pub fn curvature_std_over_mean(kappa: &[f64], dual_lengths: &[f64]) -> f64 {
-    let total: f64 = dual_lengths.iter().sum();
-    let mean = dual_lengths
-        .iter()
-        .zip(kappa)
-        .map(|(w, k)| w * k)
-        .sum::<f64>()
-        / total;
-    let variance = dual_lengths
-        .iter()
-        .zip(kappa)
-        .map(|(w, k)| w * (k - mean) * (k - mean))
-        .sum::<f64>()
-        / total;
+    let n = kappa.len().min(dual_lengths.len());
+    let (k, w) = (&kappa[..n], &dual_lengths[..n]);
+    let total = sum4(n, |i| w[i]);
+    let mean = sum4(n, |i| w[i] * k[i]) / total;
+    // Two passes: `E/L − κ̄²` would cancel catastrophically near a circle, where σ/κ̄ ~ 1e-8.
+    let variance = sum4(n, |i| w[i] * (k[i] - mean) * (k[i] - mean)) / total;
     let std = variance.sqrt();
     if std == 0.0 {
         0.0
@@ -627,6 +622,60 @@ impl ConstraintBasis {
     }
 }
 
+/// Table 1 steps III–IV for a closed curve in closed form: `v ← v − Σ ⟨⟨v, ĉ_i⟩⟩ ĉ_i` with
+/// `{ĉ_i}` the Gram–Schmidt orthonormalization of `{1, fˣ, fʸ}` in that order, as
+/// [`ConstraintBasis`] builds it, but from weighted moments instead of stored basis vectors:
+///
+/// - `ĉ_0 = 1/√L` (L = Σ ℓ*);
+/// - `ĉ_1 = x̂/σ_x` with the centred `x̂ = fˣ − x̄`, `σ_x² = ⟨⟨x̂, x̂⟩⟩`;
+/// - `ĉ_2 = (ŷ − β x̂)/σ_2` with `β = ⟨⟨ŷ, x̂⟩⟩/σ_x²`, `σ_2² = ⟨⟨ŷ, ŷ⟩⟩ − β ⟨⟨ŷ, x̂⟩⟩`.
+///
+/// Three passes (means; centred moments; update) instead of about twenty. Centring first
+/// keeps the moments free of the cancellation `Σ x² − L x̄²` would suffer far from the origin.
+/// A function whose norm falls below 1e-10 of its centred size is skipped, as in
+/// [`ConstraintBasis::rebuild`]. The tests check this against [`ConstraintBasis`].
+pub fn project_out_closure_constraints(points: &[[f64; 2]], dual_lengths: &[f64], v: &mut [f64]) {
+    let n = points.len().min(dual_lengths.len()).min(v.len());
+    if n == 0 {
+        return;
+    }
+    let (p, w) = (&points[..n], &dual_lengths[..n]);
+    let total = sum4(n, |i| w[i]);
+    let mx = sum4(n, |i| w[i] * p[i][0]) / total;
+    let my = sum4(n, |i| w[i] * p[i][1]) / total;
+    let (sxx, sxy, syy, sv, svx, svy) = {
+        let v = &v[..n];
+        (
+            sum4(n, |i| w[i] * (p[i][0] - mx) * (p[i][0] - mx)),
+            sum4(n, |i| w[i] * (p[i][0] - mx) * (p[i][1] - my)),
+            sum4(n, |i| w[i] * (p[i][1] - my) * (p[i][1] - my)),
+            sum4(n, |i| w[i] * v[i]),
+            sum4(n, |i| w[i] * v[i] * (p[i][0] - mx)),
+            sum4(n, |i| w[i] * v[i] * (p[i][1] - my)),
+        )
+    };
+    // v −= a_0 + a_x x̂ + a_y ŷ, collecting the three projections.
+    let a0 = sv / total;
+    let (mut ax, mut ay) = (0.0, 0.0);
+    if sxx > (GRAM_SCHMIDT_DROP_RTOL * GRAM_SCHMIDT_DROP_RTOL) * (sxx + syy) {
+        // ⟨⟨v, ĉ_1⟩⟩ ĉ_1 = (svx/sxx) x̂.
+        ax = svx / sxx;
+        let beta = sxy / sxx;
+        let s2 = syy - beta * sxy;
+        if s2 > (GRAM_SCHMIDT_DROP_RTOL * GRAM_SCHMIDT_DROP_RTOL) * syy {
+            // ⟨⟨v, ŷ − βx̂⟩⟩/σ_2² · (ŷ − βx̂).
+            let c = (svy - beta * svx) / s2;
+            ay = c;
+            ax -= c * beta;
+        }
+    } else if syy > 0.0 {
+        ay = svy / syy;
+    }
+    for (vi, q) in v[..n].iter_mut().zip(p) {
+        *vi -= a0 + ax * (q[0] - mx) + ay * (q[1] - my);
+    }
+}
+
 /// Edge tangent angles by the cumulative sum of §5.2,
 /// `θ_k = θ_0 + Σ_{i=1}^{k} ½(ℓ_{i−1,i} + ℓ_{i,i+1}) κ_i` for `k = 0..out.len()` (one per
 /// edge; the angle of edge k, from vertex k to k + 1). For a closed curve vertex 0's curvature
@@ -661,24 +710,31 @@ pub fn divergence(
     let n = out.len();
     let m = tangents.len();
     debug_assert_eq!(m, edge_count(n, closed));
-    for (i, b) in out.iter_mut().enumerate() {
-        let mut v = [0.0, 0.0];
-        let before = if i > 0 {
-            Some(i - 1)
-        } else if closed {
-            Some(m - 1)
-        } else {
-            None
-        };
-        if let Some(e) = before {
-            v[0] += tangents[e][0] * inv_edge_lengths[e];
-            v[1] += tangents[e][1] * inv_edge_lengths[e];
-        }
-        if i < m {
-            v[0] -= tangents[i][0] * inv_edge_lengths[i];
-            v[1] -= tangents[i][1] * inv_edge_lengths[i];
-        }
-        *b = v;
+    if n == 0 || m == 0 {
+        out.fill([0.0, 0.0]);
+        return;
+    }
+    let unit = |e: usize| {
+        [
+            tangents[e][0] * inv_edge_lengths[e],
+            tangents[e][1] * inv_edge_lengths[e],
+        ]
+    };
+    // Interior vertices 1..m have an edge on both sides; vertex 0 and, for open curves,
+    // vertex n − 1 are handled after.
+    let mut before = unit(0);
+    for (i, b) in out.iter_mut().enumerate().take(m).skip(1) {
+        let after = unit(i);
+        *b = [before[0] - after[0], before[1] - after[1]];
+        before = after;
+    }
+    let first = unit(0);
+    let last = unit(m - 1);
+    if closed {
+        out[0] = [last[0] - first[0], last[1] - first[1]];
+    } else {
+        out[0] = [-first[0], -first[1]];
+        out[n - 1] = last;
     }
 }
 
@@ -780,38 +836,172 @@ pub fn poisson_residual(
     f: &[[f64; 2]],
     b: &[[f64; 2]],
 ) -> f64 {
-    let n = f.len();
+    let n = f.len().min(b.len());
     let m = inv_edge_lengths.len();
-    let mut worst: f64 = 0.0;
-    let mut scale: f64 = 0.0;
-    for i in 0..n {
-        let mut lf = [0.0, 0.0];
+    if n < 2 || m == 0 {
+        return 0.0;
+    }
+    let (f, b, inv) = (&f[..n], &b[..n], inv_edge_lengths);
+    // Row i of L f − b, for any vertex, from the edges on each side (if present).
+    let row = |i: usize| {
+        let mut r = [-b[i][0], -b[i][1]];
         let before = if i > 0 {
             Some((i - 1, i - 1))
-        } else if closed {
-            Some((m - 1, n - 1))
         } else {
-            None
+            closed.then_some((m - 1, n - 1))
         };
         if let Some((e, j)) = before {
-            lf[0] += (f[i][0] - f[j][0]) * inv_edge_lengths[e];
-            lf[1] += (f[i][1] - f[j][1]) * inv_edge_lengths[e];
+            r[0] += (f[i][0] - f[j][0]) * inv[e];
+            r[1] += (f[i][1] - f[j][1]) * inv[e];
         }
         if i < m {
             let j = if i + 1 == n { 0 } else { i + 1 };
-            lf[0] += (f[i][0] - f[j][0]) * inv_edge_lengths[i];
-            lf[1] += (f[i][1] - f[j][1]) * inv_edge_lengths[i];
+            r[0] += (f[i][0] - f[j][0]) * inv[i];
+            r[1] += (f[i][1] - f[j][1]) * inv[i];
         }
-        for c in 0..2 {
-            worst = worst.max((lf[c] - b[i][c]).abs());
-            scale = scale.max(b[i][c].abs());
-        }
-    }
+        r[0].abs().max(r[1].abs())
+    };
+    // Vertices 1..n−1 have both neighbours at i ± 1 on either kind of curve: branch-free.
+    let interior = max4(n - 2, |k| {
+        let i = k + 1;
+        let rx = (f[i][0] - f[i - 1][0]) * inv[i - 1] + (f[i][0] - f[i + 1][0]) * inv[i] - b[i][0];
+        let ry = (f[i][1] - f[i - 1][1]) * inv[i - 1] + (f[i][1] - f[i + 1][1]) * inv[i] - b[i][1];
+        rx.abs().max(ry.abs())
+    });
+    let worst = interior.max(row(0)).max(row(n - 1));
+    let scale = max4(n, |i| b[i][0].abs().max(b[i][1].abs()));
     if scale > 0.0 {
         worst / scale
     } else {
         worst
     }
+}
+
+/// Wrap an angle into (−π, π], the range of [`turning_angles`].
+#[inline]
+fn wrap_angle(a: f64) -> f64 {
+    use std::f64::consts::{PI, TAU};
+    if a > PI {
+        a - TAU
+    } else if a <= -PI {
+        a + TAU
+    } else {
+        a
+    }
+}
+
+/// `atan2(s, c)`, with a short series when the angle is small (|s| ≤ c/16), the usual case
+/// for [`edge_rotations`]: `atan x = x − x³/3 + x⁵/5 − … − x¹⁵/15`, whose first omitted term is
+/// below `2⁻⁶⁴|x|` for |x| ≤ 1/16. Otherwise the library `atan2`.
+#[inline]
+fn atan2_small(s: f64, c: f64) -> f64 {
+    // 1/(2j + 1), j = 1..=7; multiplications, since a division per term would cost more than
+    // the whole series.
+    const INV_ODD: [f64; 7] = [
+        1.0 / 3.0,
+        1.0 / 5.0,
+        1.0 / 7.0,
+        1.0 / 9.0,
+        1.0 / 11.0,
+        1.0 / 13.0,
+        1.0 / 15.0,
+    ];
+    if c > 0.0 && s.abs() <= 0.0625 * c {
+        let x = s / c;
+        let x2 = x * x;
+        let mut p = INV_ODD[6];
+        for &a in INV_ODD[..6].iter().rev() {
+            p = a - x2 * p;
+        }
+        x * (1.0 - x2 * p)
+    } else {
+        s.atan2(c)
+    }
+}
+
+/// Signed angle `α_k` from the target tangent `T̃_k` to the edge `f̃_{k+1} − f̃_k` the Poisson
+/// solve produced: how much the projection onto closed curves (§5.1) rotated each edge. Small
+/// (of the order of the length distortion), so [`atan2_small`] rarely needs the library.
+fn edge_rotations(tangents: &[[f64; 2]], points: &[[f64; 2]], out: &mut [f64]) {
+    for (k, (a, t)) in out.iter_mut().zip(tangents).enumerate() {
+        let e = edge_vector(points, k);
+        *a = atan2_small(t[0] * e[1] - t[1] * e[0], t[0] * e[0] + t[1] * e[1]);
+    }
+}
+
+/// Turning angles of the curve the Poisson solve produced, from the target ones: the turn
+/// from edge `i − 1` to edge `i` is the turn back to the target tangent, the target turn, and
+/// the turn out to the new edge, `φ_i = φ̃_i + α_i − α_{i−1}` (mod 2π, wrapped into (−π, π]),
+/// with `φ̃_i = ℓ*_i κ̃_i` (the cumulative sum of §5.2 advances θ by exactly this). This is an
+/// identity of angles, not an approximation; it replaces an atan2 per vertex by a short
+/// series per edge (debug builds check it against [`turning_angles`]). For a closed curve the
+/// target turn at vertex 0 is the closing one, `2πk − Σ_{i≥1} φ̃_i`, k the turning number.
+fn update_turning_angles(
+    kappa: &[f64],
+    dual_lengths: &[f64],
+    edge_rotations: &[f64],
+    closed: bool,
+    out: &mut [f64],
+) {
+    let n = out.len();
+    let m = edge_rotations.len();
+    if closed {
+        let rest: f64 = (1..n).map(|i| dual_lengths[i] * kappa[i]).sum();
+        let k = turning_number(rest + dual_lengths[0] * kappa[0]);
+        let closing = std::f64::consts::TAU * k as f64 - rest;
+        out[0] = wrap_angle(closing + edge_rotations[0] - edge_rotations[m - 1]);
+    } else {
+        out[0] = 0.0;
+        out[n - 1] = 0.0;
+    }
+    let last = if closed { n } else { n - 1 };
+    for i in 1..last {
+        let target = dual_lengths[i] * kappa[i];
+        out[i] = wrap_angle(target + edge_rotations[i] - edge_rotations[i - 1]);
+    }
+}
+
+/// `Σ_{i<n} g(i)` in four interleaved partial sums. A plain left fold is one chain of
+/// dependent additions, each waiting for the last (about 4 cycles per element); four chains
+/// overlap, and the per-step reductions are most of the flow's time at a few thousand
+/// vertices. The result differs from the sequential sum only by rounding.
+#[inline(always)]
+fn sum4(n: usize, g: impl Fn(usize) -> f64) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let full = n - n % 4;
+    let mut i = 0;
+    while i < full {
+        acc[0] += g(i);
+        acc[1] += g(i + 1);
+        acc[2] += g(i + 2);
+        acc[3] += g(i + 3);
+        i += 4;
+    }
+    while i < n {
+        acc[0] += g(i);
+        i += 1;
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3])
+}
+
+/// `max_{i<n} g(i)` (0 when n = 0 or all values are negative), four chains like [`sum4`].
+#[inline(always)]
+fn max4(n: usize, g: impl Fn(usize) -> f64) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let full = n - n % 4;
+    let mut i = 0;
+    while i < full {
+        acc[0] = acc[0].max(g(i));
+        acc[1] = acc[1].max(g(i + 1));
+        acc[2] = acc[2].max(g(i + 2));
+        acc[3] = acc[3].max(g(i + 3));
+        i += 4;
+    }
+    while i < n {
+        acc[0] = acc[0].max(g(i));
+        i += 1;
+    }
+    acc[0].max(acc[1]).max(acc[2].max(acc[3]))
 }
 
 /// Fallibly allocate `n` zeros (STYLE: user-sized buffers use `try_reserve`).
@@ -878,9 +1068,12 @@ pub struct CurveFlow {
     inv_edge_lengths: Vec<f64>,
     /// `ℓ*` from the input lengths.
     dual_lengths: Vec<f64>,
+    /// `Σ ℓ`, the input length.
+    length: f64,
+    /// `R_i = Σ_{k≥i} ℓ_k`, for the mean change of angle (index 0 unused).
+    suffix_lengths: Vec<f64>,
     /// Pinned Poisson factor; depends only on ℓ, so it is built once.
     poisson: CurvePoisson,
-    basis: ConstraintBasis,
     /// φ of the current curve (kept from the last step's metrics, so each step calls atan2
     /// once per vertex).
     turning: Vec<f64>,
@@ -888,6 +1081,10 @@ pub struct CurveFlow {
     kappa: Vec<f64>,
     velocity: Vec<f64>,
     theta: Vec<f64>,
+    /// ℓ̃ of the current curve, for the metrics.
+    current_lengths: Vec<f64>,
+    /// α_k of [`edge_rotations`], one per edge.
+    edge_rotation: Vec<f64>,
     tangents: Vec<[f64; 2]>,
     rhs: Vec<[f64; 2]>,
     /// The next positions; swapped with `curve.points` at the end of a step.
@@ -919,6 +1116,13 @@ impl CurveFlow {
         let mut dual = zeroed(n)?;
         dual_lengths(&edge_lengths_buf, curve.closed, &mut dual);
         let poisson = CurvePoisson::new(&edge_lengths_buf, curve.closed)?;
+        let length: f64 = edge_lengths_buf.iter().sum();
+        let mut suffix_lengths = zeroed(m)?;
+        let mut suffix = 0.0;
+        for (r, l) in suffix_lengths.iter_mut().zip(&edge_lengths_buf).rev() {
+            suffix += l;
+            *r = suffix;
+        }
         let mut turning = zeroed(n)?;
         turning_angles(&curve.points, curve.closed, &mut turning);
         let zero_metrics = CurveStepMetrics {
@@ -939,11 +1143,14 @@ impl CurveFlow {
             inv_edge_lengths,
             dual_lengths: dual,
             poisson,
-            basis: ConstraintBasis::with_len(n)?,
+            length,
+            suffix_lengths,
             turning,
             kappa: zeroed(n)?,
             velocity: zeroed(n)?,
             theta: zeroed(m)?,
+            current_lengths: zeroed(m)?,
+            edge_rotation: zeroed(m)?,
             tangents: zeroed(m)?,
             rhs: zeroed(n)?,
             next: zeroed(n)?,
@@ -971,9 +1178,11 @@ impl CurveFlow {
         }
         // III–IV. Closed curves: project out {1, fˣ, fʸ} (§5, App. A).
         if closed {
-            self.basis.rebuild(&self.curve.points, &self.dual_lengths);
-            self.basis
-                .project_out(&mut self.velocity, &self.dual_lengths);
+            project_out_closure_constraints(
+                &self.curve.points,
+                &self.dual_lengths,
+                &mut self.velocity,
+            );
         }
         // V. κ̃ = κ + τ v (§4 eq. 2 with the projected direction).
         for (k, v) in self.kappa.iter_mut().zip(&self.velocity) {
@@ -983,29 +1192,33 @@ impl CurveFlow {
         // VI. Tangent angles by the cumulative sum of §5.2, starting from the current angle of
         // edge 0, then remove the mean change of angle (§5.1), length-weighted over edges.
         // The current angles are θ_0 + Σ φ_i, so the change of edge k is Σ_{i≤k} (ℓ*_i κ̃_i − φ_i).
+        // Swapping the sums, `Σ_k ℓ_k Σ_{1≤i≤k} δ_i = Σ_i δ_i R_i` with the suffix lengths
+        // `R_i = Σ_{k≥i} ℓ_k` (fixed, since ℓ is): one dot product instead of a second
+        // cumulative sum. The shift goes into θ_0.
         let e0 = edge_vector(&self.curve.points, 0);
         let theta0 = e0[1].atan2(e0[0]);
-        tangent_angles(theta0, &self.kappa, &self.dual_lengths, &mut self.theta);
-        let mut change = 0.0;
-        let mut weighted_change = 0.0;
-        let mut length = 0.0;
-        for k in 0..self.theta.len() {
-            if k > 0 {
-                change += self.dual_lengths[k] * self.kappa[k] - self.turning[k];
-            }
-            weighted_change += self.edge_lengths[k] * change;
-            length += self.edge_lengths[k];
-        }
-        let mean_change = weighted_change / length;
-        self.theta.iter_mut().for_each(|t| *t -= mean_change);
+        let m = self.theta.len();
+        let mean_change = {
+            let (d, k, phi, r) = (
+                &self.dual_lengths[..m],
+                &self.kappa[..m],
+                &self.turning[..m],
+                &self.suffix_lengths[..m],
+            );
+            sum4(m, |i| (d[i] * k[i] - phi[i]) * r[i]) / self.length
+        };
+        tangent_angles(
+            theta0 - mean_change,
+            &self.kappa,
+            &self.dual_lengths,
+            &mut self.theta,
+        );
         tangents(&self.theta, &self.edge_lengths, &mut self.tangents);
         let closure_gap = if closed {
-            let mut sum = [0.0, 0.0];
-            for t in &self.tangents {
-                sum[0] += t[0];
-                sum[1] += t[1];
-            }
-            sum[0].hypot(sum[1]) / length
+            let t = &self.tangents[..];
+            let gap_x = sum4(t.len(), |i| t[i][0]);
+            let gap_y = sum4(t.len(), |i| t[i][1]);
+            gap_x.hypot(gap_y) / self.length
         } else {
             0.0
         };
@@ -1019,25 +1232,58 @@ impl CurveFlow {
         );
         self.poisson.solve(&self.rhs, &mut self.next);
         let residual = poisson_residual(&self.inv_edge_lengths, closed, &self.next, &self.rhs);
-        let mut shift = [0.0, 0.0];
-        for (old, new) in self.curve.points.iter().zip(&self.next) {
-            shift[0] += old[0] - new[0];
-            shift[1] += old[1] - new[1];
-        }
-        let inv_n = 1.0 / n as f64;
+        let shift = {
+            let (old, new) = (&self.curve.points[..n], &self.next[..n]);
+            let inv_n = 1.0 / n as f64;
+            [
+                sum4(n, |i| old[i][0] - new[i][0]) * inv_n,
+                sum4(n, |i| old[i][1] - new[i][1]) * inv_n,
+            ]
+        };
         for p in &mut self.next {
-            p[0] += shift[0] * inv_n;
-            p[1] += shift[1] * inv_n;
+            p[0] += shift[0];
+            p[1] += shift[1];
         }
         std::mem::swap(&mut self.curve.points, &mut self.next);
         self.step += 1;
 
-        turning_angles(&self.curve.points, closed, &mut self.turning);
-        let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
-        self.last = self.measure(closure_gap, residual, elapsed_ms);
-        // The metrics pass is part of the step; re-read the clock so step_ms includes it.
+        // Turning angles of the new curve, for the metrics and the next step, without an atan2
+        // per vertex: see `update_turning_angles`.
+        edge_rotations(&self.tangents, &self.curve.points, &mut self.edge_rotation);
+        update_turning_angles(
+            &self.kappa,
+            &self.dual_lengths,
+            &self.edge_rotation,
+            closed,
+            &mut self.turning,
+        );
+        #[cfg(debug_assertions)]
+        self.debug_check_turning();
+        self.last = self.measure(closure_gap, residual, 0.0);
+        // Measured last, so the metrics pass counts as part of the step.
         self.last.step_ms = start.elapsed().as_secs_f64() * 1e3;
         self.last
+    }
+
+    /// Debug builds: the incrementally updated turning angles equal atan2 of the edges.
+    #[cfg(debug_assertions)]
+    fn debug_check_turning(&self) {
+        let p = &self.curve.points;
+        let (n, m) = (p.len(), self.edge_lengths.len());
+        for i in 0..n {
+            if !self.curve.closed && (i == 0 || i == n - 1) {
+                continue;
+            }
+            let a = edge_vector(p, (i + m - 1) % m);
+            let b = edge_vector(p, i);
+            let direct = (a[0] * b[1] - a[1] * b[0]).atan2(a[0] * b[0] + a[1] * b[1]);
+            let diff = wrap_angle(self.turning[i] - direct);
+            debug_assert!(
+                diff.abs() < 1e-9,
+                "turning angle {i}: updated {} vs atan2 {direct}",
+                self.turning[i]
+            );
+        }
     }
 
     /// Metrics of the current curve; `self.turning` must be current. Leaves `self.kappa`
@@ -1049,14 +1295,13 @@ impl CurveFlow {
         step_ms: f64,
     ) -> CurveStepMetrics {
         curvature(&self.turning, &self.dual_lengths, &mut self.kappa);
-        let mut distortion: f64 = 0.0;
-        let mut total_length = 0.0;
-        for (i, l) in self.edge_lengths.iter().enumerate() {
-            let e = edge_vector(&self.curve.points, i);
-            let current = (e[0] * e[0] + e[1] * e[1]).sqrt();
-            total_length += current;
-            distortion = distortion.max((current / l - 1.0).abs());
-        }
+        let current = &mut self.current_lengths;
+        edge_lengths(&self.curve.points, self.curve.closed, current);
+        let m = current.len();
+        let (current, inv) = (&current[..m], &self.inv_edge_lengths[..m]);
+        let total_length = sum4(m, |i| current[i]);
+        let distortion = max4(m, |i| (current[i] * inv[i] - 1.0).abs());
+        let turning = &self.turning[..];
         CurveStepMetrics {
             step: self.step,
             energy: curvature_energy(&self.kappa, &self.dual_lengths),
@@ -1065,7 +1310,7 @@ impl CurveFlow {
             closure_gap,
             poisson_residual,
             total_length,
-            total_curvature: self.turning.iter().sum(),
+            total_curvature: sum4(turning.len(), |i| turning[i]),
             step_ms,
         }
     }
