@@ -639,21 +639,27 @@ pub fn project_out_closure_constraints(points: &[[f64; 2]], dual_lengths: &[f64]
     if n == 0 {
         return;
     }
-    let (p, w) = (&points[..n], &dual_lengths[..n]);
-    let total = sum4(n, |i| w[i]);
-    let mx = sum4(n, |i| w[i] * p[i][0]) / total;
-    let my = sum4(n, |i| w[i] * p[i][1]) / total;
-    let (sxx, sxy, syy, sv, svx, svy) = {
-        let v = &v[..n];
-        (
-            sum4(n, |i| w[i] * (p[i][0] - mx) * (p[i][0] - mx)),
-            sum4(n, |i| w[i] * (p[i][0] - mx) * (p[i][1] - my)),
-            sum4(n, |i| w[i] * (p[i][1] - my) * (p[i][1] - my)),
-            sum4(n, |i| w[i] * v[i]),
-            sum4(n, |i| w[i] * v[i] * (p[i][0] - mx)),
-            sum4(n, |i| w[i] * v[i] * (p[i][1] - my)),
-        )
-    };
+    let (p, w, v) = (&points[..n], &dual_lengths[..n], &mut v[..n]);
+    // Pass 1: L and the weighted means. Pass 2: the six centred moments, each its own
+    // accumulator, so the additions overlap.
+    let (mut total, mut sx, mut sy) = (0.0, 0.0, 0.0);
+    for (q, wi) in p.iter().zip(w) {
+        total += wi;
+        sx += wi * q[0];
+        sy += wi * q[1];
+    }
+    let (mx, my) = (sx / total, sy / total);
+    let (mut sxx, mut sxy, mut syy, mut sv, mut svx, mut svy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for ((q, wi), vi) in p.iter().zip(w).zip(v.iter()) {
+        let (x, y) = (q[0] - mx, q[1] - my);
+        let (wx, wy, wv) = (wi * x, wi * y, wi * vi);
+        sxx += wx * x;
+        sxy += wx * y;
+        syy += wy * y;
+        sv += wv;
+        svx += wv * x;
+        svy += wv * y;
+    }
     // v −= a_0 + a_x x̂ + a_y ŷ, collecting the three projections.
     let a0 = sv / total;
     let (mut ax, mut ay) = (0.0, 0.0);
@@ -671,7 +677,7 @@ pub fn project_out_closure_constraints(points: &[[f64; 2]], dual_lengths: &[f64]
     } else if syy > 0.0 {
         ay = svy / syy;
     }
-    for (vi, q) in v[..n].iter_mut().zip(p) {
+    for (vi, q) in v.iter_mut().zip(p) {
         *vi -= a0 + ax * (q[0] - mx) + ay * (q[1] - my);
     }
 }
@@ -744,18 +750,31 @@ pub fn divergence(
 /// `L_ii = Σ_j 1/ℓ_ij`; `f̃` minimizes `Σ_ij |f̃_j − f̃_i − T̃_ij|² / ℓ_ij` (§5.1). Its kernel is
 /// the constants, which we remove by **pinning** `f̃_0 = 0` (the mean translation is restored
 /// afterwards anyway). Pinning vertex 0 of a path *or of a cycle* leaves a path on vertices
-/// `1..n`, so the reduced matrix is tridiagonal, symmetric positive definite and weakly
-/// diagonally dominant: an LDLᵀ (Thomas) factorization without pivoting is stable, costs O(n)
-/// once, and each solve is two O(n) sweeps with no fill, no ordering and no workspace. That
-/// is why this does not go through faer's general sparse Cholesky, which would compute the
-/// same factor with symbolic analysis, a permutation and a scratch stack per solve. Because
-/// `Σ b = 0`, the dropped row 0 is satisfied too; [`poisson_residual`] checks the full system.
+/// `1..n`, so the reduced matrix A is tridiagonal, symmetric positive definite and weakly
+/// diagonally dominant: Gaussian elimination without pivoting is stable, costs O(n) once, and
+/// each solve is O(n) with no fill, no ordering and no workspace. That is why this does not go
+/// through faer's general sparse Cholesky, which would compute the same factor with symbolic
+/// analysis, a permutation and a scratch stack per solve. Because `Σ b = 0`, the dropped row 0
+/// is satisfied too; [`poisson_residual`] checks the full system.
+///
+/// The elimination is *twisted* (a "burn at both ends" factorization): it runs from vertex 1
+/// down and from vertex n − 1 up, meeting at the middle vertex k. Each sweep of a tridiagonal
+/// solve is one chain of dependent multiply-subtracts; two half-length chains, interleaved,
+/// overlap in the CPU and halve the solve time. Row j < k becomes `P_j x_j + o_j x_{j+1} = z_j`,
+/// row j > k becomes `Q_j x_j + o_{j−1} x_{j−1} = z_j`, and row k, with both neighbours
+/// eliminated, `γ x_k = z_k`.
 #[derive(Clone, Debug)]
 pub struct CurvePoisson {
-    /// `1 / D_j` of the LDLᵀ factor, for vertices `1..n` (index 0 unused).
+    /// The meeting vertex k.
+    twist: usize,
+    /// Forward multipliers: `o_{j−1}/P_{j−1}` for `2 ≤ j < k`, `o_j/Q_{j+1}` for `k < j ≤ n−2`.
+    forward: Vec<f64>,
+    /// The two multipliers of row k (0 where the neighbour is missing or pinned).
+    twist_multipliers: [f64; 2],
+    /// `1/P_j` (j < k), `1/γ` (j = k), `1/Q_j` (j > k); index 0 unused.
     inv_pivot: Vec<f64>,
-    /// Sub-diagonal `l_j` of the unit lower factor coupling vertices `j` and `j + 1`.
-    lower: Vec<f64>,
+    /// Back-substitution couplings: `o_j/P_j` for `1 ≤ j < k`, `o_{j−1}/Q_j` for `j > k`.
+    backward: Vec<f64>,
 }
 
 impl CurvePoisson {
@@ -763,29 +782,72 @@ impl CurvePoisson {
     pub fn new(edge_lengths: &[f64], closed: bool) -> Result<Self, CurveError> {
         let m = edge_lengths.len();
         let n = if closed { m } else { m + 1 };
+        let mut forward = zeroed(n)?;
         let mut inv_pivot = zeroed(n)?;
-        let mut lower = zeroed(n)?;
-        // Reduced diagonal for vertex j ≥ 1: the edge into j always exists; the edge out of j
-        // exists unless j is the last vertex of an open curve.
+        let mut backward = zeroed(n)?;
+        let twist = (n / 2).max(1);
+        let mut factor = CurvePoisson {
+            twist,
+            forward: Vec::new(),
+            twist_multipliers: [0.0, 0.0],
+            inv_pivot: Vec::new(),
+            backward: Vec::new(),
+        };
+        if n < 2 {
+            factor.inv_pivot = inv_pivot;
+            return Ok(factor);
+        }
+        // Reduced diagonal a_j for vertex j ≥ 1: the edge into j always exists; the edge out
+        // of j exists unless j is the last vertex of an open curve. Off-diagonal o_j = A_{j,j+1}
+        // = −1/ℓ_j for 1 ≤ j ≤ n − 2 (edges touching the pinned vertex 0 drop out).
         let diagonal =
             |j: usize| 1.0 / edge_lengths[j - 1] + if j < m { 1.0 / edge_lengths[j] } else { 0.0 };
-        if n < 2 {
-            return Ok(CurvePoisson { inv_pivot, lower });
+        let off = |j: usize| -1.0 / edge_lengths[j];
+        let k = twist;
+        let mut gamma = diagonal(k);
+        if k > 1 {
+            let mut pivot = diagonal(1);
+            for j in 2..k {
+                forward[j] = off(j - 1) / pivot;
+                backward[j - 1] = off(j - 1) / pivot;
+                inv_pivot[j - 1] = 1.0 / pivot;
+                pivot = diagonal(j) - forward[j] * off(j - 1);
+                debug_assert!(
+                    pivot > 0.0,
+                    "a pinned connected Laplacian is positive definite"
+                );
+            }
+            inv_pivot[k - 1] = 1.0 / pivot;
+            backward[k - 1] = off(k - 1) / pivot;
+            factor.twist_multipliers[0] = off(k - 1) / pivot;
+            gamma -= off(k - 1) * off(k - 1) / pivot;
         }
-        let mut pivot = diagonal(1);
-        inv_pivot[1] = 1.0 / pivot;
-        for j in 2..n {
-            let off = -1.0 / edge_lengths[j - 1];
-            let l = off / pivot;
-            lower[j - 1] = l;
-            pivot = diagonal(j) - l * off;
-            debug_assert!(
-                pivot > 0.0,
-                "a pinned connected Laplacian is positive definite"
-            );
-            inv_pivot[j] = 1.0 / pivot;
+        if k < n - 1 {
+            let mut pivot = diagonal(n - 1);
+            for j in (k + 1..n - 1).rev() {
+                forward[j] = off(j) / pivot;
+                backward[j + 1] = off(j) / pivot;
+                inv_pivot[j + 1] = 1.0 / pivot;
+                pivot = diagonal(j) - forward[j] * off(j);
+                debug_assert!(
+                    pivot > 0.0,
+                    "a pinned connected Laplacian is positive definite"
+                );
+            }
+            inv_pivot[k + 1] = 1.0 / pivot;
+            backward[k + 1] = off(k) / pivot;
+            factor.twist_multipliers[1] = off(k) / pivot;
+            gamma -= off(k) * off(k) / pivot;
         }
-        Ok(CurvePoisson { inv_pivot, lower })
+        debug_assert!(
+            gamma > 0.0,
+            "a pinned connected Laplacian is positive definite"
+        );
+        inv_pivot[k] = 1.0 / gamma;
+        factor.forward = forward;
+        factor.inv_pivot = inv_pivot;
+        factor.backward = backward;
+        Ok(factor)
     }
 
     /// Number of vertices.
@@ -809,21 +871,70 @@ impl CurvePoisson {
         if n < 2 {
             return;
         }
-        // Forward: L z = b.
+        let k = self.twist;
+        let (mul, inv, back) = (&self.forward, &self.inv_pivot, &self.backward);
+        // Forward elimination from both ends: rows 1..k and n−1 down to k+1, interleaved.
         f[1] = b[1];
-        for j in 2..n {
-            let l = self.lower[j - 1];
-            f[j] = [b[j][0] - l * f[j - 1][0], b[j][1] - l * f[j - 1][1]];
+        f[n - 1] = b[n - 1];
+        let top = 2..k;
+        let bottom = (k + 1..n - 1).rev();
+        let common = top.len().min(bottom.len());
+        for (j, i) in top.clone().zip(bottom.clone()) {
+            f[j] = [
+                b[j][0] - mul[j] * f[j - 1][0],
+                b[j][1] - mul[j] * f[j - 1][1],
+            ];
+            f[i] = [
+                b[i][0] - mul[i] * f[i + 1][0],
+                b[i][1] - mul[i] * f[i + 1][1],
+            ];
         }
-        // Diagonal: D w = z.
-        for (fj, d) in f[1..].iter_mut().zip(&self.inv_pivot[1..]) {
-            fj[0] *= d;
-            fj[1] *= d;
+        for j in top.skip(common) {
+            f[j] = [
+                b[j][0] - mul[j] * f[j - 1][0],
+                b[j][1] - mul[j] * f[j - 1][1],
+            ];
         }
-        // Backward: Lᵀ x = w.
-        for j in (1..n - 1).rev() {
-            let l = self.lower[j];
-            f[j] = [f[j][0] - l * f[j + 1][0], f[j][1] - l * f[j + 1][1]];
+        for i in bottom.skip(common) {
+            f[i] = [
+                b[i][0] - mul[i] * f[i + 1][0],
+                b[i][1] - mul[i] * f[i + 1][1],
+            ];
+        }
+        // The twist row; f[0] = 0 stands in for a missing upper neighbour.
+        let [mu, ml] = self.twist_multipliers;
+        let below = if k + 1 < n { f[k + 1] } else { [0.0, 0.0] };
+        let above = if k > 1 { f[k - 1] } else { [0.0, 0.0] };
+        let z = [
+            b[k][0] - mu * above[0] - ml * below[0],
+            b[k][1] - mu * above[1] - ml * below[1],
+        ];
+        f[k] = [z[0] * inv[k], z[1] * inv[k]];
+        // Back substitution outwards from k, interleaved: x_j = z_j/P_j − (o_j/P_j) x_{j+1}.
+        let up = (1..k).rev();
+        let down = k + 1..n;
+        let common = up.len().min(down.len());
+        for (j, i) in up.clone().zip(down.clone()) {
+            f[j] = [
+                f[j][0] * inv[j] - back[j] * f[j + 1][0],
+                f[j][1] * inv[j] - back[j] * f[j + 1][1],
+            ];
+            f[i] = [
+                f[i][0] * inv[i] - back[i] * f[i - 1][0],
+                f[i][1] * inv[i] - back[i] * f[i - 1][1],
+            ];
+        }
+        for j in up.skip(common) {
+            f[j] = [
+                f[j][0] * inv[j] - back[j] * f[j + 1][0],
+                f[j][1] * inv[j] - back[j] * f[j + 1][1],
+            ];
+        }
+        for i in down.skip(common) {
+            f[i] = [
+                f[i][0] * inv[i] - back[i] * f[i - 1][0],
+                f[i][1] * inv[i] - back[i] * f[i - 1][1],
+            ];
         }
     }
 }
@@ -861,15 +972,23 @@ pub fn poisson_residual(
         }
         r[0].abs().max(r[1].abs())
     };
-    // Vertices 1..n−1 have both neighbours at i ± 1 on either kind of curve: branch-free.
-    let interior = max4(n - 2, |k| {
-        let i = k + 1;
-        let rx = (f[i][0] - f[i - 1][0]) * inv[i - 1] + (f[i][0] - f[i + 1][0]) * inv[i] - b[i][0];
-        let ry = (f[i][1] - f[i - 1][1]) * inv[i - 1] + (f[i][1] - f[i + 1][1]) * inv[i] - b[i][1];
-        rx.abs().max(ry.abs())
-    });
+    // Vertices 1..n−1 have both neighbours at i ± 1 on either kind of curve: branch-free,
+    // with separate running maxima for x and y.
+    let mut interior = [0.0f64; 2];
+    for ((w, il), bi) in f.windows(3).zip(inv.windows(2)).zip(&b[1..n - 1]) {
+        for c in 0..2 {
+            let r = (w[1][c] - w[0][c]) * il[0] + (w[1][c] - w[2][c]) * il[1] - bi[c];
+            interior[c] = larger(interior[c], r.abs());
+        }
+    }
+    let interior = interior[0].max(interior[1]);
     let worst = interior.max(row(0)).max(row(n - 1));
-    let scale = max4(n, |i| b[i][0].abs().max(b[i][1].abs()));
+    let mut scale = [0.0f64; 2];
+    for bi in b {
+        scale[0] = larger(scale[0], bi[0].abs());
+        scale[1] = larger(scale[1], bi[1].abs());
+    }
+    let scale = scale[0].max(scale[1]);
     if scale > 0.0 {
         worst / scale
     } else {
@@ -890,12 +1009,11 @@ fn wrap_angle(a: f64) -> f64 {
     }
 }
 
-/// `atan2(s, c)`, with a short series when the angle is small (|s| ≤ c/16), the usual case
-/// for [`edge_rotations`]: `atan x = x − x³/3 + x⁵/5 − … − x¹⁵/15`, whose first omitted term is
-/// below `2⁻⁶⁴|x|` for |x| ≤ 1/16. Otherwise the library `atan2`.
-#[inline]
-fn atan2_small(s: f64, c: f64) -> f64 {
-    // 1/(2j + 1), j = 1..=7; multiplications, since a division per term would cost more than
+/// `atan x = x − x³/3 + x⁵/5 − … − x¹⁵/15` for |x| ≤ 1/16, where the first omitted term is
+/// below `2⁻⁶⁴|x|`. No branch, so a loop of it vectorizes.
+#[inline(always)]
+fn atan_small(x: f64) -> f64 {
+    // 1/(2j + 1), j = 1..=7: multiplications, since a division per term would cost more than
     // the whole series.
     const INV_ODD: [f64; 7] = [
         1.0 / 3.0,
@@ -906,26 +1024,50 @@ fn atan2_small(s: f64, c: f64) -> f64 {
         1.0 / 13.0,
         1.0 / 15.0,
     ];
-    if c > 0.0 && s.abs() <= 0.0625 * c {
-        let x = s / c;
-        let x2 = x * x;
-        let mut p = INV_ODD[6];
-        for &a in INV_ODD[..6].iter().rev() {
-            p = a - x2 * p;
-        }
-        x * (1.0 - x2 * p)
-    } else {
-        s.atan2(c)
+    let x2 = x * x;
+    let mut p = INV_ODD[6];
+    for &a in INV_ODD[..6].iter().rev() {
+        p = a - x2 * p;
     }
+    x * (1.0 - x2 * p)
 }
 
+/// Largest |x| = |tan α| for which [`atan_small`] is used.
+const ATAN_SMALL_MAX: f64 = 0.0625;
+
 /// Signed angle `α_k` from the target tangent `T̃_k` to the edge `f̃_{k+1} − f̃_k` the Poisson
-/// solve produced: how much the projection onto closed curves (§5.1) rotated each edge. Small
-/// (of the order of the length distortion), so [`atan2_small`] rarely needs the library.
+/// solve produced: how much the projection onto closed curves (§5.1) rotated each edge. These
+/// are small (of the order of the length distortion), so a first pass uses [`atan_small`] on
+/// `tan α = (T̃ × e)/(T̃ · e)` for every edge, and only edges outside its range (rare) are
+/// redone with the library `atan2`.
 fn edge_rotations(tangents: &[[f64; 2]], points: &[[f64; 2]], out: &mut [f64]) {
-    for (k, (a, t)) in out.iter_mut().zip(tangents).enumerate() {
-        let e = edge_vector(points, k);
-        *a = atan2_small(t[0] * e[1] - t[1] * e[0], t[0] * e[0] + t[1] * e[1]);
+    let m = out.len().min(tangents.len());
+    let (t, out) = (&tangents[..m], &mut out[..m]);
+    let sine_cosine = |k: usize, e: [f64; 2]| {
+        (
+            t[k][0] * e[1] - t[k][1] * e[0],
+            t[k][0] * e[0] + t[k][1] * e[1],
+        )
+    };
+    let mut all_small = true;
+    for (k, (a, w)) in out.iter_mut().zip(points.windows(2)).enumerate() {
+        let (s, c) = sine_cosine(k, [w[1][0] - w[0][0], w[1][1] - w[0][1]]);
+        let x = s / c;
+        all_small &= c > 0.0 && x.abs() <= ATAN_SMALL_MAX;
+        *a = atan_small(x);
+    }
+    // The closing edge of a closed curve (windows stop at the last point).
+    if m == points.len() && m > 0 {
+        let (s, c) = sine_cosine(m - 1, edge_vector(points, m - 1));
+        out[m - 1] = s.atan2(c);
+    }
+    if !all_small {
+        for (k, a) in out.iter_mut().enumerate() {
+            let (s, c) = sine_cosine(k, edge_vector(points, k));
+            if !(c > 0.0 && s.abs() <= ATAN_SMALL_MAX * c) {
+                *a = s.atan2(c);
+            }
+        }
     }
 }
 
@@ -984,6 +1126,18 @@ fn sum4(n: usize, g: impl Fn(usize) -> f64) -> f64 {
     (acc[0] + acc[1]) + (acc[2] + acc[3])
 }
 
+/// `max(a, b)` by one comparison. `f64::max` also orders NaN, which costs a compare-unordered
+/// and a blend per element in the hot reductions; here a NaN `b` is skipped. The flow cannot
+/// produce NaN from a validated curve (finite input, positive definite factor).
+#[inline(always)]
+fn larger(a: f64, b: f64) -> f64 {
+    if b > a {
+        b
+    } else {
+        a
+    }
+}
+
 /// `max_{i<n} g(i)` (0 when n = 0 or all values are negative), four chains like [`sum4`].
 #[inline(always)]
 fn max4(n: usize, g: impl Fn(usize) -> f64) -> f64 {
@@ -991,14 +1145,14 @@ fn max4(n: usize, g: impl Fn(usize) -> f64) -> f64 {
     let full = n - n % 4;
     let mut i = 0;
     while i < full {
-        acc[0] = acc[0].max(g(i));
-        acc[1] = acc[1].max(g(i + 1));
-        acc[2] = acc[2].max(g(i + 2));
-        acc[3] = acc[3].max(g(i + 3));
+        acc[0] = larger(acc[0], g(i));
+        acc[1] = larger(acc[1], g(i + 1));
+        acc[2] = larger(acc[2], g(i + 2));
+        acc[3] = larger(acc[3], g(i + 3));
         i += 4;
     }
     while i < n {
-        acc[0] = acc[0].max(g(i));
+        acc[0] = larger(acc[0], g(i));
         i += 1;
     }
     acc[0].max(acc[1]).max(acc[2].max(acc[3]))
