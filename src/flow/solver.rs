@@ -1,0 +1,325 @@
+//! Sparse Cholesky on a pattern that never changes during a flow.
+//!
+//! The flows never change connectivity, so the sparsity pattern, its fill-reducing ordering and
+//! faer's symbolic factorization are built once per flow; each step only scatters new values
+//! into the fixed pattern and refactors numerically in place (SOLVER.md: building from
+//! triplets costs more than the factorization itself).
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::perm::PermRef;
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
+    SymmetricOrdering,
+};
+use faer::sparse::linalg::{amd, SupernodalThreshold};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+use faer::traits::ComplexField;
+use faer::{Conj, MatMut, Par, Side};
+
+/// The full (both triangles) sparsity pattern of a symmetric matrix over the vertex graph of a
+/// triangle mesh, with every vertex-pair entry expanded to a dense `block × block` block
+/// (1 for scalar Laplacians, 2 for the complex form of the quaternionic Dirac matrix).
+///
+/// Values are stored column-major per CSC column; for the block of row vertex `i` and column
+/// vertex `j`, entry `(ri, rj)` lives at [`BlockPattern::entry`]`(slot, j, ri, rj)` where `slot`
+/// is the block's base index (precomputed per face in [`BlockPattern::face_slots`]).
+pub struct BlockPattern {
+    pub block: usize,
+    /// Vertex-level CSC: `vertex_col_ptr[j]..vertex_col_ptr[j+1]` indexes the sorted
+    /// neighbours of `j` (itself included) in `vertex_row_idx`.
+    vertex_col_ptr: Vec<usize>,
+    vertex_row_idx: Vec<usize>,
+    /// The expanded pattern handed to faer.
+    pub symbolic: SymbolicSparseColMat<usize>,
+    /// For face `f` and ordered corner pair `(a, b)`, `face_slots[f][3a + b]` is the base index
+    /// of the block at row vertex `tri[a]`, column vertex `tri[b]`.
+    pub face_slots: Vec<[usize; 9]>,
+}
+
+impl BlockPattern {
+    pub fn new(n_vertices: usize, triangles: &[[usize; 3]], block: usize) -> Self {
+        // Neighbour lists (sorted, deduplicated, diagonal included).
+        let mut neighbours: Vec<Vec<usize>> = (0..n_vertices).map(|v| vec![v]).collect();
+        for tri in triangles {
+            for a in 0..3 {
+                for b in 0..3 {
+                    if a != b {
+                        neighbours[tri[b]].push(tri[a]);
+                    }
+                }
+            }
+        }
+        let mut vertex_col_ptr = Vec::with_capacity(n_vertices + 1);
+        let mut vertex_row_idx = Vec::new();
+        vertex_col_ptr.push(0);
+        for list in &mut neighbours {
+            list.sort_unstable();
+            list.dedup();
+            vertex_row_idx.extend_from_slice(list);
+            vertex_col_ptr.push(vertex_row_idx.len());
+        }
+        drop(neighbours);
+
+        let b = block;
+        let n = b * n_vertices;
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::with_capacity(b * b * vertex_row_idx.len());
+        col_ptr.push(0);
+        for j in 0..n_vertices {
+            let rows = &vertex_row_idx[vertex_col_ptr[j]..vertex_col_ptr[j + 1]];
+            for _rj in 0..b {
+                for &i in rows {
+                    for ri in 0..b {
+                        row_idx.push(b * i + ri);
+                    }
+                }
+                col_ptr.push(row_idx.len());
+            }
+        }
+        let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+
+        let mut pattern = BlockPattern {
+            block,
+            vertex_col_ptr,
+            vertex_row_idx,
+            symbolic,
+            face_slots: Vec::with_capacity(triangles.len()),
+        };
+        for tri in triangles {
+            let mut slots = [0usize; 9];
+            for a in 0..3 {
+                for bb in 0..3 {
+                    slots[3 * a + bb] = pattern.block_slot(tri[a], tri[bb]);
+                }
+            }
+            pattern.face_slots.push(slots);
+        }
+        pattern
+    }
+
+    /// Base index of the block at row vertex `i`, column vertex `j` (which must be adjacent).
+    fn block_slot(&self, i: usize, j: usize) -> usize {
+        let (start, end) = (self.vertex_col_ptr[j], self.vertex_col_ptr[j + 1]);
+        let k = self.vertex_row_idx[start..end]
+            .binary_search(&i)
+            .expect("every face's vertex pairs are in the pattern by construction");
+        self.block * self.block * start + self.block * k
+    }
+
+    /// Base index of the diagonal block of vertex `v`.
+    pub fn diagonal_slot(&self, v: usize) -> usize {
+        self.block_slot(v, v)
+    }
+
+    /// Index of entry `(ri, rj)` of the block whose base index is `slot` in column vertex `j`.
+    #[inline]
+    pub fn entry(&self, slot: usize, j: usize, ri: usize, rj: usize) -> usize {
+        let degree = self.vertex_col_ptr[j + 1] - self.vertex_col_ptr[j];
+        slot + rj * self.block * degree + ri
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.symbolic.row_idx().len()
+    }
+
+    pub fn dim(&self) -> usize {
+        self.symbolic.nrows()
+    }
+
+    /// A fill-reducing ordering: AMD on the vertex graph, expanded to blocks. Same fill as AMD
+    /// on the expanded pattern at half the symbolic cost (SOLVER.md).
+    fn block_amd(&self) -> Result<(Vec<usize>, Vec<usize>), faer::sparse::FaerError> {
+        let nv = self.vertex_col_ptr.len() - 1;
+        let vertex_graph = faer::sparse::SymbolicSparseColMatRef::new_checked(
+            nv,
+            nv,
+            &self.vertex_col_ptr,
+            None,
+            &self.vertex_row_idx,
+        );
+        let mut fwd = vec![0usize; nv];
+        let mut inv = vec![0usize; nv];
+        let mut mem =
+            MemBuffer::try_new(amd::order_scratch::<usize>(nv, self.vertex_row_idx.len()))
+                .map_err(|_| faer::sparse::FaerError::OutOfMemory)?;
+        amd::order(
+            &mut fwd,
+            &mut inv,
+            vertex_graph,
+            amd::Control::default(),
+            MemStack::new(&mut mem),
+        )?;
+        let b = self.block;
+        let mut fwd_b = vec![0usize; b * nv];
+        let mut inv_b = vec![0usize; b * nv];
+        for k in 0..nv {
+            for r in 0..b {
+                fwd_b[b * k + r] = b * fwd[k] + r;
+                inv_b[b * fwd[k] + r] = b * k + r;
+            }
+        }
+        Ok((fwd_b, inv_b))
+    }
+}
+
+/// Why a factorization failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolverError {
+    #[error("symbolic analysis failed: {0}")]
+    Symbolic(String),
+    #[error("matrix is not numerically positive definite ({0})")]
+    NotPositiveDefinite(String),
+    #[error("out of memory for the factorization workspace")]
+    OutOfMemory,
+}
+
+/// A supernodal LLᴴ factorization whose symbolic part and workspaces are built once.
+pub struct Cholesky<T> {
+    symbolic: SymbolicCholesky<usize>,
+    factor: Vec<T>,
+    factor_mem: MemBuffer,
+    solve_mem: MemBuffer,
+    nrhs: usize,
+}
+
+impl<T: ComplexField + Copy> Cholesky<T> {
+    /// Symbolic analysis of `pattern` for up to `nrhs` right-hand sides per solve.
+    pub fn analyze(pattern: &BlockPattern, nrhs: usize) -> Result<Self, SolverError> {
+        let (fwd, inv) = pattern
+            .block_amd()
+            .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
+        let perm = PermRef::new_checked(&fwd, &inv, pattern.dim());
+        let symbolic = factorize_symbolic_cholesky(
+            pattern.symbolic.as_ref(),
+            Side::Lower,
+            SymmetricOrdering::Custom(perm),
+            CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold: SupernodalThreshold::AUTO,
+                ..Default::default()
+            },
+        )
+        .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
+        let factor_mem = MemBuffer::try_new(
+            symbolic.factorize_numeric_llt_scratch::<T>(Par::Seq, Default::default()),
+        )
+        .map_err(|_| SolverError::OutOfMemory)?;
+        let solve_mem = MemBuffer::try_new(symbolic.solve_in_place_scratch::<T>(nrhs, Par::Seq))
+            .map_err(|_| SolverError::OutOfMemory)?;
+        let mut factor = Vec::new();
+        factor
+            .try_reserve_exact(symbolic.len_val())
+            .map_err(|_| SolverError::OutOfMemory)?;
+        factor.resize(symbolic.len_val(), T::zero_impl());
+        Ok(Cholesky {
+            symbolic,
+            factor,
+            factor_mem,
+            solve_mem,
+            nrhs,
+        })
+    }
+
+    /// Numeric refactorization in place with new `values` on the fixed pattern.
+    pub fn factorize(&mut self, pattern: &BlockPattern, values: &[T]) -> Result<(), SolverError> {
+        let a = SparseColMatRef::new(pattern.symbolic.as_ref(), values);
+        self.symbolic
+            .factorize_numeric_llt(
+                &mut self.factor,
+                a,
+                Side::Lower,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut self.factor_mem),
+                Default::default(),
+            )
+            .map(|_| ())
+            .map_err(|e| SolverError::NotPositiveDefinite(format!("{e:?}")))
+    }
+
+    /// Solve `A x = rhs` in place for a column-major `n × k` block of right-hand sides, using
+    /// the last successful [`Cholesky::factorize`].
+    pub fn solve_in_place(&mut self, rhs: &mut [T], k: usize) {
+        debug_assert!(k <= self.nrhs);
+        let n = self.symbolic.nrows();
+        let llt = LltRef::new(&self.symbolic, &self.factor);
+        let rhs = MatMut::from_column_major_slice_mut(rhs, n, k);
+        // Par::Seq: parallel solves are several times slower on this class of machine
+        // (SOLVER.md), and the library owns no threads.
+        llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(&mut self.solve_mem));
+    }
+
+    /// Entries of the factor (supernodal storage, explicit zeros included).
+    pub fn factor_len(&self) -> usize {
+        self.factor.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate::icosphere;
+
+    #[test]
+    fn pattern_holds_every_face_pair_once_per_block_entry() {
+        let mesh = icosphere(1);
+        for block in [1, 2] {
+            let p = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, block);
+            // V + 2E vertex-level entries (geometry-central's check), times block².
+            let e = 3 * mesh.face_count() / 2;
+            assert_eq!(p.nnz(), block * block * (mesh.vertex_count() + 2 * e));
+            for (tri, slots) in mesh.triangles.iter().zip(&p.face_slots) {
+                for a in 0..3 {
+                    for b in 0..3 {
+                        for ri in 0..block {
+                            for rj in 0..block {
+                                let idx = p.entry(slots[3 * a + b], tri[b], ri, rj);
+                                assert_eq!(p.symbolic.row_idx()[idx], block * tri[a] + ri);
+                                let col = block * tri[b] + rj;
+                                let cp = p.symbolic.col_ptr();
+                                assert!(cp[col] <= idx && idx < cp[col + 1]);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn solves_a_shifted_laplacian_to_small_residual() {
+        let mesh = icosphere(2);
+        let n = mesh.vertex_count();
+        let p = BlockPattern::new(n, &mesh.triangles, 1);
+        let cot = crate::geometry::corner_cotangents(&mesh);
+        let mut values = vec![0.0; p.nnz()];
+        for ((tri, cots), slots) in mesh.triangles.iter().zip(&cot).zip(&p.face_slots) {
+            for c in 0..3 {
+                let (a, b) = ((c + 1) % 3, (c + 2) % 3);
+                let w = 0.5 * cots[c];
+                values[p.entry(slots[3 * a + b], tri[b], 0, 0)] -= w;
+                values[p.entry(slots[3 * b + a], tri[a], 0, 0)] -= w;
+                values[p.entry(slots[3 * a + a], tri[a], 0, 0)] += w;
+                values[p.entry(slots[3 * b + b], tri[b], 0, 0)] += w;
+            }
+        }
+        for v in 0..n {
+            values[p.entry(p.diagonal_slot(v), v, 0, 0)] += 1.0;
+        }
+        let mut chol = Cholesky::<f64>::analyze(&p, 1).expect("analyze");
+        chol.factorize(&p, &values).expect("factorize");
+        let b: Vec<f64> = (0..n).map(|i| (i as f64 * 0.37).sin()).collect();
+        let mut x = b.clone();
+        chol.solve_in_place(&mut x, 1);
+        let a = SparseColMatRef::new(p.symbolic.as_ref(), &values);
+        let mut residual = 0.0f64;
+        for j in 0..n {
+            let (start, end) = (a.col_ptr()[j], a.col_ptr()[j + 1]);
+            let mut s = 0.0;
+            for idx in start..end {
+                s += values[idx] * x[a.row_idx()[idx]];
+            }
+            residual = residual.max((s - b[j]).abs());
+        }
+        assert!(residual < 1e-12, "residual {residual}");
+    }
+}

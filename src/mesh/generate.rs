@@ -1,0 +1,184 @@
+//! Meshes generated in code, for tests and benchmarks that must run without `../shared`.
+
+use super::Mesh;
+use std::collections::HashMap;
+
+/// A unit icosphere: the icosahedron with every triangle split into four `subdivisions` times,
+/// vertices projected onto the unit sphere. Faces wind counter-clockwise seen from outside.
+pub fn icosphere(subdivisions: usize) -> Mesh {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut positions: Vec<[f64; 3]> = [
+        [-1.0, t, 0.0],
+        [1.0, t, 0.0],
+        [-1.0, -t, 0.0],
+        [1.0, -t, 0.0],
+        [0.0, -1.0, t],
+        [0.0, 1.0, t],
+        [0.0, -1.0, -t],
+        [0.0, 1.0, -t],
+        [t, 0.0, -1.0],
+        [t, 0.0, 1.0],
+        [-t, 0.0, -1.0],
+        [-t, 0.0, 1.0],
+    ]
+    .iter()
+    .map(|p| normalize(*p))
+    .collect();
+    let mut triangles: Vec<[usize; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..subdivisions {
+        let mut midpoint: HashMap<(usize, usize), usize> = HashMap::new();
+        let mut next = Vec::with_capacity(triangles.len() * 4);
+        for &[a, b, c] in &triangles {
+            let mut mid = |i: usize, j: usize| -> usize {
+                let key = (i.min(j), i.max(j));
+                *midpoint.entry(key).or_insert_with(|| {
+                    let (p, q) = (positions[i], positions[j]);
+                    positions.push(normalize([p[0] + q[0], p[1] + q[1], p[2] + q[2]]));
+                    positions.len() - 1
+                })
+            };
+            let (ab, bc, ca) = (mid(a, b), mid(b, c), mid(c, a));
+            next.extend_from_slice(&[[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        triangles = next;
+    }
+    Mesh {
+        positions,
+        triangles,
+    }
+}
+
+/// An icosphere pushed onto the radial profile `r = 1 + amplitude · s(p)`, where `s` is a sum of
+/// smooth bumps of several frequencies: a genus-0 surface with a lot of Willmore energy.
+pub fn bumpy_sphere(subdivisions: usize, amplitude: f64) -> Mesh {
+    let mut mesh = icosphere(subdivisions);
+    for p in &mut mesh.positions {
+        let [x, y, z] = *p;
+        let s = (3.0 * x + 1.0).sin() * (2.0 * y).sin() * (4.0 * z).cos()
+            + 0.5 * (7.0 * y + 0.3).sin() * (5.0 * z).cos();
+        let r = 1.0 + amplitude * s;
+        *p = [x * r, y * r, z * r];
+    }
+    mesh
+}
+
+/// A torus of revolution around the z axis with tube radius `minor` and centre radius
+/// `major`, sampled on a `u_segments × v_segments` grid and split into right triangles.
+pub fn torus(major: f64, minor: f64, u_segments: usize, v_segments: usize) -> Mesh {
+    let mut positions = Vec::with_capacity(u_segments * v_segments);
+    for i in 0..u_segments {
+        let u = 2.0 * std::f64::consts::PI * i as f64 / u_segments as f64;
+        for j in 0..v_segments {
+            let v = 2.0 * std::f64::consts::PI * j as f64 / v_segments as f64;
+            let r = major + minor * v.cos();
+            positions.push([r * u.cos(), r * u.sin(), minor * v.sin()]);
+        }
+    }
+    let id = |i: usize, j: usize| (i % u_segments) * v_segments + (j % v_segments);
+    let mut triangles = Vec::with_capacity(2 * u_segments * v_segments);
+    for i in 0..u_segments {
+        for j in 0..v_segments {
+            let (a, b, c, d) = (id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1));
+            triangles.push([a, b, c]);
+            triangles.push([a, c, d]);
+        }
+    }
+    Mesh {
+        positions,
+        triangles,
+    }
+}
+
+/// A deliberately irregular sphere: an icosphere whose vertices slide along the surface toward
+/// a few cluster centres, so triangle sizes vary by orders of magnitude (paper Figure 18).
+/// Deterministic for a given `seed`.
+pub fn irregular_sphere(subdivisions: usize, seed: u64) -> Mesh {
+    let mut mesh = icosphere(subdivisions);
+    let mut rng = SplitMix64(seed);
+    let centres: Vec<[f64; 3]> = (0..6)
+        .map(|_| normalize([rng.signed(), rng.signed(), rng.signed()]))
+        .collect();
+    for p in &mut mesh.positions {
+        let mut q = *p;
+        for c in &centres {
+            let d2 = (q[0] - c[0]).powi(2) + (q[1] - c[1]).powi(2) + (q[2] - c[2]).powi(2);
+            // Pull toward the centre: strong near it, vanishing far away, never crossing it.
+            let w = 0.85 * (-d2 / 0.08).exp();
+            q = [
+                q[0] + w * (c[0] - q[0]),
+                q[1] + w * (c[1] - q[1]),
+                q[2] + w * (c[2] - q[2]),
+            ];
+        }
+        let n = normalize(q);
+        let r = 1.0 + 0.08 * (5.0 * n[0]).sin() * (4.0 * n[1]).cos();
+        *p = [n[0] * r, n[1] * r, n[2] * r];
+    }
+    mesh
+}
+
+fn normalize(p: [f64; 3]) -> [f64; 3] {
+    let n = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+    [p[0] / n, p[1] / n, p[2] / n]
+}
+
+/// A tiny deterministic PRNG (SplitMix64) so generated meshes are reproducible without a
+/// dependency.
+pub(crate) struct SplitMix64(pub u64);
+
+impl SplitMix64 {
+    pub(crate) fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [-1, 1).
+    pub(crate) fn signed(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn icosphere_counts_follow_euler() {
+        for s in 0..4 {
+            let m = icosphere(s);
+            let f = 20 * 4usize.pow(s as u32);
+            assert_eq!(m.triangles.len(), f);
+            assert_eq!(m.positions.len(), f / 2 + 2); // V - E + F = 2 with E = 3F/2
+        }
+    }
+
+    #[test]
+    fn torus_has_euler_characteristic_zero() {
+        let m = torus(2.0, 0.7, 24, 12);
+        assert_eq!(m.positions.len() * 2, m.triangles.len()); // V - 3F/2 + F = 0
+    }
+}
