@@ -354,6 +354,27 @@ fn closed_form_projection_matches_modified_gram_schmidt() {
 }
 
 #[test]
+fn smallest_curves_are_fixed_points() {
+    // A segment has no interior vertex, so nothing to flow. A closed triangle has 3 vertices
+    // and 3 independent constraints {1, fˣ, fʸ}: the projected direction is 0, so any
+    // triangle, even a scalene one, stays put.
+    for curve in [
+        Curve::new(vec![[0.0, 0.0], [2.0, 1.0]], false).expect("valid"),
+        Curve::new(vec![[0.0, 0.0], [3.0, 0.0], [0.5, 1.0]], true).expect("valid"),
+    ] {
+        let before = curve.points.clone();
+        let mut f = flow(curve, 0.5);
+        for _ in 0..3 {
+            let m = f.step();
+            assert!(m.max_edge_length_distortion < 1e-12, "{m:?}");
+        }
+        for (a, b) in f.points().iter().zip(&before) {
+            assert!((a[0] - b[0]).hypot(a[1] - b[1]) < 1e-12, "{a:?} vs {b:?}");
+        }
+    }
+}
+
+#[test]
 fn discrete_curvature_follows_the_paper() {
     // A unit square traversed counter-clockwise turns by π/2 at each corner; ℓ* = 1.
     let square =
