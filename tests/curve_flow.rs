@@ -2,8 +2,9 @@
 
 use std::f64::consts::{PI, TAU};
 use willow::flow::curve::{
-    dual_inner, dual_lengths, edge_lengths, project_out_closure_constraints, turning_angles,
-    ConstraintBasis, Curve, CurveError, CurveFlow, CurveParams, CurvePoisson,
+    dual_inner, dual_lengths, edge_lengths, project_out_closure_constraints, rotate_edges,
+    tangent_angles, tangents, turning_angles, ConstraintBasis, Curve, CurveError, CurveFlow,
+    CurveParams, CurvePoisson,
 };
 
 /// Deterministic xorshift64* in [−1, 1): the tests need reproducible jitter, not a crate.
@@ -371,6 +372,86 @@ fn smallest_curves_are_fixed_points() {
         for (a, b) in f.points().iter().zip(&before) {
             assert!((a[0] - b[0]).hypot(a[1] - b[1]) < 1e-12, "{a:?} vs {b:?}");
         }
+    }
+}
+
+#[test]
+fn a_step_removes_the_mean_translation_and_rotation() {
+    // §5.1: "we simply remove the mean change in position and angle". The vertex centroid is
+    // kept exactly; the length-weighted mean change of edge angle is zero for the target
+    // tangents, and the Poisson projection's own rotations (of the order of the length
+    // distortion, 2e-3 here) barely move it.
+    for (curve, tau) in [(noisy_closed_curve(), 0.5), (double_loop(), 0.3)] {
+        let before = curve.clone();
+        let mut f = flow(curve, tau);
+        f.step();
+        let after = f.curve();
+        let (ell_old, ell_new) = (before.edge_lengths(), after.edge_lengths());
+        let m = ell_old.len();
+        let mut weighted = 0.0;
+        for k in 0..m {
+            let j = (k + 1) % m;
+            let a = [
+                before.points[j][0] - before.points[k][0],
+                before.points[j][1] - before.points[k][1],
+            ];
+            let b = [
+                after.points[j][0] - after.points[k][0],
+                after.points[j][1] - after.points[k][1],
+            ];
+            let turn = (a[0] * b[1] - a[1] * b[0]).atan2(a[0] * b[0] + a[1] * b[1]);
+            weighted += f.edge_lengths()[k] * turn;
+        }
+        let mean_turn = weighted / ell_old.iter().sum::<f64>();
+        let changed = ell_old.iter().zip(&ell_new).any(|(a, b)| a != b);
+        assert!(changed, "the step did something");
+        assert!(mean_turn.abs() < 1e-3, "mean rotation {mean_turn}");
+    }
+}
+
+#[test]
+fn rotating_edges_equals_the_cumulative_angle_tangents() {
+    // The flow rotates current edges by Δ_k; §5.2 writes T̃_k = ℓ_k (cos θ_k, sin θ_k) with the
+    // cumulative θ. Same vectors, for small and large Δ (both code paths).
+    let curve = noisy_closed_curve();
+    let n = curve.points.len();
+    let ell: Vec<f64> = (0..n).map(|k| 0.01 + 0.001 * (k % 7) as f64).collect();
+    let delta: Vec<f64> = (0..n)
+        .map(|k| {
+            if k % 5 == 0 {
+                2.5
+            } else {
+                0.3 * (k as f64).sin()
+            }
+        })
+        .collect();
+    let mut rotated = vec![[0.0; 2]; n];
+    rotate_edges(&curve.points, &delta, &ell, &mut rotated);
+    // θ_k = arg e_k + Δ_k, built the §5.2 way: θ_0 plus the sum of turning angles, with the
+    // Δ differences folded into the "curvature" so that θ_k − θ_{k−1} = φ_k + Δ_k − Δ_{k−1}.
+    let mut phi = vec![0.0; n];
+    turning_angles(&curve.points, true, &mut phi);
+    let mut dual = vec![0.0; n];
+    dual_lengths(&curve.edge_lengths(), true, &mut dual);
+    let kappa: Vec<f64> = (0..n)
+        .map(|k| {
+            let step = if k > 0 { delta[k] - delta[k - 1] } else { 0.0 };
+            (phi[k] + step) / dual[k]
+        })
+        .collect();
+    let e0 = [
+        curve.points[1][0] - curve.points[0][0],
+        curve.points[1][1] - curve.points[0][1],
+    ];
+    let mut theta = vec![0.0; n];
+    tangent_angles(e0[1].atan2(e0[0]) + delta[0], &kappa, &dual, &mut theta);
+    let mut direct = vec![[0.0; 2]; n];
+    tangents(&theta, &ell, &mut direct);
+    for (k, (a, b)) in rotated.iter().zip(&direct).enumerate() {
+        assert!(
+            (a[0] - b[0]).hypot(a[1] - b[1]) < 1e-12 * ell[k],
+            "edge {k}: {a:?} vs {b:?}"
+        );
     }
 }
 

@@ -1062,6 +1062,80 @@ fn atan_small(x: f64) -> f64 {
     x * (1.0 - x2 * p)
 }
 
+/// `(sin x, cos x)` by their Taylor series through x¹⁷ and x¹⁶, for |x| ≤ π/4, where the first
+/// omitted terms are below 1e-19. No branch, so a loop of it vectorizes.
+#[inline(always)]
+fn sin_cos_small(x: f64) -> (f64, f64) {
+    // (−1)ʲ/(2j + 1)! and (−1)ʲ/(2j)!, j = 1..=8.
+    const SIN: [f64; 8] = [
+        -1.0 / 6.0,
+        1.0 / 120.0,
+        -1.0 / 5040.0,
+        1.0 / 362_880.0,
+        -1.0 / 39_916_800.0,
+        1.0 / 6_227_020_800.0,
+        -1.0 / 1_307_674_368_000.0,
+        1.0 / 355_687_428_096_000.0,
+    ];
+    const COS: [f64; 8] = [
+        -1.0 / 2.0,
+        1.0 / 24.0,
+        -1.0 / 720.0,
+        1.0 / 40_320.0,
+        -1.0 / 3_628_800.0,
+        1.0 / 479_001_600.0,
+        -1.0 / 87_178_291_200.0,
+        1.0 / 20_922_789_888_000.0,
+    ];
+    let z = x * x;
+    let (mut s, mut c) = (SIN[7], COS[7]);
+    for j in (0..7).rev() {
+        s = SIN[j] + z * s;
+        c = COS[j] + z * c;
+    }
+    (x + x * z * s, 1.0 + z * c)
+}
+
+/// Largest |x| for which [`sin_cos_small`] is used.
+const SIN_COS_SMALL_MAX: f64 = std::f64::consts::FRAC_PI_4;
+
+/// New tangents `T̃_k = ℓ_k R(Δ_k) e_k/|e_k|`: each current edge, rotated by its change of
+/// angle Δ_k and scaled to its input length ℓ_k. Equal to [`tangents`] of the §5.2 angles
+/// `θ_k = arg e_k + Δ_k`. A first pass uses [`sin_cos_small`] for every edge; edges with
+/// |Δ_k| > π/4 (common in the first steps of a noisy curve, rare later) are redone with the
+/// library `sin_cos`.
+pub fn rotate_edges(
+    points: &[[f64; 2]],
+    angle_changes: &[f64],
+    edge_lengths: &[f64],
+    out: &mut [[f64; 2]],
+) {
+    let m = out.len().min(angle_changes.len()).min(edge_lengths.len());
+    let (delta, ell, out) = (&angle_changes[..m], &edge_lengths[..m], &mut out[..m]);
+    let rotate = |e: [f64; 2], l: f64, (s, c): (f64, f64)| {
+        let scale = l / (e[0] * e[0] + e[1] * e[1]).sqrt();
+        [scale * (c * e[0] - s * e[1]), scale * (s * e[0] + c * e[1])]
+    };
+    let mut all_small = true;
+    for (k, (t, w)) in out.iter_mut().zip(points.windows(2)).enumerate() {
+        all_small &= delta[k].abs() <= SIN_COS_SMALL_MAX;
+        let e = [w[1][0] - w[0][0], w[1][1] - w[0][1]];
+        *t = rotate(e, ell[k], sin_cos_small(delta[k]));
+    }
+    // The closing edge of a closed curve (windows stop at the last point).
+    if m == points.len() && m > 0 {
+        let e = edge_vector(points, m - 1);
+        out[m - 1] = rotate(e, ell[m - 1], delta[m - 1].sin_cos());
+    }
+    if !all_small {
+        for (k, t) in out.iter_mut().enumerate() {
+            if delta[k].abs() > SIN_COS_SMALL_MAX {
+                *t = rotate(edge_vector(points, k), ell[k], delta[k].sin_cos());
+            }
+        }
+    }
+}
+
 /// Largest |x| = |tan α| for which [`atan_small`] is used.
 const ATAN_SMALL_MAX: f64 = 0.0625;
 
@@ -1254,6 +1328,8 @@ pub struct CurveFlow {
     inv_edge_lengths: Vec<f64>,
     /// `ℓ*` from the input lengths.
     dual_lengths: Vec<f64>,
+    /// `1/ℓ*`.
+    inv_dual_lengths: Vec<f64>,
     /// `Σ ℓ`, the input length.
     length: f64,
     /// `R_i = Σ_{k≥i} ℓ_k`, for the mean change of angle (index 0 unused).
@@ -1274,6 +1350,7 @@ pub struct CurveFlow {
     tangents: Vec<[f64; 2]>,
     rhs: Vec<[f64; 2]>,
     /// The next positions; swapped with `curve.points` at the end of a step.
+    /// (`theta` holds the change of each edge angle, Δ_k, during a step.)
     next: Vec<[f64; 2]>,
     initial: CurveStepMetrics,
     last: CurveStepMetrics,
@@ -1303,6 +1380,10 @@ impl CurveFlow {
         dual_lengths(&edge_lengths_buf, curve.closed, &mut dual);
         let poisson = CurvePoisson::new(&edge_lengths_buf, curve.closed)?;
         let length: f64 = edge_lengths_buf.iter().sum();
+        let mut inv_dual_lengths = zeroed(n)?;
+        for (inv, d) in inv_dual_lengths.iter_mut().zip(&dual) {
+            *inv = 1.0 / d;
+        }
         let mut suffix_lengths = zeroed(m)?;
         let mut suffix = 0.0;
         for (r, l) in suffix_lengths.iter_mut().zip(&edge_lengths_buf).rev() {
@@ -1330,6 +1411,7 @@ impl CurveFlow {
             dual_lengths: dual,
             poisson,
             length,
+            inv_dual_lengths,
             suffix_lengths,
             turning,
             kappa: zeroed(n)?,
@@ -1355,8 +1437,8 @@ impl CurveFlow {
         let closed = self.curve.closed;
         let n = self.curve.points.len();
 
-        // I. Curvature of the current curve; `self.turning` is already up to date.
-        curvature(&self.turning, &self.dual_lengths, &mut self.kappa);
+        // I. Curvature of the current curve: `measure`, at the end of the last step (or in
+        // `new`), left it in `self.kappa`.
 
         // II. Flow direction v = −2κ (§4 eq. 1).
         for (v, k) in self.velocity.iter_mut().zip(&self.kappa) {
@@ -1375,31 +1457,40 @@ impl CurveFlow {
             *k += self.tau * v;
         }
 
-        // VI. Tangent angles by the cumulative sum of §5.2, starting from the current angle of
-        // edge 0, then remove the mean change of angle (§5.1), length-weighted over edges.
-        // The current angles are θ_0 + Σ φ_i, so the change of edge k is Σ_{i≤k} (ℓ*_i κ̃_i − φ_i).
-        // Swapping the sums, `Σ_k ℓ_k Σ_{1≤i≤k} δ_i = Σ_i δ_i R_i` with the suffix lengths
-        // `R_i = Σ_{k≥i} ℓ_k` (fixed, since ℓ is): one dot product instead of a second
-        // cumulative sum. The shift goes into θ_0.
-        let e0 = edge_vector(&self.curve.points, 0);
-        let theta0 = e0[1].atan2(e0[0]);
+        // VI. New tangents. §5.2 sums θ_k = θ_0 + Σ_{i≤k} ℓ*_i κ̃_i ([`tangent_angles`]) and
+        // sets T̃_k = ℓ_k (cos θ_k, sin θ_k) ([`tangents`]). The current edge angles are the
+        // same sum over the current turning angles φ_i, so θ_k is the current angle plus the
+        // change Δ_k = Σ_{1≤i≤k} δ_i, δ_i = ℓ*_i κ̃_i − φ_i, and we rotate each current unit
+        // edge by Δ_k ([`rotate_edges`]): the same tangents, with a short series instead of
+        // sin_cos once the flow is near its minimum and the changes are small.
+        //
+        // §5.1: remove the mean change of angle, length-weighted over edges. Swapping sums,
+        // `Σ_k ℓ_k Δ_k = Σ_{i≥1} δ_i R_i` with the suffix lengths `R_i = Σ_{k≥i} ℓ_k` (fixed,
+        // since ℓ is): one dot product. (Vertex 0 does not enter: for a closed curve its turn
+        // is the closing one.)
         let m = self.theta.len();
         let mean_change = {
             let (d, k, phi, r) = (
-                &self.dual_lengths[..m],
-                &self.kappa[..m],
-                &self.turning[..m],
-                &self.suffix_lengths[..m],
+                &self.dual_lengths[1..m],
+                &self.kappa[1..m],
+                &self.turning[1..m],
+                &self.suffix_lengths[1..m],
             );
-            sum4(m, |i| (d[i] * k[i] - phi[i]) * r[i]) / self.length
+            sum4(m - 1, |i| (d[i] * k[i] - phi[i]) * r[i]) / self.length
         };
-        tangent_angles(
-            theta0 - mean_change,
-            &self.kappa,
-            &self.dual_lengths,
-            &mut self.theta,
+        let mut change = -mean_change;
+        for (k, delta) in self.theta.iter_mut().enumerate() {
+            if k > 0 {
+                change += self.dual_lengths[k] * self.kappa[k] - self.turning[k];
+            }
+            *delta = change;
+        }
+        rotate_edges(
+            &self.curve.points,
+            &self.theta,
+            &self.edge_lengths,
+            &mut self.tangents,
         );
-        tangents(&self.theta, &self.edge_lengths, &mut self.tangents);
         let closure_gap = if closed {
             let t = &self.tangents[..];
             let gap_x = sum4(t.len(), |i| t[i][0]);
@@ -1480,7 +1571,16 @@ impl CurveFlow {
         poisson_residual: f64,
         step_ms: f64,
     ) -> CurveStepMetrics {
-        curvature(&self.turning, &self.dual_lengths, &mut self.kappa);
+        // κ = φ/ℓ* as in [`curvature`], by a multiplication: a division per vertex is the
+        // slowest arithmetic left in the step.
+        for ((k, phi), inv) in self
+            .kappa
+            .iter_mut()
+            .zip(&self.turning)
+            .zip(&self.inv_dual_lengths)
+        {
+            *k = phi * inv;
+        }
         let current = &mut self.current_lengths;
         edge_lengths(&self.curve.points, self.curve.closed, current);
         let m = current.len();
