@@ -1104,9 +1104,9 @@ const SIN_COS_SMALL_MAX: f64 = std::f64::consts::FRAC_PI_4;
 
 /// New tangents `T̃_k = ℓ_k R(Δ_k) e_k/|e_k|`: each current edge, rotated by its change of
 /// angle Δ_k and scaled to its input length ℓ_k. Equal to [`tangents`] of the §5.2 angles
-/// `θ_k = arg e_k + Δ_k`. A first pass uses Taylor series of sin and cos for every edge; edges with
-/// |Δ_k| > π/4 (common in the first steps of a noisy curve, rare later) are redone with the
-/// library `sin_cos`.
+/// `θ_k = arg e_k + Δ_k`. A first pass uses Taylor series of sin and cos for every edge;
+/// edges with |Δ_k| > π/4 (common in the first steps of a noisy curve, rare later) are redone
+/// with the library `sin_cos`.
 pub fn rotate_edges(
     points: &[[f64; 2]],
     angle_changes: &[f64],
