@@ -162,6 +162,10 @@ pub enum MeshError {
     #[error("truncated or out-of-bounds buffer data: {detail}")]
     TruncatedBuffer { detail: String },
 
+    /// New positions given for writing do not match the surface's vertex count.
+    #[error("expected {expected} positions (one per welded vertex), got {got}")]
+    PositionCount { expected: usize, got: usize },
+
     /// Valid but outside what Willow handles (e.g. sparse or quantized positions).
     #[error("unsupported: {detail}")]
     Unsupported { detail: String },
@@ -185,6 +189,7 @@ impl MeshError {
             MeshError::Parse { .. } => "parse_error",
             MeshError::ExternalUri { .. } => "external_uri",
             MeshError::TruncatedBuffer { .. } => "truncated_buffer",
+            MeshError::PositionCount { .. } => "position_count_mismatch",
             MeshError::Unsupported { .. } => "unsupported",
         }
     }

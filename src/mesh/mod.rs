@@ -6,6 +6,7 @@
 
 pub mod error;
 pub mod generate;
+pub mod io;
 pub mod topology;
 mod validate;
 

@@ -127,3 +127,121 @@ pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
         None
     }
 }
+
+/// A 1×1 RGBA PNG: a real image so the glTF validator accepts the embedded texture.
+pub const TINY_PNG_BASE64: &str =
+    "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mNk+M9QDwADhgGAWjR9awAAAABJRU5ErkJggg==";
+
+/// Assembles a GLB from a JSON document and a BIN chunk (padding both to 4 bytes).
+pub fn glb_bytes(json: &serde_json::Value, bin: &[u8]) -> Vec<u8> {
+    let mut j = serde_json::to_vec(json).unwrap();
+    while j.len() % 4 != 0 {
+        j.push(b' ');
+    }
+    let mut b = bin.to_vec();
+    while b.len() % 4 != 0 {
+        b.push(0);
+    }
+    let total = 12 + 8 + j.len() + 8 + b.len();
+    let mut out = Vec::new();
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&(total as u32).to_le_bytes());
+    out.extend_from_slice(&(j.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&j);
+    out.extend_from_slice(&(b.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&b);
+    out
+}
+
+/// A textured unit cube as glTF: 24 vertices (4 per face, split at every UV seam and crease),
+/// flat normals, u16 indices, an embedded PNG, and a two-level node hierarchy: the parent
+/// scales by 2 and translates by (10, 0, 0), the child (holding the mesh) scales by 0.5 along z.
+/// Returns (json, bin, local positions, image bytes).
+pub fn textured_cube_gltf() -> (serde_json::Value, Vec<u8>, Vec<[f32; 3]>, Vec<u8>) {
+    use base64::Engine as _;
+    let faces: [([f32; 3], [f32; 3], [f32; 3]); 6] = [
+        // (normal, u axis, v axis): corners are n/2 ± u/2 ± v/2, wound counter-clockwise.
+        ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]),
+        ([-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]),
+        ([0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]),
+        ([0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
+        ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]),
+        ([0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]),
+    ];
+    let mut pos = Vec::new();
+    let mut nrm = Vec::new();
+    let mut uv = Vec::new();
+    let mut idx: Vec<u16> = Vec::new();
+    for (f, (n, u, v)) in faces.iter().enumerate() {
+        let base = pos.len() as u16;
+        for (su, sv) in [(-1.0f32, -1.0f32), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+            pos.push([0, 1, 2].map(|k| 0.5 * n[k] + 0.5 * su * u[k] + 0.5 * sv * v[k]));
+            nrm.push(*n);
+            uv.push([(f as f32 + (su + 1.0) / 2.0) / 6.0, (1.0 - sv) / 2.0]);
+        }
+        idx.extend_from_slice(&[base, base + 1, base + 2, base, base + 2, base + 3]);
+    }
+    let png = base64::engine::general_purpose::STANDARD
+        .decode(TINY_PNG_BASE64)
+        .unwrap();
+    let mut bin = Vec::new();
+    let mut views = Vec::new();
+    let mut push = |bin: &mut Vec<u8>, data: Vec<u8>, target: Option<u32>| {
+        while bin.len() % 4 != 0 {
+            bin.push(0);
+        }
+        let mut v =
+            serde_json::json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": data.len()});
+        if let Some(t) = target {
+            v["target"] = serde_json::json!(t);
+        }
+        views.push(v);
+        bin.extend_from_slice(&data);
+        views.len() - 1
+    };
+    let f32s =
+        |v: &[[f32; 3]]| -> Vec<u8> { v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect() };
+    let vp = push(&mut bin, f32s(&pos), Some(34962));
+    let vn = push(&mut bin, f32s(&nrm), Some(34962));
+    let vt = push(
+        &mut bin,
+        uv.iter().flatten().flat_map(|x| x.to_le_bytes()).collect(),
+        Some(34962),
+    );
+    let vi = push(
+        &mut bin,
+        idx.iter().flat_map(|x| x.to_le_bytes()).collect(),
+        Some(34963),
+    );
+    let vimg = push(&mut bin, png.clone(), None);
+    let json = serde_json::json!({
+        "asset": {"version": "2.0", "generator": "willow test"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [
+            {"name": "parent", "scale": [2.0, 2.0, 2.0], "translation": [10.0, 0.0, 0.0], "children": [1]},
+            {"name": "child", "mesh": 0, "scale": [1.0, 1.0, 0.5]}
+        ],
+        "meshes": [{"primitives": [{
+            "attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
+            "indices": 3, "material": 0, "mode": 4
+        }]}],
+        "materials": [{"name": "checker", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"sampler": 0, "source": 0}],
+        "samplers": [{"magFilter": 9729, "minFilter": 9987}],
+        "images": [{"bufferView": vimg, "mimeType": "image/png"}],
+        "accessors": [
+            {"bufferView": vp, "componentType": 5126, "count": 24, "type": "VEC3",
+             "min": [-0.5, -0.5, -0.5], "max": [0.5, 0.5, 0.5]},
+            {"bufferView": vn, "componentType": 5126, "count": 24, "type": "VEC3"},
+            {"bufferView": vt, "componentType": 5126, "count": 24, "type": "VEC2"},
+            {"bufferView": vi, "componentType": 5123, "count": 36, "type": "SCALAR"}
+        ],
+        "bufferViews": views,
+        "buffers": [{"byteLength": bin.len()}]
+    });
+    (json, bin, pos, png)
+}

@@ -1,0 +1,567 @@
+//! Reading and writing OBJ, glTF and GLB while keeping everything the flow does not touch.
+//!
+//! An [`Asset`] holds two views of one file:
+//!
+//! - the **file vertices**, as stored: split at UV seams and hard normals, one block per glTF
+//!   POSITION accessor, in the file's local space; and
+//! - the **surface** ([`Asset::surface`]): file vertices welded by exact world-space position
+//!   into one validated, oriented [`Mesh`], which is what the flow moves.
+//!
+//! The map file vertex → welded vertex is kept, so new positions scatter back to every split
+//! copy of a vertex identically and seams never open. Writing replaces positions (and
+//! recomputes normals) but keeps UVs, indices, materials, textures and the node hierarchy.
+//!
+//! Uploads are untrusted: nothing here reads a file or the network, every size is checked
+//! against [`Limits`] before allocation, and every malformed input is a [`MeshError`].
+
+mod gltf;
+mod obj;
+
+use super::{Mesh, MeshError};
+use std::collections::HashMap;
+use std::fmt;
+use std::path::Path;
+
+pub use super::Limits;
+
+/// A mesh file format Willow reads and writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Format {
+    /// Wavefront OBJ (text), with `vt`/`vn` per corner.
+    Obj,
+    /// glTF 2.0 JSON with buffers embedded as base64 `data:` URIs.
+    Gltf,
+    /// glTF 2.0 binary (one JSON chunk, one BIN chunk).
+    Glb,
+}
+
+impl Format {
+    /// The format named by a file's extension (case-insensitive), if any.
+    pub fn from_path(p: &Path) -> Option<Format> {
+        let ext = p.extension()?.to_str()?.to_ascii_lowercase();
+        match ext.as_str() {
+            "obj" => Some(Format::Obj),
+            "gltf" => Some(Format::Gltf),
+            "glb" => Some(Format::Glb),
+            _ => None,
+        }
+    }
+
+    /// The format of a MIME type (parameters such as `; charset=utf-8` are ignored).
+    pub fn from_mime(m: &str) -> Option<Format> {
+        let essence = m.split(';').next()?.trim().to_ascii_lowercase();
+        match essence.as_str() {
+            "model/obj" => Some(Format::Obj),
+            "model/gltf+json" => Some(Format::Gltf),
+            "model/gltf-binary" => Some(Format::Glb),
+            _ => None,
+        }
+    }
+
+    /// The usual file extension, without the dot.
+    pub fn extension(self) -> &'static str {
+        match self {
+            Format::Obj => "obj",
+            Format::Gltf => "gltf",
+            Format::Glb => "glb",
+        }
+    }
+
+    /// The registered MIME type.
+    pub fn mime(self) -> &'static str {
+        match self {
+            Format::Obj => "model/obj",
+            Format::Gltf => "model/gltf+json",
+            Format::Glb => "model/gltf-binary",
+        }
+    }
+}
+
+/// An affine map `p ↦ m·p + t` in f64 (`m` row-major).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Affine {
+    pub(crate) m: [[f64; 3]; 3],
+    pub(crate) t: [f64; 3],
+}
+
+impl Affine {
+    pub(crate) const IDENTITY: Affine = Affine {
+        m: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        t: [0.0; 3],
+    };
+
+    pub(crate) fn apply(&self, p: [f64; 3]) -> [f64; 3] {
+        let m = &self.m;
+        [
+            m[0][0] * p[0] + m[0][1] * p[1] + m[0][2] * p[2] + self.t[0],
+            m[1][0] * p[0] + m[1][1] * p[1] + m[1][2] * p[2] + self.t[1],
+            m[2][0] * p[0] + m[2][1] * p[1] + m[2][2] * p[2] + self.t[2],
+        ]
+    }
+
+    /// `mᵀ·n`: takes a world-space normal back to the local space of `self` (normals move
+    /// with the inverse transpose, so the inverse of that is the transpose).
+    pub(crate) fn transpose_apply(&self, n: [f64; 3]) -> [f64; 3] {
+        let m = &self.m;
+        [
+            m[0][0] * n[0] + m[1][0] * n[1] + m[2][0] * n[2],
+            m[0][1] * n[0] + m[1][1] * n[1] + m[2][1] * n[2],
+            m[0][2] * n[0] + m[1][2] * n[1] + m[2][2] * n[2],
+        ]
+    }
+
+    /// `self ∘ other`.
+    pub(crate) fn then_after(&self, other: &Affine) -> Affine {
+        let (a, b) = (&self.m, &other.m);
+        let mut m = [[0.0; 3]; 3];
+        for (i, row) in m.iter_mut().enumerate() {
+            for (j, x) in row.iter_mut().enumerate() {
+                *x = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+            }
+        }
+        Affine {
+            m,
+            t: self.apply(other.t),
+        }
+    }
+
+    pub(crate) fn determinant(&self) -> f64 {
+        let m = &self.m;
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    }
+
+    /// The inverse map, or `None` when `m` is singular or not finite (a node scaled by zero
+    /// cannot have its transform undone when writing).
+    pub(crate) fn inverse(&self) -> Option<Affine> {
+        let d = self.determinant();
+        if !d.is_finite() || d == 0.0 {
+            return None;
+        }
+        let m = &self.m;
+        let c = |r0: usize, r1: usize, c0: usize, c1: usize| {
+            m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0]
+        };
+        let inv = [
+            [c(1, 2, 1, 2) / d, -c(0, 2, 1, 2) / d, c(0, 1, 1, 2) / d],
+            [-c(1, 2, 0, 2) / d, c(0, 2, 0, 2) / d, -c(0, 1, 0, 2) / d],
+            [c(1, 2, 0, 1) / d, -c(0, 2, 0, 1) / d, c(0, 1, 0, 1) / d],
+        ];
+        let lin = Affine {
+            m: inv,
+            t: [0.0; 3],
+        };
+        let t = lin.apply(self.t);
+        let out = Affine {
+            m: inv,
+            t: [-t[0], -t[1], -t[2]],
+        };
+        out.m
+            .iter()
+            .flatten()
+            .chain(&out.t)
+            .all(|x| x.is_finite())
+            .then_some(out)
+    }
+}
+
+/// A run of file vertices sharing one local→world transform (one glTF POSITION accessor).
+#[derive(Clone, Debug)]
+pub(crate) struct Block {
+    pub(crate) start: usize,
+    pub(crate) len: usize,
+    pub(crate) to_world: Affine,
+    pub(crate) to_local: Affine,
+}
+
+/// The file's own vertices and triangles, before welding.
+#[derive(Clone, Debug)]
+pub(crate) struct FileGeometry {
+    /// Positions as stored, in each block's local space.
+    pub(crate) local: Vec<[f64; 3]>,
+    /// Consecutive blocks covering every file vertex.
+    pub(crate) blocks: Vec<Block>,
+    /// Triangles over file vertices, in the order the surface's faces follow.
+    pub(crate) triangles: Vec<[usize; 3]>,
+    /// Per file vertex UV in glTF's convention (origin top left), if the file has UVs.
+    pub(crate) uvs: Option<Vec<Option<[f64; 2]>>>,
+    /// Per file vertex identity of its stored normal (OBJ `vn` index, or glTF normal value),
+    /// if the file has normals: copies of a welded vertex with the same key are smooth, with
+    /// different keys a crease.
+    pub(crate) normal_keys: Option<Vec<u64>>,
+}
+
+/// Welded vertex of a file vertex that no triangle uses.
+const UNWELDED: usize = usize::MAX;
+
+#[derive(Clone)]
+enum Source {
+    Obj(obj::ObjSource),
+    Gltf(gltf::GltfSource),
+}
+
+/// A mesh file read into memory: its welded surface plus everything needed to write it back.
+#[derive(Clone)]
+pub struct Asset {
+    format: Format,
+    surface: Mesh,
+    file: FileGeometry,
+    /// File vertex → welded vertex (`UNWELDED` if unused).
+    to_welded: Vec<usize>,
+    /// Per file vertex normal group (`UNWELDED` if unused) and the number of groups, when the
+    /// file has normals: a group is the copies of one welded vertex sharing a stored normal.
+    normal_groups: Option<(Vec<usize>, usize)>,
+    source: Source,
+}
+
+impl fmt::Debug for Asset {
+    /// A summary: the buffers may be hundreds of megabytes.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Asset")
+            .field("format", &self.format)
+            .field("file_vertices", &self.file.local.len())
+            .field("welded_vertices", &self.surface.vertex_count())
+            .field("faces", &self.surface.face_count())
+            .field("has_uvs", &self.file.uvs.is_some())
+            .field("has_normals", &self.normal_groups.is_some())
+            .finish()
+    }
+}
+
+impl Asset {
+    /// Parses and validates a file held in memory. Never touches the filesystem or network.
+    pub fn read(bytes: &[u8], format: Format, limits: &Limits) -> Result<Asset, MeshError> {
+        limits.check_bytes(bytes.len())?;
+        match format {
+            Format::Obj => {
+                let (file, src) = obj::read(bytes, limits)?;
+                Asset::assemble(format, file, Source::Obj(src), limits)
+            }
+            Format::Gltf | Format::Glb => {
+                let (file, src) = gltf::read(bytes, format, limits)?;
+                Asset::assemble(format, file, Source::Gltf(src), limits)
+            }
+        }
+    }
+
+    /// Welds the file vertices by exact world position and validates the result.
+    fn assemble(
+        format: Format,
+        file: FileGeometry,
+        source: Source,
+        limits: &Limits,
+    ) -> Result<Asset, MeshError> {
+        limits.check_vertices(file.local.len())?;
+        limits.check_faces(file.triangles.len())?;
+        let mut world = Vec::new();
+        world
+            .try_reserve_exact(file.local.len())
+            .map_err(|_| too_large_alloc("vertices", file.local.len()))?;
+        for b in &file.blocks {
+            for p in file.local.get(b.start..b.start + b.len).unwrap_or(&[]) {
+                world.push(b.to_world.apply(*p));
+            }
+        }
+        // Weld in order of first use by a triangle corner, so re-reading a written file gives
+        // the same welded numbering.
+        let mut to_welded = vec![UNWELDED; file.local.len()];
+        let mut by_position: HashMap<[u64; 3], usize> = HashMap::new();
+        let mut positions = Vec::new();
+        let mut triangles = Vec::with_capacity(file.triangles.len());
+        for t in &file.triangles {
+            let mut w = [0usize; 3];
+            for (k, &fv) in t.iter().enumerate() {
+                let p = *world.get(fv).ok_or_else(|| {
+                    MeshError::parse(format_name(format), "triangle references a missing vertex")
+                })?;
+                // `+ 0.0` turns -0.0 into +0.0 so the two weld together.
+                let key = p.map(|x| (x + 0.0).to_bits());
+                let id = *by_position.entry(key).or_insert_with(|| {
+                    positions.push(p);
+                    positions.len() - 1
+                });
+                to_welded[fv] = id;
+                w[k] = id;
+            }
+            triangles.push(w);
+        }
+        let surface = Mesh::with_limits(positions, triangles, limits)?;
+
+        let normal_groups = file.normal_keys.as_ref().map(|keys| {
+            let mut groups: HashMap<(usize, u64), usize> = HashMap::new();
+            let per_vertex: Vec<usize> = to_welded
+                .iter()
+                .zip(keys)
+                .map(|(&w, &k)| {
+                    if w == UNWELDED {
+                        return UNWELDED;
+                    }
+                    let n = groups.len();
+                    *groups.entry((w, k)).or_insert(n)
+                })
+                .collect();
+            (per_vertex, groups.len())
+        });
+        Ok(Asset {
+            format,
+            surface,
+            file,
+            to_welded,
+            normal_groups,
+            source,
+        })
+    }
+
+    /// The welded, validated, consistently oriented surface in world space (glTF node
+    /// transforms applied): what the flow moves.
+    pub fn surface(&self) -> &Mesh {
+        &self.surface
+    }
+
+    /// The format the asset was read from.
+    pub fn format(&self) -> Format {
+        self.format
+    }
+
+    /// Writes the asset with new welded world-space positions (same length and order as
+    /// `surface().positions`).
+    ///
+    /// Writing the format it was read from keeps everything else: for glTF/GLB the whole
+    /// document (materials, textures, image bytes, samplers, UVs, indices, nodes) with only
+    /// POSITION replaced and NORMAL recomputed; for OBJ the `vt` list, per-corner UV indices,
+    /// `mtllib`/`usemtl` and object names. Across formats, positions, UVs, normals and faces
+    /// carry over (OBJ has no textures to carry into glTF). Faces follow the oriented surface,
+    /// except in glTF→glTF where index data is kept byte for byte.
+    pub fn write(&self, positions: &[[f64; 3]], format: Format) -> Result<Vec<u8>, MeshError> {
+        self.check_positions(positions)?;
+        match (&self.source, format) {
+            (Source::Obj(src), Format::Obj) => Ok(obj::write(self, positions, Some(src))),
+            (Source::Gltf(_), Format::Obj) => Ok(obj::write(self, positions, None)),
+            (Source::Gltf(src), Format::Gltf | Format::Glb) => {
+                gltf::write_document(self, src, positions, format == Format::Glb)
+            }
+            (Source::Obj(_), Format::Gltf | Format::Glb) => {
+                gltf::write_new(self, positions, format == Format::Glb)
+            }
+        }
+    }
+
+    /// The number of the file's own vertices: as stored, split at UV seams and hard normals.
+    ///
+    /// Order: for glTF, the vertices of each POSITION accessor used by a triangle primitive of
+    /// the scene, accessors in order of first use (scene nodes depth first, children in order,
+    /// each mesh's primitives in order); for OBJ, each distinct `v/vt/vn` corner in order of
+    /// first use.
+    pub fn file_vertex_count(&self) -> usize {
+        self.file.local.len()
+    }
+
+    /// New welded world-space positions scattered to the file's vertex order, in the file's
+    /// local space (node transforms undone), as f32: what streamed frames carry.
+    ///
+    /// Vertices no triangle uses keep their stored position. `positions` should have
+    /// `surface().vertex_count()` entries; a vertex beyond a shorter slice keeps its stored
+    /// position too (this cannot fail, so it degrades rather than panics).
+    pub fn file_positions(&self, positions: &[[f64; 3]]) -> Vec<[f32; 3]> {
+        debug_assert_eq!(positions.len(), self.surface.vertex_count());
+        self.local_positions(positions)
+            .into_iter()
+            .map(|p| p.map(|x| x as f32))
+            .collect()
+    }
+
+    /// Triangles over file vertices (see [`Asset::file_vertex_count`]), wound like the
+    /// oriented surface: with [`Asset::file_positions`] and [`Asset::file_uvs`] this is what
+    /// a viewer draws.
+    pub fn file_triangles(&self) -> Vec<[usize; 3]> {
+        self.oriented_file_triangles()
+    }
+
+    /// Per file vertex UV (glTF convention: origin at the top left of the image), if the file
+    /// has UVs; vertices without one get `[0, 0]`.
+    pub fn file_uvs(&self) -> Option<Vec<[f32; 2]>> {
+        self.file.uvs.as_ref().map(|uvs| {
+            uvs.iter()
+                .map(|uv| uv.unwrap_or([0.0; 2]).map(|x| x as f32))
+                .collect()
+        })
+    }
+
+    /// The welded vertex of each file vertex (`None` for vertices no triangle uses).
+    pub fn file_to_welded(&self) -> Vec<Option<usize>> {
+        self.to_welded
+            .iter()
+            .map(|&w| (w != UNWELDED).then_some(w))
+            .collect()
+    }
+
+    fn check_positions(&self, positions: &[[f64; 3]]) -> Result<(), MeshError> {
+        if positions.len() != self.surface.vertex_count() {
+            return Err(MeshError::PositionCount {
+                expected: self.surface.vertex_count(),
+                got: positions.len(),
+            });
+        }
+        let mut bad = super::error::Offenders::default();
+        for (v, p) in positions.iter().enumerate() {
+            if !p.iter().all(|x| x.is_finite()) {
+                bad.push(v);
+            }
+        }
+        if !bad.is_empty() {
+            return Err(MeshError::NonFinite { vertices: bad });
+        }
+        Ok(())
+    }
+
+    /// Per file vertex position in its block's local space, in f64.
+    pub(crate) fn local_positions(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        let mut out = self.file.local.clone();
+        for b in &self.file.blocks {
+            for fv in b.start..b.start + b.len {
+                let w = self.to_welded.get(fv).copied().unwrap_or(UNWELDED);
+                if let (Some(p), Some(slot)) = (positions.get(w), out.get_mut(fv)) {
+                    *slot = b.to_local.apply(*p);
+                }
+            }
+        }
+        out
+    }
+
+    /// File triangles wound like the oriented surface (Mesh::new only ever swaps corners 1
+    /// and 2, and keeps face order, so comparing welded corners tells which were flipped).
+    pub(crate) fn oriented_file_triangles(&self) -> Vec<[usize; 3]> {
+        self.file
+            .triangles
+            .iter()
+            .zip(&self.surface.triangles)
+            .map(|(&[a, b, c], s)| {
+                let w = |fv: usize| self.to_welded.get(fv).copied().unwrap_or(UNWELDED);
+                if [w(a), w(b), w(c)] == *s {
+                    [a, b, c]
+                } else {
+                    [a, c, b]
+                }
+            })
+            .collect()
+    }
+
+    /// Area-weighted normal of each normal group, in world space, unit length.
+    ///
+    /// Grouping by (welded vertex, stored normal) keeps smooth shading across UV seams (the
+    /// copies share a stored normal) and creases where the file had split normals.
+    pub(crate) fn group_normals(&self, positions: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
+        let (groups, count) = self.normal_groups.as_ref()?;
+        let mut sums = vec![[0.0f64; 3]; *count];
+        for (ft, st) in self
+            .oriented_file_triangles()
+            .iter()
+            .zip(&self.surface.triangles)
+        {
+            let p = |v: usize| positions.get(v).copied().unwrap_or([0.0; 3]);
+            let (a, b, c) = (p(st[0]), p(st[1]), p(st[2]));
+            // |(b−a)×(c−a)| is twice the area: area weighting comes for free.
+            let n = cross(sub(b, a), sub(c, a));
+            for &fv in ft {
+                if let Some(sum) = groups.get(fv).and_then(|&g| sums.get_mut(g)) {
+                    for k in 0..3 {
+                        sum[k] += n[k];
+                    }
+                }
+            }
+        }
+        Some(sums.into_iter().map(normalize_or_z).collect())
+    }
+
+    /// Per file vertex world-space unit normal (`[0, 0, 1]` for unused vertices).
+    pub(crate) fn file_normals_world(&self, positions: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
+        let group_normals = self.group_normals(positions)?;
+        let (groups, _) = self.normal_groups.as_ref()?;
+        Some(
+            groups
+                .iter()
+                .map(|&g| group_normals.get(g).copied().unwrap_or([0.0, 0.0, 1.0]))
+                .collect(),
+        )
+    }
+}
+
+pub(crate) fn format_name(format: Format) -> &'static str {
+    match format {
+        Format::Obj => "OBJ",
+        Format::Gltf => "glTF",
+        Format::Glb => "GLB",
+    }
+}
+
+pub(crate) fn too_large_alloc(what: &'static str, value: usize) -> MeshError {
+    MeshError::TooLarge {
+        what,
+        value,
+        limit: 0,
+    }
+}
+
+pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+pub(crate) fn cross(u: [f64; 3], w: [f64; 3]) -> [f64; 3] {
+    [
+        u[1] * w[2] - u[2] * w[1],
+        u[2] * w[0] - u[0] * w[2],
+        u[0] * w[1] - u[1] * w[0],
+    ]
+}
+
+/// Unit vector along `n`, or `+z` for a zero (or non-finite) vector, so a written normal is
+/// always valid even where area-weighted normals cancel.
+pub(crate) fn normalize_or_z(n: [f64; 3]) -> [f64; 3] {
+    let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    if len > 0.0 && len.is_finite() {
+        [n[0] / len, n[1] / len, n[2] / len]
+    } else {
+        [0.0, 0.0, 1.0]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn affine_inverse_undoes_the_map() {
+        let a = Affine {
+            m: [[0.0, -2.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 0.5]],
+            t: [1.0, 2.0, 3.0],
+        };
+        let inv = a.inverse().unwrap();
+        let p = [0.3, -0.7, 4.0];
+        let q = inv.apply(a.apply(p));
+        for k in 0..3 {
+            assert!((p[k] - q[k]).abs() < 1e-15);
+        }
+        let singular = Affine {
+            m: [[0.0; 3]; 3],
+            t: [0.0; 3],
+        };
+        assert!(singular.inverse().is_none());
+    }
+
+    #[test]
+    fn formats_round_trip_through_extension_and_mime() {
+        for f in [Format::Obj, Format::Gltf, Format::Glb] {
+            let name = format!("Model.{}", f.extension().to_uppercase());
+            assert_eq!(Format::from_path(Path::new(&name)), Some(f));
+            assert_eq!(Format::from_mime(f.mime()), Some(f));
+        }
+        assert_eq!(
+            Format::from_mime("model/gltf+json; charset=utf-8"),
+            Some(Format::Gltf)
+        );
+        assert_eq!(Format::from_path(Path::new("a.stl")), None);
+        assert_eq!(serde_json::to_string(&Format::Glb).unwrap(), "\"glb\"");
+    }
+}

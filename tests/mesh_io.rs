@@ -1,0 +1,402 @@
+//! File I/O: round trips keep UVs, faces, indices and images; seams never open; transforms
+//! are applied for the surface and undone for the file; output passes the Khronos validator.
+
+mod mesh_support;
+
+use mesh_support::*;
+use std::path::{Path, PathBuf};
+use willow::mesh::io::{Asset, Format, Limits};
+use willow::mesh::Topology;
+
+const TETRA: &str = include_str!("data/tetra_seams.obj");
+
+fn read(bytes: &[u8], format: Format) -> Asset {
+    Asset::read(bytes, format, &Limits::default()).unwrap()
+}
+
+/// Per corner of each file triangle: the UV, in surface face order.
+fn corner_uvs(a: &Asset) -> Vec<[[f32; 2]; 3]> {
+    let uvs = a.file_uvs().expect("file has UVs");
+    a.file_triangles()
+        .iter()
+        .map(|t| t.map(|fv| uvs[fv]))
+        .collect()
+}
+
+/// Moves every welded vertex differently (so a seam that opened would show).
+fn wobble(p: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    p.iter()
+        .enumerate()
+        .map(|(i, q)| {
+            let s = 1.0 + 0.01 * (i % 7) as f64;
+            [q[0] * s + 0.25, q[1] * s - 0.5, q[2] * s + 0.125]
+        })
+        .collect()
+}
+
+/// Every split copy of a welded vertex carries exactly the welded vertex's new position.
+fn assert_seams_closed(a: &Asset, moved: &[[f64; 3]]) {
+    let file = a.file_positions(moved);
+    assert_eq!(file.len(), a.file_vertex_count());
+    let map = a.file_to_welded();
+    let mut first: Vec<Option<[f32; 3]>> = vec![None; moved.len()];
+    for (fv, w) in map.iter().enumerate() {
+        if let Some(w) = *w {
+            match first[w] {
+                None => first[w] = Some(file[fv]),
+                Some(p) => assert_eq!(p, file[fv], "split copies of vertex {w} differ"),
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Khronos glTF-Validator
+
+fn tools_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/tools")
+}
+
+/// Runs the Khronos validator on `bytes`; fails on any error. Skipped only with
+/// WILLOW_SKIP_NODE=1.
+fn validate_with_khronos(bytes: &[u8], ext: &str) {
+    if std::env::var("WILLOW_SKIP_NODE").as_deref() == Ok("1") {
+        eprintln!("note: WILLOW_SKIP_NODE=1, skipping the Khronos glTF validator");
+        return;
+    }
+    assert!(
+        tools_dir().join("node_modules/gltf-validator").is_dir(),
+        "tests/tools/node_modules is missing: run scripts/test.sh (it runs `npm ci --prefix \
+         tests/tools`) or set WILLOW_SKIP_NODE=1"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join(format!("out.{ext}"));
+    std::fs::write(&file, bytes).unwrap();
+    let out = std::process::Command::new("node")
+        .arg(tools_dir().join("validate_gltf.js"))
+        .arg(&file)
+        .output()
+        .expect("node must be installed to run the glTF validator (or set WILLOW_SKIP_NODE=1)");
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "validator gave no report ({e}): {}",
+            String::from_utf8_lossy(&out.stderr)
+        )
+    });
+    let errors = report["issues"]["numErrors"].as_u64().unwrap();
+    assert_eq!(
+        errors,
+        0,
+        "Khronos validator errors: {}",
+        serde_json::to_string_pretty(&report["issues"]["messages"]).unwrap()
+    );
+    assert!(out.status.success());
+}
+
+// ---------------------------------------------------------------------------------------
+// glTF inspection helpers (for well-formed outputs only)
+
+struct Glb {
+    doc: gltf::Document,
+    blob: Vec<u8>,
+}
+
+fn open_glb(bytes: &[u8]) -> Glb {
+    let g = gltf::Gltf::from_slice(bytes).unwrap();
+    Glb {
+        doc: g.document,
+        blob: g.blob.unwrap(),
+    }
+}
+
+impl Glb {
+    fn image_bytes(&self) -> Vec<Vec<u8>> {
+        self.doc
+            .images()
+            .map(|im| match im.source() {
+                gltf::image::Source::View { view, .. } => {
+                    self.blob[view.offset()..view.offset() + view.length()].to_vec()
+                }
+                gltf::image::Source::Uri { uri, .. } => uri.as_bytes().to_vec(),
+            })
+            .collect()
+    }
+
+    /// (indices, uv0, positions, normals) of every primitive, in order.
+    #[allow(clippy::type_complexity)]
+    fn primitives(&self) -> Vec<(Vec<u32>, Vec<[f32; 2]>, Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+        let blob = &self.blob;
+        self.doc
+            .meshes()
+            .flat_map(|m| m.primitives())
+            .map(|p| {
+                let r = p.reader(|_| Some(&blob[..]));
+                (
+                    r.read_indices()
+                        .map(|i| i.into_u32().collect())
+                        .unwrap_or_default(),
+                    r.read_tex_coords(0)
+                        .map(|t| t.into_f32().collect())
+                        .unwrap_or_default(),
+                    r.read_positions().map(|p| p.collect()).unwrap_or_default(),
+                    r.read_normals().map(|n| n.collect()).unwrap_or_default(),
+                )
+            })
+            .collect()
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// OBJ
+
+#[test]
+fn obj_with_seams_welds_by_position_and_keeps_corner_uvs() {
+    let a = read(TETRA.as_bytes(), Format::Obj);
+    assert_eq!(a.surface().vertex_count(), 4);
+    assert_eq!(a.surface().face_count(), 4);
+    assert_eq!(
+        a.file_vertex_count(),
+        12,
+        "each face has its own UVs and normal"
+    );
+    let t = Topology::new(a.surface());
+    assert_eq!((t.components.len(), t.genus()), (1, 0));
+    assert!(t.is_closed());
+    // First corner of the first face: v 1, vt 1 = (0, 0) → glTF convention (0, 1).
+    assert_eq!(corner_uvs(&a)[0][0], [0.0, 1.0]);
+    assert_eq!(corner_uvs(&a)[3][2], [0.75, 0.0]);
+}
+
+#[test]
+fn obj_round_trip_keeps_faces_uvs_and_names() {
+    let a = read(TETRA.as_bytes(), Format::Obj);
+    let out = a.write(&a.surface().positions, Format::Obj).unwrap();
+    let text = String::from_utf8(out.clone()).unwrap();
+    assert!(text.contains("\nmtllib tetra.mtl\n"), "{text}");
+    assert!(text.contains("\no tetra\nusemtl painted\n"), "{text}");
+    assert!(text.contains("\nusemtl plain\n"), "{text}");
+    // Per-corner normals: flat faces → one recomputed vn per corner group (12).
+    assert_eq!(text.lines().filter(|l| l.starts_with("vn ")).count(), 12);
+    assert_eq!(text.lines().filter(|l| l.starts_with("vt ")).count(), 12);
+    // Welded vertices are numbered in order of first use: v 1, v 3, v 2, v 4.
+    assert!(text.contains("\nf 1/1/1 2/2/2 3/3/3\n"), "{text}");
+
+    let b = read(&out, Format::Obj);
+    assert_eq!(b.surface(), a.surface());
+    assert_eq!(b.file_vertex_count(), a.file_vertex_count());
+    assert_eq!(corner_uvs(&b), corner_uvs(&a));
+    // Written normals are the faces' unit normals: face 0 lies opposite vertex 4 (1,-1,-1).
+    let vn: Vec<[f64; 3]> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("vn "))
+        .map(|l| {
+            let v: Vec<f64> = l.split(' ').map(|x| x.parse().unwrap()).collect();
+            [v[0], v[1], v[2]]
+        })
+        .collect();
+    let s = 1.0 / 3f64.sqrt();
+    for k in 0..3 {
+        assert!((vn[0][k] - [-s, s, s][k]).abs() < 1e-12, "{:?}", vn[0]);
+    }
+}
+
+#[test]
+fn obj_moved_positions_keep_seams_closed() {
+    let a = read(TETRA.as_bytes(), Format::Obj);
+    let moved = wobble(&a.surface().positions);
+    assert_seams_closed(&a, &moved);
+    let b = read(&a.write(&moved, Format::Obj).unwrap(), Format::Obj);
+    assert_eq!(b.surface().positions, moved);
+    assert_eq!(b.surface().triangles, a.surface().triangles);
+    assert_eq!(corner_uvs(&b), corner_uvs(&a));
+}
+
+#[test]
+fn obj_inconsistent_winding_is_fixed_and_written_consistently() {
+    let flipped = TETRA.replace("f 1/4/4 2/5/4 4/6/4", "f 1/4/4 4/6/4 2/5/4");
+    let a = read(flipped.as_bytes(), Format::Obj);
+    assert!(consistently_wound(&a.surface().triangles));
+    assert!(signed_volume(&a.surface().positions, &a.surface().triangles) > 0.0);
+    let b = read(
+        &a.write(&a.surface().positions, Format::Obj).unwrap(),
+        Format::Obj,
+    );
+    assert_eq!(b.surface().triangles, a.surface().triangles);
+    // The flipped face's corners kept their UVs through the flip.
+    let want = read(TETRA.as_bytes(), Format::Obj);
+    assert_eq!(corner_uvs(&b), corner_uvs(&want));
+}
+
+#[test]
+fn spot_round_trip_keeps_uvs_faces_and_welded_count() {
+    let Some(path) = shared_mesh("spot_triangulated.obj") else {
+        return;
+    };
+    let bytes = std::fs::read(path).unwrap();
+    let a = read(&bytes, Format::Obj);
+    assert_eq!(a.surface().vertex_count(), 2930);
+    assert_eq!(a.surface().face_count(), 5856);
+    assert_eq!(a.file_vertex_count(), 3225);
+    let moved = wobble(&a.surface().positions);
+    assert_seams_closed(&a, &moved);
+    for positions in [&a.surface().positions, &moved] {
+        let out = a.write(positions, Format::Obj).unwrap();
+        let b = read(&out, Format::Obj);
+        assert_eq!(b.surface().vertex_count(), 2930);
+        assert_eq!(&b.surface().positions, positions);
+        assert_eq!(b.surface().triangles, a.surface().triangles);
+        assert_eq!(b.file_vertex_count(), 3225);
+        assert_eq!(corner_uvs(&b), corner_uvs(&a));
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// glTF / GLB
+
+#[test]
+fn generated_glb_applies_node_transforms_and_round_trips() {
+    let (json, bin, local, png) = textured_cube_gltf();
+    let input = glb_bytes(&json, &bin);
+    validate_with_khronos(&input, "glb");
+    let a = read(&input, Format::Glb);
+    assert_eq!(a.file_vertex_count(), 24);
+    assert_eq!(a.surface().vertex_count(), 8);
+    assert_eq!(a.surface().face_count(), 12);
+    let t = Topology::new(a.surface());
+    assert!(t.is_closed() && t.genus() == 0 && t.components.len() == 1);
+    // World = parent(scale 2, +10 x) ∘ child(scale z by 0.5): a 2 × 2 × 1 box around (10, 0, 0).
+    for p in &a.surface().positions {
+        assert_eq!((p[0] - 10.0).abs(), 1.0);
+        assert_eq!(p[1].abs(), 1.0);
+        assert_eq!(p[2].abs(), 0.5);
+    }
+    assert!(signed_volume(&a.surface().positions, &a.surface().triangles) > 3.99);
+    // Undone for the file: the stored local positions come back exactly.
+    assert_eq!(a.file_positions(&a.surface().positions), local);
+
+    let out = a.write(&a.surface().positions, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let (orig, new) = (open_glb(&input), open_glb(&out));
+    assert_eq!(new.image_bytes(), vec![png]);
+    assert_eq!(new.doc.materials().count(), 1);
+    assert_eq!(new.doc.samplers().count(), 1);
+    assert_eq!(new.doc.nodes().count(), 2);
+    assert_eq!(
+        new.doc.nodes().nth(1).unwrap().transform().matrix(),
+        orig.doc.nodes().nth(1).unwrap().transform().matrix()
+    );
+    let (p0, p1) = (&orig.primitives()[0], &new.primitives()[0]);
+    assert_eq!(p1.0, p0.0, "indices identical");
+    assert_eq!(p1.1, p0.1, "UVs identical");
+    assert_eq!(p1.2, p0.2, "positions unchanged when written unchanged");
+    for (n1, n0) in p1.3.iter().zip(&p0.3) {
+        for k in 0..3 {
+            assert!(
+                (n1[k] - n0[k]).abs() < 1e-6,
+                "recomputed flat normal {n1:?} vs {n0:?}"
+            );
+        }
+    }
+
+    // Moved: world positions go back through the inverse transforms.
+    let moved = wobble(&a.surface().positions);
+    assert_seams_closed(&a, &moved);
+    let out = a.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let b = read(&out, Format::Glb);
+    for (p, q) in b.surface().positions.iter().zip(&moved) {
+        for k in 0..3 {
+            assert!((p[k] - q[k]).abs() < 1e-5, "{p:?} vs {q:?}");
+        }
+    }
+    let w = a.file_to_welded()[0].unwrap();
+    let expect = [
+        ((moved[w][0] - 10.0) / 2.0) as f32,
+        (moved[w][1] / 2.0) as f32,
+        (moved[w][2] / 2.0 / 0.5) as f32,
+    ];
+    assert_eq!(b.file_positions(&b.surface().positions)[0], expect);
+    assert_eq!(open_glb(&out).primitives()[0].1, p0.1);
+}
+
+#[test]
+fn gltf_with_embedded_buffer_round_trips_and_validates() {
+    use base64::Engine as _;
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["buffers"][0]["uri"] = serde_json::json!(format!(
+        "data:application/octet-stream;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(&bin)
+    ));
+    let input = serde_json::to_vec(&json).unwrap();
+    let a = read(&input, Format::Gltf);
+    assert_eq!(a.surface().vertex_count(), 8);
+    let out = a
+        .write(&wobble(&a.surface().positions), Format::Gltf)
+        .unwrap();
+    assert!(out.starts_with(b"{"), "a .gltf is JSON");
+    validate_with_khronos(&out, "gltf");
+    let b = read(&out, Format::Gltf);
+    assert_eq!(b.surface().triangles, a.surface().triangles);
+    assert_eq!(b.file_uvs(), a.file_uvs());
+    // And the same asset as GLB.
+    let glb = a.write(&a.surface().positions, Format::Glb).unwrap();
+    validate_with_khronos(&glb, "glb");
+}
+
+#[test]
+fn obj_to_glb_and_back_keeps_uvs_and_faces() {
+    let a = read(TETRA.as_bytes(), Format::Obj);
+    let glb = a.write(&a.surface().positions, Format::Glb).unwrap();
+    validate_with_khronos(&glb, "glb");
+    let b = read(&glb, Format::Glb);
+    assert_eq!(b.surface(), a.surface());
+    assert_eq!(b.file_vertex_count(), 12);
+    assert_eq!(corner_uvs(&b), corner_uvs(&a));
+    let gltf = a.write(&a.surface().positions, Format::Gltf).unwrap();
+    validate_with_khronos(&gltf, "gltf");
+
+    let obj = b.write(&b.surface().positions, Format::Obj).unwrap();
+    let c = read(&obj, Format::Obj);
+    assert_eq!(c.surface(), a.surface());
+    assert_eq!(corner_uvs(&c), corner_uvs(&a));
+}
+
+#[test]
+fn duck_round_trips_with_transform_uvs_indices_and_image() {
+    let Some(path) = shared_mesh("Duck.glb") else {
+        return;
+    };
+    let input = std::fs::read(path).unwrap();
+    let a = read(&input, Format::Glb);
+    assert_eq!(a.file_vertex_count(), 2399);
+    assert_eq!(a.surface().vertex_count(), 2108);
+    assert_eq!(a.surface().face_count(), 4212);
+    let orig = open_glb(&input);
+    let local = &orig.primitives()[0].2;
+    // The node matrix scales by 0.01: the surface is in world space, the file in local space.
+    let extent = |ps: &mut dyn Iterator<Item = f64>| {
+        let v: Vec<f64> = ps.collect();
+        v.iter().cloned().fold(f64::MIN, f64::max) - v.iter().cloned().fold(f64::MAX, f64::min)
+    };
+    let world_x = extent(&mut a.surface().positions.iter().map(|p| p[0]));
+    let local_x = extent(&mut local.iter().map(|p| p[0] as f64));
+    assert!(
+        (world_x / local_x - 0.01).abs() < 1e-6,
+        "{world_x} vs {local_x}"
+    );
+    assert_eq!(&a.file_positions(&a.surface().positions), local);
+
+    let moved = wobble(&a.surface().positions);
+    assert_seams_closed(&a, &moved);
+    let out = a.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let new = open_glb(&out);
+    assert_eq!(new.image_bytes(), orig.image_bytes());
+    let (p0, p1) = (&orig.primitives()[0], &new.primitives()[0]);
+    assert_eq!(p1.0, p0.0, "indices identical");
+    assert_eq!(p1.1, p0.1, "UVs identical");
+    assert_eq!(p1.2, a.file_positions(&moved));
+    let b = read(&out, Format::Glb);
+    assert_eq!(b.surface().vertex_count(), 2108);
+    assert_eq!(b.surface().triangles, a.surface().triangles);
+}
