@@ -135,11 +135,11 @@ pub const TINY_PNG_BASE64: &str =
 /// Assembles a GLB from a JSON document and a BIN chunk (padding both to 4 bytes).
 pub fn glb_bytes(json: &serde_json::Value, bin: &[u8]) -> Vec<u8> {
     let mut j = serde_json::to_vec(json).unwrap();
-    while j.len() % 4 != 0 {
+    while !j.len().is_multiple_of(4) {
         j.push(b' ');
     }
     let mut b = bin.to_vec();
-    while b.len() % 4 != 0 {
+    while !b.len().is_multiple_of(4) {
         b.push(0);
     }
     let total = 12 + 8 + j.len() + 8 + b.len();
@@ -190,7 +190,7 @@ pub fn textured_cube_gltf() -> (serde_json::Value, Vec<u8>, Vec<[f32; 3]>, Vec<u
     let mut bin = Vec::new();
     let mut views = Vec::new();
     let mut push = |bin: &mut Vec<u8>, data: Vec<u8>, target: Option<u32>| {
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         let mut v =

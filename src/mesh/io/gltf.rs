@@ -327,15 +327,19 @@ pub(crate) fn read(
     let (json_bytes, bin) = split_container(bytes, format)?;
     let json: Value =
         serde_json::from_slice(json_bytes).map_err(|e| MeshError::parse(name, e.to_string()))?;
+    // Checked on the raw JSON: the gltf crate refuses unknown required extensions with a
+    // generic validation error, and these deserve a precise "unsupported".
+    let required = json.get("extensionsRequired").and_then(Value::as_array);
+    for ext in required.into_iter().flatten().filter_map(Value::as_str) {
+        if REFUSED_EXTENSIONS.contains(&ext) {
+            return Err(MeshError::unsupported(format!(
+                "required extension {ext} (compressed or quantized vertex data)"
+            )));
+        }
+    }
     let root = gltf::json::Root::from_slice(json_bytes)
         .map_err(|e| MeshError::parse(name, e.to_string()))?;
     let doc = gltf::Document::from_json(root).map_err(|e| MeshError::parse(name, e.to_string()))?;
-
-    for ext in doc.extensions_required() {
-        if REFUSED_EXTENSIONS.contains(&ext) {
-            return Err(MeshError::unsupported(format!("required extension {ext}")));
-        }
-    }
 
     // Resolve buffers: GLB BIN chunk or data: URIs; nothing else is ever opened.
     let mut buffers = Vec::new();
@@ -655,7 +659,7 @@ impl Builder<'_> {
                 }
             }
             _ => {
-                if indices.len() % 3 != 0 {
+                if !indices.len().is_multiple_of(3) {
                     return Err(MeshError::parse(
                         "glTF",
                         format!(
@@ -675,7 +679,7 @@ impl Builder<'_> {
 
 /// Appends `data` to `bin` at a 4-byte aligned offset; returns the offset.
 fn append_aligned(bin: &mut Vec<u8>, data: &[u8]) -> usize {
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let at = bin.len();
@@ -766,7 +770,7 @@ pub(crate) fn write_document(
     let mut bin: Vec<u8> = Vec::new();
     let mut base = Vec::with_capacity(src.buffers.len());
     for b in &src.buffers {
-        while bin.len() % 8 != 0 {
+        while !bin.len().is_multiple_of(8) {
             bin.push(0);
         }
         base.push(bin.len());
@@ -819,7 +823,7 @@ pub(crate) fn write_document(
 
 /// Sets the single buffer and serializes as GLB (BIN chunk) or glTF (base64 data: URI).
 fn finish(mut doc: Value, mut bin: Vec<u8>, glb: bool) -> Result<Vec<u8>, MeshError> {
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let buffer = if glb {

@@ -33,6 +33,9 @@ struct ObjGroup {
     faces: std::ops::Range<usize>,
 }
 
+/// A file vertex is a distinct (position bits, `vt` index, `vn` index) corner.
+type CornerKey = ([u64; 3], Option<usize>, Option<usize>);
+
 /// Counts and names found by [`prescan`].
 #[derive(Debug, Default)]
 struct Prescan {
@@ -203,7 +206,6 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         triangulate: true,
         ignore_points: true,
         ignore_lines: true,
-        ..Default::default()
     };
     // Material files are never opened: the loader answers every `mtllib` with a stand-in for
     // each `usemtl` name, so tobj still splits models by material and reports their names.
@@ -234,7 +236,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
     let mut vn_of: Vec<Option<usize>> = Vec::new();
     let mut triangles: Vec<[usize; 3]> = Vec::new();
     let mut groups = Vec::new();
-    let mut corner_ids: HashMap<([u64; 3], Option<usize>, Option<usize>), usize> = HashMap::new();
+    let mut corner_ids: HashMap<CornerKey, usize> = HashMap::new();
     let mut normal_base = 0usize;
     let mut any_normals = false;
     for model in &models {

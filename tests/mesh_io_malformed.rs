@@ -1,0 +1,302 @@
+//! Malformed uploads: each is refused with a specific error (checked by code and message),
+//! and none panics.
+
+mod mesh_support;
+
+use mesh_support::*;
+use willow::mesh::io::{Asset, Format, Limits};
+use willow::mesh::MeshError;
+
+fn refuse(bytes: &[u8], format: Format) -> MeshError {
+    Asset::read(bytes, format, &Limits::default()).expect_err("must be refused")
+}
+
+const QUAD_OBJ: &str = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 3 4\n";
+
+#[test]
+fn empty_files_are_refused() {
+    let e = refuse(b"", Format::Obj);
+    assert_eq!(e.code(), "empty_mesh", "{e}");
+    let e = refuse(b"# only a comment\nv 1 2 3\n", Format::Obj);
+    assert_eq!(
+        e.to_string(),
+        "empty mesh: 1 vertices and 0 triangles; at least one triangle is needed"
+    );
+    assert_eq!(refuse(b"", Format::Glb).code(), "parse_error");
+    assert_eq!(refuse(b"", Format::Gltf).code(), "parse_error");
+}
+
+#[test]
+fn obj_nan_and_inf_coordinates_are_refused() {
+    let e = refuse(
+        QUAD_OBJ.replace("v 1 0 0", "v nan 0 0").as_bytes(),
+        Format::Obj,
+    );
+    assert_eq!(e.code(), "non_finite_coordinate");
+    assert!(
+        e.to_string().starts_with("1 vertices have non-finite"),
+        "{e}"
+    );
+    let e = refuse(
+        QUAD_OBJ.replace("v 0 1 0", "v 0 inf 0").as_bytes(),
+        Format::Obj,
+    );
+    assert_eq!(
+        e.to_string(),
+        "1 vertices have non-finite (NaN or infinite) coordinates; first: 3"
+    );
+}
+
+#[test]
+fn obj_out_of_range_and_zero_indices_are_refused_without_panicking() {
+    let e = refuse(format!("{QUAD_OBJ}f 1 2 9\n").as_bytes(), Format::Obj);
+    assert_eq!(
+        e.to_string(),
+        "1 triangles reference vertices out of range (the mesh has 4 vertices); first: 2"
+    );
+    for bad in [
+        "f 0 1 2",
+        "f 1 2 -9",
+        "f 1/0 2/1 3/1",
+        "f 1/99999999999999999999 2 3",
+        "f 1//-5 2 3",
+    ] {
+        let e = refuse(format!("{QUAD_OBJ}{bad}\n").as_bytes(), Format::Obj);
+        assert!(
+            matches!(e.code(), "index_out_of_range" | "parse_error"),
+            "{bad}: {e}"
+        );
+    }
+}
+
+#[test]
+fn obj_zero_area_and_repeated_index_faces_are_degenerate() {
+    let e = refuse(b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", Format::Obj);
+    assert_eq!(e.code(), "degenerate_face");
+    assert!(e.to_string().ends_with("first: 0"), "{e}");
+    let e = refuse(format!("{QUAD_OBJ}f 1 1 2\n").as_bytes(), Format::Obj);
+    assert_eq!(e.code(), "degenerate_face");
+    assert!(e.to_string().ends_with("first: 2"), "{e}");
+}
+
+#[test]
+fn obj_non_manifold_inputs_are_refused() {
+    let fin = "v 0 0 0\nv 1 0 0\nv 0.5 1 0\nv 0.5 -1 0\nv 0.5 0 1\nf 1 2 3\nf 2 1 4\nf 1 2 5\n";
+    let e = refuse(fin.as_bytes(), Format::Obj);
+    assert_eq!(e.code(), "non_manifold_edge");
+    assert!(e.to_string().ends_with("first: [0, 1]"), "{e}");
+    let bowtie = "v 0 0 0\nv 1 1 0\nv 1 -1 0\nv -1 1 0\nv -1 -1 0\nf 1 3 2\nf 1 4 5\n";
+    let e = refuse(bowtie.as_bytes(), Format::Obj);
+    assert_eq!(e.code(), "non_manifold_vertex");
+}
+
+#[test]
+fn obj_mobius_strip_is_refused() {
+    let (p, t) = mobius(10);
+    let mut s = String::new();
+    for q in &p {
+        s += &format!("v {} {} {}\n", q[0], q[1], q[2]);
+    }
+    for f in &t {
+        s += &format!("f {} {} {}\n", f[0] + 1, f[1] + 1, f[2] + 1);
+    }
+    let e = refuse(s.as_bytes(), Format::Obj);
+    assert_eq!(e.code(), "non_orientable");
+}
+
+#[test]
+fn obj_with_only_points_or_lines_is_refused() {
+    let e = refuse(
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\np 1\nl 1 2\nl 2 3\n",
+        Format::Obj,
+    );
+    assert_eq!(
+        e,
+        MeshError::PointsOrLinesOnly {
+            points: 1,
+            lines: 2
+        }
+    );
+    assert_eq!(e.code(), "no_triangles");
+    assert!(e.to_string().contains("1 point and 2 line elements"), "{e}");
+}
+
+#[test]
+fn limits_refuse_too_many_bytes_vertices_and_faces() {
+    let small = Limits {
+        max_bytes: 10,
+        ..Limits::default()
+    };
+    let e = Asset::read(QUAD_OBJ.as_bytes(), Format::Obj, &small).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        format!(
+            "too large: {} bytes exceeds the limit of 10",
+            QUAD_OBJ.len()
+        )
+    );
+    let few_vertices = Limits {
+        max_vertices: 3,
+        ..Limits::default()
+    };
+    let e = Asset::read(QUAD_OBJ.as_bytes(), Format::Obj, &few_vertices).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "too large: 4 vertices exceeds the limit of 3"
+    );
+    let few_faces = Limits {
+        max_faces: 1,
+        ..Limits::default()
+    };
+    let e = Asset::read(QUAD_OBJ.as_bytes(), Format::Obj, &few_faces).unwrap_err();
+    assert_eq!(e.to_string(), "too large: 2 faces exceeds the limit of 1");
+    assert!(e.is_too_large());
+
+    let (json, bin, _, _) = textured_cube_gltf();
+    let glb = glb_bytes(&json, &bin);
+    let e = Asset::read(&glb, Format::Glb, &few_vertices).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "too large: 24 vertices exceeds the limit of 3"
+    );
+    let e = Asset::read(&glb, Format::Glb, &few_faces).unwrap_err();
+    assert_eq!(e.to_string(), "too large: 12 faces exceeds the limit of 1");
+}
+
+#[test]
+fn garbage_bytes_are_refused_as_glb_gltf_and_obj() {
+    let mut rng = 0x1234_5678_9abc_def0u64;
+    let garbage: Vec<u8> = (0..4096)
+        .map(|_| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            rng as u8
+        })
+        .collect();
+    assert_eq!(refuse(&garbage, Format::Glb).code(), "parse_error");
+    assert_eq!(refuse(&garbage, Format::Gltf).code(), "parse_error");
+    assert_eq!(refuse(&garbage, Format::Obj).code(), "parse_error");
+    // A GLB magic followed by nonsense, and every truncation of a valid GLB.
+    let mut fake = b"glTF".to_vec();
+    fake.extend_from_slice(&garbage);
+    assert!(Asset::read(&fake, Format::Glb, &Limits::default()).is_err());
+    let (json, bin, _, _) = textured_cube_gltf();
+    let glb = glb_bytes(&json, &bin);
+    for cut in (0..glb.len()).step_by(7) {
+        assert!(
+            Asset::read(&glb[..cut], Format::Glb, &Limits::default()).is_err(),
+            "cut {cut}"
+        );
+    }
+}
+
+#[test]
+fn external_uris_are_refused_without_reading() {
+    for uri in [
+        "/etc/passwd",
+        "http://example.com/cube.bin",
+        "file:///etc/passwd",
+        "cube.bin",
+    ] {
+        let (mut json, bin, _, _) = textured_cube_gltf();
+        json["buffers"][0]["uri"] = serde_json::json!(uri);
+        let e = refuse(&serde_json::to_vec(&json).unwrap(), Format::Gltf);
+        assert_eq!(e, MeshError::ExternalUri { uri: uri.into() });
+        assert_eq!(e.code(), "external_uri");
+        assert!(e.to_string().contains(uri), "{e}");
+        let _ = bin;
+    }
+    // An image by URI is refused too, even inside an otherwise self-contained GLB.
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["images"][0] = serde_json::json!({"uri": "http://example.com/texture.png"});
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(e.code(), "external_uri");
+}
+
+#[test]
+fn truncated_bin_chunk_is_refused() {
+    let (json, bin, _, _) = textured_cube_gltf();
+    // The JSON still declares the full buffer, the BIN chunk holds half of it.
+    let e = refuse(&glb_bytes(&json, &bin[..bin.len() / 2]), Format::Glb);
+    assert_eq!(e.code(), "truncated_buffer");
+    assert!(e.to_string().contains("buffer 0 declares"), "{e}");
+}
+
+#[test]
+fn accessor_past_the_end_of_its_view_is_refused() {
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["accessors"][0]["count"] = serde_json::json!(25); // the view holds 24
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(e.code(), "truncated_buffer");
+    assert!(e.to_string().contains("accessor 0"), "{e}");
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["bufferViews"][0]["byteLength"] = serde_json::json!(1 << 30);
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(e.code(), "truncated_buffer");
+    assert!(e.to_string().contains("buffer view 0"), "{e}");
+}
+
+#[test]
+fn gltf_index_out_of_range_is_refused() {
+    let (mut json, mut bin, _, _) = textured_cube_gltf();
+    let off = json["bufferViews"][3]["byteOffset"].as_u64().unwrap() as usize;
+    bin[off..off + 2].copy_from_slice(&999u16.to_le_bytes());
+    json["buffers"][0]["byteLength"] = serde_json::json!(bin.len());
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(
+        e.to_string(),
+        "1 triangles reference vertices out of range (the mesh has 24 vertices); first: 0"
+    );
+}
+
+#[test]
+fn gltf_points_only_and_unsupported_features_are_refused() {
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["meshes"][0]["primitives"][0]["mode"] = serde_json::json!(0);
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(
+        e,
+        MeshError::PointsOrLinesOnly {
+            points: 1,
+            lines: 0
+        }
+    );
+
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["extensionsUsed"] = serde_json::json!(["KHR_draco_mesh_compression"]);
+    json["extensionsRequired"] = serde_json::json!(["KHR_draco_mesh_compression"]);
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(e.code(), "unsupported");
+
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["nodes"][0]["scale"] = serde_json::json!([0.0, 1.0, 1.0]);
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert!(e.to_string().contains("singular transform"), "{e}");
+
+    // The same mesh drawn twice at different places cannot be written back as one mesh.
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["nodes"][0]["children"] = serde_json::json!([1, 2]);
+    json["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"mesh": 0, "translation": [5.0, 0.0, 0.0]}));
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert!(e.to_string().contains("instancing"), "{e}");
+}
+
+#[test]
+fn writing_checks_the_positions_it_is_given() {
+    let a = Asset::read(QUAD_OBJ.as_bytes(), Format::Obj, &Limits::default()).unwrap();
+    let e = a.write(&[[0.0; 3]; 3], Format::Glb).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "expected 4 positions (one per welded vertex), got 3"
+    );
+    let mut p = a.surface().positions.clone();
+    p[2][1] = f64::NAN;
+    assert_eq!(
+        a.write(&p, Format::Obj).unwrap_err().code(),
+        "non_finite_coordinate"
+    );
+}
