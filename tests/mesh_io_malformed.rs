@@ -300,3 +300,167 @@ fn writing_checks_the_positions_it_is_given() {
         "non_finite_coordinate"
     );
 }
+
+#[test]
+fn polylines_alone_are_lines_and_next_to_faces_are_unsupported() {
+    let e = refuse(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3 1\n", Format::Obj);
+    assert_eq!(
+        e,
+        MeshError::PointsOrLinesOnly {
+            points: 0,
+            lines: 1
+        }
+    );
+    let e = refuse(format!("{QUAD_OBJ}l 1 2 3\n").as_bytes(), Format::Obj);
+    assert_eq!(e.code(), "unsupported");
+    assert!(e.to_string().contains("line 7"), "{e}");
+}
+
+/// Every value in a valid document removed or replaced by awkward values (0, -1, huge,
+/// fractional, wrong JSON types), one at a time: each read must return, never panic.
+#[test]
+fn structured_mutations_of_a_gltf_never_panic() {
+    use serde_json::{json, Value};
+    fn all_paths(v: &Value, path: &mut Vec<String>, out: &mut Vec<Vec<String>>) {
+        if !path.is_empty() {
+            out.push(path.clone());
+        }
+        match v {
+            Value::Array(a) => {
+                for (i, x) in a.iter().enumerate() {
+                    path.push(i.to_string());
+                    all_paths(x, path, out);
+                    path.pop();
+                }
+            }
+            Value::Object(o) => {
+                for (k, x) in o {
+                    path.push(k.clone());
+                    all_paths(x, path, out);
+                    path.pop();
+                }
+            }
+            _ => {}
+        }
+    }
+    let (json, bin, _, _) = textured_cube_gltf();
+    let mut paths = Vec::new();
+    all_paths(&json, &mut Vec::new(), &mut paths);
+    assert!(paths.len() > 100);
+    let values = [
+        None, // remove the member / element
+        Some(json!(null)),
+        Some(json!(0)),
+        Some(json!(1)),
+        Some(json!(3)),
+        Some(json!(23)),
+        Some(json!(25)),
+        Some(json!(-1)),
+        Some(json!(65535)),
+        Some(json!(4294967295u64)),
+        Some(json!(18446744073709551615u64)),
+        Some(json!(0.5)),
+        Some(json!(1e300)),
+        Some(json!("VEC3")),
+        Some(json!([])),
+        Some(json!({})),
+    ];
+    let (mut refused, mut tried) = (0, 0);
+    for path in &paths {
+        for value in &values {
+            let mut doc = json.clone();
+            let (last, parent_path) = path.split_last().unwrap();
+            let mut parent = &mut doc;
+            for key in parent_path {
+                parent = match parent {
+                    Value::Array(a) => &mut a[key.parse::<usize>().unwrap()],
+                    other => &mut other[key.as_str()],
+                };
+            }
+            match (parent, value) {
+                (Value::Array(a), None) => {
+                    a.remove(last.parse::<usize>().unwrap());
+                }
+                (Value::Object(o), None) => {
+                    o.remove(last);
+                }
+                (Value::Array(a), Some(v)) => a[last.parse::<usize>().unwrap()] = v.clone(),
+                (Value::Object(o), Some(v)) => {
+                    o.insert(last.clone(), v.clone());
+                }
+                _ => unreachable!("paths lead through containers"),
+            }
+            tried += 1;
+            let bytes = glb_bytes(&doc, &bin);
+            match Asset::read(&bytes, Format::Glb, &Limits::default()) {
+                Ok(a) => {
+                    // Whatever was accepted must also write without panicking.
+                    let _ = a.write(&a.surface().positions, Format::Glb);
+                    let _ = a.write(&a.surface().positions, Format::Obj);
+                }
+                Err(_) => refused += 1,
+            }
+        }
+    }
+    assert!(
+        refused > tried / 3,
+        "most mutations must be refused ({refused} of {tried})"
+    );
+}
+
+/// Random tokens of the hand-written OBJ replaced by awkward ones: every read returns.
+#[test]
+fn token_mutations_of_an_obj_never_panic() {
+    let text = include_str!("data/tetra_seams.obj");
+    let tokens: Vec<&str> = text.split(' ').collect();
+    let awkward = [
+        "0",
+        "-1",
+        "-5",
+        "99",
+        "nan",
+        "inf",
+        "1/2/3/4",
+        "",
+        "//",
+        "/",
+        "1//",
+        "-99999999999",
+        "99999999999999999999",
+        "1e999",
+        "f",
+        "v",
+        "l",
+        "p",
+        "vt",
+        "usemtl",
+        "\n",
+        "1/0/1",
+        "4/-13/1",
+        "2/2/-5",
+    ];
+    let mut rng = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = |n: usize| {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        (rng % n as u64) as usize
+    };
+    let mut accepted = 0;
+    for _ in 0..3000 {
+        let mut t: Vec<String> = tokens.iter().map(|s| s.to_string()).collect();
+        for _ in 0..1 + next(3) {
+            let i = next(t.len());
+            t[i] = awkward[next(awkward.len())].to_string();
+        }
+        if let Ok(a) = Asset::read(t.join(" ").as_bytes(), Format::Obj, &Limits::default()) {
+            accepted += 1;
+            let _ = a.write(&a.surface().positions, Format::Obj);
+            let _ = a.write(&a.surface().positions, Format::Glb);
+        }
+    }
+    assert!(
+        accepted > 0,
+        "some harmless mutations (e.g. in comments) must be accepted"
+    );
+}

@@ -75,7 +75,8 @@ fn split_container(bytes: &[u8], format: Format) -> Result<(&[u8], Option<&[u8]>
     let mut at = 12usize;
     let mut json = None;
     let mut bin = None;
-    while at < length {
+    // A chunk needs at least its 8-byte header; fewer trailing bytes are ignored padding.
+    while at.saturating_add(8) <= length {
         let chunk_len = u32_at(at).ok_or_else(|| header("chunk length"))?;
         let chunk_type = bytes
             .get(at + 4..at + 8)
@@ -103,6 +104,76 @@ fn split_container(bytes: &[u8], format: Format) -> Result<(&[u8], Option<&[u8]>
     }
     let json = json.ok_or_else(|| MeshError::parse("GLB", "no JSON chunk"))?;
     Ok((json, bin))
+}
+
+/// Checks that every primitive's attribute, index and morph-target accessor exists.
+///
+/// gltf-json 1.4.1's validation indexes `accessors[POSITION]` before checking it (a panic on
+/// an out-of-range index), so these references are checked on the raw JSON first.
+fn check_primitive_references(json: &Value) -> Result<(), MeshError> {
+    let accessor_count = json
+        .get("accessors")
+        .and_then(Value::as_array)
+        .map_or(0, Vec::len);
+    let meshes = json.get("meshes").and_then(Value::as_array);
+    for (m, mesh) in meshes.into_iter().flatten().enumerate() {
+        let prims = mesh.get("primitives").and_then(Value::as_array);
+        for (p, prim) in prims.into_iter().flatten().enumerate() {
+            let attrs = prim.get("attributes").and_then(Value::as_object);
+            let targets = prim.get("targets").and_then(Value::as_array);
+            let refs = attrs
+                .into_iter()
+                .flat_map(|a| a.values())
+                .chain(prim.get("indices"))
+                .chain(
+                    targets
+                        .into_iter()
+                        .flatten()
+                        .filter_map(Value::as_object)
+                        .flat_map(|t| t.values()),
+                );
+            for r in refs {
+                if r.as_u64().is_none_or(|i| i >= accessor_count as u64) {
+                    return Err(MeshError::parse(
+                        "glTF",
+                        format!(
+                            "mesh {m} primitive {p} refers to accessor {r}, but there are \
+                             {accessor_count}"
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Refuses images by external URI and images with no source, on the raw JSON (the gltf
+/// crate's `Image::source` unwraps a missing `uri` or `mimeType` that its validation lets
+/// through).
+fn check_images(json: &Value) -> Result<(), MeshError> {
+    let images = json.get("images").and_then(Value::as_array);
+    for (i, image) in images.into_iter().flatten().enumerate() {
+        match (image.get("uri"), image.get("bufferView")) {
+            (Some(uri), _) => match uri.as_str() {
+                Some(u) if u.starts_with("data:") => {}
+                Some(u) => {
+                    return Err(MeshError::ExternalUri {
+                        uri: u.chars().take(200).collect(),
+                    })
+                }
+                None => return Err(MeshError::parse("glTF", format!("image {i}: bad uri"))),
+            },
+            (None, Some(_)) if image.get("mimeType").is_some_and(Value::is_string) => {}
+            _ => {
+                return Err(MeshError::parse(
+                    "glTF",
+                    format!("image {i} needs a uri, or a bufferView with a mimeType"),
+                ))
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Decodes a base64 `data:` URI, or refuses anything else without touching it.
@@ -337,6 +408,8 @@ pub(crate) fn read(
             )));
         }
     }
+    check_primitive_references(&json)?;
+    check_images(&json)?;
     let root = gltf::json::Root::from_slice(json_bytes)
         .map_err(|e| MeshError::parse(name, e.to_string()))?;
     let doc = gltf::Document::from_json(root).map_err(|e| MeshError::parse(name, e.to_string()))?;
@@ -366,15 +439,6 @@ pub(crate) fn read(
         }
         data.truncate(b.length());
         buffers.push(data);
-    }
-    for image in doc.images() {
-        if let gltf::image::Source::Uri { uri, .. } = image.source() {
-            if !uri.starts_with("data:") {
-                return Err(MeshError::ExternalUri {
-                    uri: uri.chars().take(200).collect(),
-                });
-            }
-        }
     }
     for view in doc.views() {
         let len = buffers.get(view.buffer().index()).map_or(0, Vec::len);

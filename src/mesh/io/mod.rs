@@ -365,7 +365,6 @@ impl Asset {
     /// `surface().vertex_count()` entries; a vertex beyond a shorter slice keeps its stored
     /// position too (this cannot fail, so it degrades rather than panics).
     pub fn file_positions(&self, positions: &[[f64; 3]]) -> Vec<[f32; 3]> {
-        debug_assert_eq!(positions.len(), self.surface.vertex_count());
         self.local_positions(positions)
             .into_iter()
             .map(|p| p.map(|x| x as f32))

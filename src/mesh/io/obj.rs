@@ -41,6 +41,8 @@ type CornerKey = ([u64; 3], Option<usize>, Option<usize>);
 struct Prescan {
     faces: usize,
     triangles: usize,
+    /// First line holding an `l` polyline of 3+ vertices: tobj reads those as faces.
+    polyline_line: Option<usize>,
     points: usize,
     lines: usize,
     mtllibs: Vec<String>,
@@ -144,10 +146,8 @@ fn prescan(text: &str, limits: &Limits) -> Result<Prescan, MeshError> {
                     (_, 1) => scan.points += 1,
                     (_, 2) => scan.lines += 1,
                     ("l", _) => {
-                        return Err(MeshError::unsupported(format!(
-                        "line {}: polylines of 3 or more vertices (tobj would read them as faces)",
-                        line_no + 1
-                    )))
+                        scan.lines += 1;
+                        scan.polyline_line.get_or_insert(line_no);
                     }
                     _ => {
                         if !in_range {
@@ -180,6 +180,12 @@ fn prescan(text: &str, limits: &Limits) -> Result<Prescan, MeshError> {
                 faces: 0,
             }
         });
+    }
+    if let Some(line_no) = scan.polyline_line {
+        return Err(MeshError::unsupported(format!(
+            "line {}: polylines of 3 or more vertices next to faces (tobj would read them as faces)",
+            line_no + 1
+        )));
     }
     Ok(scan)
 }
