@@ -397,7 +397,10 @@ fn duck_round_trips_with_transform_uvs_indices_and_image() {
         .map(|(a, b)| (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) as f64)
         .sum::<f64>()
         / n0.len() as f64;
-    assert!(mean_dot > 0.95, "mean cos between old and new normals {mean_dot}");
+    assert!(
+        mean_dot > 0.95,
+        "mean cos between old and new normals {mean_dot}"
+    );
 
     let moved = wobble(&a.surface().positions);
     assert_seams_closed(&a, &moved);
@@ -463,9 +466,9 @@ fn several_data_uri_buffers_and_interleaved_vertices_are_read_and_written() {
     // Interleave POSITION and NORMAL (stride 24) into a second buffer.
     let normals_off = json["bufferViews"][1]["byteOffset"].as_u64().unwrap() as usize;
     let mut inter = Vec::new();
-    for i in 0..24 {
-        for k in 0..3 {
-            inter.extend_from_slice(&local[i][k].to_le_bytes());
+    for (i, p) in local.iter().enumerate() {
+        for x in p {
+            inter.extend_from_slice(&x.to_le_bytes());
         }
         inter.extend_from_slice(&bin[normals_off + 12 * i..normals_off + 12 * i + 12]);
     }
