@@ -201,6 +201,18 @@ fn obj_round_trip_keeps_faces_uvs_and_names() {
 }
 
 #[test]
+fn obj_material_names_survive_without_a_material_library() {
+    let no_lib = TETRA.replace("mtllib tetra.mtl\n", "");
+    let a = read(no_lib.as_bytes(), Format::Obj);
+    let text = String::from_utf8(a.write(&a.surface().positions, Format::Obj).unwrap()).unwrap();
+    assert!(!text.contains("mtllib"), "no library is invented: {text}");
+    assert!(
+        text.contains("\nusemtl painted\n") && text.contains("\nusemtl plain\n"),
+        "{text}"
+    );
+}
+
+#[test]
 fn obj_moved_positions_keep_seams_closed() {
     let a = read(TETRA.as_bytes(), Format::Obj);
     let moved = wobble(&a.surface().positions);

@@ -231,7 +231,15 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
             .collect();
         Ok((stand_ins.clone(), map))
     };
-    let mut reader = std::io::Cursor::new(bytes);
+    // tobj asks for materials only on an `mtllib` line; a file with `usemtl` but no `mtllib`
+    // gets a stand-in line first (read by nobody, never written out) so its names survive.
+    let prefix: &[u8] = if scan.mtllibs.is_empty() && !scan.materials.is_empty() {
+        b"mtllib willow-stand-in.mtl\n"
+    } else {
+        b""
+    };
+    let mut reader = std::io::Read::chain(prefix, bytes);
+    let mut reader = std::io::BufReader::new(&mut reader);
     let (models, materials) = tobj::load_obj_buf(&mut reader, &options, loader)
         .map_err(|e| MeshError::parse(FORMAT, e.to_string()))?;
     let materials = materials.unwrap_or_default();
