@@ -314,6 +314,35 @@ impl Asset {
         })
     }
 
+    /// An asset for a mesh made in code (e.g. [`generate`](super::generate)), so it can be
+    /// written as OBJ, glTF or GLB. Validates and orients it like [`Mesh::new`]; vertex order
+    /// is kept (file vertex `i` is welded vertex `i`). It has no UVs, normals or materials.
+    pub fn from_mesh(mesh: Mesh, limits: &Limits) -> Result<Asset, MeshError> {
+        let file_triangles = mesh.triangles.clone();
+        let surface = Mesh::with_limits(mesh.positions, mesh.triangles, limits)?;
+        let n = surface.vertex_count();
+        let file = FileGeometry {
+            local: surface.positions.clone(),
+            blocks: vec![Block {
+                start: 0,
+                len: n,
+                to_world: Affine::IDENTITY,
+                to_local: Affine::IDENTITY,
+            }],
+            triangles: file_triangles,
+            uvs: None,
+            normal_keys: None,
+        };
+        Ok(Asset {
+            format: Format::Obj,
+            surface,
+            file,
+            to_welded: (0..n).collect(),
+            normal_groups: None,
+            source: Source::Obj(obj::ObjSource::empty(n)),
+        })
+    }
+
     /// The welded, validated, consistently oriented surface in world space (glTF node
     /// transforms applied): what the flow moves.
     pub fn surface(&self) -> &Mesh {

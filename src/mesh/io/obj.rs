@@ -36,6 +36,18 @@ struct ObjGroup {
 /// A file vertex is a distinct (position bits, `vt` index, `vn` index) corner.
 type CornerKey = ([u64; 3], Option<usize>, Option<usize>);
 
+impl ObjSource {
+    /// No UVs, names or libraries: for meshes made in code.
+    pub(crate) fn empty(file_vertices: usize) -> ObjSource {
+        ObjSource {
+            texcoords: Vec::new(),
+            vt_of: vec![None; file_vertices],
+            mtllibs: Vec::new(),
+            groups: Vec::new(),
+        }
+    }
+}
+
 /// Counts and names found by [`prescan`].
 #[derive(Debug, Default)]
 struct Prescan {
