@@ -1,1 +1,33 @@
-fn main() {}
+//! The `willow` command: parse flags, set up, hand off. No numerics and no routes here.
+
+mod cli;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "willow",
+    version,
+    about = "Mesh fairing by conformal Willmore flow"
+)]
+struct Args {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Fair a mesh file and write the result (format by extension: .obj, .gltf, .glb).
+    Fair(cli::fair::FairArgs),
+    /// Measure per-step time and peak memory of the conformal flow against implicit MCF.
+    Bench(cli::bench::BenchArgs),
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    match args.command {
+        Command::Fair(a) => cli::fair::run(a),
+        Command::Bench(a) => cli::bench::run(a),
+    }
+}

@@ -35,3 +35,158 @@ pub struct StepMetrics {
     /// Wall time of the step in milliseconds, metrics included.
     pub step_ms: f64,
 }
+
+/// The input surface's per-triangle metric, kept to measure the quasi-conformal error of every
+/// later surface against it.
+pub struct ConformalReference {
+    /// Inverse first fundamental form `G⁻¹` of each input triangle in the basis of its edges
+    /// `(p1 − p0, p2 − p0)`, as `[g11, g12, g22]`, and `det G`.
+    inverse_gram: Vec<[f64; 3]>,
+    gram_det: Vec<f64>,
+}
+
+/// The largest value Q is reported as: a triangle collapsed to zero area has Q = ∞, which
+/// JSON cannot carry.
+pub const Q_CAP: f64 = 1e15;
+
+impl ConformalReference {
+    pub fn new(positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> Self {
+        let mut inverse_gram = Vec::with_capacity(triangles.len());
+        let mut gram_det = Vec::with_capacity(triangles.len());
+        for tri in triangles {
+            let [g11, g12, g22] = gram(positions, tri);
+            let det = g11 * g22 - g12 * g12;
+            let inv = if det > 0.0 {
+                [g22 / det, -g12 / det, g11 / det]
+            } else {
+                [0.0; 3]
+            };
+            inverse_gram.push(inv);
+            gram_det.push(det);
+        }
+        ConformalReference {
+            inverse_gram,
+            gram_det,
+        }
+    }
+
+    /// Q of every triangle of `positions` against the reference (paper §6.4.2): the ratio of
+    /// the singular values `σ1 ≥ σ2` of the affine map between the two triangles. The squared
+    /// singular values are the eigenvalues of `G_in⁻¹ G_now`, so with `t` its trace and `d` the
+    /// square root of its determinant, `σ1/σ2 + σ2/σ1 = t/d` and `Q = r + √(r² − 1)`, `r = t/2d`.
+    pub fn quasi_conformal_errors_into(
+        &self,
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+        out: &mut [f64],
+    ) {
+        for (((q, tri), inv), &det_in) in out
+            .iter_mut()
+            .zip(triangles)
+            .zip(&self.inverse_gram)
+            .zip(&self.gram_det)
+        {
+            let [h11, h12, h22] = gram(positions, tri);
+            let det_now = h11 * h22 - h12 * h12;
+            let trace = inv[0] * h11 + 2.0 * inv[1] * h12 + inv[2] * h22;
+            *q = if det_in > 0.0 && det_now > 0.0 {
+                let r = (trace / (2.0 * (det_now / det_in).sqrt())).max(1.0);
+                (r + (r * r - 1.0).sqrt()).min(Q_CAP)
+            } else {
+                Q_CAP
+            };
+        }
+    }
+}
+
+/// `[|u|², ⟨u, v⟩, |v|²]` for the edges `u = p1 − p0`, `v = p2 − p0` of a triangle.
+fn gram(positions: &[[f64; 3]], tri: &[usize; 3]) -> [f64; 3] {
+    let (p0, p1, p2) = (positions[tri[0]], positions[tri[1]], positions[tri[2]]);
+    let u = [p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]];
+    let v = [p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]];
+    [
+        u[0] * u[0] + u[1] * u[1] + u[2] * u[2],
+        u[0] * v[0] + u[1] * v[1] + u[2] * v[2],
+        v[0] * v[0] + v[1] * v[1] + v[2] * v[2],
+    ]
+}
+
+/// Summary statistics of per-triangle Q: `(mean, area-weighted mean, p95, max)`.
+/// `scratch` must have the length of `q`; it is overwritten (the percentile needs a partial sort).
+pub fn summarize_q(q: &[f64], face_areas: &[f64], scratch: &mut [f64]) -> (f64, f64, f64, f64) {
+    if q.is_empty() {
+        return (1.0, 1.0, 1.0, 1.0);
+    }
+    let n = q.len();
+    let mean = q.iter().sum::<f64>() / n as f64;
+    let total_area: f64 = face_areas.iter().sum();
+    let area_mean = if total_area > 0.0 {
+        q.iter().zip(face_areas).map(|(q, a)| q * a).sum::<f64>() / total_area
+    } else {
+        mean
+    };
+    let max = q.iter().cloned().fold(1.0, f64::max);
+    scratch.copy_from_slice(q);
+    let rank = ((0.95 * n as f64).ceil() as usize).clamp(1, n) - 1;
+    let (_, p95, _) = scratch.select_nth_unstable_by(rank, |a, b| a.total_cmp(b));
+    (mean, area_mean, *p95, max)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate::bumpy_sphere;
+
+    #[test]
+    fn similarity_has_q_one() {
+        let mesh = bumpy_sphere(2, 0.2);
+        let reference = ConformalReference::new(&mesh.positions, &mesh.triangles);
+        // Rotate about z by 0.7 rad, scale by 2.5, translate.
+        let (s, c) = (0.7f64.sin(), 0.7f64.cos());
+        let moved: Vec<[f64; 3]> = mesh
+            .positions
+            .iter()
+            .map(|p| {
+                [
+                    2.5 * (c * p[0] - s * p[1]) + 1.0,
+                    2.5 * (s * p[0] + c * p[1]) - 3.0,
+                    2.5 * p[2] + 0.5,
+                ]
+            })
+            .collect();
+        let mut q = vec![0.0; mesh.face_count()];
+        reference.quasi_conformal_errors_into(&moved, &mesh.triangles, &mut q);
+        assert!(
+            q.iter().all(|&q| (q - 1.0).abs() < 1e-6),
+            "max {:?}",
+            q.iter().cloned().fold(0.0, f64::max)
+        );
+    }
+
+    #[test]
+    fn axis_stretch_gives_its_ratio() {
+        let mesh = bumpy_sphere(2, 0.0);
+        let reference = ConformalReference::new(&mesh.positions, &mesh.triangles);
+        // A flat triangle in the xy plane stretched by 3 along x has Q = 3 exactly.
+        let flat = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.8, 0.0]];
+        let tri = [[0usize, 1, 2]];
+        let r = ConformalReference::new(&flat, &tri);
+        let stretched: Vec<[f64; 3]> = flat.iter().map(|p| [3.0 * p[0], p[1], p[2]]).collect();
+        let mut q = [0.0];
+        r.quasi_conformal_errors_into(&stretched, &tri, &mut q);
+        assert!((q[0] - 3.0).abs() < 1e-12, "Q = {}", q[0]);
+        drop(reference);
+    }
+
+    #[test]
+    fn summary_percentile_and_weights() {
+        let q: Vec<f64> = (1..=100).map(|i| 1.0 + i as f64 / 100.0).collect();
+        let areas = vec![1.0; 100];
+        let mut scratch = vec![0.0; 100];
+        let (mean, area_mean, p95, max) = summarize_q(&q, &areas, &mut scratch);
+        assert!((mean - 1.505).abs() < 1e-12);
+        assert!((area_mean - mean).abs() < 1e-12);
+        assert!((p95 - 1.95).abs() < 1e-12);
+        assert!((max - 2.0).abs() < 1e-12);
+    }
+}

@@ -4,9 +4,13 @@
 //! the caller drives it with [`Flow::step`] and decides between steps whether to go on
 //! (cancellation, deadlines), which is how the CLI and the job service both use it.
 
+pub mod classic;
+pub mod constraints;
 pub mod curve;
-
+pub mod dirac;
+pub mod scale;
 pub mod solver;
+pub mod willmore;
 
 use crate::mesh::Mesh;
 use crate::metrics::StepMetrics;
@@ -67,10 +71,10 @@ pub trait Flow: Send {
     fn initial_metrics(&self) -> StepMetrics;
 }
 
-/// Build the flow `params.method` names on `mesh`.
+/// Build the flow `params.method` names on `mesh` (validated: see [`Mesh::new`]).
 pub fn new_flow(mesh: &Mesh, params: &FlowParams) -> Result<Box<dyn Flow>, FlowError> {
-    let _ = (mesh, params);
-    Err(FlowError::Unsupported(
-        "the flows are being implemented".to_string(),
-    ))
+    Ok(match params.method {
+        Method::Conformal => Box::new(willmore::ConformalFlow::new(mesh, params)?),
+        Method::Mcf => Box::new(classic::ImplicitMeanCurvatureFlow::new(mesh, params)?),
+    })
 }

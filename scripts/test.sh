@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The whole test suite, on a fresh machine: installs what the tests need (the Khronos glTF
+# validator from npm, a Python venv with grpcio for the interop test), then runs every test.
+# Extra arguments go to `cargo test` (e.g. `scripts/test.sh flow_conformal`).
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+
+# Khronos glTF-Validator (npm), pinned by tests/tools/package-lock.json.
+if [[ ! -d tests/tools/node_modules/gltf-validator ]]; then
+    echo "test.sh: installing the glTF validator (npm ci)"
+    npm ci --prefix tests/tools --no-audit --no-fund --loglevel=error
+fi
+
+# Python gRPC client for the interop test (idempotent, quick when up to date).
+if [[ -x scripts/python-env.sh ]]; then
+    scripts/python-env.sh
+fi
+
+cargo test --all-targets "$@"

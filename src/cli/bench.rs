@@ -1,0 +1,183 @@
+//! `willow bench [MESH...]`: per mesh, the median per-step time of the conformal flow and of
+//! implicit MCF measured in the same run, their ratio, and peak memory. Figures, not
+//! pass/fail: performance targets are checked by reading these, never by timed tests.
+
+use super::{fail, EXIT_BAD_INPUT, EXIT_FAILURE};
+use clap::Args;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use willow::flow::{new_flow, FlowParams, Method};
+use willow::mesh::generate::bumpy_sphere;
+use willow::mesh::io::{Asset, Format, Limits};
+use willow::mesh::Mesh;
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Meshes to measure. Default: cheburashka and nefertiti from ../shared/meshes when
+    /// present, else generated bumpy spheres of 20k and 82k triangles.
+    pub meshes: Vec<PathBuf>,
+    /// Steps per flow (the first step is included: it pays for nothing extra, the symbolic
+    /// analysis happens when the flow is built and is reported separately).
+    #[arg(long, default_value_t = 5)]
+    pub steps: usize,
+    /// Conformal time step.
+    #[arg(long, default_value_t = 0.5)]
+    pub tau: f64,
+    /// One JSON object per mesh instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(serde::Serialize)]
+struct Figures {
+    mesh: String,
+    vertices: usize,
+    faces: usize,
+    setup_ms: f64,
+    conformal_median_step_ms: f64,
+    mcf_median_step_ms: f64,
+    ratio: f64,
+    conformal_peak_rss_mb: Option<f64>,
+    final_willmore_energy: f64,
+    final_q_mean: f64,
+}
+
+pub fn run(args: BenchArgs) -> ExitCode {
+    let inputs = match load_inputs(&args.meshes) {
+        Ok(i) => i,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
+    if !args.json {
+        println!(
+            "{:<28} {:>8} {:>8} {:>10} {:>14} {:>12} {:>7} {:>12}",
+            "mesh", "V", "F", "setup ms", "conformal ms", "MCF ms", "ratio", "peak RSS MB"
+        );
+    }
+    for (name, mesh) in inputs {
+        match measure(&name, &mesh, &args) {
+            Ok(f) => {
+                if args.json {
+                    match serde_json::to_string(&f) {
+                        Ok(s) => println!("{s}"),
+                        Err(e) => return fail(EXIT_FAILURE, e),
+                    }
+                } else {
+                    println!(
+                        "{:<28} {:>8} {:>8} {:>10.1} {:>14.1} {:>12.2} {:>7.2} {:>12}",
+                        f.mesh,
+                        f.vertices,
+                        f.faces,
+                        f.setup_ms,
+                        f.conformal_median_step_ms,
+                        f.mcf_median_step_ms,
+                        f.ratio,
+                        f.conformal_peak_rss_mb
+                            .map(|m| format!("{m:.0}"))
+                            .unwrap_or_else(|| "n/a".into())
+                    );
+                }
+            }
+            Err(e) => return fail(EXIT_FAILURE, format!("{name}: {e}")),
+        }
+    }
+    ExitCode::SUCCESS
+}
+
+fn load_inputs(paths: &[PathBuf]) -> Result<Vec<(String, Mesh)>, String> {
+    let mut inputs = Vec::new();
+    if paths.is_empty() {
+        let shared = PathBuf::from("../shared/meshes");
+        for name in ["cheburashka.obj", "nefertiti.obj"] {
+            let path = shared.join(name);
+            if path.exists() {
+                inputs.push((name.to_string(), read(&path)?));
+            }
+        }
+        if inputs.is_empty() {
+            inputs.push(("bumpy_sphere(5)".into(), bumpy_sphere(5, 0.15)));
+            inputs.push(("bumpy_sphere(6)".into(), bumpy_sphere(6, 0.15)));
+        }
+    }
+    for path in paths {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| path.display().to_string());
+        inputs.push((name, read(path)?));
+    }
+    Ok(inputs)
+}
+
+fn read(path: &PathBuf) -> Result<Mesh, String> {
+    let format =
+        Format::from_path(path).ok_or_else(|| format!("{}: unknown extension", path.display()))?;
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let asset = Asset::read(&bytes, format, &Limits::default())
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(asset.surface().clone())
+}
+
+fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String> {
+    reset_peak_rss();
+    let setup = std::time::Instant::now();
+    let conformal = FlowParams {
+        method: Method::Conformal,
+        tau: args.tau,
+        iterations: 1,
+    };
+    let mut flow = new_flow(mesh, &conformal).map_err(|e| e.to_string())?;
+    let setup_ms = setup.elapsed().as_secs_f64() * 1e3;
+    let mut times = Vec::with_capacity(args.steps);
+    let mut last = flow.initial_metrics();
+    for _ in 0..args.steps {
+        last = flow.step().map_err(|e| e.to_string())?;
+        times.push(last.step_ms);
+    }
+    let peak = peak_rss_mb();
+    drop(flow);
+
+    let mcf = FlowParams {
+        method: Method::Mcf,
+        tau: 0.05,
+        iterations: 1,
+    };
+    let mut flow = new_flow(mesh, &mcf).map_err(|e| e.to_string())?;
+    let mut mcf_times = Vec::with_capacity(args.steps);
+    for _ in 0..args.steps {
+        mcf_times.push(flow.step().map_err(|e| e.to_string())?.step_ms);
+    }
+    let (c, m) = (median(&mut times), median(&mut mcf_times));
+    Ok(Figures {
+        mesh: name.to_string(),
+        vertices: mesh.vertex_count(),
+        faces: mesh.face_count(),
+        setup_ms,
+        conformal_median_step_ms: c,
+        mcf_median_step_ms: m,
+        ratio: if m > 0.0 { c / m } else { f64::NAN },
+        conformal_peak_rss_mb: peak,
+        final_willmore_energy: last.willmore_energy,
+        final_q_mean: last.q_mean,
+    })
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+/// Linux resets the peak RSS (VmHWM) when "5" is written to /proc/self/clear_refs, so each
+/// mesh's peak is its own.
+fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+fn peak_rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}

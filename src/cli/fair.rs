@@ -1,0 +1,168 @@
+//! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
+//! [--frames-dir DIR] [--json]`: the contract other tools rely on.
+
+use super::{fail, EXIT_BAD_INPUT, EXIT_FAILURE};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use willow::flow::{new_flow, FlowParams, Method};
+use willow::mesh::io::{Asset, Format, Limits};
+
+#[derive(Args, Debug)]
+pub struct FairArgs {
+    /// Input mesh (.obj, .gltf, .glb).
+    pub input: PathBuf,
+    /// Output mesh; its extension picks the format.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Number of flow steps.
+    #[arg(long, default_value_t = 10)]
+    pub steps: usize,
+    /// Time step. Conformal flow: the paper's τ, stable below 1 (0.5 removes the unconstrained
+    /// curvature in one step). MCF: unitless, the step is τ·area/4π.
+    #[arg(long, default_value_t = 0.5)]
+    pub tau: f64,
+    /// Inverse power iterations per step.
+    #[arg(long, default_value_t = 1)]
+    pub iterations: usize,
+    #[arg(long, value_enum, default_value_t = MethodArg::Conformal)]
+    pub method: MethodArg,
+    /// Write every intermediate mesh here (same format as the output).
+    #[arg(long)]
+    pub frames_dir: Option<PathBuf>,
+    /// One JSON object per step on stdout instead of a progress bar.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum MethodArg {
+    Conformal,
+    Mcf,
+}
+
+impl From<MethodArg> for Method {
+    fn from(m: MethodArg) -> Method {
+        match m {
+            MethodArg::Conformal => Method::Conformal,
+            MethodArg::Mcf => Method::Mcf,
+        }
+    }
+}
+
+fn format_of(path: &Path, role: &str) -> Result<Format, String> {
+    Format::from_path(path).ok_or_else(|| {
+        format!(
+            "{role} {}: unknown extension (expected .obj, .gltf or .glb)",
+            path.display()
+        )
+    })
+}
+
+pub fn run(args: FairArgs) -> ExitCode {
+    let input_format = match format_of(&args.input, "input") {
+        Ok(f) => f,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
+    let output_format = match format_of(&args.output, "output") {
+        Ok(f) => f,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
+    let bytes = match std::fs::read(&args.input) {
+        Ok(b) => b,
+        Err(e) => {
+            return fail(
+                EXIT_BAD_INPUT,
+                format!("cannot read {}: {e}", args.input.display()),
+            )
+        }
+    };
+    let asset = match Asset::read(&bytes, input_format, &Limits::default()) {
+        Ok(a) => a,
+        Err(e) => return fail(EXIT_BAD_INPUT, format!("{}: {e}", args.input.display())),
+    };
+    let params = FlowParams {
+        method: args.method.into(),
+        tau: args.tau,
+        iterations: args.iterations,
+    };
+    let mut flow = match new_flow(asset.surface(), &params) {
+        Ok(f) => f,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
+    if let Some(dir) = &args.frames_dir {
+        if let Err(e) = std::fs::create_dir_all(dir) {
+            return fail(
+                EXIT_FAILURE,
+                format!("cannot create {}: {e}", dir.display()),
+            );
+        }
+    }
+
+    let progress = if !args.json && std::io::stderr().is_terminal() {
+        let bar =
+            ProgressBar::with_draw_target(Some(args.steps as u64), ProgressDrawTarget::stderr());
+        if let Ok(style) = ProgressStyle::with_template("{bar:40} {pos}/{len} {msg}") {
+            bar.set_style(style);
+        }
+        Some(bar)
+    } else {
+        None
+    };
+    let stdout = std::io::stdout();
+    for _ in 0..args.steps {
+        let metrics = match flow.step() {
+            Ok(m) => m,
+            Err(e) => return fail(EXIT_FAILURE, e),
+        };
+        if args.json {
+            let line = match serde_json::to_string(&metrics) {
+                Ok(l) => l,
+                Err(e) => return fail(EXIT_FAILURE, e),
+            };
+            let mut out = stdout.lock();
+            if writeln!(out, "{line}").and_then(|_| out.flush()).is_err() {
+                // stdout closed (e.g. piped into `head`): stop quietly, like other tools.
+                return ExitCode::from(EXIT_FAILURE);
+            }
+        }
+        if let Some(bar) = &progress {
+            bar.set_message(format!(
+                "W {:.4}  Q mean {:.4}  {:.0} ms",
+                metrics.willmore_energy, metrics.q_mean, metrics.step_ms
+            ));
+            bar.inc(1);
+        }
+        if let Some(dir) = &args.frames_dir {
+            let path = dir.join(format!(
+                "frame_{:04}.{}",
+                metrics.step,
+                output_format.extension()
+            ));
+            if let Err(e) = write_mesh(&asset, flow.positions(), output_format, &path) {
+                return fail(EXIT_FAILURE, e);
+            }
+        }
+    }
+    if let Some(bar) = progress {
+        bar.finish();
+    }
+    match write_mesh(&asset, flow.positions(), output_format, &args.output) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => fail(EXIT_FAILURE, e),
+    }
+}
+
+fn write_mesh(
+    asset: &Asset,
+    positions: &[[f64; 3]],
+    format: Format,
+    path: &Path,
+) -> Result<(), String> {
+    let bytes = asset
+        .write(positions, format)
+        .map_err(|e| format!("cannot encode {}: {e}", path.display()))?;
+    std::fs::write(path, bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))
+}

@@ -1,0 +1,16 @@
+//! Subcommands of the `willow` binary, one per file: parse, then apply.
+
+pub mod bench;
+pub mod fair;
+
+use std::process::ExitCode;
+
+/// Exit code for input the program refuses (unreadable, malformed, unsupported).
+pub const EXIT_BAD_INPUT: u8 = 2;
+/// Exit code for a failure while running (numerical failure, unwritable output).
+pub const EXIT_FAILURE: u8 = 1;
+
+pub fn fail(code: u8, message: impl std::fmt::Display) -> ExitCode {
+    eprintln!("error: {message}");
+    ExitCode::from(code)
+}

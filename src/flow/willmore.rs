@@ -1,0 +1,489 @@
+//! Conformal Willmore flow in curvature space: Table 1, right column.
+//!
+//! One step, on the current surface `f` with mean curvature `H`:
+//! 1. flow direction `v = −2H` (§6.1: `μ̇ = −2μ`), projected onto the constraints (Table 1
+//!    III–IV; §6.2): normals `N^{x,y,z}` (no sphere inversions, App. D) and `1` (total
+//!    curvature, App. B), per closed component;
+//! 2. `ρ = τ·P(v) = −2τ·P(H)` (ALGORITHM.md §2: with this convention τ has the paper's §4
+//!    meaning, `u ← (1 − 2τ)u`, stable for τ < 1);
+//! 3. smallest eigenvector of `(D − ρ)λ = γλ` (Eq. 5) by inverse iteration on `X(ρ)`
+//!    (App. G), starting from `λ ≡ 1` because the previous surface is the reference;
+//! 4. new edges `ẽ = λ̄ e λ` integrated along each edge (Table 1 VI);
+//! 5. new positions from `L f̃ = ∇·ẽ` (Eq. 6, Table 1 VII);
+//! 6. scale policy: each component's centroid and area restored.
+//!
+//! The sparsity patterns and symbolic factorizations of X and L are built once per flow;
+//! every buffer is allocated in [`ConformalFlow::new`], so the step loop does not allocate.
+
+use super::constraints::ConstraintBasis;
+use super::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
+use super::scale::ScalePolicy;
+use super::solver::{BlockPattern, Cholesky};
+use super::{Flow, FlowError, FlowParams};
+use crate::geometry::cache::GeometryCache;
+use crate::geometry::vec3::{norm2, sub};
+use crate::geometry::Quaternion;
+use crate::mesh::topology::Topology;
+use crate::mesh::Mesh;
+use crate::metrics::{summarize_q, ConformalReference, StepMetrics};
+use faer::c64;
+use std::time::Instant;
+
+/// Diagonal shift of X relative to its mean diagonal, scaled per vertex by relative area:
+/// large enough that LLᴴ never meets a non-positive pivot on the constant-quaternion kernel at
+/// ρ ≈ 0, small enough that inverse iteration still amplifies the near-null direction
+/// (ALGORITHM.md §5, pitfall 4).
+const DIRAC_SHIFT: f64 = 1e-9;
+/// The same for the Poisson system `L + εM`, whose kernel is the constants per component.
+const POISSON_SHIFT: f64 = 1e-10;
+/// How many times a failed factorization is retried with a 100× larger shift before the step
+/// is reported as a numerical failure.
+const SHIFT_RETRIES: usize = 3;
+
+pub struct ConformalFlow {
+    triangles: Vec<[usize; 3]>,
+    positions: Vec<[f64; 3]>,
+    tau: f64,
+    iterations: usize,
+    step: usize,
+    vertex_component: Vec<usize>,
+
+    geometry: GeometryCache,
+    reference: ConformalReference,
+    scale: ScalePolicy,
+    constraints: ConstraintBasis,
+    initial: StepMetrics,
+
+    dirac_pattern: BlockPattern,
+    dirac_values: Vec<c64>,
+    dirac: Cholesky<c64>,
+    laplace_pattern: BlockPattern,
+    laplace_values: Vec<f64>,
+    laplace: Cholesky<f64>,
+
+    rho: Vec<f64>,
+    shift: Vec<f64>,
+    lambda: Vec<Quaternion>,
+    rhs: Vec<c64>,
+    product: Vec<c64>,
+    new_edges: Vec<[[f64; 3]; 3]>,
+    divergence: Vec<f64>,
+    component_norms: Vec<f64>,
+    component_areas: Vec<f64>,
+    q: Vec<f64>,
+    q_scratch: Vec<f64>,
+}
+
+impl ConformalFlow {
+    pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
+        check_params(params)?;
+        let topology = Topology::new(mesh);
+        for (index, component) in topology.components.iter().enumerate() {
+            if component.genus > 0 {
+                return Err(FlowError::Unsupported(format!(
+                    "component {index} has genus {}: surfaces of genus > 0 need the exactness \
+                     constraints of Appendix C, which are not implemented yet",
+                    component.genus
+                )));
+            }
+            if !component.boundary_loops.is_empty() {
+                return Err(FlowError::Unsupported(format!(
+                    "component {index} has {} boundary loop(s): surfaces with boundary need the \
+                     boundary conditions of §6.3, which are not implemented yet",
+                    component.boundary_loops.len()
+                )));
+            }
+        }
+        let n = mesh.vertex_count();
+        let nf = mesh.face_count();
+        let n_components = topology.components.len();
+        let vertex_component = topology.vertex_component.clone();
+        drop(topology);
+
+        let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
+        let reference = ConformalReference::new(&mesh.positions, &mesh.triangles);
+        let scale = ScalePolicy::new(
+            vertex_component.clone(),
+            n_components,
+            &mesh.positions,
+            &geometry.vertex_areas,
+        );
+        let dirac_pattern = BlockPattern::new(n, &mesh.triangles, 2);
+        let dirac =
+            Cholesky::<c64>::analyze(&dirac_pattern, 1).map_err(|e| FlowError::Numerical {
+                step: 0,
+                reason: e.to_string(),
+            })?;
+        let laplace_pattern = BlockPattern::new(n, &mesh.triangles, 1);
+        let laplace =
+            Cholesky::<f64>::analyze(&laplace_pattern, 3).map_err(|e| FlowError::Numerical {
+                step: 0,
+                reason: e.to_string(),
+            })?;
+        let initial = StepMetrics {
+            step: 0,
+            willmore_energy: geometry.willmore_energy(),
+            q_mean: 1.0,
+            q_area_mean: 1.0,
+            q_p95: 1.0,
+            q_max: 1.0,
+            closure_residual: 0.0,
+            eigen_residual: 0.0,
+            area: geometry.total_area(),
+            step_ms: 0.0,
+        };
+        Ok(ConformalFlow {
+            triangles: mesh.triangles.clone(),
+            positions: mesh.positions.clone(),
+            tau: params.tau,
+            iterations: params.iterations,
+            step: 0,
+            constraints: ConstraintBasis::new(vertex_component.clone(), n_components, 4),
+            vertex_component,
+            geometry,
+            reference,
+            scale,
+            initial,
+            dirac_values: vec![c64::new(0.0, 0.0); dirac_pattern.nnz()],
+            dirac_pattern,
+            dirac,
+            laplace_values: vec![0.0; laplace_pattern.nnz()],
+            laplace_pattern,
+            laplace,
+            rho: vec![0.0; n],
+            shift: vec![0.0; n],
+            lambda: vec![Quaternion::ONE; n],
+            rhs: vec![c64::new(0.0, 0.0); 2 * n],
+            product: vec![c64::new(0.0, 0.0); 2 * n],
+            new_edges: vec![[[0.0; 3]; 3]; nf],
+            divergence: vec![0.0; 3 * n],
+            component_norms: vec![0.0; n_components],
+            component_areas: vec![0.0; n_components],
+            q: vec![1.0; nf],
+            q_scratch: vec![1.0; nf],
+        })
+    }
+
+    /// Table 1 steps I–V: `ρ = −2τ·P(H)`.
+    fn curvature_change(&mut self) {
+        let g = &self.geometry;
+        self.constraints.clear();
+        for axis in 0..3 {
+            self.constraints.push_with(&g.vertex_areas, |f| {
+                for (fi, n) in f.iter_mut().zip(&g.normals) {
+                    *fi = n[axis];
+                }
+            });
+        }
+        self.constraints.push_with(&g.vertex_areas, |f| f.fill(1.0));
+        for (r, h) in self.rho.iter_mut().zip(&g.mean_curvature) {
+            *r = -2.0 * h;
+        }
+        self.constraints.project(&mut self.rho, &g.vertex_areas);
+        for r in &mut self.rho {
+            *r *= self.tau;
+        }
+    }
+
+    /// Table 1 step VI: λ by inverse iteration on `X(ρ)`; returns the eigen-residual.
+    fn solve_lambda(&mut self) -> Result<f64, FlowError> {
+        let g = &self.geometry;
+        let n = self.positions.len();
+        let mean_area = g.total_area() / n as f64;
+        // X is dimensionless (|e|²/A and Aρ² are scale-free), so the shift is relative to its
+        // mean diagonal; weighting by relative vertex area makes it a multiple of the mass M.
+        let mut attempt = 0;
+        loop {
+            let mut mean_diagonal = 0.0;
+            for (tri, &area) in self.triangles.iter().zip(&g.face_areas) {
+                let e = opposite_edges(&self.positions, tri);
+                for (c, &v) in tri.iter().enumerate() {
+                    let r = self.rho[v];
+                    mean_diagonal += e[c].norm2() / (4.0 * area) + area * r * r / 9.0;
+                }
+            }
+            mean_diagonal /= n as f64;
+            let eps = DIRAC_SHIFT * 100f64.powi(attempt as i32) * mean_diagonal;
+            for (s, &a) in self.shift.iter_mut().zip(&g.vertex_areas) {
+                *s = eps * a / mean_area;
+            }
+            assemble_dirac_into(
+                &self.dirac_pattern,
+                &self.positions,
+                &self.triangles,
+                &g.face_areas,
+                &self.rho,
+                &self.shift,
+                &mut self.dirac_values,
+            );
+            match self
+                .dirac
+                .factorize(&self.dirac_pattern, &self.dirac_values)
+            {
+                Ok(()) => break,
+                Err(e) if attempt >= SHIFT_RETRIES => {
+                    return Err(FlowError::Numerical {
+                        step: self.step + 1,
+                        reason: format!("Dirac matrix X: {e}"),
+                    })
+                }
+                Err(_) => attempt += 1,
+            }
+        }
+
+        self.lambda.fill(Quaternion::ONE);
+        for _ in 0..self.iterations.max(1) {
+            // Generalized inverse iteration X λ' = M λ: X integrates over faces, so the mass
+            // matrix M (barycentric areas) is the matching right-hand side.
+            for (i, (l, &a)) in self.lambda.iter().zip(&g.vertex_areas).enumerate() {
+                let [z0, z1] = l.scale(a).to_complex_column();
+                self.rhs[2 * i] = z0;
+                self.rhs[2 * i + 1] = z1;
+            }
+            self.dirac.solve_in_place(&mut self.rhs, 1);
+            for (i, l) in self.lambda.iter_mut().enumerate() {
+                *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
+            }
+            normalize_per_component(
+                &mut self.lambda,
+                &g.vertex_areas,
+                &self.vertex_component,
+                &mut self.component_norms,
+                &mut self.component_areas,
+            );
+        }
+        if self.lambda.iter().any(|l| !l.norm2().is_finite()) {
+            return Err(FlowError::Numerical {
+                step: self.step + 1,
+                reason: "the eigenvector λ is not finite".into(),
+            });
+        }
+
+        // Eigen-residual |Xλ − γMλ| / |Xλ| with the Rayleigh quotient γ, on X without its shift.
+        for (i, l) in self.lambda.iter().enumerate() {
+            let [z0, z1] = l.to_complex_column();
+            self.rhs[2 * i] = z0;
+            self.rhs[2 * i + 1] = z1;
+        }
+        sparse_matvec(
+            &self.dirac_pattern,
+            &self.dirac_values,
+            &self.rhs,
+            &mut self.product,
+        );
+        let (mut x_dot, mut m_dot) = (0.0, 0.0);
+        for i in 0..n {
+            for r in 0..2 {
+                let k = 2 * i + r;
+                self.product[k] -= self.rhs[k] * self.shift[i];
+                x_dot += (self.rhs[k].conj() * self.product[k]).re;
+                m_dot += self.rhs[k].norm_sqr() * g.vertex_areas[i];
+            }
+        }
+        let gamma = if m_dot > 0.0 { x_dot / m_dot } else { 0.0 };
+        let (mut res, mut xnorm) = (0.0, 0.0);
+        for i in 0..n {
+            for r in 0..2 {
+                let k = 2 * i + r;
+                res += (self.product[k] - self.rhs[k] * (gamma * g.vertex_areas[i])).norm_sqr();
+                xnorm += self.product[k].norm_sqr();
+            }
+        }
+        Ok(if xnorm > 0.0 {
+            (res / xnorm).sqrt()
+        } else {
+            0.0
+        })
+    }
+
+    /// Table 1 step VII: new edges, their divergence, and the Poisson solve. Returns the closure
+    /// residual `|d f̃ − ẽ| / |ẽ|` over all half-edges (unweighted).
+    fn integrate(&mut self) -> Result<f64, FlowError> {
+        let n = self.positions.len();
+        let g = &self.geometry;
+        self.divergence.fill(0.0);
+        for ((tri, cots), edges) in self
+            .triangles
+            .iter()
+            .zip(&g.cotangents)
+            .zip(self.new_edges.iter_mut())
+        {
+            for c in 0..3 {
+                let (a, b) = (tri[(c + 1) % 3], tri[(c + 2) % 3]);
+                let e = Quaternion::imaginary(sub(self.positions[b], self.positions[a]));
+                let (la, lb) = (self.lambda[a], self.lambda[b]);
+                // ∫ λ̄ e λ along the edge with λ linear: weights ⅓, ⅙, ⅙, ⅓ (ALGORITHM.md §6).
+                let t = (la.conj() * e * la).scale(1.0 / 3.0)
+                    + (la.conj() * e * lb).scale(1.0 / 6.0)
+                    + (lb.conj() * e * la).scale(1.0 / 6.0)
+                    + (lb.conj() * e * lb).scale(1.0 / 3.0);
+                let new_edge = t.vector();
+                edges[c] = new_edge;
+                let w = 0.5 * cots[c];
+                for k in 0..3 {
+                    self.divergence[k * n + a] -= w * new_edge[k];
+                    self.divergence[k * n + b] += w * new_edge[k];
+                }
+            }
+        }
+
+        // L f̃ = ω with the current L, shifted by εM so the constant kernel is harmless
+        // (ω sums to zero per component by construction).
+        let mut attempt = 0;
+        loop {
+            let mean_area = g.total_area() / n as f64;
+            self.laplace_values.fill(0.0);
+            let mut trace = 0.0;
+            for ((tri, cots), slots) in self
+                .triangles
+                .iter()
+                .zip(&g.cotangents)
+                .zip(&self.laplace_pattern.face_slots)
+            {
+                for c in 0..3 {
+                    let (a, b) = ((c + 1) % 3, (c + 2) % 3);
+                    let w = 0.5 * cots[c];
+                    let p = &self.laplace_pattern;
+                    self.laplace_values[p.entry(slots[3 * a + b], tri[b], 0, 0)] -= w;
+                    self.laplace_values[p.entry(slots[3 * b + a], tri[a], 0, 0)] -= w;
+                    self.laplace_values[p.entry(slots[3 * a + a], tri[a], 0, 0)] += w;
+                    self.laplace_values[p.entry(slots[3 * b + b], tri[b], 0, 0)] += w;
+                    trace += 2.0 * w;
+                }
+            }
+            let eps = POISSON_SHIFT * 100f64.powi(attempt as i32) * trace / n as f64;
+            for (v, &a) in g.vertex_areas.iter().enumerate() {
+                let p = &self.laplace_pattern;
+                self.laplace_values[p.entry(p.diagonal_slot(v), v, 0, 0)] += eps * a / mean_area;
+            }
+            match self
+                .laplace
+                .factorize(&self.laplace_pattern, &self.laplace_values)
+            {
+                Ok(()) => break,
+                Err(e) if attempt >= SHIFT_RETRIES => {
+                    return Err(FlowError::Numerical {
+                        step: self.step + 1,
+                        reason: format!("Laplacian: {e}"),
+                    })
+                }
+                Err(_) => attempt += 1,
+            }
+        }
+        self.laplace.solve_in_place(&mut self.divergence, 3);
+        for (i, p) in self.positions.iter_mut().enumerate() {
+            *p = [
+                self.divergence[i],
+                self.divergence[n + i],
+                self.divergence[2 * n + i],
+            ];
+        }
+        if self
+            .positions
+            .iter()
+            .any(|p| !(p[0].is_finite() && p[1].is_finite() && p[2].is_finite()))
+        {
+            return Err(FlowError::Numerical {
+                step: self.step + 1,
+                reason: "the Poisson solve produced non-finite positions".into(),
+            });
+        }
+
+        let (mut gap, mut total) = (0.0, 0.0);
+        for (tri, edges) in self.triangles.iter().zip(&self.new_edges) {
+            for c in 0..3 {
+                let (a, b) = (tri[(c + 1) % 3], tri[(c + 2) % 3]);
+                gap += norm2(sub(sub(self.positions[b], self.positions[a]), edges[c]));
+                total += norm2(edges[c]);
+            }
+        }
+        Ok(if total > 0.0 {
+            (gap / total).sqrt()
+        } else {
+            0.0
+        })
+    }
+}
+
+/// Scale λ on each component so that `Σ |λ_i|² A_i = Σ A_i` there: λ is defined up to a
+/// quaternion factor per component, and a unit mean keeps edge lengths of the order of the
+/// input's before the scale policy restores the area exactly. `norms` and `component_areas`
+/// are per-component scratch.
+fn normalize_per_component(
+    lambda: &mut [Quaternion],
+    areas: &[f64],
+    vertex_component: &[usize],
+    norms: &mut [f64],
+    component_areas: &mut [f64],
+) {
+    norms.fill(0.0);
+    component_areas.fill(0.0);
+    for ((l, &a), &c) in lambda.iter().zip(areas).zip(vertex_component) {
+        norms[c] += l.norm2() * a;
+        component_areas[c] += a;
+    }
+    for (l, &c) in lambda.iter_mut().zip(vertex_component) {
+        let factor = if norms[c] > 0.0 {
+            (component_areas[c] / norms[c]).sqrt()
+        } else {
+            1.0
+        };
+        *l = l.scale(factor);
+    }
+}
+
+pub(super) fn check_params(params: &FlowParams) -> Result<(), FlowError> {
+    if !(params.tau.is_finite() && params.tau > 0.0) {
+        return Err(FlowError::InvalidParameter {
+            name: "tau",
+            reason: format!("must be a positive finite number, got {}", params.tau),
+        });
+    }
+    if params.iterations == 0 || params.iterations > 100 {
+        return Err(FlowError::InvalidParameter {
+            name: "iterations",
+            reason: format!("must be between 1 and 100, got {}", params.iterations),
+        });
+    }
+    Ok(())
+}
+
+impl Flow for ConformalFlow {
+    fn step(&mut self) -> Result<StepMetrics, FlowError> {
+        let start = Instant::now();
+        self.curvature_change();
+        let eigen_residual = self.solve_lambda()?;
+        let closure_residual = self.integrate()?;
+        // New geometry, then the scale policy on it, then the geometry again for the metrics
+        // and the next step (the rescale changes areas and H).
+        self.geometry.refresh(&self.positions, &self.triangles);
+        self.scale
+            .restore(&mut self.positions, &self.geometry.vertex_areas);
+        self.geometry.refresh(&self.positions, &self.triangles);
+        self.step += 1;
+        self.reference
+            .quasi_conformal_errors_into(&self.positions, &self.triangles, &mut self.q);
+        let (q_mean, q_area_mean, q_p95, q_max) =
+            summarize_q(&self.q, &self.geometry.face_areas, &mut self.q_scratch);
+        Ok(StepMetrics {
+            step: self.step,
+            willmore_energy: self.geometry.willmore_energy(),
+            q_mean,
+            q_area_mean,
+            q_p95,
+            q_max,
+            closure_residual,
+            eigen_residual,
+            area: self.geometry.total_area(),
+            step_ms: start.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+
+    fn positions(&self) -> &[[f64; 3]] {
+        &self.positions
+    }
+
+    fn initial_metrics(&self) -> StepMetrics {
+        self.initial
+    }
+}
