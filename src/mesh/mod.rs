@@ -3,6 +3,13 @@
 //! [`Mesh`] is the *welded* surface: one vertex per distinct position, triangles consistently
 //! oriented. File formats split vertices at UV seams; [`io::Asset`] keeps the map from the
 //! file's vertices to the welded ones so new positions scatter back without opening seams.
+//!
+//! - [`Mesh::new`] is the door: it validates (finite, in range, non-degenerate, manifold,
+//!   orientable, within [`Limits`]) and orients (closed components outward), or returns a
+//!   [`MeshError`] naming the rule, the count and the first offending indices.
+//! - [`Topology`]: edges, boundary loops, connected components with χ and genus.
+//! - [`io`]: OBJ, glTF and GLB in and out ([`io::Asset`], [`io::Format`]).
+//! - [`generate`]: meshes made in code for tests and benchmarks.
 
 pub mod error;
 pub mod generate;

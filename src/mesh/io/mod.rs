@@ -258,7 +258,11 @@ impl Asset {
         let mut world = Vec::new();
         world
             .try_reserve_exact(file.local.len())
-            .map_err(|_| too_large_alloc("vertices", file.local.len()))?;
+            .map_err(|_| MeshError::TooLarge {
+                what: "vertices (out of memory)",
+                value: file.local.len(),
+                limit: limits.max_vertices,
+            })?;
         for b in &file.blocks {
             for p in file.local.get(b.start..b.start + b.len).unwrap_or(&[]) {
                 world.push(b.to_world.apply(*p));
@@ -521,14 +525,6 @@ pub(crate) fn format_name(format: Format) -> &'static str {
         Format::Obj => "OBJ",
         Format::Gltf => "glTF",
         Format::Glb => "GLB",
-    }
-}
-
-pub(crate) fn too_large_alloc(what: &'static str, value: usize) -> MeshError {
-    MeshError::TooLarge {
-        what,
-        value,
-        limit: 0,
     }
 }
 
