@@ -575,3 +575,57 @@ fn generated_meshes_can_be_written_in_every_format() {
         assert_eq!(Topology::new(b.surface()).genus(), 1);
     }
 }
+
+#[test]
+fn shared_meshes_round_trip_through_every_format() {
+    let names = [
+        "cheburashka.obj",
+        "bob_small.obj",
+        "genus2_24.obj",
+        "alligator.obj",
+        "cat_head.obj",
+        "stanford-bunny.obj",
+        "Duck.glb",
+    ];
+    for name in names {
+        let Some(path) = shared_mesh(name) else {
+            continue;
+        };
+        let bytes = std::fs::read(&path).unwrap();
+        let a = read(&bytes, Format::from_path(&path).unwrap());
+        let topo = Topology::new(a.surface());
+        let moved = wobble(&a.surface().positions);
+        for fmt in [Format::Obj, Format::Glb, Format::Gltf] {
+            let out = a.write(&moved, fmt).unwrap();
+            if fmt == Format::Glb {
+                validate_with_khronos(&out, "glb");
+            }
+            let b = read(&out, fmt);
+            assert_eq!(
+                b.surface().vertex_count(),
+                a.surface().vertex_count(),
+                "{name} {fmt:?}"
+            );
+            assert_eq!(
+                b.surface().face_count(),
+                a.surface().face_count(),
+                "{name} {fmt:?}"
+            );
+            assert_eq!(
+                b.file_vertex_count(),
+                a.file_vertex_count(),
+                "{name} {fmt:?}"
+            );
+            let t = Topology::new(b.surface());
+            assert_eq!(
+                (t.genus(), t.boundary_loops.len(), t.components.len()),
+                (
+                    topo.genus(),
+                    topo.boundary_loops.len(),
+                    topo.components.len()
+                ),
+                "{name} {fmt:?}"
+            );
+        }
+    }
+}
