@@ -257,3 +257,74 @@ fn implicit_mcf_smooths_but_distorts() {
         "scale policy restores area"
     );
 }
+
+fn read_obj(path: &str) -> Mesh {
+    use willow::mesh::io::{Asset, Format, Limits};
+    let bytes = std::fs::read(path).expect("fixture is committed");
+    Asset::read(&bytes, Format::Obj, &Limits::default())
+        .expect("fixture is valid")
+        .surface()
+        .clone()
+}
+
+#[test]
+fn spot_becomes_round_in_three_steps() {
+    // The paper's "frog in three steps" (Figure 1), on Keenan Crane's Spot.
+    let spot = read_obj(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/spot_triangulated.obj"
+    ));
+    let mut flow = new_flow(&spot, &params(0.5)).expect("flow");
+    let w0 = flow.initial_metrics().willmore_energy;
+    assert!(
+        w0 / (4.0 * PI) > 5.0,
+        "spot starts far from round: {}",
+        w0 / (4.0 * PI)
+    );
+    let mut reached = None;
+    for _ in 0..4 {
+        let m = flow.step().expect("step");
+        if m.willmore_energy / (4.0 * PI) <= 1.25 {
+            reached = Some(m);
+            break;
+        }
+    }
+    let m = reached.expect("W/4π ≤ 1.25 within 4 steps");
+    assert!(m.q_mean < 1.2, "texture-preserving: mean Q {}", m.q_mean);
+}
+
+#[test]
+fn real_irregular_sphere_is_stable_at_large_steps() {
+    // Paper Figure 18 on the committed irregular sphere (min angle 0.39°).
+    let mesh = read_obj(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/irregular_sphere.obj"
+    ));
+    let mut flow = new_flow(&mesh, &params(0.7)).expect("flow");
+    let mut previous = flow.initial_metrics().willmore_energy;
+    for _ in 0..20 {
+        let m = flow.step().expect("stable step");
+        assert!(m.willmore_energy.is_finite() && m.q_max.is_finite());
+        assert!(m.q_mean < 1.5, "mean Q {} at step {}", m.q_mean, m.step);
+        previous = m.willmore_energy;
+    }
+    assert!(previous < 1.05 * 4.0 * PI, "W = {previous}");
+    let mut unstable = new_flow(&mesh, &params(1.3)).expect("flow");
+    let mut energies = vec![unstable.initial_metrics().willmore_energy];
+    let mut failed = false;
+    for _ in 0..6 {
+        match unstable.step() {
+            Ok(m) => energies.push(m.willmore_energy),
+            Err(_) => {
+                // Blowing up into a numerical failure is divergence too.
+                failed = true;
+                break;
+            }
+        }
+    }
+    let last = energies[energies.len() - 1];
+    assert!(
+        failed || !last.is_finite() || last > 2.0 * energies[1],
+        "τ = 1.3 should diverge: {energies:?}"
+    );
+}

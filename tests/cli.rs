@@ -1,0 +1,152 @@
+//! The `willow` command-line contract: formats by extension, JSON lines, frames, exit codes.
+
+use std::process::Command;
+
+fn willow() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_willow"))
+}
+
+fn spot() -> String {
+    concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/spot_triangulated.obj"
+    )
+    .to_string()
+}
+
+#[test]
+fn fair_writes_json_lines_frames_and_output() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("spot.glb");
+    let frames = dir.path().join("frames");
+    let run = willow()
+        .args(["fair", &spot(), "-o"])
+        .arg(&out)
+        .args(["--steps", "3", "--tau", "0.5", "--json", "--frames-dir"])
+        .arg(&frames)
+        .output()
+        .expect("run willow");
+    assert!(
+        run.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let stdout = String::from_utf8(run.stdout).expect("utf-8");
+    let lines: Vec<serde_json::Value> = stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("each line is JSON"))
+        .collect();
+    assert_eq!(lines.len(), 3);
+    let mut previous = f64::INFINITY;
+    for (i, line) in lines.iter().enumerate() {
+        assert_eq!(line["step"].as_u64(), Some(i as u64 + 1));
+        for key in [
+            "willmore_energy",
+            "q_mean",
+            "q_p95",
+            "q_max",
+            "closure_residual",
+            "step_ms",
+        ] {
+            assert!(line[key].as_f64().is_some(), "missing {key} in {line}");
+        }
+        let w = line["willmore_energy"].as_f64().unwrap_or(f64::NAN);
+        assert!(w < previous, "W must fall: {w} after {previous}");
+        previous = w;
+    }
+    for step in 1..=3 {
+        let frame = frames.join(format!("frame_{step:04}.glb"));
+        assert!(frame.exists(), "{} missing", frame.display());
+    }
+    let bytes = std::fs::read(&out).expect("output written");
+    assert_eq!(&bytes[0..4], b"glTF", "GLB magic");
+}
+
+#[test]
+fn fair_obj_to_obj_keeps_uv_lines() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("spot.obj");
+    let run = willow()
+        .args(["fair", &spot(), "-o"])
+        .arg(&out)
+        .args(["--steps", "1", "--method", "mcf", "--tau", "0.01"])
+        .output()
+        .expect("run willow");
+    assert!(
+        run.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let text = std::fs::read_to_string(&out).expect("output");
+    let input = std::fs::read_to_string(spot()).expect("input");
+    let count = |s: &str, p: &str| s.lines().filter(|l| l.starts_with(p)).count();
+    assert_eq!(count(&text, "vt "), count(&input, "vt "));
+    assert_eq!(count(&text, "f "), count(&input, "f "));
+}
+
+#[test]
+fn bad_input_exits_nonzero_with_the_reason() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bad = dir.path().join("nan.obj");
+    std::fs::write(&bad, "v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n").expect("write");
+    let run = willow()
+        .args(["fair"])
+        .arg(&bad)
+        .args(["-o"])
+        .arg(dir.path().join("out.obj"))
+        .output()
+        .expect("run willow");
+    assert_eq!(run.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        stderr.contains("error:") && stderr.to_lowercase().contains("finite"),
+        "{stderr}"
+    );
+
+    let run = willow()
+        .args(["fair", &spot(), "-o", "out.stl"])
+        .output()
+        .expect("run willow");
+    assert_eq!(run.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&run.stderr).contains("unknown extension"));
+
+    let run = willow()
+        .args(["fair", "/nonexistent/mesh.obj", "-o", "out.obj"])
+        .output()
+        .expect("run willow");
+    assert_eq!(run.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&run.stderr).contains("cannot read"));
+
+    let run = willow()
+        .args(["fair", &spot(), "-o"])
+        .arg(dir.path().join("o.obj"))
+        .arg("--tau=-1")
+        .output()
+        .expect("run willow");
+    assert_eq!(run.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&run.stderr).contains("tau"));
+}
+
+#[test]
+fn bench_prints_figures_and_ratio() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let run = willow()
+        .current_dir(dir.path()) // no ../shared/meshes here: use a given mesh
+        .args(["bench", &spot(), "--steps", "2", "--json"])
+        .output()
+        .expect("run willow");
+    assert!(
+        run.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let line: serde_json::Value =
+        serde_json::from_str(String::from_utf8_lossy(&run.stdout).trim()).expect("JSON");
+    assert_eq!(line["faces"].as_u64(), Some(5856));
+    let (c, m, r) = (
+        line["conformal_median_step_ms"].as_f64().unwrap_or(0.0),
+        line["mcf_median_step_ms"].as_f64().unwrap_or(0.0),
+        line["ratio"].as_f64().unwrap_or(0.0),
+    );
+    assert!(c > 0.0 && m > 0.0 && (r - c / m).abs() < 1e-9 * r.max(1.0));
+}
