@@ -19,7 +19,9 @@
 // formulas do; rewriting those loops as iterator chains would hide the math.
 #![allow(clippy::needless_range_loop)]
 
+pub mod api;
 pub mod flow;
 pub mod geometry;
+pub mod jobs;
 pub mod mesh;
 pub mod metrics;

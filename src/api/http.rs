@@ -1,0 +1,835 @@
+//! The HTTP transport (axum): `/v1/jobs…`, SSE events, probes, metrics and the OpenAPI doc.
+//!
+//! Each handler parses its request into the job core's terms ([`JobSpec`], [`UploadRef`]),
+//! calls one [`Jobs`] method, and renders the result; every error leaves as a [`Problem`]. The
+//! wire shapes here ([`JobView`], [`JobParams`]…) are the contract clients outside the repo rely
+//! on (issue 3), so they are separate from the core's types and change only deliberately.
+
+// `Problem` is large (~170 bytes), and clippy would box it. Errors are the cold path here: at
+// most one is built per request, so moving it costs nothing measurable next to the I/O.
+#![allow(clippy::result_large_err)]
+
+use super::problem::Problem;
+use crate::flow::Method;
+use crate::jobs::{
+    format_media_type, format_name, parse_format, rfc3339, JobEvent, JobSpec, JobState, JobStatus,
+    Jobs, UploadRef,
+};
+use crate::mesh::io::Format;
+use axum::body::Body;
+use axum::extract::{FromRequest, Path, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode, Uri};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{Html, IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use base64::Engine as _;
+use futures::StreamExt;
+use serde::{Deserialize, Serialize};
+use std::convert::Infallible;
+use std::time::Duration;
+use tokio_util::sync::CancellationToken;
+use utoipa::{IntoParams, OpenApi, ToSchema};
+
+/// SSE keep-alive comments every 15 s: shorter than the 30–60 s idle timeouts of common
+/// proxies and load balancers, so a quiet stream (a long step) is not cut.
+const SSE_KEEPALIVE: Duration = Duration::from_secs(15);
+
+/// Shared by all handlers.
+#[derive(Clone)]
+pub struct AppState {
+    pub jobs: Jobs,
+    /// Cancelled when the server stops: open SSE streams end so the graceful shutdown of the
+    /// HTTP server does not wait for them forever.
+    pub streams_stop: CancellationToken,
+}
+
+/// The HTTP routes (the REST API, probes, metrics, docs), state applied.
+pub fn routes(state: AppState) -> Router {
+    Router::new()
+        .route("/v1/jobs", post(create_job).get(list_jobs))
+        .route("/v1/jobs/{id}", get(get_job).delete(delete_job))
+        .route("/v1/jobs/{id}/cancel", post(cancel_job))
+        .route("/v1/jobs/{id}/events", get(job_events))
+        .route("/v1/jobs/{id}/frames", get(list_frames))
+        .route("/v1/jobs/{id}/frames/{step}", get(frame_mesh))
+        .route("/v1/jobs/{id}/result", get(job_result))
+        .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
+        .route("/metrics", get(metrics))
+        .route("/openapi.json", get(openapi_json))
+        .route("/docs", get(docs))
+        .with_state(state)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Wire types
+
+/// Job parameters: query string of a raw upload, or the `params` part of a multipart upload.
+/// Every field is optional; the server's defaults fill the rest.
+#[derive(Debug, Default, Clone, Deserialize, Serialize, ToSchema, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct JobParams {
+    /// `conformal` (default) or `mcf`.
+    pub method: Option<String>,
+    /// Flow steps to take (default 20).
+    pub steps: Option<usize>,
+    /// Time step τ (default 0.5; conformal needs 0 < τ < 1).
+    pub tau: Option<f64>,
+    /// Inverse iterations per step (default 1).
+    pub iterations: Option<usize>,
+    /// Keep positions every this many steps (default 1).
+    pub frame_interval: Option<usize>,
+    /// Send positions in frames (default true).
+    pub include_positions: Option<bool>,
+    /// Deadline in seconds from submission (default: the server's).
+    pub deadline_secs: Option<f64>,
+}
+
+impl JobParams {
+    /// The job spec these parameters ask for (validated later by the core).
+    pub fn into_spec(self) -> Result<JobSpec, Problem> {
+        let mut spec = JobSpec::default();
+        if let Some(m) = self.method {
+            spec.method = match m.to_ascii_lowercase().as_str() {
+                "conformal" => Method::Conformal,
+                "mcf" => Method::Mcf,
+                other => {
+                    return Err(Problem::bad_request(
+                        "invalid_parameter",
+                        format!(
+                        "invalid parameter `method`: expected `conformal` or `mcf`, got `{other}`"
+                    ),
+                    )
+                    .with("field", "method"))
+                }
+            };
+        }
+        if let Some(v) = self.steps {
+            spec.steps = v;
+        }
+        if let Some(v) = self.tau {
+            spec.tau = v;
+        }
+        if let Some(v) = self.iterations {
+            spec.iterations = v;
+        }
+        if let Some(v) = self.frame_interval {
+            spec.frame_interval = v;
+        }
+        if let Some(v) = self.include_positions {
+            spec.include_positions = v;
+        }
+        spec.deadline_secs = self.deadline_secs;
+        Ok(spec)
+    }
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Progress {
+    pub step: usize,
+    pub total_steps: usize,
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct LatestMetrics {
+    /// Metrics of the latest completed step (`null` before the job started).
+    #[schema(value_type = Option<Object>)]
+    pub latest: Option<crate::metrics::StepMetrics>,
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Links {
+    #[serde(rename = "self")]
+    pub self_: String,
+    pub events: String,
+    pub frames: String,
+    pub result: String,
+    pub cancel: String,
+}
+
+/// A job as HTTP clients see it.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobView {
+    pub id: String,
+    /// `queued`, `running`, `succeeded`, `failed` or `cancelled`.
+    pub state: String,
+    pub progress: Progress,
+    pub metrics: LatestMetrics,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_code: Option<String>,
+    #[schema(value_type = Object)]
+    pub params: JobSpec,
+    /// `obj`, `glb` or `gltf`.
+    pub input_format: String,
+    /// Vertices in the uploaded file's order: `positions_b64` decodes to this many f32 xyz.
+    pub vertex_count: usize,
+    pub face_count: usize,
+    /// RFC 3339 UTC.
+    pub created_time: String,
+    pub started_time: Option<String>,
+    pub finished_time: Option<String>,
+    /// When a finished job is deleted (then 410 Gone).
+    pub expire_time: Option<String>,
+    pub links: Links,
+}
+
+impl From<JobStatus> for JobView {
+    fn from(s: JobStatus) -> JobView {
+        let base = format!("/v1/jobs/{}", s.id);
+        JobView {
+            state: s.state.as_str().to_string(),
+            progress: Progress {
+                step: s.step,
+                total_steps: s.total_steps,
+            },
+            metrics: LatestMetrics { latest: s.latest },
+            error: s.error,
+            error_code: s.error_code,
+            params: s.spec,
+            input_format: format_name(s.input_format).to_string(),
+            vertex_count: s.vertex_count,
+            face_count: s.face_count,
+            created_time: rfc3339(s.created_at),
+            started_time: s.started_at.map(rfc3339),
+            finished_time: s.finished_at.map(rfc3339),
+            expire_time: s.expires_at.map(rfc3339),
+            links: Links {
+                events: format!("{base}/events"),
+                frames: format!("{base}/frames"),
+                result: format!("{base}/result"),
+                cancel: format!("{base}/cancel"),
+                self_: base,
+            },
+            id: s.id,
+        }
+    }
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobList {
+    pub jobs: Vec<JobView>,
+    /// Pass as `page_token` for the next page; absent on the last page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub next_page_token: Option<String>,
+}
+
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct ListQuery {
+    /// Only jobs in this state.
+    pub state: Option<String>,
+    /// 1..1000 (default 50).
+    pub page_size: Option<usize>,
+    pub page_token: Option<String>,
+}
+
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct FramesQuery {
+    /// First step to return (default 0).
+    pub from_step: Option<usize>,
+    /// 1..10000 (default 100).
+    pub page_size: Option<usize>,
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameList {
+    /// Metrics of each step, in order (`step` 0 is the input).
+    #[schema(value_type = Vec<Object>)]
+    pub frames: Vec<crate::metrics::StepMetrics>,
+    /// Pass as `from_step` for the next page; absent on the last page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub next_from_step: Option<usize>,
+}
+
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct FormatQuery {
+    /// `glb` (default), `gltf` or `obj`.
+    pub format: Option<String>,
+}
+
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct EventsQuery {
+    /// First step to replay (default 0). The `Last-Event-ID` header, when sent, wins: the
+    /// stream resumes after that step.
+    pub from_step: Option<usize>,
+}
+
+/// The `data` of an SSE `frame` event.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameEvent {
+    pub step: usize,
+    #[schema(value_type = Object)]
+    pub metrics: crate::metrics::StepMetrics,
+    /// Little-endian f32 xyz per vertex in the uploaded file's vertex order, base64; present
+    /// at the frame interval when the job includes positions.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub positions_b64: Option<String>,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Helpers
+
+fn query<T: serde::de::DeserializeOwned>(uri: &Uri) -> Result<T, Problem> {
+    axum::extract::Query::<T>::try_from_uri(uri)
+        .map(|q| q.0)
+        .map_err(|e| Problem::bad_request("invalid_parameter", e.body_text()))
+}
+
+fn parse_out_format(q: &FormatQuery) -> Result<Format, Problem> {
+    match &q.format {
+        None => Ok(Format::Glb),
+        Some(f) => parse_format(f).ok_or_else(|| {
+            Problem::bad_request(
+                "invalid_parameter",
+                format!("invalid parameter `format`: expected `glb`, `gltf` or `obj`, got `{f}`"),
+            )
+            .with("field", "format")
+        }),
+    }
+}
+
+/// The mesh format of a media type (parameters such as `; charset=` ignored).
+fn format_of_media_type(ct: &str) -> Option<Format> {
+    let essence = ct
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
+    match essence.as_str() {
+        "model/obj" => Some(Format::Obj),
+        "model/gltf-binary" => Some(Format::Glb),
+        "model/gltf+json" => Some(Format::Gltf),
+        _ => None,
+    }
+}
+
+fn unsupported_media_type(got: &str) -> Problem {
+    Problem::new(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_media_type",
+        format!(
+            "Content-Type `{got}` is not accepted: send model/obj, model/gltf-binary or \
+             model/gltf+json as the raw body, or multipart/form-data with a `mesh` file part"
+        ),
+    )
+}
+
+fn job_response(status: StatusCode, s: JobStatus) -> Response {
+    let location = format!("/v1/jobs/{}", s.id);
+    let mut res = (status, Json(JobView::from(s))).into_response();
+    if let Ok(v) = HeaderValue::from_str(&location) {
+        res.headers_mut().insert(header::LOCATION, v);
+    }
+    res
+}
+
+fn mesh_response(id: &str, name: &str, format: Format, bytes: Vec<u8>) -> Response {
+    let mut res = (StatusCode::OK, bytes).into_response();
+    let h = res.headers_mut();
+    h.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static(format_media_type(format)),
+    );
+    if let Ok(v) = HeaderValue::from_str(&format!(
+        "attachment; filename=\"{id}-{name}.{}\"",
+        format_name(format)
+    )) {
+        h.insert(header::CONTENT_DISPOSITION, v);
+    }
+    res
+}
+
+fn record_job(id: &str) {
+    tracing::Span::current().record("job_id", id);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Handlers
+
+/// Submit a job: the mesh as the raw body (parameters in the query) or as multipart.
+#[utoipa::path(
+    post, path = "/v1/jobs", tag = "jobs",
+    params(JobParams,
+        ("Idempotency-Key" = Option<String>, Header, description = "Retries with the same key and request return the same job")),
+    request_body(description = "The mesh: raw `model/obj`, `model/gltf-binary` or `model/gltf+json`, or `multipart/form-data` with a `mesh` file part and an optional `params` JSON part (same fields as the query)",
+        content(
+            (Vec<u8> = "model/obj"), (Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"),
+            (Vec<u8> = "multipart/form-data"))),
+    responses(
+        (status = 202, description = "Accepted; `Location` is the job", body = JobView),
+        (status = 400, description = "Bad parameters", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Too large (the limit is named)", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Unknown content type", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid mesh, or idempotency key reused with another request", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "Queue full; see Retry-After", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Shutting down", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn create_job(State(st): State<AppState>, req: Request) -> Response {
+    match create_job_inner(&st, req).await {
+        Ok(s) => {
+            record_job(&s.id);
+            job_response(StatusCode::ACCEPTED, s)
+        }
+        Err(p) => p.instance("/v1/jobs").into_response(),
+    }
+}
+
+async fn create_job_inner(st: &AppState, req: Request) -> Result<JobStatus, Problem> {
+    let limit = st.jobs.config().limits.max_upload_bytes;
+    let headers = req.headers().clone();
+    let key = match headers.get("idempotency-key") {
+        None => None,
+        Some(v) => Some(
+            v.to_str()
+                .map_err(|_| {
+                    Problem::bad_request(
+                        "invalid_parameter",
+                        "the Idempotency-Key header must be visible ASCII",
+                    )
+                    .with("field", "Idempotency-Key")
+                })?
+                .trim()
+                .trim_matches('"')
+                .to_string(),
+        ),
+    };
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string();
+    if content_type.is_empty() {
+        return Err(unsupported_media_type("(none)"));
+    }
+    if let Some(len) = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+    {
+        // Multipart adds boundaries and the params part; the mesh part is checked below.
+        let allowed = if content_type.starts_with("multipart/") {
+            limit + super::server::MULTIPART_SLACK
+        } else {
+            limit
+        };
+        if len > allowed {
+            return Err(Problem::from(crate::jobs::JobError::TooLarge {
+                what: "upload bytes",
+                limit,
+            }));
+        }
+    }
+    let query_params: JobParams = query(req.uri())?;
+
+    let (data, format, params) = if let Some(format) = format_of_media_type(&content_type) {
+        let data = axum::body::to_bytes(
+            req.into_body(),
+            usize::try_from(limit).unwrap_or(usize::MAX),
+        )
+        .await
+        .map_err(|_| Problem::too_large("upload bytes", limit))?;
+        (data, format, query_params)
+    } else if content_type
+        .to_ascii_lowercase()
+        .starts_with("multipart/form-data")
+    {
+        read_multipart(req, limit, query_params).await?
+    } else {
+        return Err(unsupported_media_type(&content_type));
+    };
+    let spec = params.into_spec()?;
+    st.jobs
+        .submit(UploadRef::Bytes { data, format }, spec, key)
+        .await
+        .map_err(Problem::from)
+}
+
+async fn read_multipart(
+    req: Request,
+    limit: u64,
+    query_params: JobParams,
+) -> Result<(bytes::Bytes, Format, JobParams), Problem> {
+    let mut mp = axum::extract::Multipart::from_request(req, &())
+        .await
+        .map_err(|e| Problem::bad_request("invalid_multipart", e.body_text()))?;
+    let mut mesh: Option<(bytes::Bytes, Format)> = None;
+    let mut params: Option<JobParams> = None;
+    loop {
+        let field = match mp.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => {
+                return Err(Problem::too_large("upload bytes", limit))
+            }
+            Err(e) => return Err(Problem::bad_request("invalid_multipart", e.body_text())),
+        };
+        let name = field.name().unwrap_or("").to_string();
+        match name.as_str() {
+            "mesh" => {
+                let by_type = field.content_type().and_then(format_of_media_type);
+                let by_name = field
+                    .file_name()
+                    .and_then(|n| n.rsplit_once('.').and_then(|(_, ext)| parse_format(ext)));
+                let shown = field
+                    .content_type()
+                    .map(str::to_string)
+                    .or_else(|| field.file_name().map(str::to_string))
+                    .unwrap_or_else(|| "(none)".into());
+                let format = by_type.or(by_name).ok_or_else(|| {
+                    Problem::new(
+                        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                        "unsupported_media_type",
+                        format!(
+                            "the `mesh` part's type `{shown}` is not a mesh format: give it Content-Type \
+                             model/obj, model/gltf-binary or model/gltf+json, or a .obj/.glb/.gltf file name"
+                        ),
+                    )
+                })?;
+                let data = field.bytes().await.map_err(|e| {
+                    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                        Problem::too_large("upload bytes", limit)
+                    } else {
+                        Problem::bad_request("invalid_multipart", e.body_text())
+                    }
+                })?;
+                if data.len() as u64 > limit {
+                    return Err(Problem::too_large("upload bytes", limit));
+                }
+                mesh = Some((data, format));
+            }
+            "params" => {
+                let text = field
+                    .bytes()
+                    .await
+                    .map_err(|e| Problem::bad_request("invalid_multipart", e.body_text()))?;
+                let p: JobParams = serde_json::from_slice(&text).map_err(|e| {
+                    Problem::bad_request(
+                        "invalid_parameter",
+                        format!("the `params` part is not valid job parameters: {e}"),
+                    )
+                    .with("field", "params")
+                })?;
+                params = Some(p);
+            }
+            other => {
+                return Err(Problem::bad_request(
+                    "invalid_multipart",
+                    format!("unexpected part `{other}`: only `mesh` and `params` are accepted"),
+                ))
+            }
+        }
+    }
+    let (data, format) = mesh.ok_or_else(|| {
+        Problem::bad_request("missing_mesh", "the multipart body has no `mesh` file part")
+    })?;
+    Ok((data, format, params.unwrap_or(query_params)))
+}
+
+/// The job's status (poll this).
+#[utoipa::path(get, path = "/v1/jobs/{id}", tag = "jobs",
+    params(("id" = String, Path)),
+    responses((status = 200, body = JobView),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
+    record_job(&id);
+    match st.jobs.get(&id).await {
+        Ok(s) => (StatusCode::OK, Json(JobView::from(s))).into_response(),
+        Err(e) => Problem::from(e)
+            .instance(format!("/v1/jobs/{id}"))
+            .into_response(),
+    }
+}
+
+/// Jobs, newest first, paged.
+#[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(ListQuery),
+    responses((status = 200, body = JobList),
+        (status = 400, body = Problem, content_type = "application/problem+json")))]
+pub async fn list_jobs(State(st): State<AppState>, uri: Uri) -> Response {
+    let run = async {
+        let q: ListQuery = query(&uri)?;
+        let state = match q.state.as_deref() {
+            None | Some("") => None,
+            Some(s) => Some(JobState::parse(s).ok_or_else(|| {
+                Problem::bad_request(
+                    "invalid_parameter",
+                    format!("invalid parameter `state`: expected queued, running, succeeded, failed or cancelled, got `{s}`"),
+                )
+                .with("field", "state")
+            })?),
+        };
+        let (jobs, next) = st
+            .jobs
+            .list(state, q.page_size.unwrap_or(0), q.page_token)
+            .await?;
+        Ok::<_, Problem>(JobList {
+            jobs: jobs.into_iter().map(JobView::from).collect(),
+            next_page_token: next,
+        })
+    };
+    match run.await {
+        Ok(list) => Json(list).into_response(),
+        Err(p) => p.instance("/v1/jobs").into_response(),
+    }
+}
+
+/// Cancel: a queued job is cancelled at once, a running one at its next step.
+#[utoipa::path(post, path = "/v1/jobs/{id}/cancel", tag = "jobs",
+    params(("id" = String, Path)),
+    responses((status = 202, description = "Cancelled, or cancellation requested (a running job stops at its next step)", body = JobView),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Already finished", body = Problem, content_type = "application/problem+json")))]
+pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
+    record_job(&id);
+    match st.jobs.cancel(&id).await {
+        Ok(s) => job_response(StatusCode::ACCEPTED, s),
+        Err(e) => Problem::from(e)
+            .instance(format!("/v1/jobs/{id}/cancel"))
+            .into_response(),
+    }
+}
+
+/// Delete a finished job and its files.
+#[utoipa::path(delete, path = "/v1/jobs/{id}", tag = "jobs",
+    params(("id" = String, Path)),
+    responses((status = 204, description = "Deleted"),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Queued or running", body = Problem, content_type = "application/problem+json")))]
+pub async fn delete_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
+    record_job(&id);
+    match st.jobs.delete(&id).await {
+        Ok(()) => StatusCode::NO_CONTENT.into_response(),
+        Err(e) => Problem::from(e)
+            .instance(format!("/v1/jobs/{id}"))
+            .into_response(),
+    }
+}
+
+/// Server-Sent Events: `state`, one `frame` per step (`id:` = step), then `done`.
+#[utoipa::path(get, path = "/v1/jobs/{id}/events", tag = "jobs",
+    params(("id" = String, Path), EventsQuery,
+        ("Last-Event-ID" = Option<String>, Header, description = "Resume after this step")),
+    responses((status = 200, description = "text/event-stream; frame data is a FrameEvent", body = FrameEvent, content_type = "text/event-stream"),
+        (status = 404, body = Problem, content_type = "application/problem+json")))]
+pub async fn job_events(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    uri: Uri,
+) -> Response {
+    record_job(&id);
+    let q: EventsQuery = match query(&uri) {
+        Ok(q) => q,
+        Err(p) => return p.into_response(),
+    };
+    let last_event = headers
+        .get("last-event-id")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<usize>().ok());
+    let from = match last_event {
+        Some(n) => n.saturating_add(1),
+        None => q.from_step.unwrap_or(0),
+    };
+    let stream = match st.jobs.watch(&id, from).await {
+        Ok(s) => s,
+        Err(e) => {
+            return Problem::from(e)
+                .instance(format!("/v1/jobs/{id}/events"))
+                .into_response()
+        }
+    };
+    let stop = st.streams_stop.clone();
+    let events = stream
+        .map(|ev| Ok::<Event, Infallible>(sse_event(ev)))
+        .take_until(async move { stop.cancelled().await });
+    Sse::new(events)
+        .keep_alive(KeepAlive::new().interval(SSE_KEEPALIVE))
+        .into_response()
+}
+
+fn sse_event(ev: JobEvent) -> Event {
+    let (name, data) = match ev {
+        JobEvent::State(s) => ("state", serde_json::to_string(&JobView::from(s))),
+        JobEvent::Done(s) => ("done", serde_json::to_string(&JobView::from(s))),
+        JobEvent::Frame(f) => {
+            let data = FrameEvent {
+                step: f.step,
+                metrics: f.metrics,
+                positions_b64: f.positions.map(|p| {
+                    base64::engine::general_purpose::STANDARD
+                        .encode(crate::jobs::store::f32s_to_bytes(&p))
+                }),
+            };
+            return Event::default()
+                .event("frame")
+                .id(f.step.to_string())
+                .data(serde_json::to_string(&data).unwrap_or_else(|_| "{}".into()));
+        }
+    };
+    Event::default()
+        .event(name)
+        .data(data.unwrap_or_else(|_| "{}".into()))
+}
+
+/// Metrics of every step, paged by step.
+#[utoipa::path(get, path = "/v1/jobs/{id}/frames", tag = "jobs",
+    params(("id" = String, Path), FramesQuery),
+    responses((status = 200, body = FrameList),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 410, body = Problem, content_type = "application/problem+json")))]
+pub async fn list_frames(State(st): State<AppState>, Path(id): Path<String>, uri: Uri) -> Response {
+    record_job(&id);
+    let run = async {
+        let q: FramesQuery = query(&uri)?;
+        let (frames, next) = st
+            .jobs
+            .frames(&id, q.from_step.unwrap_or(0), q.page_size.unwrap_or(0))
+            .await?;
+        Ok::<_, Problem>(FrameList {
+            frames,
+            next_from_step: next,
+        })
+    };
+    match run.await {
+        Ok(list) => Json(list).into_response(),
+        Err(p) => p.instance(format!("/v1/jobs/{id}/frames")).into_response(),
+    }
+}
+
+/// The mesh after one step (steps that kept positions: 0, every frame interval, the last).
+#[utoipa::path(get, path = "/v1/jobs/{id}/frames/{step}", tag = "jobs",
+    params(("id" = String, Path), ("step" = usize, Path), FormatQuery),
+    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
+        (status = 410, body = Problem, content_type = "application/problem+json")))]
+pub async fn frame_mesh(
+    State(st): State<AppState>,
+    Path((id, step)): Path<(String, String)>,
+    uri: Uri,
+) -> Response {
+    record_job(&id);
+    let run = async {
+        let step: usize = step.parse().map_err(|_| {
+            Problem::bad_request(
+                "invalid_parameter",
+                format!("invalid step `{step}`: expected a non-negative integer"),
+            )
+            .with("field", "step")
+        })?;
+        let format = parse_out_format(&query(&uri)?)?;
+        let bytes = st.jobs.frame_mesh(&id, step, format).await?;
+        Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, bytes))
+    };
+    match run.await {
+        Ok(r) => r,
+        Err(p) => p.instance(uri.path().to_string()).into_response(),
+    }
+}
+
+/// The faired mesh, with the input's UVs, materials and textures.
+#[utoipa::path(get, path = "/v1/jobs/{id}/result", tag = "jobs",
+    params(("id" = String, Path), FormatQuery),
+    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+pub async fn job_result(State(st): State<AppState>, Path(id): Path<String>, uri: Uri) -> Response {
+    record_job(&id);
+    let run = async {
+        let format = parse_out_format(&query(&uri)?)?;
+        let bytes = st.jobs.result(&id, format).await?;
+        Ok::<_, Problem>(mesh_response(&id, "result", format, bytes))
+    };
+    match run.await {
+        Ok(r) => r,
+        Err(p) => p.instance(uri.path().to_string()).into_response(),
+    }
+}
+
+/// Liveness: the process answers.
+#[utoipa::path(get, path = "/healthz", tag = "ops", responses((status = 200, description = "ok")))]
+pub async fn healthz() -> &'static str {
+    "ok"
+}
+
+/// Readiness: not draining, workers alive and making progress.
+#[utoipa::path(get, path = "/readyz", tag = "ops",
+    responses((status = 200, description = "ready"), (status = 503, description = "draining or stalled")))]
+pub async fn readyz(State(st): State<AppState>) -> Response {
+    if st.jobs.is_ready() {
+        (StatusCode::OK, "ready").into_response()
+    } else {
+        let why = if st.jobs.is_draining() {
+            "draining"
+        } else {
+            "workers stalled"
+        };
+        (StatusCode::SERVICE_UNAVAILABLE, why).into_response()
+    }
+}
+
+/// Prometheus metrics (OpenMetrics text).
+#[utoipa::path(get, path = "/metrics", tag = "ops", responses((status = 200, description = "OpenMetrics text")))]
+pub async fn metrics(State(st): State<AppState>) -> Response {
+    let mut res = st.jobs.metrics_text().into_response();
+    res.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/openmetrics-text; version=1.0.0; charset=utf-8"),
+    );
+    res
+}
+
+#[derive(OpenApi)]
+#[openapi(
+    info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
+    paths(create_job, list_jobs, get_job, cancel_job, delete_job, job_events, list_frames, frame_mesh, job_result, healthz, readyz, metrics),
+    components(schemas(JobView, JobList, JobParams, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links)),
+    tags((name = "jobs", description = "Fairing jobs"), (name = "ops", description = "Probes and metrics"))
+)]
+pub struct ApiDoc;
+
+/// The OpenAPI 3.1 document.
+pub async fn openapi_json() -> Response {
+    match ApiDoc::openapi().to_json() {
+        Ok(s) => ([(header::CONTENT_TYPE, "application/json")], s).into_response(),
+        Err(e) => Problem::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string())
+            .into_response(),
+    }
+}
+
+/// The docs page: a small self-contained page (vendored in the binary, nothing fetched from
+/// elsewhere) that renders `/openapi.json`.
+pub async fn docs() -> Html<&'static str> {
+    Html(include_str!("docs.html"))
+}
+
+/// Turn any 413 produced below the handlers (tower-http's body limit) into a problem that
+/// names the limit.
+pub async fn problem_for_plain_413(
+    State(limit): State<u64>,
+    req: Request<Body>,
+    next: axum::middleware::Next,
+) -> Response {
+    let res = next.run(req).await;
+    let is_problem = res
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/problem+json"));
+    if res.status() == StatusCode::PAYLOAD_TOO_LARGE && !is_problem {
+        return Problem::too_large("request body bytes", limit).into_response();
+    }
+    res
+}

@@ -1,0 +1,13 @@
+//! The transports: thin layers that turn wire requests into calls on [`crate::jobs::Jobs`].
+//!
+//! - [`http`]: the REST API (axum), Server-Sent Events, probes, metrics, OpenAPI and docs.
+//! - [`problem`]: RFC 9457 problem details; the one place job errors become HTTP statuses.
+//! - [`server`]: the single router serving HTTP/1.1, h2c and gRPC on one port, and
+//!   `willow serve`.
+//! - `grpc`: the tonic services (package `willow.v1`, longrunning Operations, health,
+//!   reflection), merged into the same router by [`server::app`].
+
+pub mod grpc;
+pub mod http;
+pub mod problem;
+pub mod server;

@@ -1,0 +1,155 @@
+//! RFC 9457 problem details: every HTTP error leaves through [`Problem`], and [`JobError`] is
+//! mapped to a status code here and nowhere else.
+
+use crate::jobs::JobError;
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+use serde_json::{Map, Value};
+
+/// The media type of problem responses.
+pub const PROBLEM_JSON: &str = "application/problem+json";
+
+/// An `application/problem+json` body. `type` is `urn:willow:problem:{code}`, so clients can
+/// branch on it (or on the `code` extension) without parsing `detail`.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct Problem {
+    #[serde(rename = "type")]
+    pub type_: String,
+    pub title: String,
+    #[serde(serialize_with = "ser_status")]
+    #[schema(value_type = u16)]
+    pub status: StatusCode,
+    /// What exactly was wrong, for people.
+    pub detail: String,
+    /// The request path.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub instance: Option<String>,
+    /// Stable machine-readable code (for meshes: `MeshError::code`).
+    pub code: String,
+    /// Extension members: `field`, `limit`, `retry_after_secs`, `capacity`, `job_id`…
+    #[serde(flatten)]
+    #[schema(value_type = Object)]
+    pub extensions: Map<String, Value>,
+    #[serde(skip)]
+    pub retry_after: Option<u64>,
+}
+
+fn ser_status<S: serde::Serializer>(s: &StatusCode, ser: S) -> Result<S::Ok, S::Error> {
+    ser.serialize_u16(s.as_u16())
+}
+
+impl Problem {
+    pub fn new(status: StatusCode, code: &str, detail: impl Into<String>) -> Problem {
+        Problem {
+            type_: format!("urn:willow:problem:{code}"),
+            title: status.canonical_reason().unwrap_or("Error").to_string(),
+            status,
+            detail: detail.into(),
+            instance: None,
+            code: code.to_string(),
+            extensions: Map::new(),
+            retry_after: None,
+        }
+    }
+
+    pub fn with(mut self, key: &str, value: impl Into<Value>) -> Problem {
+        self.extensions.insert(key.to_string(), value.into());
+        self
+    }
+
+    pub fn instance(mut self, path: impl Into<String>) -> Problem {
+        self.instance = Some(path.into());
+        self
+    }
+
+    pub fn bad_request(code: &str, detail: impl Into<String>) -> Problem {
+        Problem::new(StatusCode::BAD_REQUEST, code, detail)
+    }
+
+    /// 413 naming the limit, for bodies refused before they reach the job core.
+    pub fn too_large(what: &str, limit: u64) -> Problem {
+        Problem::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "too_large",
+            format!("{what} exceeds the limit of {limit}"),
+        )
+        .with("what", what)
+        .with("limit", limit)
+    }
+}
+
+impl From<JobError> for Problem {
+    fn from(e: JobError) -> Problem {
+        let detail = e.to_string();
+        let code = e.code();
+        match e {
+            JobError::NotFound(id) => {
+                Problem::new(StatusCode::NOT_FOUND, code, detail).with("job_id", id)
+            }
+            JobError::FrameNotFound { id, step, .. } => {
+                Problem::new(StatusCode::NOT_FOUND, code, detail)
+                    .with("job_id", id)
+                    .with("step", step)
+            }
+            JobError::UploadNotFound(id) => {
+                Problem::new(StatusCode::NOT_FOUND, code, detail).with("upload_id", id)
+            }
+            JobError::Gone(id) => Problem::new(StatusCode::GONE, code, detail).with("job_id", id),
+            JobError::QueueFull {
+                retry_after_secs,
+                capacity,
+            } => {
+                let mut p = Problem::new(StatusCode::TOO_MANY_REQUESTS, code, detail)
+                    .with("retry_after_secs", retry_after_secs)
+                    .with("capacity", capacity);
+                p.retry_after = Some(retry_after_secs);
+                p
+            }
+            JobError::InvalidMesh(_) => {
+                Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail)
+            }
+            JobError::InvalidSpec { field, .. } => {
+                Problem::new(StatusCode::BAD_REQUEST, code, detail).with("field", field)
+            }
+            JobError::TooLarge { what, limit } => {
+                Problem::new(StatusCode::PAYLOAD_TOO_LARGE, code, detail)
+                    .with("what", what)
+                    .with("limit", limit)
+            }
+            JobError::Conflict(_) => Problem::new(StatusCode::CONFLICT, code, detail),
+            JobError::IdempotencyMismatch(_) => {
+                Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail)
+            }
+            JobError::ShuttingDown => {
+                let mut p = Problem::new(StatusCode::SERVICE_UNAVAILABLE, code, detail);
+                // Another replica (or this one after restart) can take it shortly.
+                p.retry_after = Some(5);
+                p
+            }
+            JobError::Internal(msg) => {
+                // The cause goes to the log, not to the client.
+                tracing::error!(error = %msg, "internal error");
+                Problem::new(
+                    StatusCode::INTERNAL_SERVER_ERROR,
+                    code,
+                    "internal error; see the server log",
+                )
+            }
+        }
+    }
+}
+
+impl IntoResponse for Problem {
+    fn into_response(self) -> Response {
+        let body = serde_json::to_vec(&self).unwrap_or_else(|_| b"{}".to_vec());
+        let mut res = (self.status, body).into_response();
+        res.headers_mut()
+            .insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
+        if let Some(secs) = self.retry_after {
+            res.headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(secs));
+        }
+        res
+    }
+}

@@ -1,0 +1,253 @@
+//! The one server: a single axum `Router` serving HTTP/1.1, h2c and gRPC on one port, and the
+//! `willow serve` command that runs it.
+//!
+//! Layers, outermost first: request id (set, then propagated to the response), tracing (one
+//! span per request carrying the request id and, once a handler knows it, the job id), then
+//! for the REST routes only: CORS and the body limits. gRPC routes get their own limits on the
+//! generated services.
+
+use super::http::{self, AppState};
+use crate::jobs::{Config, Jobs, Shutdown};
+use axum::extract::DefaultBodyLimit;
+use axum::http::{header, HeaderName, Method, Request};
+use axum::Router;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+use tokio_util::sync::CancellationToken;
+use tower_http::cors::{Any, CorsLayer};
+use tower_http::limit::RequestBodyLimitLayer;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::trace::TraceLayer;
+
+/// Bytes a multipart upload may carry beyond the mesh itself: boundaries, part headers and the
+/// `params` JSON part. 1 MiB is far more than those need and small next to a mesh.
+pub const MULTIPART_SLACK: u64 = 1 << 20;
+
+/// How long the HTTP server waits for open requests once the job core has drained; SSE streams
+/// are ended first, so this only covers downloads in flight.
+const HTTP_DRAIN: Duration = Duration::from_secs(10);
+
+const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
+
+/// `willow serve`: flags. Every default works on a fresh machine.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServeArgs {
+    /// Address to listen on (HTTP/1.1, h2c and gRPC share it).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub addr: SocketAddr,
+    /// Where jobs, frames and results are kept (created if missing).
+    #[arg(long, default_value = "./willow-data")]
+    pub data_dir: PathBuf,
+    /// Blocking workers, each running one flow (default: number of cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+    /// Jobs that may wait for a worker before submissions get 429.
+    #[arg(long, default_value_t = 64)]
+    pub queue_capacity: usize,
+    /// Largest upload in MiB.
+    #[arg(long, default_value_t = 64)]
+    pub max_upload_mib: u64,
+    /// Most steps per job.
+    #[arg(long, default_value_t = 10_000)]
+    pub max_steps: usize,
+    /// Hours a finished job's results are kept (then 410 Gone).
+    #[arg(long, default_value_t = 24.0)]
+    pub result_ttl_hours: f64,
+    /// Seconds running jobs get to finish on SIGTERM/Ctrl-C before they are re-queued.
+    #[arg(long, default_value_t = 30.0)]
+    pub grace_secs: f64,
+    /// Log format: `json` (one object per line) or `text`.
+    #[arg(long, default_value = "json")]
+    pub log_format: String,
+}
+
+impl ServeArgs {
+    /// The job core's configuration these flags describe.
+    pub fn config(&self) -> Result<Config, String> {
+        let mut c = Config::new(&self.data_dir);
+        if let Some(w) = self.workers {
+            c.workers = w;
+        }
+        c.queue_capacity = self.queue_capacity;
+        c.limits.max_upload_bytes = self.max_upload_mib.saturating_mul(1 << 20);
+        c.limits.max_steps = self.max_steps;
+        if !(self.result_ttl_hours.is_finite() && self.result_ttl_hours > 0.0) {
+            return Err("--result-ttl-hours must be a positive number".into());
+        }
+        c.result_ttl = Duration::from_secs_f64(self.result_ttl_hours * 3600.0);
+        Ok(c)
+    }
+}
+
+/// The whole application router for `jobs`: REST + probes + docs, with the gRPC services
+/// merged in. `streams_stop` ends open SSE streams (for shutdown).
+pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
+    let limit = jobs.config().limits.max_upload_bytes;
+    // Both limits must be raised together: axum's DefaultBodyLimit (2 MB by default) applies to
+    // its extractors, tower-http's to the raw body stream. Same number, plus multipart slack.
+    let body_limit = usize::try_from(limit.saturating_add(MULTIPART_SLACK)).unwrap_or(usize::MAX);
+    let cors = CorsLayer::new()
+        .allow_origin(Any)
+        .allow_methods([Method::GET, Method::POST, Method::DELETE, Method::OPTIONS])
+        .allow_headers([
+            header::CONTENT_TYPE,
+            header::AUTHORIZATION,
+            HeaderName::from_static("idempotency-key"),
+            HeaderName::from_static("last-event-id"),
+            REQUEST_ID,
+        ])
+        // Without this a browser cannot read the 202's Location or a 429's Retry-After.
+        .expose_headers([
+            header::LOCATION,
+            header::RETRY_AFTER,
+            header::CONTENT_DISPOSITION,
+            REQUEST_ID,
+        ]);
+    let rest = http::routes(AppState {
+        jobs: jobs.clone(),
+        streams_stop,
+    })
+    .layer(axum::middleware::from_fn_with_state(
+        limit.saturating_add(MULTIPART_SLACK),
+        http::problem_for_plain_413,
+    ))
+    .layer(RequestBodyLimitLayer::new(body_limit))
+    .layer(DefaultBodyLimit::max(body_limit))
+    .layer(cors);
+
+    // gRPC: the other transport, merged on the same port (its paths are /pkg.Service/Method,
+    // so nothing collides). GRPC-MERGE: enabled once `src/api/grpc.rs` provides
+    // `pub fn routes(jobs: Jobs) -> axum::Router`.
+    let app = with_grpc(rest, &jobs);
+
+    app.layer(
+        TraceLayer::new_for_http().make_span_with(|req: &Request<_>| {
+            let request_id = req
+                .headers()
+                .get(REQUEST_ID)
+                .and_then(|v| v.to_str().ok())
+                .unwrap_or("");
+            tracing::info_span!(
+                "request",
+                method = %req.method(),
+                path = %req.uri().path(),
+                request_id = %request_id,
+                job_id = tracing::field::Empty,
+            )
+        }),
+    )
+    .layer(PropagateRequestIdLayer::new(REQUEST_ID))
+    .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
+}
+
+/// GRPC-MERGE: the spot where the gRPC router joins the HTTP one.
+fn with_grpc(rest: Router, jobs: &Jobs) -> Router {
+    let _ = jobs;
+    // rest.merge(crate::api::grpc::routes(jobs.clone()))
+    rest
+}
+
+/// Serve `jobs` on `listener` until `shutdown` resolves; then drain the job core for `grace`
+/// (running jobs finish or are re-queued), end SSE streams and stop the HTTP server.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    jobs: Jobs,
+    core: Shutdown,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+    grace: Duration,
+) -> std::io::Result<()> {
+    let streams_stop = CancellationToken::new();
+    let app = app(jobs.clone(), streams_stop.clone());
+    let http_stop = CancellationToken::new();
+    let http_stop2 = http_stop.clone();
+    let server = tokio::spawn(async move {
+        axum::serve(listener, app)
+            .with_graceful_shutdown(async move { http_stop2.cancelled().await })
+            .await
+    });
+    shutdown.await;
+    tracing::info!("shutdown requested: draining");
+    // Readiness turns false and submissions get 503 while the jobs drain; status, events and
+    // downloads keep working so clients see their jobs finish.
+    jobs.begin_drain();
+    core.shutdown(grace).await;
+    streams_stop.cancel();
+    http_stop.cancel();
+    match tokio::time::timeout(HTTP_DRAIN, server).await {
+        Ok(Ok(r)) => r,
+        Ok(Err(e)) => Err(std::io::Error::other(e)),
+        Err(_) => {
+            tracing::warn!("HTTP connections still open after the drain period; exiting");
+            Ok(())
+        }
+    }
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}
+
+/// Install the tracing subscriber: JSON lines (or text) filtered by `RUST_LOG` (default
+/// `info`). A second call (tests) is a no-op.
+pub fn init_logging(format: &str) {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt().with_env_filter(filter);
+    let _ = if format == "text" {
+        builder.try_init()
+    } else {
+        builder
+            .json()
+            .with_current_span(true)
+            .with_span_list(false)
+            .try_init()
+    };
+}
+
+/// `willow serve`: run until SIGTERM/Ctrl-C.
+pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
+    init_logging(&args.log_format);
+    let config = args.config()?;
+    let grace = Duration::from_secs_f64(args.grace_secs.max(0.0));
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    rt.block_on(async move {
+        let (jobs, core) = Jobs::start(config.clone()).await?;
+        let listener = tokio::net::TcpListener::bind(args.addr).await?;
+        let local = listener.local_addr()?;
+        tracing::info!(
+            addr = %local,
+            data_dir = %config.data_dir.display(),
+            workers = config.workers,
+            queue_capacity = config.queue_capacity,
+            "willow serving HTTP/1.1, h2c and gRPC"
+        );
+        // One line on stdout for scripts (and the tests) that start us on port 0.
+        println!("listening on http://{local}");
+        serve(listener, jobs, core, shutdown_signal(), grace).await?;
+        Ok::<(), Box<dyn std::error::Error>>(())
+    })
+}

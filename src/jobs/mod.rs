@@ -1,0 +1,1175 @@
+//! The job core: fairing jobs accepted, queued, run, streamed and kept, for every transport.
+//!
+//! HTTP (`api::http`), gRPC (`api::grpc`) and the CLI all call the same [`Jobs`] handle; nothing
+//! in here knows about axum, tonic or any wire type. What crosses the border in is a
+//! [`UploadRef`] plus a validated [`JobSpec`]; what crosses out is a [`JobStatus`], a stream of
+//! [`JobEvent`]s (each step's [`Frame`]) and result bytes. Errors are one enum, [`JobError`],
+//! which each transport maps once to its own status codes.
+//!
+//! The pieces, one file each:
+//! - [`queue`]: the admission queue (a trait, so a distributed backend can replace it; the
+//!   embedded implementation is a bounded in-memory deque).
+//! - [`store`]: SQLite (WAL) for jobs, per-step metrics and idempotency keys; mesh blobs as
+//!   files written atomically.
+//! - [`events`]: per-job fan-out of frames to any number of watchers, with replay from the store.
+//! - [`worker`]: the bounded pool that runs flows step by step on blocking threads, checking
+//!   cancellation, deadline and shutdown between steps.
+//! - [`telemetry`]: the Prometheus metrics of the core (queue depth, running, outcomes, durations).
+//!
+//! Times in [`JobStatus`] are **unix milliseconds** (`u64`): cheap to compare and to turn into a
+//! protobuf `Timestamp` or an RFC 3339 string at the edge ([`rfc3339`] does the latter).
+//!
+//! Restart semantics: every accepted job is in the store before `submit` returns. On start,
+//! finished jobs keep their results, queued jobs are queued again in their original order, and
+//! jobs that were running are re-queued and **restart from step 0** (their stored frames are
+//! discarded), because a flow carries solver state that is not checkpointed.
+
+pub mod events;
+pub mod queue;
+pub mod store;
+pub mod telemetry;
+pub mod worker;
+
+use crate::flow::{FlowParams, Method};
+use crate::mesh::io::{Asset, Format};
+use crate::mesh::{Limits, MeshError};
+use crate::metrics::StepMetrics;
+use futures::Stream;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use tokio_util::sync::CancellationToken;
+
+use events::EventHub;
+use queue::{EmbeddedQueue, JobQueue};
+use store::Store;
+
+/// A job's identifier: a UUID v4 in its hyphenated lower-case text form.
+pub type JobId = String;
+
+/// What to run on an uploaded mesh. Transports turn their wire parameters into this and call
+/// [`JobSpec::validate`] (which [`Jobs::submit`] calls again, so no transport can skip it).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct JobSpec {
+    /// Which flow: `conformal` (the paper) or `mcf` (the yardstick).
+    pub method: Method,
+    /// Number of flow steps to take (step 0 is the input).
+    pub steps: usize,
+    /// Time step τ (see [`FlowParams::tau`]).
+    pub tau: f64,
+    /// Inverse power iterations per step (conformal flow).
+    pub iterations: usize,
+    /// Every `frame_interval`-th step (and step 0 and the last step) keeps its vertex positions,
+    /// so `frames/{step}` can serve that mesh and watchers get `positions`.
+    pub frame_interval: usize,
+    /// Whether live and replayed frames carry positions at all (metrics are always sent).
+    pub include_positions: bool,
+    /// Wall-clock budget from submission, in seconds; `None` takes the server default.
+    pub deadline_secs: Option<f64>,
+}
+
+impl Default for JobSpec {
+    fn default() -> Self {
+        let flow = FlowParams::default();
+        JobSpec {
+            method: flow.method,
+            steps: 20,
+            tau: flow.tau,
+            iterations: flow.iterations,
+            frame_interval: 1,
+            include_positions: true,
+            deadline_secs: None,
+        }
+    }
+}
+
+impl JobSpec {
+    /// Check every field against the server's limits; the error names the field.
+    pub fn validate(&self, config: &Config) -> Result<(), JobError> {
+        let bad =
+            |field: &'static str, reason: String| Err(JobError::InvalidSpec { field, reason });
+        if self.steps == 0 {
+            return bad("steps", "must be at least 1".into());
+        }
+        if self.steps > config.limits.max_steps {
+            return Err(JobError::TooLarge {
+                what: "steps",
+                limit: config.limits.max_steps as u64,
+            });
+        }
+        if !self.tau.is_finite() || self.tau <= 0.0 {
+            return bad(
+                "tau",
+                format!("must be a finite number > 0, got {}", self.tau),
+            );
+        }
+        if self.method == Method::Conformal && self.tau >= 1.0 {
+            // Paper §4: the curvature update u ← (1 − 2τ)u is only stable for τ < 1.
+            return bad(
+                "tau",
+                format!(
+                    "must be < 1 for the conformal flow (paper §4), got {}",
+                    self.tau
+                ),
+            );
+        }
+        if self.iterations == 0 || self.iterations > MAX_ITERATIONS {
+            return bad(
+                "iterations",
+                format!(
+                    "must be between 1 and {MAX_ITERATIONS}, got {}",
+                    self.iterations
+                ),
+            );
+        }
+        if self.frame_interval == 0 {
+            return bad("frame_interval", "must be at least 1".into());
+        }
+        if let Some(d) = self.deadline_secs {
+            if !d.is_finite() || d <= 0.0 {
+                return bad(
+                    "deadline_secs",
+                    format!("must be a finite number > 0, got {d}"),
+                );
+            }
+            if d > config.max_deadline.as_secs_f64() {
+                return bad(
+                    "deadline_secs",
+                    format!(
+                        "must be at most {} (the server's maximum), got {d}",
+                        config.max_deadline.as_secs_f64()
+                    ),
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// The flow parameters this spec asks for.
+    pub fn flow_params(&self) -> FlowParams {
+        FlowParams {
+            method: self.method,
+            tau: self.tau,
+            iterations: self.iterations,
+        }
+    }
+
+    /// Whether `step` keeps positions (step 0, every `frame_interval`-th, and the last).
+    pub fn keeps_positions(&self, step: usize) -> bool {
+        self.include_positions
+            && (step.is_multiple_of(self.frame_interval.max(1)) || step == self.steps)
+    }
+}
+
+/// More inverse iterations than this buy nothing (§6.4.2 uses one) and only burn CPU.
+const MAX_ITERATIONS: usize = 50;
+
+/// Where a job is in its life. Terminal states: succeeded, failed, cancelled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub fn is_terminal(self) -> bool {
+        matches!(
+            self,
+            JobState::Succeeded | JobState::Failed | JobState::Cancelled
+        )
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<JobState> {
+        Some(match s {
+            "queued" => JobState::Queued,
+            "running" => JobState::Running,
+            "succeeded" => JobState::Succeeded,
+            "failed" => JobState::Failed,
+            "cancelled" => JobState::Cancelled,
+            _ => return None,
+        })
+    }
+}
+
+/// A snapshot of one job, as every transport reports it. Times are unix milliseconds.
+#[derive(Clone, Debug, Serialize)]
+pub struct JobStatus {
+    pub id: JobId,
+    pub state: JobState,
+    /// Steps completed so far (0 while queued).
+    pub step: usize,
+    pub total_steps: usize,
+    pub spec: JobSpec,
+    #[serde(serialize_with = "serialize_format")]
+    pub input_format: Format,
+    /// Vertices in the uploaded file's order: a frame's positions are this many xyz triples.
+    pub vertex_count: usize,
+    /// Triangles of the welded surface.
+    pub face_count: usize,
+    /// Metrics of the latest completed step (step 0 = the input) once the job has started.
+    pub latest: Option<StepMetrics>,
+    /// Why the job failed or was cancelled, for people.
+    pub error: Option<String>,
+    /// The same, for programs: `deadline_exceeded`, `cancelled`, `numerical`, `invalid_mesh`,
+    /// `unsupported`, `invalid_parameter`, `internal`.
+    pub error_code: Option<String>,
+    pub created_at: u64,
+    pub started_at: Option<u64>,
+    pub finished_at: Option<u64>,
+    /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
+    pub expires_at: Option<u64>,
+}
+
+fn serialize_format<S: serde::Serializer>(f: &Format, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(format_name(*f))
+}
+
+/// One step of a running job, as watchers receive it.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub step: usize,
+    pub metrics: StepMetrics,
+    /// Vertex positions after the step, in the uploaded file's vertex order, when this step
+    /// keeps positions ([`JobSpec::keeps_positions`]). Shared, so fan-out copies no vertices.
+    pub positions: Option<Arc<Vec<[f32; 3]>>>,
+}
+
+/// What a watcher sees: state changes, one frame per step, then the final status.
+#[derive(Clone, Debug)]
+pub enum JobEvent {
+    State(JobStatus),
+    Frame(Frame),
+    Done(JobStatus),
+}
+
+/// The mesh a job runs on: the bytes themselves, or an upload stored earlier by
+/// [`Jobs::store_upload`] (chunked gRPC uploads).
+pub enum UploadRef {
+    Bytes { data: bytes::Bytes, format: Format },
+    Stored { upload_id: String },
+}
+
+/// Everything that can go wrong, typed so each transport maps it once to its own codes.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    #[error("job `{0}` not found")]
+    NotFound(JobId),
+    #[error("job `{0}` has expired and its results were deleted")]
+    Gone(JobId),
+    #[error("the queue is full ({capacity} jobs waiting); retry in about {retry_after_secs} s")]
+    QueueFull {
+        retry_after_secs: u64,
+        capacity: usize,
+    },
+    #[error("invalid mesh: {0}")]
+    InvalidMesh(MeshError),
+    #[error("invalid parameter `{field}`: {reason}")]
+    InvalidSpec { field: &'static str, reason: String },
+    #[error("{what} exceeds the limit of {limit}")]
+    TooLarge { what: &'static str, limit: u64 },
+    #[error("{0}")]
+    Conflict(String),
+    #[error("idempotency key reused with a different request: {0}")]
+    IdempotencyMismatch(String),
+    #[error("the server is shutting down and accepts no new jobs")]
+    ShuttingDown,
+    #[error("internal error: {0}")]
+    Internal(String),
+    /// A step that exists but kept no positions, or a step past the job's progress.
+    #[error("job `{id}` has no mesh for step {step}: {detail}")]
+    FrameNotFound {
+        id: JobId,
+        step: usize,
+        detail: String,
+    },
+    /// An upload id that [`Jobs::store_upload`] never returned (or that expired).
+    #[error("upload `{0}` not found")]
+    UploadNotFound(String),
+}
+
+impl JobError {
+    /// A stable machine-readable code, shared by every transport.
+    pub fn code(&self) -> &'static str {
+        match self {
+            JobError::NotFound(_) => "not_found",
+            JobError::Gone(_) => "gone",
+            JobError::QueueFull { .. } => "queue_full",
+            JobError::InvalidMesh(e) => e.code(),
+            JobError::InvalidSpec { .. } => "invalid_parameter",
+            JobError::TooLarge { .. } => "too_large",
+            JobError::Conflict(_) => "conflict",
+            JobError::IdempotencyMismatch(_) => "idempotency_mismatch",
+            JobError::ShuttingDown => "shutting_down",
+            JobError::Internal(_) => "internal",
+            JobError::FrameNotFound { .. } => "frame_not_found",
+            JobError::UploadNotFound(_) => "upload_not_found",
+        }
+    }
+}
+
+impl From<rusqlite::Error> for JobError {
+    fn from(e: rusqlite::Error) -> Self {
+        JobError::Internal(format!("store: {e}"))
+    }
+}
+
+impl From<std::io::Error> for JobError {
+    fn from(e: std::io::Error) -> Self {
+        JobError::Internal(format!("file: {e}"))
+    }
+}
+
+/// Size limits, all named in the errors that enforce them.
+#[derive(Clone, Debug)]
+pub struct JobLimits {
+    /// Largest accepted upload in bytes.
+    pub max_upload_bytes: u64,
+    /// Most vertices of the welded surface.
+    pub max_vertices: usize,
+    /// Most triangles.
+    pub max_faces: usize,
+    /// Most steps one job may ask for.
+    pub max_steps: usize,
+}
+
+impl Default for JobLimits {
+    fn default() -> Self {
+        JobLimits {
+            // 64 MiB: a 1M-triangle GLB is about 40 MiB; above that one job would hold a
+            // worker for hours on this class of machine anyway.
+            max_upload_bytes: 64 << 20,
+            max_vertices: 1_000_000,
+            max_faces: 2_000_000,
+            max_steps: 10_000,
+        }
+    }
+}
+
+impl JobLimits {
+    /// The same limits in the mesh reader's terms.
+    pub fn mesh_limits(&self) -> Limits {
+        Limits {
+            max_bytes: usize::try_from(self.max_upload_bytes).unwrap_or(usize::MAX),
+            max_vertices: self.max_vertices,
+            max_faces: self.max_faces,
+        }
+    }
+}
+
+/// How the job core runs. `Config::new(dir)` gives defaults that work on a fresh machine.
+#[derive(Clone, Debug)]
+pub struct Config {
+    /// Holds `willow.sqlite3` and the blob folders; created if missing.
+    pub data_dir: PathBuf,
+    /// Blocking workers, each running one single-threaded flow (default: the core count, since
+    /// a flow step is CPU-bound and more workers than cores only interleave them).
+    pub workers: usize,
+    /// Jobs that may wait (not counting running ones) before `submit` answers `QueueFull`.
+    pub queue_capacity: usize,
+    pub limits: JobLimits,
+    /// How long a finished job (and an unused upload) is kept before it answers `Gone`.
+    pub result_ttl: Duration,
+    /// Deadline of jobs whose spec names none.
+    pub default_deadline: Duration,
+    /// Largest deadline a spec may ask for.
+    pub max_deadline: Duration,
+    /// How often expired jobs are swept from disk.
+    pub sweep_interval: Duration,
+    /// Readiness turns false when a job is running and no step finished for this long: a
+    /// wedged worker must not keep a pod in the load balancer.
+    pub stall_after: Duration,
+}
+
+impl Config {
+    pub fn new(data_dir: impl Into<PathBuf>) -> Config {
+        Config {
+            data_dir: data_dir.into(),
+            workers: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1),
+            queue_capacity: 64,
+            limits: JobLimits::default(),
+            result_ttl: Duration::from_secs(24 * 3600),
+            default_deadline: Duration::from_secs(3600),
+            max_deadline: Duration::from_secs(24 * 3600),
+            sweep_interval: Duration::from_secs(60),
+            stall_after: Duration::from_secs(600),
+        }
+    }
+}
+
+/// Unix milliseconds now.
+pub fn now_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
+}
+
+/// RFC 3339 UTC text (`2026-11-22T12:52:02.123Z`) of unix milliseconds.
+pub fn rfc3339(ms: u64) -> String {
+    let secs = ms / 1000;
+    let (days, rem) = (secs / 86_400, secs % 86_400);
+    // Civil-from-days (Howard Hinnant's algorithm), valid for all dates after 1970.
+    let z = days as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:03}Z",
+        rem / 3600,
+        (rem % 3600) / 60,
+        rem % 60,
+        ms % 1000
+    )
+}
+
+/// The lower-case name of a mesh format, as stored and as in `?format=`.
+pub fn format_name(f: Format) -> &'static str {
+    match f {
+        Format::Obj => "obj",
+        Format::Glb => "glb",
+        Format::Gltf => "gltf",
+    }
+}
+
+/// The inverse of [`format_name`].
+pub fn parse_format(s: &str) -> Option<Format> {
+    Some(match s.to_ascii_lowercase().as_str() {
+        "obj" => Format::Obj,
+        "glb" => Format::Glb,
+        "gltf" => Format::Gltf,
+        _ => return None,
+    })
+}
+
+/// The media type of a mesh format (for downloads).
+pub fn format_media_type(f: Format) -> &'static str {
+    match f {
+        Format::Obj => "model/obj",
+        Format::Glb => "model/gltf-binary",
+        Format::Gltf => "model/gltf+json",
+    }
+}
+
+/// Per-job in-memory state: its cancellation token and its fan-out channel. Present from
+/// acceptance until the job is terminal.
+pub(crate) struct Active {
+    pub cancel: CancellationToken,
+}
+
+/// Shared state behind the [`Jobs`] handle.
+pub(crate) struct Inner {
+    pub config: Config,
+    pub store: Store,
+    pub queue: Arc<dyn JobQueue>,
+    pub hub: EventHub,
+    pub active: Mutex<std::collections::HashMap<JobId, Active>>,
+    /// Serialises the admission decision (idempotency lookup, capacity, insert, enqueue) so two
+    /// concurrent submissions cannot both take the last slot or both claim one key.
+    pub admission: tokio::sync::Mutex<()>,
+    pub draining: AtomicBool,
+    /// Cancelled on shutdown after the grace period: running jobs stop at the next step and
+    /// are re-queued in the store.
+    pub shutdown: CancellationToken,
+    pub telemetry: telemetry::Telemetry,
+    /// Unix ms of the latest worker progress (a finished step or an idle poll).
+    pub last_progress_ms: AtomicU64,
+    pub running: AtomicUsize,
+    pub workers_alive: AtomicUsize,
+    /// Exponential moving average of job wall time in ms, for `Retry-After` estimates.
+    pub avg_job_ms: AtomicU64,
+}
+
+/// The cheap, cloneable handle every transport holds.
+#[derive(Clone)]
+pub struct Jobs {
+    pub(crate) inner: Arc<Inner>,
+}
+
+/// Returned by [`Jobs::start`]: owns the workers. Call [`Shutdown::shutdown`] to drain; dropping
+/// it without that stops the workers at their next step (jobs are then re-queued on restart).
+pub struct Shutdown {
+    jobs: Jobs,
+    tracker: tokio_util::task::TaskTracker,
+    stop_polling: CancellationToken,
+}
+
+impl Jobs {
+    /// Open the store under `config.data_dir`, recover jobs left by a previous process, and
+    /// spawn the workers and the expiry sweeper. Must be called inside a tokio runtime.
+    pub async fn start(config: Config) -> Result<(Jobs, Shutdown), JobError> {
+        if config.workers == 0 {
+            return Err(JobError::InvalidSpec {
+                field: "workers",
+                reason: "must be at least 1".into(),
+            });
+        }
+        if config.queue_capacity == 0 {
+            return Err(JobError::InvalidSpec {
+                field: "queue_capacity",
+                reason: "must be at least 1".into(),
+            });
+        }
+        let cfg = config.clone();
+        let (store, recovered) = tokio::task::spawn_blocking(move || {
+            let store = Store::open(&cfg.data_dir)?;
+            let recovered = store.recover()?;
+            Ok::<_, JobError>((store, recovered))
+        })
+        .await
+        .map_err(|e| JobError::Internal(format!("store open task: {e}")))??;
+
+        let queue: Arc<dyn JobQueue> = Arc::new(EmbeddedQueue::new(config.queue_capacity));
+        let hub = EventHub::default();
+        let telemetry = telemetry::Telemetry::new();
+        let mut active = std::collections::HashMap::new();
+        for id in &recovered {
+            // Recovered jobs bypass the capacity check: they were admitted before.
+            queue.push_recovered(id.clone());
+            hub.open(id);
+            active.insert(
+                id.clone(),
+                Active {
+                    cancel: CancellationToken::new(),
+                },
+            );
+        }
+        if !recovered.is_empty() {
+            tracing::info!(count = recovered.len(), "re-queued jobs from the store");
+        }
+        let inner = Arc::new(Inner {
+            config: config.clone(),
+            store,
+            queue,
+            hub,
+            active: Mutex::new(active),
+            admission: tokio::sync::Mutex::new(()),
+            draining: AtomicBool::new(false),
+            shutdown: CancellationToken::new(),
+            telemetry,
+            last_progress_ms: AtomicU64::new(now_ms()),
+            running: AtomicUsize::new(0),
+            workers_alive: AtomicUsize::new(0),
+            avg_job_ms: AtomicU64::new(5_000),
+        });
+        let jobs = Jobs { inner };
+        jobs.inner
+            .telemetry
+            .queue_depth
+            .set(jobs.inner.queue.len() as i64);
+
+        let tracker = tokio_util::task::TaskTracker::new();
+        let stop_polling = CancellationToken::new();
+        for n in 0..config.workers {
+            tracker.spawn(worker::worker_loop(jobs.clone(), n, stop_polling.clone()));
+        }
+        let sweeper = jobs.clone();
+        let stop = stop_polling.clone();
+        tokio::spawn(async move { sweeper.sweep_loop(stop).await });
+        tracker.close();
+        Ok((
+            jobs.clone(),
+            Shutdown {
+                jobs,
+                tracker,
+                stop_polling,
+            },
+        ))
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.inner.config
+    }
+
+    /// Parse and validate the mesh (on a blocking thread), then store and enqueue the job.
+    ///
+    /// With an idempotency key, a repeat of the same request returns the job it created (even
+    /// when the queue has since filled up); the same key with a different mesh or spec is
+    /// [`JobError::IdempotencyMismatch`].
+    pub async fn submit(
+        &self,
+        upload: UploadRef,
+        spec: JobSpec,
+        idempotency_key: Option<String>,
+    ) -> Result<JobStatus, JobError> {
+        if self.inner.draining.load(Ordering::SeqCst) {
+            return Err(JobError::ShuttingDown);
+        }
+        spec.validate(&self.inner.config)?;
+        let (data, format) = match upload {
+            UploadRef::Bytes { data, format } => (data, format),
+            UploadRef::Stored { upload_id } => {
+                let inner = self.inner.clone();
+                tokio::task::spawn_blocking(move || inner.store.read_upload(&upload_id))
+                    .await
+                    .map_err(join_err)??
+            }
+        };
+        let limit = self.inner.config.limits.max_upload_bytes;
+        if data.len() as u64 > limit {
+            return Err(JobError::TooLarge {
+                what: "upload bytes",
+                limit,
+            });
+        }
+        let key = match idempotency_key {
+            Some(k) if k.is_empty() || k.len() > 255 => {
+                return Err(JobError::InvalidSpec {
+                    field: "idempotency_key",
+                    reason: "must be 1 to 255 characters".into(),
+                })
+            }
+            other => other,
+        };
+        let request_hash = key
+            .as_ref()
+            .map(|_| store::request_hash(&data, format, &spec));
+        if let (Some(k), Some(h)) = (&key, &request_hash) {
+            if let Some(status) = self.lookup_idempotent(k, h).await? {
+                return Ok(status);
+            }
+        }
+
+        // Parse and validate off the runtime: a large OBJ takes a while and the async threads
+        // must keep serving status polls and streams meanwhile.
+        let limits = self.inner.config.limits.clone();
+        let parse_data = data.clone();
+        let (vertex_count, face_count) = tokio::task::spawn_blocking(move || {
+            let asset =
+                Asset::read(&parse_data, format, &limits.mesh_limits()).map_err(mesh_error)?;
+            let surface = asset.surface();
+            if surface.vertex_count() > limits.max_vertices {
+                return Err(JobError::TooLarge {
+                    what: "vertices",
+                    limit: limits.max_vertices as u64,
+                });
+            }
+            if surface.face_count() > limits.max_faces {
+                return Err(JobError::TooLarge {
+                    what: "faces",
+                    limit: limits.max_faces as u64,
+                });
+            }
+            Ok((asset.file_vertex_count(), surface.face_count()))
+        })
+        .await
+        .map_err(join_err)??;
+
+        let id: JobId = uuid::Uuid::new_v4().to_string();
+        // Write the blob before taking the admission lock: fsync is slow and need not be
+        // serialised. A refused job's blob is removed again below.
+        {
+            let inner = self.inner.clone();
+            let (id, data) = (id.clone(), data.clone());
+            tokio::task::spawn_blocking(move || inner.store.write_input(&id, format, &data))
+                .await
+                .map_err(join_err)??;
+        }
+        let admitted = self
+            .admit(
+                &id,
+                &spec,
+                format,
+                vertex_count,
+                face_count,
+                key,
+                request_hash,
+            )
+            .await;
+        match admitted {
+            Ok(Admitted::New(status)) => {
+                tracing::info!(job_id = %status.id, vertex_count, face_count, steps = spec.steps, "job accepted");
+                Ok(status)
+            }
+            Ok(Admitted::Existing(status)) => {
+                self.discard_files(&id).await;
+                Ok(status)
+            }
+            Err(e) => {
+                self.discard_files(&id).await;
+                Err(e)
+            }
+        }
+    }
+
+    async fn discard_files(&self, id: &str) {
+        let inner = self.inner.clone();
+        let id = id.to_string();
+        let _ = tokio::task::spawn_blocking(move || inner.store.remove_job_files(&id)).await;
+    }
+
+    async fn lookup_idempotent(
+        &self,
+        key: &str,
+        hash: &str,
+    ) -> Result<Option<JobStatus>, JobError> {
+        let inner = self.inner.clone();
+        let (key, hash) = (key.to_string(), hash.to_string());
+        tokio::task::spawn_blocking(move || inner.store.idempotent_job(&key, &hash))
+            .await
+            .map_err(join_err)?
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    async fn admit(
+        &self,
+        id: &str,
+        spec: &JobSpec,
+        format: Format,
+        vertex_count: usize,
+        face_count: usize,
+        key: Option<String>,
+        request_hash: Option<String>,
+    ) -> Result<Admitted, JobError> {
+        let _guard = self.inner.admission.lock().await;
+        if self.inner.draining.load(Ordering::SeqCst) {
+            return Err(JobError::ShuttingDown);
+        }
+        if let (Some(k), Some(h)) = (&key, &request_hash) {
+            if let Some(status) = self.lookup_idempotent(k, h).await? {
+                return Ok(Admitted::Existing(status));
+            }
+        }
+        if self.inner.queue.len() >= self.inner.queue.capacity() {
+            self.inner.telemetry.rejected.inc();
+            return Err(JobError::QueueFull {
+                retry_after_secs: self.retry_after_secs(),
+                capacity: self.inner.queue.capacity(),
+            });
+        }
+        let inner = self.inner.clone();
+        let row = store::NewJob {
+            id: id.to_string(),
+            spec: spec.clone(),
+            format,
+            vertex_count,
+            face_count,
+            created_at: now_ms(),
+            idempotency: key.zip(request_hash),
+        };
+        let status = tokio::task::spawn_blocking(move || inner.store.insert_job(&row))
+            .await
+            .map_err(join_err)??;
+        self.inner.active.lock().map_err(poisoned)?.insert(
+            id.to_string(),
+            Active {
+                cancel: CancellationToken::new(),
+            },
+        );
+        self.inner.hub.open(id);
+        if !self.inner.queue.try_push(id.to_string()) {
+            // Cannot happen while we hold the admission lock (only we push), but never leave
+            // an accepted row without a queue entry.
+            return Err(JobError::Internal("queue refused an admitted job".into()));
+        }
+        self.inner.telemetry.submitted.inc();
+        self.inner
+            .telemetry
+            .queue_depth
+            .set(self.inner.queue.len() as i64);
+        Ok(Admitted::New(status))
+    }
+
+    /// `Retry-After` estimate: the time for the workers to drain the queue once, from the
+    /// moving average of job durations, clamped to 1..=300 s.
+    fn retry_after_secs(&self) -> u64 {
+        let avg_ms = self.inner.avg_job_ms.load(Ordering::Relaxed);
+        let workers = self.inner.config.workers.max(1) as u64;
+        let depth = self.inner.queue.len().max(1) as u64;
+        (avg_ms * depth / workers / 1000).clamp(1, 300)
+    }
+
+    /// Store an upload for later use by [`UploadRef::Stored`]. The mesh is validated now, so a
+    /// bad upload fails here and not at job creation.
+    pub async fn store_upload(
+        &self,
+        data: bytes::Bytes,
+        format: Format,
+    ) -> Result<String, JobError> {
+        if self.inner.draining.load(Ordering::SeqCst) {
+            return Err(JobError::ShuttingDown);
+        }
+        let limit = self.inner.config.limits.max_upload_bytes;
+        if data.len() as u64 > limit {
+            return Err(JobError::TooLarge {
+                what: "upload bytes",
+                limit,
+            });
+        }
+        let inner = self.inner.clone();
+        tokio::task::spawn_blocking(move || {
+            let limits = &inner.config.limits;
+            Asset::read(&data, format, &limits.mesh_limits()).map_err(mesh_error)?;
+            let id = uuid::Uuid::new_v4().to_string();
+            let expires = now_ms() + inner.config.result_ttl.as_millis() as u64;
+            inner.store.write_upload(&id, format, &data, expires)?;
+            Ok(id)
+        })
+        .await
+        .map_err(join_err)?
+    }
+
+    /// The job's current status; `Gone` once it expired.
+    pub async fn get(&self, id: &str) -> Result<JobStatus, JobError> {
+        let inner = self.inner.clone();
+        let id = id.to_string();
+        tokio::task::spawn_blocking(move || inner.store.status(&id))
+            .await
+            .map_err(join_err)?
+    }
+
+    /// Jobs newest first, optionally of one state. `page_token` is the opaque
+    /// `next_page_token` of the previous page; `page_size` 0 means 50, at most 1000.
+    pub async fn list(
+        &self,
+        state: Option<JobState>,
+        page_size: usize,
+        page_token: Option<String>,
+    ) -> Result<(Vec<JobStatus>, Option<String>), JobError> {
+        let inner = self.inner.clone();
+        let size = match page_size {
+            0 => 50,
+            n => n.min(1000),
+        };
+        tokio::task::spawn_blocking(move || inner.store.list(state, size, page_token.as_deref()))
+            .await
+            .map_err(join_err)?
+    }
+
+    /// Cancel a job. Queued: removed from the queue and cancelled now. Running: it stops at the
+    /// next step boundary (the returned status may still say `running`; watch or poll for
+    /// `cancelled`). Terminal: [`JobError::Conflict`].
+    pub async fn cancel(&self, id: &str) -> Result<JobStatus, JobError> {
+        let status = self.get(id).await?;
+        if status.state.is_terminal() {
+            return Err(JobError::Conflict(format!(
+                "job `{id}` is already {} and cannot be cancelled",
+                status.state.as_str()
+            )));
+        }
+        // Either we take the job out of the queue (then no worker will see it), or a worker
+        // already has it (then its token tells it to stop). Both can't happen.
+        if self.inner.queue.remove(id) {
+            self.inner
+                .telemetry
+                .queue_depth
+                .set(self.inner.queue.len() as i64);
+            let inner = self.inner.clone();
+            let id2 = id.to_string();
+            let status = tokio::task::spawn_blocking(move || {
+                worker::finish(
+                    &inner,
+                    &id2,
+                    JobState::Cancelled,
+                    Some(("cancelled", "cancelled while queued".to_string())),
+                )
+            })
+            .await
+            .map_err(join_err)??;
+            return Ok(status);
+        }
+        if let Some(a) = self.inner.active.lock().map_err(poisoned)?.get(id) {
+            a.cancel.cancel();
+        }
+        tracing::info!(job_id = %id, "cancellation requested");
+        self.get(id).await
+    }
+
+    /// Remove a terminal job, its frames and its files. Queued or running: `Conflict`.
+    pub async fn delete(&self, id: &str) -> Result<(), JobError> {
+        let inner = self.inner.clone();
+        let id = id.to_string();
+        tokio::task::spawn_blocking(move || inner.store.delete(&id))
+            .await
+            .map_err(join_err)?
+    }
+
+    /// Events of a job from `from_step` on: its current state, the stored frames (replay),
+    /// then live frames, ending with `Done`. A watcher that falls behind the live channel
+    /// resumes from the store, so it sees every step once and in order, and never slows the
+    /// worker down.
+    pub async fn watch(
+        &self,
+        id: &str,
+        from_step: usize,
+    ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
+        events::watch(self.clone(), id.to_string(), from_step).await
+    }
+
+    /// Metrics of steps `from_step..` (at most `page_size`, 0 = 100, max 10 000) and the step
+    /// to ask for next, if any.
+    pub async fn frames(
+        &self,
+        id: &str,
+        from_step: usize,
+        page_size: usize,
+    ) -> Result<(Vec<StepMetrics>, Option<usize>), JobError> {
+        let inner = self.inner.clone();
+        let id = id.to_string();
+        let size = match page_size {
+            0 => 100,
+            n => n.min(10_000),
+        };
+        tokio::task::spawn_blocking(move || {
+            inner.store.status(&id)?;
+            inner.store.frame_metrics(&id, from_step, size)
+        })
+        .await
+        .map_err(join_err)?
+    }
+
+    /// The mesh after `step` in `format`, for steps that kept positions.
+    pub async fn frame_mesh(
+        &self,
+        id: &str,
+        step: usize,
+        format: Format,
+    ) -> Result<Vec<u8>, JobError> {
+        let inner = self.inner.clone();
+        let id = id.to_string();
+        tokio::task::spawn_blocking(move || {
+            let status = inner.store.status(&id)?;
+            let positions = inner.store.read_frame_welded(&id, step).map_err(|_| {
+                let detail = if step > status.step
+                    || (step == status.step
+                        && !status.state.is_terminal()
+                        && status.latest.is_none())
+                {
+                    format!(
+                        "the job has completed {} of {} steps",
+                        status.step, status.total_steps
+                    )
+                } else if !status.spec.include_positions {
+                    "the job was submitted with include_positions=false".to_string()
+                } else {
+                    format!(
+                        "positions are kept at step 0, every {} steps and the last step",
+                        status.spec.frame_interval
+                    )
+                };
+                JobError::FrameNotFound {
+                    id: id.clone(),
+                    step,
+                    detail,
+                }
+            })?;
+            inner.render(&id, &positions, format)
+        })
+        .await
+        .map_err(join_err)?
+    }
+
+    /// The faired mesh in `format` (input UVs, materials and textures kept). `Conflict` until
+    /// the job succeeded.
+    pub async fn result(&self, id: &str, format: Format) -> Result<Vec<u8>, JobError> {
+        let inner = self.inner.clone();
+        let id = id.to_string();
+        tokio::task::spawn_blocking(move || {
+            let status = inner.store.status(&id)?;
+            if status.state != JobState::Succeeded {
+                return Err(JobError::Conflict(format!(
+                    "job `{id}` is {}: only a succeeded job has a result",
+                    status.state.as_str()
+                )));
+            }
+            let positions = inner.store.read_result(&id)?;
+            inner.render(&id, &positions, format)
+        })
+        .await
+        .map_err(join_err)?
+    }
+
+    /// Wait until the job is terminal or `timeout` passed; returns the status either way.
+    pub async fn wait(
+        &self,
+        id: &str,
+        timeout: std::time::Duration,
+    ) -> Result<JobStatus, JobError> {
+        use futures::StreamExt;
+        let status = self.get(id).await?;
+        if status.state.is_terminal() {
+            return Ok(status);
+        }
+        let mut events = Box::pin(self.watch(id, usize::MAX).await?);
+        let waited = tokio::time::timeout(timeout, async {
+            while let Some(ev) = events.next().await {
+                if let JobEvent::Done(s) = ev {
+                    return Some(s);
+                }
+            }
+            None
+        })
+        .await;
+        match waited {
+            Ok(Some(s)) => Ok(s),
+            _ => self.get(id).await,
+        }
+    }
+
+    /// Stop admitting jobs: `submit` answers `ShuttingDown` and readiness turns false. Running
+    /// and queued jobs go on until [`Shutdown::shutdown`].
+    pub fn begin_drain(&self) {
+        if !self.inner.draining.swap(true, Ordering::SeqCst) {
+            tracing::info!("draining: no new jobs are admitted");
+        }
+    }
+
+    pub fn is_draining(&self) -> bool {
+        self.inner.draining.load(Ordering::SeqCst)
+    }
+
+    /// Ready to take traffic: not draining, every worker loop alive, and, when a job is
+    /// running, a step finished within `stall_after`.
+    pub fn is_ready(&self) -> bool {
+        let inner = &self.inner;
+        if inner.draining.load(Ordering::SeqCst) {
+            return false;
+        }
+        if inner.workers_alive.load(Ordering::SeqCst) < inner.config.workers {
+            return false;
+        }
+        let idle = inner.running.load(Ordering::SeqCst) == 0;
+        let since = now_ms().saturating_sub(inner.last_progress_ms.load(Ordering::SeqCst));
+        idle || since <= inner.config.stall_after.as_millis() as u64
+    }
+
+    /// Jobs waiting in the queue now.
+    pub fn queue_depth(&self) -> usize {
+        self.inner.queue.len()
+    }
+
+    /// Jobs running now.
+    pub fn running(&self) -> usize {
+        self.inner.running.load(Ordering::SeqCst)
+    }
+
+    /// The Prometheus text exposition of the core's metrics.
+    pub fn metrics_text(&self) -> String {
+        self.inner
+            .telemetry
+            .queue_depth
+            .set(self.inner.queue.len() as i64);
+        self.inner
+            .telemetry
+            .running
+            .set(self.inner.running.load(Ordering::SeqCst) as i64);
+        self.inner.telemetry.render()
+    }
+
+    async fn sweep_loop(self, stop: CancellationToken) {
+        let period = self.inner.config.sweep_interval;
+        loop {
+            tokio::select! {
+                _ = stop.cancelled() => return,
+                _ = tokio::time::sleep(period) => {}
+            }
+            let inner = self.inner.clone();
+            match tokio::task::spawn_blocking(move || inner.store.sweep_expired(now_ms())).await {
+                Ok(Ok(n)) if n > 0 => tracing::info!(count = n, "expired jobs swept"),
+                Ok(Err(e)) => tracing::warn!(error = %e, "expiry sweep failed"),
+                _ => {}
+            }
+        }
+    }
+}
+
+enum Admitted {
+    New(JobStatus),
+    Existing(JobStatus),
+}
+
+impl Inner {
+    /// Write `positions` (welded, f64) over the job's input asset in `format`.
+    fn render(
+        &self,
+        id: &str,
+        positions: &[[f64; 3]],
+        format: Format,
+    ) -> Result<Vec<u8>, JobError> {
+        let asset = self
+            .store
+            .read_asset(id, &self.config.limits.mesh_limits())?;
+        asset
+            .write(positions, format)
+            .map_err(|e| JobError::Internal(format!("writing {}: {e}", format_name(format))))
+    }
+}
+
+impl Shutdown {
+    /// Graceful shutdown: stop admitting, let running jobs finish for up to `grace`, then stop
+    /// them at their next step and re-queue them in the store (they restart from step 0 on the
+    /// next start). Queued jobs simply stay queued in the store.
+    pub async fn shutdown(self, grace: Duration) {
+        self.jobs.begin_drain();
+        // Workers take no new job from now on; the ones running keep going.
+        self.stop_polling.cancel();
+        if tokio::time::timeout(grace, self.tracker.wait())
+            .await
+            .is_err()
+        {
+            tracing::warn!(
+                grace_secs = grace.as_secs_f64(),
+                "jobs still running after the grace period: stopping them at the next step, they will be re-queued"
+            );
+            self.jobs.inner.shutdown.cancel();
+            self.tracker.wait().await;
+        }
+        tracing::info!("job core stopped");
+    }
+
+    /// The handle the shutdown belongs to.
+    pub fn jobs(&self) -> &Jobs {
+        &self.jobs
+    }
+}
+
+impl Drop for Shutdown {
+    fn drop(&mut self) {
+        // Without a graceful shutdown, running jobs must still stop at their next step so the
+        // process can exit; they are re-queued (in the store) when they stop or on restart.
+        self.stop_polling.cancel();
+        self.jobs.inner.shutdown.cancel();
+    }
+}
+
+/// A mesh refused for its size is a `TooLarge` (HTTP 413), any other refusal an `InvalidMesh`.
+fn mesh_error(e: MeshError) -> JobError {
+    match e {
+        MeshError::TooLarge { what, limit, .. } => JobError::TooLarge {
+            what,
+            limit: limit as u64,
+        },
+        other => JobError::InvalidMesh(other),
+    }
+}
+
+pub(crate) fn join_err(e: tokio::task::JoinError) -> JobError {
+    JobError::Internal(format!("blocking task failed: {e}"))
+}
+
+pub(crate) fn poisoned<T>(_: std::sync::PoisonError<T>) -> JobError {
+    JobError::Internal("a lock was poisoned by a panicking thread".into())
+}

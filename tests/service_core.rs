@@ -1,0 +1,260 @@
+//! The job core without any transport: fan-out and replay, slow watchers, deadline, graceful
+//! shutdown with re-queue, restart recovery.
+
+mod service_http_support;
+
+use futures::StreamExt;
+use service_http_support::{slow_obj, small_obj};
+use std::time::Duration;
+use willow::jobs::{Config, JobEvent, JobSpec, JobState, Jobs, UploadRef};
+use willow::mesh::io::Format;
+
+fn config(dir: &std::path::Path) -> Config {
+    let mut c = Config::new(dir);
+    c.workers = 1;
+    c.queue_capacity = 8;
+    c
+}
+
+fn obj(text: String) -> UploadRef {
+    UploadRef::Bytes {
+        data: bytes::Bytes::from(text),
+        format: Format::Obj,
+    }
+}
+
+fn spec(steps: usize) -> JobSpec {
+    JobSpec {
+        steps,
+        ..JobSpec::default()
+    }
+}
+
+/// Collect a watch stream to its end; returns (frame steps, final status state).
+async fn collect(
+    stream: impl futures::Stream<Item = JobEvent>,
+    per_event_delay: Duration,
+) -> (Vec<usize>, Option<JobState>) {
+    let mut stream = Box::pin(stream);
+    let (mut steps, mut done) = (Vec::new(), None);
+    while let Some(ev) = tokio::time::timeout(Duration::from_secs(120), stream.next())
+        .await
+        .expect("events keep coming")
+    {
+        match ev {
+            JobEvent::Frame(f) => steps.push(f.step),
+            JobEvent::Done(s) => done = Some(s.state),
+            JobEvent::State(_) => {}
+        }
+        if !per_event_delay.is_zero() {
+            tokio::time::sleep(per_event_delay).await;
+        }
+    }
+    (steps, done)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn many_watchers_each_see_every_step_once_even_when_slow() {
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
+    // More steps than the live channel holds (128), so the slow watcher must lag and resume
+    // from the store.
+    let steps = 300;
+    let job = jobs
+        .submit(
+            obj(small_obj()),
+            JobSpec {
+                include_positions: false,
+                ..spec(steps)
+            },
+            None,
+        )
+        .await
+        .expect("submit");
+    let fast = jobs.watch(&job.id, 0).await.expect("watch");
+    let slow = jobs.watch(&job.id, 0).await.expect("watch");
+    let fast = tokio::spawn(collect(fast, Duration::ZERO));
+    let slow = tokio::spawn(collect(slow, Duration::from_millis(3)));
+    let (fast_steps, fast_done) = fast.await.expect("fast watcher");
+    let (slow_steps, slow_done) = slow.await.expect("slow watcher");
+    let expected: Vec<usize> = (0..=steps).collect();
+    assert_eq!(fast_steps, expected);
+    assert_eq!(
+        slow_steps, expected,
+        "a slow watcher still gets every step, in order"
+    );
+    assert_eq!(fast_done, Some(JobState::Succeeded));
+    assert_eq!(slow_done, Some(JobState::Succeeded));
+
+    // A late watcher replays from any step.
+    let late = jobs.watch(&job.id, 290).await.expect("watch");
+    let (late_steps, late_done) = collect(late, Duration::ZERO).await;
+    assert_eq!(late_steps, (290..=steps).collect::<Vec<_>>());
+    assert_eq!(late_done, Some(JobState::Succeeded));
+
+    let (page, next) = jobs.frames(&job.id, 0, 100).await.expect("frames");
+    assert_eq!(page.len(), 100);
+    assert_eq!(next, Some(100));
+    assert!(page.iter().enumerate().all(|(i, m)| m.step == i));
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deadline_fails_a_job_between_steps() {
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
+    let job = jobs
+        .submit(
+            obj(slow_obj()),
+            JobSpec {
+                deadline_secs: Some(0.5),
+                ..spec(5000)
+            },
+            None,
+        )
+        .await
+        .expect("submit");
+    let done = jobs
+        .wait(&job.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    assert_eq!(done.state, JobState::Failed, "{done:?}");
+    assert_eq!(done.error_code.as_deref(), Some("deadline_exceeded"));
+    assert!(done.step < 5000);
+    let t = done.finished_at.expect("finished") - done.created_at;
+    assert!(t < 30_000, "stopped soon after the deadline, took {t} ms");
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn graceful_shutdown_requeues_running_jobs_and_restart_runs_them() {
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
+    let running = jobs
+        .submit(obj(slow_obj()), spec(5000), None)
+        .await
+        .expect("submit");
+    let queued = jobs
+        .submit(obj(small_obj()), spec(3), None)
+        .await
+        .expect("submit");
+    // Wait until the first job is running and has made progress.
+    let mut events = Box::pin(jobs.watch(&running.id, 0).await.expect("watch"));
+    while let Some(ev) = events.next().await {
+        if matches!(ev, JobEvent::Frame(ref f) if f.step >= 1) {
+            break;
+        }
+    }
+    drop(events);
+    // Zero grace: the running job is stopped at its next step and re-queued.
+    core.shutdown(Duration::ZERO).await;
+    assert!(!jobs.is_ready());
+    let s = jobs.get(&running.id).await.expect("get");
+    assert_eq!(s.state, JobState::Queued, "re-queued, not lost: {s:?}");
+    assert_eq!(s.step, 0, "restarts from step 0");
+    let err = jobs.submit(obj(small_obj()), spec(1), None).await;
+    assert!(matches!(err, Err(willow::jobs::JobError::ShuttingDown)));
+    drop(jobs);
+
+    // Restart on the same data dir: both jobs are there and run (the short one first would
+    // be wrong: order is kept).
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");
+    let q = jobs
+        .wait(&queued.id, Duration::from_secs(1))
+        .await
+        .expect("get");
+    assert_ne!(
+        q.state,
+        JobState::Succeeded,
+        "the re-queued long job runs first"
+    );
+    jobs.cancel(&running.id).await.expect("cancel the long one");
+    let r = jobs
+        .wait(&running.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    assert_eq!(r.state, JobState::Cancelled);
+    let q = jobs
+        .wait(&queued.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    assert_eq!(q.state, JobState::Succeeded);
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stored_uploads_idempotency_and_errors_in_core_terms() {
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
+    let upload = jobs
+        .store_upload(bytes::Bytes::from(small_obj()), Format::Obj)
+        .await
+        .expect("store upload");
+    let a = jobs
+        .submit(
+            UploadRef::Stored {
+                upload_id: upload.clone(),
+            },
+            spec(2),
+            Some("k1".into()),
+        )
+        .await
+        .expect("submit stored");
+    let again = jobs
+        .submit(
+            UploadRef::Stored { upload_id: upload },
+            spec(2),
+            Some("k1".into()),
+        )
+        .await
+        .expect("idempotent");
+    assert_eq!(a.id, again.id);
+    let mismatch = jobs
+        .submit(obj(small_obj()), spec(3), Some("k1".into()))
+        .await;
+    assert!(matches!(
+        mismatch,
+        Err(willow::jobs::JobError::IdempotencyMismatch(_))
+    ));
+    let missing = jobs
+        .submit(
+            UploadRef::Stored {
+                upload_id: "nope".into(),
+            },
+            spec(2),
+            None,
+        )
+        .await;
+    assert!(matches!(
+        missing,
+        Err(willow::jobs::JobError::UploadNotFound(_))
+    ));
+    let bad = jobs
+        .store_upload(bytes::Bytes::from_static(b"f 1 2 3\n"), Format::Obj)
+        .await;
+    assert!(
+        matches!(bad, Err(willow::jobs::JobError::InvalidMesh(_))),
+        "{bad:?}"
+    );
+    let done = jobs
+        .wait(&a.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    assert_eq!(done.state, JobState::Succeeded);
+    assert!(matches!(
+        jobs.cancel(&a.id).await,
+        Err(willow::jobs::JobError::Conflict(_))
+    ));
+    let mesh = jobs.result(&a.id, Format::Obj).await.expect("result");
+    assert!(!mesh.is_empty());
+    assert!(matches!(
+        jobs.frame_mesh(&a.id, 99, Format::Obj).await,
+        Err(willow::jobs::JobError::FrameNotFound { .. })
+    ));
+    jobs.delete(&a.id).await.expect("delete");
+    assert!(matches!(
+        jobs.get(&a.id).await,
+        Err(willow::jobs::JobError::NotFound(_))
+    ));
+    core.shutdown(Duration::from_secs(1)).await;
+}

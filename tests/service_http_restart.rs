@@ -1,0 +1,148 @@
+//! Crash recovery with the real binary: `willow serve` is SIGKILLed while a job runs, started
+//! again on the same data dir, and every accepted job is found completed or re-run.
+
+mod service_http_support;
+
+use service_http_support::*;
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+const JOB_TIMEOUT: Duration = Duration::from_secs(90);
+
+/// Start `willow serve` on an ephemeral port; returns the child and its base URL.
+fn spawn_server(data_dir: &std::path::Path) -> (Child, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_willow"))
+        .args([
+            "serve",
+            "--addr",
+            "127.0.0.1:0",
+            "--workers",
+            "1",
+            "--queue-capacity",
+            "8",
+        ])
+        .arg("--data-dir")
+        .arg(data_dir)
+        .args(["--log-format", "json"])
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("spawn willow serve");
+    let stdout = child.stdout.take().expect("piped stdout");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if let Some(url) = line.strip_prefix("listening on ") {
+                let _ = tx.send(url.trim().to_string());
+            }
+        }
+    });
+    let base = rx
+        .recv_timeout(Duration::from_secs(30))
+        .expect("server prints its address");
+    (child, base)
+}
+
+async fn submit(client: &reqwest::Client, base: &str, obj: &str, query: &str) -> String {
+    let res = client
+        .post(format!("{base}/v1/jobs?{query}"))
+        .header("content-type", "model/obj")
+        .body(obj.to_string())
+        .send()
+        .await
+        .expect("POST");
+    assert_eq!(res.status(), 202);
+    let v: serde_json::Value = res.json().await.expect("json");
+    v["id"].as_str().expect("id").to_string()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
+    let dir = tempfile::tempdir().expect("dir");
+    let client = reqwest::Client::new();
+    let (mut server, base) = spawn_server(dir.path());
+
+    // A finished job before the crash keeps its result.
+    let finished = submit(&client, &base, &small_obj(), "steps=2").await;
+    poll_until(&client, &base, &finished, JOB_TIMEOUT, is_terminal).await;
+    // One job running when the process dies, two waiting behind it.
+    let running = submit(&client, &base, &slow_obj(), "steps=40&frame_interval=10").await;
+    let queued: Vec<String> = vec![
+        submit(&client, &base, &small_obj(), "steps=3").await,
+        submit(&client, &base, &small_obj(), "steps=4").await,
+    ];
+    poll_until(&client, &base, &running, JOB_TIMEOUT, |v| {
+        v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 1
+    })
+    .await;
+
+    server.kill().expect("SIGKILL"); // Child::kill is SIGKILL on Unix
+    let _ = server.wait();
+
+    let (mut server, base) = spawn_server(dir.path());
+    let v = poll_until(&client, &base, &running, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(v["state"], "succeeded", "the interrupted job re-ran: {v}");
+    for id in &queued {
+        let v = poll_until(&client, &base, id, JOB_TIMEOUT, is_terminal).await;
+        assert_eq!(v["state"], "succeeded", "{v}");
+    }
+    let v = poll_until(&client, &base, &finished, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(v["state"], "succeeded");
+    let res = client
+        .get(format!("{base}/v1/jobs/{finished}/result?format=obj"))
+        .send()
+        .await
+        .expect("result");
+    assert_eq!(res.status(), 200, "results survive the crash");
+
+    // The re-run job's frames are complete and in order (it restarted from step 0).
+    let res = client
+        .get(format!("{base}/v1/jobs/{running}/frames"))
+        .send()
+        .await
+        .expect("frames");
+    let frames: serde_json::Value = res.json().await.expect("json");
+    let steps: Vec<u64> = frames["frames"]
+        .as_array()
+        .expect("frames")
+        .iter()
+        .filter_map(|f| f["step"].as_u64())
+        .collect();
+    assert_eq!(steps, (0..=40).collect::<Vec<u64>>());
+    // And its kept frames replay over SSE after the restart.
+    let res = client
+        .get(format!("{base}/v1/jobs/{running}/events?from_step=30"))
+        .send()
+        .await
+        .expect("events");
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    assert_eq!(frame_steps(&events), (30..=40).collect::<Vec<u64>>());
+    let with_positions: Vec<u64> = events
+        .iter()
+        .filter(|e| e.event == "frame" && e.data.get("positions_b64").is_some())
+        .filter_map(|e| e.data["step"].as_u64())
+        .collect();
+    assert_eq!(with_positions, vec![30, 40]);
+
+    // SIGTERM: a graceful stop (exit status 0).
+    #[cfg(unix)]
+    {
+        let pid = server.id().to_string();
+        let status = Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .expect("kill -TERM");
+        assert!(status.success());
+        let exit = tokio::task::spawn_blocking(move || server.wait())
+            .await
+            .expect("join")
+            .expect("wait");
+        assert!(exit.success(), "graceful exit: {exit:?}");
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = server.kill();
+    }
+}

@@ -1,0 +1,246 @@
+//! Shared helpers of the service tests: meshes as files, an in-process server on an ephemeral
+//! loopback port, an SSE reader, polling.
+#![allow(dead_code)]
+
+use futures::StreamExt;
+use std::time::{Duration, Instant};
+use willow::jobs::{Config, Jobs};
+use willow::mesh::generate;
+use willow::mesh::Mesh;
+
+/// OBJ text of a mesh (1-based faces).
+pub fn obj_text(mesh: &Mesh) -> String {
+    let mut s = String::new();
+    for p in &mesh.positions {
+        s.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
+    }
+    for t in &mesh.triangles {
+        s.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+    }
+    s
+}
+
+/// A small bumpy sphere (162 vertices): a few steps take milliseconds.
+pub fn small_obj() -> String {
+    obj_text(&generate::bumpy_sphere(2, 0.1))
+}
+
+/// A bigger sphere (2562 vertices) for jobs that must still be running when the test acts.
+pub fn slow_obj() -> String {
+    obj_text(&generate::bumpy_sphere(4, 0.1))
+}
+
+/// GLB bytes of the small mesh, written by the library's own writer from the OBJ.
+pub fn small_glb() -> Vec<u8> {
+    use willow::mesh::io::{Asset, Format};
+    let obj = small_obj();
+    let asset = Asset::read(
+        obj.as_bytes(),
+        Format::Obj,
+        &willow::mesh::Limits::default(),
+    )
+    .expect("generated OBJ parses");
+    asset
+        .write(&asset.surface().positions, Format::Glb)
+        .expect("GLB writes")
+}
+
+pub struct TestServer {
+    pub base: String,
+    pub jobs: Jobs,
+    pub client: reqwest::Client,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<std::io::Result<()>>>,
+    pub dir: tempfile::TempDir,
+}
+
+/// Start the real router on 127.0.0.1:0 with one worker; `tweak` adjusts the config.
+pub async fn start(tweak: impl FnOnce(&mut Config)) -> TestServer {
+    let dir = tempfile::tempdir().expect("temp dir");
+    start_in(dir, tweak).await
+}
+
+pub async fn start_in(dir: tempfile::TempDir, tweak: impl FnOnce(&mut Config)) -> TestServer {
+    let mut config = Config::new(dir.path());
+    config.workers = 1;
+    config.queue_capacity = 8;
+    tweak(&mut config);
+    let (jobs, core) = Jobs::start(config).await.expect("job core starts");
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind loopback");
+    let base = format!("http://{}", listener.local_addr().expect("local addr"));
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let task = tokio::spawn(willow::api::server::serve(
+        listener,
+        jobs.clone(),
+        core,
+        async move {
+            let _ = rx.await;
+        },
+        Duration::from_secs(2),
+    ));
+    TestServer {
+        base,
+        jobs,
+        client: reqwest::Client::new(),
+        stop: Some(tx),
+        task: Some(task),
+        dir,
+    }
+}
+
+impl TestServer {
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{}", self.base, path)
+    }
+
+    /// Graceful stop; returns the data dir for a restart.
+    pub async fn stop(mut self) -> tempfile::TempDir {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        if let Some(t) = self.task.take() {
+            let _ = tokio::time::timeout(Duration::from_secs(20), t).await;
+        }
+        let dir = tempfile::tempdir().expect("temp dir");
+        std::mem::replace(&mut self.dir, dir)
+    }
+
+    /// POST a raw OBJ with query parameters; returns (status, headers, json).
+    pub async fn submit_obj(
+        &self,
+        obj: &str,
+        query: &str,
+    ) -> (
+        reqwest::StatusCode,
+        reqwest::header::HeaderMap,
+        serde_json::Value,
+    ) {
+        let res = self
+            .client
+            .post(self.url(&format!("/v1/jobs?{query}")))
+            .header("content-type", "model/obj")
+            .body(obj.to_string())
+            .send()
+            .await
+            .expect("POST /v1/jobs");
+        let status = res.status();
+        let headers = res.headers().clone();
+        let json = res.json().await.unwrap_or(serde_json::Value::Null);
+        (status, headers, json)
+    }
+
+    pub async fn get_json(&self, path: &str) -> (reqwest::StatusCode, serde_json::Value) {
+        let res = self.client.get(self.url(path)).send().await.expect("GET");
+        let status = res.status();
+        (status, res.json().await.unwrap_or(serde_json::Value::Null))
+    }
+
+    /// Poll a job until `pred` holds on its JSON (or panic after `timeout`).
+    pub async fn poll_until(
+        &self,
+        id: &str,
+        timeout: Duration,
+        pred: impl Fn(&serde_json::Value) -> bool,
+    ) -> serde_json::Value {
+        poll_until(&self.client, &self.base, id, timeout, pred).await
+    }
+}
+
+pub async fn poll_until(
+    client: &reqwest::Client,
+    base: &str,
+    id: &str,
+    timeout: Duration,
+    pred: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let start = Instant::now();
+    loop {
+        let res = client.get(format!("{base}/v1/jobs/{id}")).send().await;
+        if let Ok(res) = res {
+            if let Ok(v) = res.json::<serde_json::Value>().await {
+                if pred(&v) {
+                    return v;
+                }
+                if start.elapsed() > timeout {
+                    panic!("job {id} did not reach the expected state in {timeout:?}: {v}");
+                }
+            }
+        }
+        if start.elapsed() > timeout {
+            panic!("job {id}: server unreachable for {timeout:?}");
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+pub fn is_terminal(v: &serde_json::Value) -> bool {
+    matches!(
+        v["state"].as_str(),
+        Some("succeeded" | "failed" | "cancelled")
+    )
+}
+
+/// One Server-Sent Event.
+#[derive(Debug, Clone)]
+pub struct Sse {
+    pub event: String,
+    pub id: Option<String>,
+    pub data: serde_json::Value,
+}
+
+/// Read an SSE response until the `done` event (or the stream ends, or `timeout`).
+pub async fn read_sse(res: reqwest::Response, timeout: Duration) -> Vec<Sse> {
+    let mut out = Vec::new();
+    let mut buf = String::new();
+    let mut stream = res.bytes_stream();
+    let deadline = Instant::now() + timeout;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let chunk = match tokio::time::timeout(left, stream.next()).await {
+            Ok(Some(Ok(c))) => c,
+            Ok(Some(Err(e))) => panic!("SSE read failed: {e}"),
+            Ok(None) => return out,
+            Err(_) => panic!(
+                "SSE did not finish in {timeout:?}; got {} events",
+                out.len()
+            ),
+        };
+        buf.push_str(&String::from_utf8_lossy(&chunk));
+        while let Some(end) = buf.find("\n\n") {
+            let block: String = buf.drain(..end + 2).collect();
+            let (mut event, mut id, mut data) = (String::from("message"), None, String::new());
+            for line in block.lines() {
+                if let Some(v) = line.strip_prefix("event:") {
+                    event = v.trim().to_string();
+                } else if let Some(v) = line.strip_prefix("id:") {
+                    id = Some(v.trim().to_string());
+                } else if let Some(v) = line.strip_prefix("data:") {
+                    data.push_str(v.strip_prefix(' ').unwrap_or(v));
+                }
+            }
+            if data.is_empty() {
+                continue; // keep-alive comment
+            }
+            let done = event == "done";
+            out.push(Sse {
+                event,
+                id,
+                data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
+            });
+            if done {
+                return out;
+            }
+        }
+    }
+}
+
+/// Steps of the `frame` events, in arrival order.
+pub fn frame_steps(events: &[Sse]) -> Vec<u64> {
+    events
+        .iter()
+        .filter(|e| e.event == "frame")
+        .map(|e| e.data["step"].as_u64().expect("frame step"))
+        .collect()
+}
