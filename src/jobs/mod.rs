@@ -150,10 +150,12 @@ impl JobSpec {
 
     /// The flow parameters this spec asks for.
     pub fn flow_params(&self) -> FlowParams {
+        // Solver knobs the spec does not expose keep the library's defaults.
         FlowParams {
             method: self.method,
             tau: self.tau,
             iterations: self.iterations,
+            ..FlowParams::default()
         }
     }
 
