@@ -17,52 +17,56 @@ pub(crate) struct EdgeTable {
     pub(crate) edges: Vec<[usize; 2]>,
     /// `face_edges[f][k]` is the edge from corner `k` to corner `(k + 1) % 3` of face `f`.
     pub(crate) face_edges: Vec<[usize; 3]>,
-    /// Faces around edge `e` are `edge_face_list[edge_face_start[e]..edge_face_start[e + 1]]`,
-    /// as `(face, corner)` pairs naming the face's directed edge `corner → corner + 1`.
-    pub(crate) edge_face_start: Vec<usize>,
-    pub(crate) edge_face_list: Vec<(usize, u8)>,
+    /// Half-edges around edge `e` are `half_edges[edge_start[e]..edge_start[e + 1]]`; half-edge
+    /// `h` is face `h / 3`'s directed edge from corner `h % 3` to the next corner.
+    edge_start: Vec<usize>,
+    half_edges: Vec<usize>,
 }
 
 impl EdgeTable {
-    /// Builds the table by sorting the 3F directed half-edges by their undirected key.
+    /// Builds the table by sorting the 3F half-edges by their undirected vertex pair.
     ///
-    /// Sorting rather than hashing keeps memory at a few words per half-edge and makes the
-    /// numbering reproducible. Triangles must index existing vertices (not checked here).
+    /// Sorting bare half-edge ids (one word each, keys recomputed from the triangles) rather
+    /// than hashing or sorting wide tuples keeps memory near 10 words per face at the
+    /// 10-million-face limit, and the numbering reproducible. Triangles must index existing
+    /// vertices (not checked here).
     pub(crate) fn new(triangles: &[[usize; 3]]) -> EdgeTable {
-        let mut half: Vec<(usize, usize, usize, u8)> = Vec::with_capacity(triangles.len() * 3);
-        for (f, t) in triangles.iter().enumerate() {
-            for k in 0..3u8 {
-                let a = t[k as usize];
-                let b = t[(k as usize + 1) % 3];
-                half.push((a.min(b), a.max(b), f, k));
-            }
-        }
-        half.sort_unstable();
+        let key = |h: usize| {
+            let t = triangles[h / 3];
+            let (a, b) = (t[h % 3], t[(h % 3 + 1) % 3]);
+            (a.min(b), a.max(b))
+        };
+        let mut half_edges: Vec<usize> = (0..triangles.len() * 3).collect();
+        // Ties broken by id: faces around an edge are listed in ascending order.
+        half_edges.sort_unstable_by_key(|&h| (key(h), h));
         let mut edges: Vec<[usize; 2]> = Vec::new();
-        let mut edge_face_start = Vec::new();
-        let mut edge_face_list = Vec::with_capacity(half.len());
+        let mut edge_start = Vec::new();
         let mut face_edges = vec![[0usize; 3]; triangles.len()];
-        for &(a, b, f, k) in &half {
+        for (i, &h) in half_edges.iter().enumerate() {
+            let (a, b) = key(h);
             if edges.last() != Some(&[a, b]) {
                 edges.push([a, b]);
-                edge_face_start.push(edge_face_list.len());
+                edge_start.push(i);
             }
-            let e = edges.len() - 1;
-            face_edges[f][k as usize] = e;
-            edge_face_list.push((f, k));
+            face_edges[h / 3][h % 3] = edges.len() - 1;
         }
-        edge_face_start.push(edge_face_list.len());
+        edge_start.push(half_edges.len());
         EdgeTable {
             edges,
             face_edges,
-            edge_face_start,
-            edge_face_list,
+            edge_start,
+            half_edges,
         }
     }
 
-    /// The `(face, corner)` pairs around edge `e`.
-    pub(crate) fn faces_of(&self, e: usize) -> &[(usize, u8)] {
-        &self.edge_face_list[self.edge_face_start[e]..self.edge_face_start[e + 1]]
+    /// The half-edges around edge `e` (see [`EdgeTable::face_corner`]).
+    pub(crate) fn faces_of(&self, e: usize) -> &[usize] {
+        &self.half_edges[self.edge_start[e]..self.edge_start[e + 1]]
+    }
+
+    /// Face and corner of half-edge `h`.
+    pub(crate) fn face_corner(h: usize) -> (usize, u8) {
+        (h / 3, (h % 3) as u8)
     }
 }
 
@@ -144,7 +148,10 @@ impl Topology {
         let edge_faces: Vec<[Option<usize>; 2]> = (0..edge_count)
             .map(|e| {
                 let around = table.faces_of(e);
-                [around.first().map(|p| p.0), around.get(1).map(|p| p.0)]
+                [
+                    around.first().map(|&h| h / 3),
+                    around.get(1).map(|&h| h / 3),
+                ]
             })
             .collect();
 
@@ -164,7 +171,7 @@ impl Topology {
             queue.push(seed);
             while let Some(f) = queue.pop() {
                 for &e in &table.face_edges[f] {
-                    for &(g, _) in table.faces_of(e) {
+                    for g in table.faces_of(e).iter().map(|&h| h / 3) {
                         if face_component[g] == usize::MAX {
                             face_component[g] = c;
                             faces.push(g);
@@ -276,7 +283,7 @@ fn trace_boundary_loops(
     let directed: Vec<(usize, usize, usize, usize)> = boundary_edges
         .iter()
         .map(|&e| {
-            let (f, k) = table.faces_of(e)[0];
+            let (f, k) = EdgeTable::face_corner(table.faces_of(e)[0]);
             let t = mesh.triangles[f];
             (t[k as usize], t[(k as usize + 1) % 3], e, f)
         })

@@ -209,9 +209,9 @@ fn check_manifold(
         3 * f + k
     };
     for (e, &[a, b]) in table.edges.iter().enumerate() {
-        if let [(f, _), (g, _)] = table.faces_of(e) {
+        if let [hf, hg] = table.faces_of(e) {
             for v in [a, b] {
-                union(&mut parent, corner_of(*f, v), corner_of(*g, v));
+                union(&mut parent, corner_of(hf / 3, v), corner_of(hg / 3, v));
             }
         }
     }
@@ -289,7 +289,7 @@ fn orient(
                     closed = false;
                 }
                 let f_forward = forward(&triangles[f], k) ^ flip[f];
-                for &(g, kg) in around {
+                for (g, kg) in around.iter().map(|&h| EdgeTable::face_corner(h)) {
                     if g == f {
                         continue;
                     }
