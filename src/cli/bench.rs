@@ -124,6 +124,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         method: Method::Conformal,
         tau: args.tau,
         iterations: 1,
+        ..FlowParams::default()
     };
     let mut flow = new_flow(mesh, &conformal).map_err(|e| e.to_string())?;
     let setup_ms = setup.elapsed().as_secs_f64() * 1e3;
@@ -140,6 +141,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         method: Method::Mcf,
         tau: 0.05,
         iterations: 1,
+        ..FlowParams::default()
     };
     let mut flow = new_flow(mesh, &mcf).map_err(|e| e.to_string())?;
     let mut mcf_times = Vec::with_capacity(args.steps);

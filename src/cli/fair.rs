@@ -87,6 +87,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         method: args.method.into(),
         tau: args.tau,
         iterations: args.iterations,
+        ..FlowParams::default()
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,

@@ -8,6 +8,9 @@ pub mod classic;
 pub mod constraints;
 pub mod curve;
 pub mod dirac;
+pub mod dirichlet;
+pub mod filter;
+pub mod mobius;
 pub mod scale;
 pub mod solver;
 pub mod willmore;
@@ -27,6 +30,18 @@ pub enum Method {
     Mcf,
 }
 
+/// What happens at the boundary of a surface with boundary (§6.3). Closed surfaces ignore it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Boundary {
+    /// The boundary moves freely (§6.2: disks need no constraint).
+    #[default]
+    Free,
+    /// Boundary positions stay exactly where they are (§6.3.2): λ = 1 on the boundary and a
+    /// Dirichlet Poisson problem for the positions.
+    Fixed,
+}
+
 /// Parameters of a flow run.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -38,6 +53,15 @@ pub struct FlowParams {
     pub tau: f64,
     /// Inverse power iterations per step for the smallest eigenvector (§6.4.2 uses one).
     pub iterations: usize,
+    /// Exactness constraints for surfaces of genus > 0 (§6.2, Appendix C). Switching them off
+    /// is only useful to see what they prevent (Figure 12).
+    pub exactness: bool,
+    /// Möbius balancing toward the input's area distribution (§6.2, Appendix E.1).
+    pub mobius_balancing: bool,
+    /// Spectral filter of the flow direction (§4); `None` is the paper's plain flow.
+    pub filter: Option<filter::SpectralFilter>,
+    /// Boundary condition for surfaces with boundary (§6.3).
+    pub boundary: Boundary,
 }
 
 impl Default for FlowParams {
@@ -46,6 +70,10 @@ impl Default for FlowParams {
             method: Method::Conformal,
             tau: 0.5,
             iterations: 1,
+            exactness: true,
+            mobius_balancing: false,
+            filter: None,
+            boundary: Boundary::Free,
         }
     }
 }

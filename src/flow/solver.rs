@@ -162,6 +162,40 @@ impl BlockPattern {
     }
 }
 
+/// Refill `values` (on a block-1 `pattern`) with the PSD cotan Laplacian scaled by `scale`:
+/// each corner with cotangent `c` adds `scale·c/2` to the diagonal entries of its opposite
+/// edge's ends and subtracts it from the two off-diagonal entries.
+pub fn assemble_cotan_laplacian_into(
+    pattern: &BlockPattern,
+    triangles: &[[usize; 3]],
+    cotangents: &[[f64; 3]],
+    scale: f64,
+    values: &mut [f64],
+) {
+    values.fill(0.0);
+    for ((tri, cots), slots) in triangles.iter().zip(cotangents).zip(&pattern.face_slots) {
+        for c in 0..3 {
+            let (a, b) = ((c + 1) % 3, (c + 2) % 3);
+            let w = 0.5 * scale * cots[c];
+            values[pattern.entry(slots[3 * a + b], tri[b], 0, 0)] -= w;
+            values[pattern.entry(slots[3 * b + a], tri[a], 0, 0)] -= w;
+            values[pattern.entry(slots[3 * a + a], tri[a], 0, 0)] += w;
+            values[pattern.entry(slots[3 * b + b], tri[b], 0, 0)] += w;
+        }
+    }
+}
+
+/// Add `diagonal[v]` to the diagonal entry of every vertex `v` (block-1 pattern).
+pub fn add_diagonal(
+    pattern: &BlockPattern,
+    diagonal: impl Iterator<Item = f64>,
+    values: &mut [f64],
+) {
+    for (v, d) in diagonal.enumerate() {
+        values[pattern.entry(pattern.diagonal_slot(v), v, 0, 0)] += d;
+    }
+}
+
 /// Why a factorization failed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SolverError {
@@ -199,6 +233,29 @@ impl<T: ComplexField + Copy> Cholesky<T> {
             },
         )
         .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
+        Self::with_symbolic(symbolic, nrhs)
+    }
+
+    /// Symbolic analysis of an arbitrary symmetric pattern (both triangles stored), ordered by
+    /// faer's AMD, for patterns that are not one vertex ring (e.g. `L M⁻¹ L`).
+    pub fn analyze_pattern(
+        pattern: faer::sparse::SymbolicSparseColMatRef<'_, usize>,
+        nrhs: usize,
+    ) -> Result<Self, SolverError> {
+        let symbolic = factorize_symbolic_cholesky(
+            pattern,
+            Side::Lower,
+            SymmetricOrdering::Amd,
+            CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold: SupernodalThreshold::AUTO,
+                ..Default::default()
+            },
+        )
+        .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
+        Self::with_symbolic(symbolic, nrhs)
+    }
+
+    fn with_symbolic(symbolic: SymbolicCholesky<usize>, nrhs: usize) -> Result<Self, SolverError> {
         let factor_mem = MemBuffer::try_new(
             symbolic.factorize_numeric_llt_scratch::<T>(Par::Seq, Default::default()),
         )
@@ -221,7 +278,14 @@ impl<T: ComplexField + Copy> Cholesky<T> {
 
     /// Numeric refactorization in place with new `values` on the fixed pattern.
     pub fn factorize(&mut self, pattern: &BlockPattern, values: &[T]) -> Result<(), SolverError> {
-        let a = SparseColMatRef::new(pattern.symbolic.as_ref(), values);
+        self.factorize_matrix(SparseColMatRef::new(pattern.symbolic.as_ref(), values))
+    }
+
+    /// Numeric refactorization of a matrix with the pattern given to the analysis.
+    pub fn factorize_matrix(
+        &mut self,
+        a: SparseColMatRef<'_, usize, T>,
+    ) -> Result<(), SolverError> {
         self.symbolic
             .factorize_numeric_llt(
                 &mut self.factor,

@@ -17,10 +17,14 @@
 
 use super::constraints::ConstraintBasis;
 use super::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
+use super::dirichlet;
+use super::filter::FilterSolver;
+use super::mobius::MobiusBalancing;
 use super::scale::ScalePolicy;
-use super::solver::{BlockPattern, Cholesky};
-use super::{Flow, FlowError, FlowParams};
+use super::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
+use super::{Boundary, Flow, FlowError, FlowParams};
 use crate::geometry::cache::GeometryCache;
+use crate::geometry::hodge::{harmonic_vector_field_into, HarmonicBasisSolver};
 use crate::geometry::vec3::{norm2, sub};
 use crate::geometry::Quaternion;
 use crate::mesh::topology::Topology;
@@ -39,6 +43,8 @@ const POISSON_SHIFT: f64 = 1e-10;
 /// How many times a failed factorization is retried with a 100× larger shift before the step
 /// is reported as a numerical failure.
 const SHIFT_RETRIES: usize = 3;
+/// Seed of the random 1-forms of Appendix C.1 step I: fixed, so runs are reproducible.
+const HARMONIC_SEED: u64 = 0x5749_4C4C_4F57;
 
 pub struct ConformalFlow {
     triangles: Vec<[usize; 3]>,
@@ -47,6 +53,23 @@ pub struct ConformalFlow {
     iterations: usize,
     step: usize,
     vertex_component: Vec<usize>,
+
+    topology: Topology,
+    /// Harmonic 1-forms for the exactness constraints; `None` for genus 0 or when switched off.
+    harmonic: Option<HarmonicBasisSolver>,
+    forms: Vec<Vec<f64>>,
+    face_field: Vec<[f64; 3]>,
+    mobius: Option<MobiusBalancing>,
+    /// Vertices of closed components: the total-curvature constraint (App. B) holds there only.
+    closed_vertex: Vec<bool>,
+    /// Boundary vertices held in place (§6.3.2), with their positions; `None` for a free boundary.
+    fixed: Option<Vec<bool>>,
+    fixed_positions: Vec<[f64; 3]>,
+    /// The Dirichlet right-hand side of the λ solve, kept for its residual.
+    solve_rhs: Vec<c64>,
+    /// Boundary vertices (any boundary condition), and scratch for averaging onto them.
+    boundary_vertex: Option<Vec<bool>>,
+    boundary_sums: Vec<f64>,
 
     geometry: GeometryCache,
     reference: ConformalReference,
@@ -59,7 +82,10 @@ pub struct ConformalFlow {
     dirac: Cholesky<c64>,
     laplace_pattern: BlockPattern,
     laplace_values: Vec<f64>,
+    /// L without its shift, assembled once per step for the filter and the Poisson solve.
+    laplace_unshifted: Vec<f64>,
     laplace: Cholesky<f64>,
+    filter: Option<FilterSolver>,
 
     rho: Vec<f64>,
     shift: Vec<f64>,
@@ -78,27 +104,30 @@ impl ConformalFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
         check_params(params)?;
         let topology = Topology::new(mesh);
-        for (index, component) in topology.components.iter().enumerate() {
-            if component.genus > 0 {
-                return Err(FlowError::Unsupported(format!(
-                    "component {index} has genus {}: surfaces of genus > 0 need the exactness \
-                     constraints of Appendix C, which are not implemented yet",
-                    component.genus
-                )));
-            }
-            if !component.boundary_loops.is_empty() {
-                return Err(FlowError::Unsupported(format!(
-                    "component {index} has {} boundary loop(s): surfaces with boundary need the \
-                     boundary conditions of §6.3, which are not implemented yet",
-                    component.boundary_loops.len()
-                )));
-            }
-        }
         let n = mesh.vertex_count();
         let nf = mesh.face_count();
         let n_components = topology.components.len();
         let vertex_component = topology.vertex_component.clone();
-        drop(topology);
+        let harmonic = if params.exactness {
+            let solver = HarmonicBasisSolver::new(mesh, &topology, HARMONIC_SEED).map_err(|e| {
+                FlowError::Numerical {
+                    step: 0,
+                    reason: format!("harmonic 1-forms: {e}"),
+                }
+            })?;
+            (solver.form_count() > 0).then_some(solver)
+        } else {
+            None
+        };
+        let form_count = harmonic.as_ref().map_or(0, |h| h.form_count());
+        let closed_vertex: Vec<bool> = vertex_component
+            .iter()
+            .map(|&c| topology.components[c].is_closed())
+            .collect();
+        let fixed = (params.boundary == Boundary::Fixed && !topology.boundary_loops.is_empty())
+            .then(|| topology.boundary_vertex_mask(n));
+        let boundary_vertex =
+            (!topology.boundary_loops.is_empty()).then(|| topology.boundary_vertex_mask(n));
 
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
         let reference = ConformalReference::new(&mesh.positions, &mesh.triangles);
@@ -120,6 +149,15 @@ impl ConformalFlow {
                 step: 0,
                 reason: e.to_string(),
             })?;
+        let filter = match params.filter {
+            Some(f) => Some(FilterSolver::new(&laplace_pattern, f).map_err(|e| {
+                FlowError::InvalidParameter {
+                    name: "filter",
+                    reason: e.to_string(),
+                }
+            })?),
+            None => None,
+        };
         let initial = StepMetrics {
             step: 0,
             willmore_energy: geometry.willmore_energy(),
@@ -138,7 +176,36 @@ impl ConformalFlow {
             tau: params.tau,
             iterations: params.iterations,
             step: 0,
-            constraints: ConstraintBasis::new(vertex_component.clone(), n_components, 4),
+            constraints: ConstraintBasis::new(
+                vertex_component.clone(),
+                n_components,
+                4 + 3 * form_count,
+            ),
+            mobius: params
+                .mobius_balancing
+                .then(|| MobiusBalancing::new(&geometry.vertex_areas, n_components)),
+            harmonic,
+            forms: Vec::with_capacity(form_count),
+            face_field: vec![[0.0; 3]; nf],
+            topology,
+            closed_vertex,
+            fixed_positions: if fixed.is_some() {
+                mesh.positions.clone()
+            } else {
+                Vec::new()
+            },
+            solve_rhs: if fixed.is_some() {
+                vec![c64::new(0.0, 0.0); 2 * n]
+            } else {
+                Vec::new()
+            },
+            fixed,
+            boundary_sums: if boundary_vertex.is_some() {
+                vec![0.0; 2 * n]
+            } else {
+                Vec::new()
+            },
+            boundary_vertex,
             vertex_component,
             geometry,
             reference,
@@ -148,6 +215,8 @@ impl ConformalFlow {
             dirac_pattern,
             dirac,
             laplace_values: vec![0.0; laplace_pattern.nnz()],
+            laplace_unshifted: vec![0.0; laplace_pattern.nnz()],
+            filter,
             laplace_pattern,
             laplace,
             rho: vec![0.0; n],
@@ -164,45 +233,200 @@ impl ConformalFlow {
         })
     }
 
-    /// Table 1 steps I–V: `ρ = −2τ·P(H)`.
-    fn curvature_change(&mut self) {
-        let g = &self.geometry;
+    /// Table 1 steps I–V: `ρ = −2τ·P(H)`, plus Möbius balancing when asked.
+    fn curvature_change(&mut self) -> Result<(), FlowError> {
         self.constraints.clear();
-        for axis in 0..3 {
+        if self.fixed.is_none() {
+            let g = &self.geometry;
+            let closed = &self.closed_vertex;
+            for axis in 0..3 {
+                self.constraints.push_with(&g.vertex_areas, |f| {
+                    for (fi, n) in f.iter_mut().zip(&g.normals) {
+                        *fi = n[axis];
+                    }
+                });
+            }
+            // Total curvature is conserved on closed components only (App. B integrates
+            // over a surface without boundary).
             self.constraints.push_with(&g.vertex_areas, |f| {
-                for (fi, n) in f.iter_mut().zip(&g.normals) {
-                    *fi = n[axis];
+                for (fi, &c) in f.iter_mut().zip(closed) {
+                    *fi = if c { 1.0 } else { 0.0 };
                 }
             });
         }
-        self.constraints.push_with(&g.vertex_areas, |f| f.fill(1.0));
+        self.exactness_constraints()?;
+        let g = &self.geometry;
+        assemble_cotan_laplacian_into(
+            &self.laplace_pattern,
+            &self.triangles,
+            &g.cotangents,
+            1.0,
+            &mut self.laplace_unshifted,
+        );
         for (r, h) in self.rho.iter_mut().zip(&g.mean_curvature) {
             *r = -2.0 * h;
         }
+        if let Some(boundary) = &self.boundary_vertex {
+            // At a boundary vertex the cotan formula measures the boundary curve's bending
+            // (the conormal term), not the surface's mean curvature; a curved boundary then
+            // gets a spurious, large H that blows the flow up. Take the average over the
+            // vertex's interior neighbours instead.
+            let (sums, counts) = self.boundary_sums.split_at_mut(self.rho.len());
+            sums.fill(0.0);
+            counts.fill(0.0);
+            for tri in &self.triangles {
+                for &b in tri {
+                    if boundary[b] {
+                        for &i in tri {
+                            if !boundary[i] {
+                                sums[b] += self.rho[i];
+                                counts[b] += 1.0;
+                            }
+                        }
+                    }
+                }
+            }
+            for ((r, (&s, &c)), &is_boundary) in self
+                .rho
+                .iter_mut()
+                .zip(sums.iter().zip(counts.iter()))
+                .zip(boundary)
+            {
+                if is_boundary {
+                    *r = if c > 0.0 { s / c } else { 0.0 };
+                }
+            }
+        }
+        if let Some(filter) = &mut self.filter {
+            // §4 / ALGORITHM.md §3: filter the direction before projecting it.
+            filter
+                .apply(
+                    &self.laplace_pattern,
+                    &self.laplace_unshifted,
+                    &g.vertex_areas,
+                    &mut self.rho,
+                )
+                .map_err(|e| FlowError::Numerical {
+                    step: self.step + 1,
+                    reason: e.to_string(),
+                })?;
+        }
         self.constraints.project(&mut self.rho, &g.vertex_areas);
+        if let Some(mobius) = &mut self.mobius {
+            // App. E: added after the inversion constraint has been projected out (otherwise
+            // it would be removed again); it lies in span{N^x, N^y, N^z}, which is orthogonal
+            // to the remaining constraints, so projecting those again would change nothing.
+            mobius.add_direction(
+                &self.positions,
+                g,
+                &self.vertex_component,
+                self.tau,
+                &mut self.rho,
+            );
+        }
         for r in &mut self.rho {
             *r *= self.tau;
         }
+        Ok(())
     }
 
-    /// Table 1 step VI: λ by inverse iteration on `X(ρ)`; returns the eigen-residual.
-    fn solve_lambda(&mut self) -> Result<f64, FlowError> {
+    /// Appendix C.1: harmonic 1-forms → per-face harmonic vector fields `v_i` → `X₀ Z_i = v_i`
+    /// (X at ρ = 0) → the imaginary parts `Z_i^{x,y,z}` join the constraint basis. X₀ is
+    /// factored once for all 2g solves, in the same factor storage that X(ρ) uses next.
+    fn exactness_constraints(&mut self) -> Result<(), FlowError> {
+        let Some(harmonic) = self.harmonic.as_mut() else {
+            return Ok(());
+        };
+        let step = self.step + 1;
+        harmonic
+            .compute(&self.positions, &mut self.forms)
+            .map_err(|e| FlowError::Numerical {
+                step,
+                reason: format!("harmonic 1-forms: {e}"),
+            })?;
+        self.rho.fill(0.0);
+        self.factor_dirac(false)?;
+        let g = &self.geometry;
+        let n = self.positions.len();
+        for form in &self.forms {
+            harmonic_vector_field_into(
+                &self.positions,
+                &self.triangles,
+                &self.topology,
+                form,
+                &mut self.face_field,
+            );
+            // Right-hand side M v: each face gives A_k/3 of its vector to its corners.
+            self.lambda.fill(Quaternion::default());
+            for ((tri, v), &area) in self
+                .triangles
+                .iter()
+                .zip(&self.face_field)
+                .zip(&g.face_areas)
+            {
+                let q = Quaternion::imaginary(*v).scale(area / 3.0);
+                for &i in tri {
+                    self.lambda[i] += q;
+                }
+            }
+            // The constant quaternions are X₀'s kernel: remove them from the right-hand side
+            // (per component) so the shifted solve does not amplify them by 1/ε.
+            remove_component_means(
+                &mut self.lambda,
+                &self.vertex_component,
+                &mut self.component_norms,
+                &mut self.component_areas,
+                None,
+            );
+            for (i, l) in self.lambda.iter().enumerate() {
+                let [z0, z1] = l.to_complex_column();
+                self.rhs[2 * i] = z0;
+                self.rhs[2 * i + 1] = z1;
+            }
+            self.dirac.solve_in_place(&mut self.rhs, 1);
+            for (i, l) in self.lambda.iter_mut().enumerate() {
+                *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
+            }
+            let lambda = &self.lambda;
+            debug_assert_eq!(lambda.len(), n);
+            self.constraints.push_with(&g.vertex_areas, |f| {
+                for (fi, z) in f.iter_mut().zip(lambda) {
+                    *fi = z.x;
+                }
+            });
+            self.constraints.push_with(&g.vertex_areas, |f| {
+                for (fi, z) in f.iter_mut().zip(lambda) {
+                    *fi = z.y;
+                }
+            });
+            self.constraints.push_with(&g.vertex_areas, |f| {
+                for (fi, z) in f.iter_mut().zip(lambda) {
+                    *fi = z.z;
+                }
+            });
+        }
+        Ok(())
+    }
+
+    /// Assemble `X(ρ)` for the current `ρ` with its diagonal shift and factor it, retrying
+    /// with a larger shift if a pivot is not positive.
+    fn factor_dirac(&mut self, dirichlet: bool) -> Result<(), FlowError> {
         let g = &self.geometry;
         let n = self.positions.len();
         let mean_area = g.total_area() / n as f64;
         // X is dimensionless (|e|²/A and Aρ² are scale-free), so the shift is relative to its
         // mean diagonal; weighting by relative vertex area makes it a multiple of the mass M.
+        let mut mean_diagonal = 0.0;
+        for (tri, &area) in self.triangles.iter().zip(&g.face_areas) {
+            let e = opposite_edges(&self.positions, tri);
+            for (c, &v) in tri.iter().enumerate() {
+                let r = self.rho[v];
+                mean_diagonal += e[c].norm2() / (4.0 * area) + area * r * r / 9.0;
+            }
+        }
+        mean_diagonal /= n as f64;
         let mut attempt = 0;
         loop {
-            let mut mean_diagonal = 0.0;
-            for (tri, &area) in self.triangles.iter().zip(&g.face_areas) {
-                let e = opposite_edges(&self.positions, tri);
-                for (c, &v) in tri.iter().enumerate() {
-                    let r = self.rho[v];
-                    mean_diagonal += e[c].norm2() / (4.0 * area) + area * r * r / 9.0;
-                }
-            }
-            mean_diagonal /= n as f64;
             let eps = DIRAC_SHIFT * 100f64.powi(attempt as i32) * mean_diagonal;
             for (s, &a) in self.shift.iter_mut().zip(&g.vertex_areas) {
                 *s = eps * a / mean_area;
@@ -216,11 +440,28 @@ impl ConformalFlow {
                 &self.shift,
                 &mut self.dirac_values,
             );
+            if dirichlet {
+                if let Some(fixed) = &self.fixed {
+                    // λ = 1 on the boundary: the boundary keeps its tangents (§6.3.2 with the
+                    // input boundary as target). The right-hand side is built on the first
+                    // attempt only.
+                    if attempt == 0 {
+                        self.solve_rhs.fill(c64::new(0.0, 0.0));
+                    }
+                    dirichlet::apply_complex(
+                        &self.dirac_pattern,
+                        &mut self.dirac_values,
+                        fixed,
+                        |_| Quaternion::ONE.to_complex_column(),
+                        (attempt == 0).then_some(&mut self.solve_rhs[..]),
+                    );
+                }
+            }
             match self
                 .dirac
                 .factorize(&self.dirac_pattern, &self.dirac_values)
             {
-                Ok(()) => break,
+                Ok(()) => return Ok(()),
                 Err(e) if attempt >= SHIFT_RETRIES => {
                     return Err(FlowError::Numerical {
                         step: self.step + 1,
@@ -230,7 +471,16 @@ impl ConformalFlow {
                 Err(_) => attempt += 1,
             }
         }
+    }
 
+    /// Table 1 step VI: λ by inverse iteration on `X(ρ)`; returns the eigen-residual.
+    fn solve_lambda(&mut self) -> Result<f64, FlowError> {
+        if self.fixed.is_some() {
+            return self.solve_lambda_dirichlet();
+        }
+        self.factor_dirac(false)?;
+        let g = &self.geometry;
+        let n = self.positions.len();
         self.lambda.fill(Quaternion::ONE);
         for _ in 0..self.iterations.max(1) {
             // Generalized inverse iteration X λ' = M λ: X integrates over faces, so the mass
@@ -296,6 +546,35 @@ impl ConformalFlow {
         })
     }
 
+    /// §6.3.2: minimize `|(D − ρ)λ|²` with λ fixed on the boundary, a linear least-squares
+    /// problem `X_II λ_I = −X_IB λ_B` rather than an eigenproblem. Returns its relative residual.
+    fn solve_lambda_dirichlet(&mut self) -> Result<f64, FlowError> {
+        self.factor_dirac(true)?;
+        self.rhs.copy_from_slice(&self.solve_rhs);
+        self.dirac.solve_in_place(&mut self.rhs, 1);
+        for (i, l) in self.lambda.iter_mut().enumerate() {
+            *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
+        }
+        if self.lambda.iter().any(|l| !l.norm2().is_finite()) {
+            return Err(FlowError::Numerical {
+                step: self.step + 1,
+                reason: "the boundary-value solve for λ is not finite".into(),
+            });
+        }
+        sparse_matvec(
+            &self.dirac_pattern,
+            &self.dirac_values,
+            &self.rhs,
+            &mut self.product,
+        );
+        let (mut res, mut norm) = (0.0, 0.0);
+        for (p, b) in self.product.iter().zip(&self.solve_rhs) {
+            res += (p - b).norm_sqr();
+            norm += b.norm_sqr();
+        }
+        Ok(if norm > 0.0 { (res / norm).sqrt() } else { 0.0 })
+    }
+
     /// Table 1 step VII: new edges, their divergence, and the Poisson solve. Returns the closure
     /// residual `|d f̃ − ẽ| / |ẽ|` over all half-edges (unweighted).
     fn integrate(&mut self) -> Result<f64, FlowError> {
@@ -329,32 +608,28 @@ impl ConformalFlow {
 
         // L f̃ = ω with the current L, shifted by εM so the constant kernel is harmless
         // (ω sums to zero per component by construction).
+        let mean_area = g.total_area() / n as f64;
+        let trace: f64 = g.cotangents.iter().map(|c| c[0] + c[1] + c[2]).sum();
         let mut attempt = 0;
         loop {
-            let mean_area = g.total_area() / n as f64;
-            self.laplace_values.fill(0.0);
-            let mut trace = 0.0;
-            for ((tri, cots), slots) in self
-                .triangles
-                .iter()
-                .zip(&g.cotangents)
-                .zip(&self.laplace_pattern.face_slots)
-            {
-                for c in 0..3 {
-                    let (a, b) = ((c + 1) % 3, (c + 2) % 3);
-                    let w = 0.5 * cots[c];
-                    let p = &self.laplace_pattern;
-                    self.laplace_values[p.entry(slots[3 * a + b], tri[b], 0, 0)] -= w;
-                    self.laplace_values[p.entry(slots[3 * b + a], tri[a], 0, 0)] -= w;
-                    self.laplace_values[p.entry(slots[3 * a + a], tri[a], 0, 0)] += w;
-                    self.laplace_values[p.entry(slots[3 * b + b], tri[b], 0, 0)] += w;
-                    trace += 2.0 * w;
-                }
-            }
+            self.laplace_values.copy_from_slice(&self.laplace_unshifted);
             let eps = POISSON_SHIFT * 100f64.powi(attempt as i32) * trace / n as f64;
-            for (v, &a) in g.vertex_areas.iter().enumerate() {
-                let p = &self.laplace_pattern;
-                self.laplace_values[p.entry(p.diagonal_slot(v), v, 0, 0)] += eps * a / mean_area;
+            add_diagonal(
+                &self.laplace_pattern,
+                g.vertex_areas.iter().map(|&a| eps * a / mean_area),
+                &mut self.laplace_values,
+            );
+            if let Some(fixed) = &self.fixed {
+                // Dirichlet Poisson: the boundary stays exactly at its input positions.
+                let targets = &self.fixed_positions;
+                dirichlet::apply_real(
+                    &self.laplace_pattern,
+                    &mut self.laplace_values,
+                    fixed,
+                    |v, axis| targets[v][axis],
+                    (attempt == 0).then_some(&mut self.divergence[..]),
+                    3,
+                );
             }
             match self
                 .laplace
@@ -432,6 +707,41 @@ fn normalize_per_component(
     }
 }
 
+/// Subtract from `q` its area-weighted mean on each component (with unit weights when `areas`
+/// is `None`). `sums` and `weights` are per-component scratch.
+fn remove_component_means(
+    q: &mut [Quaternion],
+    vertex_component: &[usize],
+    weights: &mut [f64],
+    scratch: &mut [f64],
+    areas: Option<&[f64]>,
+) {
+    // Four passes over the quaternion parts keep the scratch to one f64 per component.
+    for part in 0..4 {
+        weights.fill(0.0);
+        scratch.fill(0.0);
+        for (i, (value, &c)) in q.iter().zip(vertex_component).enumerate() {
+            let w = areas.map_or(1.0, |a| a[i]);
+            let v = [value.w, value.x, value.y, value.z][part];
+            scratch[c] += w * v;
+            weights[c] += w;
+        }
+        for (value, &c) in q.iter_mut().zip(vertex_component) {
+            let mean = if weights[c] > 0.0 {
+                scratch[c] / weights[c]
+            } else {
+                0.0
+            };
+            match part {
+                0 => value.w -= mean,
+                1 => value.x -= mean,
+                2 => value.y -= mean,
+                _ => value.z -= mean,
+            }
+        }
+    }
+}
+
 pub(super) fn check_params(params: &FlowParams) -> Result<(), FlowError> {
     if !(params.tau.is_finite() && params.tau > 0.0) {
         return Err(FlowError::InvalidParameter {
@@ -451,15 +761,18 @@ pub(super) fn check_params(params: &FlowParams) -> Result<(), FlowError> {
 impl Flow for ConformalFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let start = Instant::now();
-        self.curvature_change();
+        self.curvature_change()?;
         let eigen_residual = self.solve_lambda()?;
         let closure_residual = self.integrate()?;
         // New geometry, then the scale policy on it, then the geometry again for the metrics
         // and the next step (the rescale changes areas and H).
         self.geometry.refresh(&self.positions, &self.triangles);
-        self.scale
-            .restore(&mut self.positions, &self.geometry.vertex_areas);
-        self.geometry.refresh(&self.positions, &self.triangles);
+        if self.fixed.is_none() {
+            // A fixed boundary already pins position and size.
+            self.scale
+                .restore(&mut self.positions, &self.geometry.vertex_areas);
+            self.geometry.refresh(&self.positions, &self.triangles);
+        }
         self.step += 1;
         self.reference
             .quasi_conformal_errors_into(&self.positions, &self.triangles, &mut self.q);

@@ -493,6 +493,8 @@ pub(crate) struct Inner {
     /// concurrent submissions cannot both take the last slot or both claim one key.
     pub admission: tokio::sync::Mutex<()>,
     pub draining: AtomicBool,
+    /// Cancelled when draining begins, for transports that must react (gRPC health).
+    pub drain_signal: CancellationToken,
     /// Cancelled on shutdown after the grace period: running jobs stop at the next step and
     /// are re-queued in the store.
     pub shutdown: CancellationToken,
@@ -570,6 +572,7 @@ impl Jobs {
             active: Mutex::new(active),
             admission: tokio::sync::Mutex::new(()),
             draining: AtomicBool::new(false),
+            drain_signal: CancellationToken::new(),
             shutdown: CancellationToken::new(),
             telemetry,
             last_progress_ms: AtomicU64::new(now_ms()),
@@ -1037,6 +1040,13 @@ impl Jobs {
         if !self.inner.draining.swap(true, Ordering::SeqCst) {
             tracing::info!("draining: no new jobs are admitted");
         }
+        self.inner.drain_signal.cancel();
+    }
+
+    /// Resolves once draining has begun: the hook for a transport that must announce it
+    /// (gRPC health flips to NOT_SERVING), e.g. `tokio::spawn(async move { jobs.drained().await; … })`.
+    pub async fn drained(&self) {
+        self.inner.drain_signal.cancelled().await
     }
 
     pub fn is_draining(&self) -> bool {
