@@ -232,6 +232,10 @@ impl fmt::Debug for Asset {
 
 impl Asset {
     /// Parses and validates a file held in memory. Never touches the filesystem or network.
+    ///
+    /// `Format::Gltf` and `Format::Glb` both accept either container (told apart by the GLB
+    /// magic bytes), since uploads are often mislabelled; the format only chooses the parser
+    /// family. Checks `limits.max_bytes` first, then vertex and face counts before allocating.
     pub fn read(bytes: &[u8], format: Format, limits: &Limits) -> Result<Asset, MeshError> {
         limits.check_bytes(bytes.len())?;
         match format {
