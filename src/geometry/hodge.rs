@@ -14,9 +14,7 @@
 //! The harmonic forms are computed by [`HarmonicBasisSolver`], built once per connectivity and
 //! refilled per flow step; [`harmonic_basis`] is the one-shot wrapper.
 
-use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
-use faer::{MatMut, Side};
 
 use super::operators::{barycentric_vertex_areas, corner_cotangents, corner_cotangents_into};
 use super::vec3::{add, cross, dot, norm, scale, sub};
@@ -262,13 +260,19 @@ fn betti_1(component: &crate::mesh::topology::Component) -> usize {
 /// component (each edge enters two faces with opposite signs), so the pinned equation holds
 /// automatically. A component with boundary has no kernel.
 struct DualPoisson {
-    llt: faer::sparse::linalg::solvers::Llt<usize, f64>,
+    /// Pattern of the dual graph: faces are the "vertices", and each interior edge `e` between
+    /// faces `f`, `g` enters [`BlockPattern::new`] as the degenerate triple `[f, g, g]`, which
+    /// contributes exactly the pair `(f, g)`. This reuses the AMD + supernodal path of
+    /// [`Cholesky`]: botijo's setup (factor + three 10-column solves) took 1.3 s this way
+    /// against 2.2 s with faer's default high-level `Llt`, on a loaded 2-core machine.
+    pattern: BlockPattern,
+    cholesky: Cholesky<f64>,
     /// `pinned[f]`: the face whose value is fixed to zero (one per closed component).
     pinned: Vec<bool>,
 }
 
 impl DualPoisson {
-    fn new(mesh: &Mesh, topology: &Topology) -> Result<Self, HodgeError> {
+    fn new(mesh: &Mesh, topology: &Topology, nrhs: usize) -> Result<Self, HodgeError> {
         let n_faces = mesh.triangles.len();
         let mut pinned = vec![false; n_faces];
         for comp in &topology.components {
@@ -276,30 +280,48 @@ impl DualPoisson {
                 pinned[f] = true;
             }
         }
-        let mut triplets = Vec::with_capacity(n_faces + 2 * topology.edges.len());
-        for (f, &p) in pinned.iter().enumerate() {
-            triplets.push(Triplet::new(f, f, if p { 1.0 } else { 3.0 }));
-        }
-        // Off-diagonal (f, g) = s_f(e) s_g(e) for the edge e the two faces share.
+        // Off-diagonal (f, g) = s_f(e) s_g(e) for the edge e the two faces share (−1 on a
+        // consistently oriented surface); skipped in a pinned row or column.
         let sign_in = |f: usize, e: usize| -> f64 {
             let k = topology.face_edges[f].iter().position(|&x| x == e);
             k.map_or(0.0, |k| face_edge_signs(&mesh.triangles[f])[k])
         };
+        let mut pairs = Vec::with_capacity(topology.edges.len());
+        let mut couplings = Vec::with_capacity(topology.edges.len());
         for (e, around) in topology.edge_faces.iter().enumerate() {
             if let [Some(f), Some(g)] = *around {
-                if f != g && !pinned[f] && !pinned[g] {
-                    let v = sign_in(f, e) * sign_in(g, e);
-                    triplets.push(Triplet::new(f, g, v));
-                    triplets.push(Triplet::new(g, f, v));
+                if f != g {
+                    pairs.push([f, g, g]);
+                    let pinned_pair = pinned[f] || pinned[g];
+                    couplings.push(if pinned_pair {
+                        0.0
+                    } else {
+                        sign_in(f, e) * sign_in(g, e)
+                    });
                 }
             }
         }
-        let a = SparseColMat::try_new_from_triplets(n_faces, n_faces, &triplets)
-            .map_err(|e| HodgeError::DualFactorization(format!("{e:?}")))?;
-        let llt = a
-            .sp_cholesky(Side::Lower)
-            .map_err(|e| HodgeError::DualFactorization(format!("{e:?}")))?;
-        Ok(DualPoisson { llt, pinned })
+        let pattern = BlockPattern::new(n_faces, &pairs, 1);
+        let mut values = vec![0.0; pattern.nnz()];
+        for ((&[f, g, _], slots), &v) in pairs.iter().zip(&pattern.face_slots).zip(&couplings) {
+            // slots[3a + b] is the block at row pair[a], column pair[b].
+            values[pattern.entry(slots[1], g, 0, 0)] += v;
+            values[pattern.entry(slots[3], f, 0, 0)] += v;
+        }
+        for (f, &p) in pinned.iter().enumerate() {
+            // Diagonal of d1 d1ᵀ: every face has three edges.
+            values[pattern.entry(pattern.diagonal_slot(f), f, 0, 0)] = if p { 1.0 } else { 3.0 };
+        }
+        let mut cholesky = Cholesky::analyze(&pattern, nrhs)
+            .map_err(|e| HodgeError::DualFactorization(e.to_string()))?;
+        cholesky
+            .factorize(&pattern, &values)
+            .map_err(|e| HodgeError::DualFactorization(e.to_string()))?;
+        Ok(DualPoisson {
+            pattern,
+            cholesky,
+            pinned,
+        })
     }
 
     /// Replaces each form by its closed part `α − d1ᵀ β̃`; checks `‖d1 α_c‖ / ‖d1 α‖`.
@@ -310,7 +332,7 @@ impl DualPoisson {
     /// computed from O(1) values, so refinement drives it to roundoff (~1e-16). Runs once per
     /// connectivity, so the extra solves are cheap.
     fn project_closed(
-        &self,
+        &mut self,
         mesh: &Mesh,
         topology: &Topology,
         forms: &mut [Vec<f64>],
@@ -353,8 +375,8 @@ impl DualPoisson {
                 }
                 break;
             }
-            self.llt
-                .solve_in_place(MatMut::from_column_major_slice_mut(&mut rhs, n_faces, k));
+            debug_assert_eq!(self.pattern.dim(), n_faces);
+            self.cholesky.solve_in_place(&mut rhs, k);
             for (i, form) in forms.iter_mut().enumerate() {
                 let beta = &rhs[i * n_faces..(i + 1) * n_faces];
                 for (f, (fe, tri)) in topology.face_edges.iter().zip(&mesh.triangles).enumerate() {
@@ -642,7 +664,11 @@ impl HarmonicBasisSolver {
             None
         } else {
             // Step II, co-exact part: once per connectivity.
-            DualPoisson::new(mesh, topology)?.project_closed(mesh, topology, &mut closed_forms)?;
+            DualPoisson::new(mesh, topology, closed_forms.len())?.project_closed(
+                mesh,
+                topology,
+                &mut closed_forms,
+            )?;
             Some(VertexPoisson::new(mesh, topology, closed_forms.len())?)
         };
         Ok(HarmonicBasisSolver {
@@ -758,7 +784,7 @@ pub fn harmonic_component(
         });
     }
     let mut closed = vec![alpha.to_vec()];
-    DualPoisson::new(mesh, topology)?.project_closed(mesh, topology, &mut closed)?;
+    DualPoisson::new(mesh, topology, 1)?.project_closed(mesh, topology, &mut closed)?;
     let mut vertex = VertexPoisson::new(mesh, topology, 1)?;
     vertex.refill(&mesh.positions)?;
     let mut out = vec![Vec::new()];
