@@ -54,16 +54,20 @@ impl ScalePolicy {
     }
 
     /// Rescale and translate each component of `positions` (whose barycentric vertex areas
-    /// are `vertex_areas`) back to the input's area and centroid.
-    pub fn restore(&mut self, positions: &mut [[f64; 3]], vertex_areas: &[f64]) {
+    /// are `vertex_areas`) back to the input's area and centroid. Returns the scale factor of
+    /// each component, so cached geometry can follow without being recomputed.
+    pub fn restore(&mut self, positions: &mut [[f64; 3]], vertex_areas: &[f64]) -> &[f64] {
         self.measure(positions, vertex_areas);
-        for (&c, p) in self.vertex_component.iter().zip(positions.iter_mut()) {
-            let s = if self.area[c] > 0.0 {
-                (self.target_area[c] / self.area[c]).sqrt()
-            } else {
-                1.0
-            };
-            *p = add(self.target_centroid[c], scale(sub(*p, self.centroid[c]), s));
+        // Reuse `area` for the factors: it is remeasured on every call.
+        for (a, &target) in self.area.iter_mut().zip(&self.target_area) {
+            *a = if *a > 0.0 { (target / *a).sqrt() } else { 1.0 };
         }
+        for (&c, p) in self.vertex_component.iter().zip(positions.iter_mut()) {
+            *p = add(
+                self.target_centroid[c],
+                scale(sub(*p, self.centroid[c]), self.area[c]),
+            );
+        }
+        &self.area
     }
 }

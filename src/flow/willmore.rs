@@ -769,9 +769,11 @@ impl Flow for ConformalFlow {
         self.geometry.refresh(&self.positions, &self.triangles);
         if self.fixed.is_none() {
             // A fixed boundary already pins position and size.
-            self.scale
+            let scales = self
+                .scale
                 .restore(&mut self.positions, &self.geometry.vertex_areas);
-            self.geometry.refresh(&self.positions, &self.triangles);
+            self.geometry
+                .rescale(&self.triangles, &self.vertex_component, scales);
         }
         self.step += 1;
         self.reference

@@ -53,11 +53,78 @@ impl GeometryCache {
         );
     }
 
+    /// Follow a similarity that scaled each connected component by `scales[c]` (and moved it):
+    /// angles, cotangents and normals are unchanged, areas scale by s², `L f` by s and H by 1/s.
+    /// Exactly what [`GeometryCache::refresh`] would compute, without the trigonometry.
+    pub fn rescale(
+        &mut self,
+        triangles: &[[usize; 3]],
+        vertex_component: &[usize],
+        scales: &[f64],
+    ) {
+        for (a, tri) in self.face_areas.iter_mut().zip(triangles) {
+            let s = scales[vertex_component[tri[0]]];
+            *a *= s * s;
+        }
+        for (i, &c) in vertex_component.iter().enumerate() {
+            let s = scales[c];
+            self.vertex_areas[i] *= s * s;
+            self.laplacian_f[i] = [
+                self.laplacian_f[i][0] * s,
+                self.laplacian_f[i][1] * s,
+                self.laplacian_f[i][2] * s,
+            ];
+            self.mean_curvature[i] /= s;
+        }
+    }
+
     pub fn willmore_energy(&self) -> f64 {
         willmore_energy(&self.mean_curvature, &self.vertex_areas)
     }
 
     pub fn total_area(&self) -> f64 {
         self.face_areas.iter().sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate::bumpy_sphere;
+
+    #[test]
+    fn rescale_matches_a_fresh_refresh() {
+        let mesh = bumpy_sphere(2, 0.2);
+        let mut cache = GeometryCache::new(&mesh.positions, &mesh.triangles);
+        let s = 1.7;
+        let moved: Vec<[f64; 3]> = mesh
+            .positions
+            .iter()
+            .map(|p| [s * p[0] + 3.0, s * p[1] - 1.0, s * p[2]])
+            .collect();
+        cache.rescale(&mesh.triangles, &vec![0; moved.len()], &[s]);
+        let fresh = GeometryCache::new(&moved, &mesh.triangles);
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * (1.0 + a.abs().max(b.abs()));
+        assert!(cache
+            .face_areas
+            .iter()
+            .zip(&fresh.face_areas)
+            .all(|(a, b)| close(*a, *b)));
+        assert!(cache
+            .vertex_areas
+            .iter()
+            .zip(&fresh.vertex_areas)
+            .all(|(a, b)| close(*a, *b)));
+        assert!(cache
+            .mean_curvature
+            .iter()
+            .zip(&fresh.mean_curvature)
+            .all(|(a, b)| close(*a, *b)));
+        assert!(cache
+            .laplacian_f
+            .iter()
+            .zip(&fresh.laplacian_f)
+            .all(|(a, b)| (0..3).all(|k| close(a[k], b[k]))));
+        assert!(close(cache.willmore_energy(), fresh.willmore_energy()));
     }
 }
