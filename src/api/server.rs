@@ -10,6 +10,7 @@ use super::http::{self, AppState};
 use crate::jobs::{Config, Jobs, Shutdown};
 use axum::extract::DefaultBodyLimit;
 use axum::http::{header, HeaderName, Method, Request};
+use axum::serve::ListenerExt;
 use axum::Router;
 use std::future::Future;
 use std::net::SocketAddr;
@@ -163,6 +164,11 @@ pub async fn serve(
     let http_stop = CancellationToken::new();
     let http_stop2 = http_stop.clone();
     let server = tokio::spawn(async move {
+        // TCP_NODELAY: SSE writes one small event at a time; with Nagle's algorithm each
+        // event after the first waits for the client's delayed ACK (~40 ms).
+        let listener = listener.tap_io(|tcp| {
+            let _ = tcp.set_nodelay(true);
+        });
         axum::serve(listener, app)
             .with_graceful_shutdown(async move { http_stop2.cancelled().await })
             .await

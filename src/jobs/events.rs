@@ -56,9 +56,23 @@ impl EventHub {
         self.map().remove(id);
     }
 
-    /// Subscribe to a live job; `None` once it is terminal (then the store has everything).
-    pub fn subscribe(&self, id: &str) -> Option<broadcast::Receiver<JobEvent>> {
-        self.map().get(id).map(|tx| tx.subscribe())
+    /// Subscribe to a job's live events, opening its channel if needed. Channels are opened
+    /// lazily (by the first watcher or when the job starts), not at admission: a channel
+    /// preallocates [`LIVE_CAPACITY`] slots, tens of KiB that a queued job nobody watches
+    /// should not hold.
+    pub fn subscribe(&self, id: &str) -> broadcast::Receiver<JobEvent> {
+        self.map()
+            .entry(id.to_string())
+            .or_insert_with(|| broadcast::channel(LIVE_CAPACITY).0)
+            .subscribe()
+    }
+
+    /// Drop a channel nobody listens to (a watcher of a finished or unknown job opened it).
+    pub fn close_if_idle(&self, id: &str) {
+        let mut map = self.map();
+        if map.get(id).is_some_and(|tx| tx.receiver_count() == 0) {
+            map.remove(id);
+        }
     }
 }
 
@@ -71,7 +85,22 @@ pub(super) async fn watch(
     // Subscribe before reading the store: every frame is either already stored or still to
     // come on the channel, so none falls between the two.
     let live = jobs.inner.hub.subscribe(&id);
-    let status = jobs.get(&id).await?;
+    let status = match jobs.get(&id).await {
+        Ok(s) => s,
+        Err(e) => {
+            drop(live);
+            jobs.inner.hub.close_if_idle(&id);
+            return Err(e);
+        }
+    };
+    let live = if status.state.is_terminal() {
+        // Nothing more will be sent: replay from the store only.
+        drop(live);
+        jobs.inner.hub.close_if_idle(&id);
+        None
+    } else {
+        Some(live)
+    };
     let (tx, rx) = tokio::sync::mpsc::channel(WATCHER_BUFFER);
     tokio::spawn(async move {
         if let Err(e) = run_watcher(jobs, id.clone(), from_step, status, live, tx).await {

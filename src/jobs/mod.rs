@@ -553,7 +553,6 @@ impl Jobs {
         for id in &recovered {
             // Recovered jobs bypass the capacity check: they were admitted before.
             queue.push_recovered(id.clone());
-            hub.open(id);
             active.insert(
                 id.clone(),
                 Active {
@@ -784,7 +783,6 @@ impl Jobs {
                 cancel: CancellationToken::new(),
             },
         );
-        self.inner.hub.open(id);
         if !self.inner.queue.try_push(id.to_string()) {
             // Cannot happen while we hold the admission lock (only we push), but never leave
             // an accepted row without a queue entry.

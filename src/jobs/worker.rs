@@ -119,6 +119,8 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
     if let Some(stop) = check(0) {
         return stopped(inner, id, stop, &queued);
     }
+    // Open the live channel before the first event (watchers may have opened it already).
+    inner.hub.open(id);
     let Some(running) = inner.store.set_running(id, now_ms())? else {
         return Ok(());
     };
