@@ -1,0 +1,1157 @@
+//! The gRPC API end to end: a tonic client generated from `proto/` (the library's own
+//! `willow::api::grpc::pb`) talks over a loopback socket to `willow::api::grpc::routes` served
+//! by `axum::serve` on an ephemeral port, in front of a real job core (SQLite in a temp dir,
+//! real flows on a blocking worker).
+//!
+//! Each test starts its own server with one worker, so queue and cancel behaviour is
+//! deterministic.
+
+use std::time::Duration;
+
+use bytes::Bytes;
+use prost::Message as _;
+use tonic::transport::Channel;
+use tonic::{Code, Status};
+use tonic_types::StatusExt;
+
+use willow::api::grpc::pb::google::longrunning as lro;
+use willow::api::grpc::pb::willow::v1;
+use willow::jobs::{Config, Jobs, Shutdown};
+use willow::mesh::generate;
+use willow::mesh::io::{Asset, Format};
+use willow::mesh::Mesh;
+
+use lro::operations_client::OperationsClient;
+use v1::fairing_client::FairingClient;
+
+/// Upper bound on anything a test waits for: generous for a loaded 2-core CI machine, finite
+/// so a hang fails instead of blocking the suite.
+const PATIENCE: Duration = Duration::from_secs(180);
+
+// ---------------------------------------------------------------------------------------------
+// Meshes
+
+fn obj_text(mesh: &Mesh) -> String {
+    let mut s = String::new();
+    for p in &mesh.positions {
+        s.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
+    }
+    for t in &mesh.triangles {
+        s.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+    }
+    s
+}
+
+/// 162 vertices: a few flow steps take milliseconds.
+fn small_obj() -> Vec<u8> {
+    obj_text(&generate::bumpy_sphere(2, 0.1)).into_bytes()
+}
+
+/// 2562 vertices: many steps keep a worker busy long enough to act on a running job.
+fn slow_obj() -> Vec<u8> {
+    obj_text(&generate::bumpy_sphere(4, 0.1)).into_bytes()
+}
+
+/// An icosphere subdivided 7 times: 163 842 vertices, about 16 MiB of OBJ text, far above
+/// gRPC's 4 MiB message limit, so it can only arrive through chunked UploadMesh.
+fn large_obj() -> Vec<u8> {
+    obj_text(&generate::icosphere(7)).into_bytes()
+}
+
+/// The small mesh as GLB, written by the library's own writer.
+fn small_glb() -> Vec<u8> {
+    let asset = Asset::read(&small_obj(), Format::Obj, &willow::mesh::Limits::default())
+        .expect("generated OBJ parses");
+    asset
+        .write(&asset.surface().positions, Format::Glb)
+        .expect("GLB writes")
+}
+
+// ---------------------------------------------------------------------------------------------
+// Server and clients
+
+struct Server {
+    addr: String,
+    jobs: Jobs,
+    _core: Shutdown,
+    _dir: tempfile::TempDir,
+}
+
+impl Server {
+    async fn start(tweak: impl FnOnce(&mut Config)) -> Server {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let mut config = Config::new(dir.path());
+        config.workers = 1;
+        config.queue_capacity = 8;
+        tweak(&mut config);
+        let (jobs, core) = Jobs::start(config).await.expect("job core starts");
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .expect("bind loopback");
+        let addr = format!("http://{}", listener.local_addr().expect("local addr"));
+        let app = willow::api::grpc::routes(jobs.clone());
+        tokio::spawn(async move { axum::serve(listener, app).await });
+        Server {
+            addr,
+            jobs,
+            _core: core,
+            _dir: dir,
+        }
+    }
+
+    async fn channel(&self) -> Channel {
+        Channel::from_shared(self.addr.clone())
+            .expect("valid uri")
+            .connect()
+            .await
+            .expect("connect over h2c")
+    }
+
+    async fn fairing(&self) -> FairingClient<Channel> {
+        FairingClient::new(self.channel().await)
+    }
+
+    async fn operations(&self) -> OperationsClient<Channel> {
+        OperationsClient::new(self.channel().await)
+    }
+}
+
+/// Stream `data` to UploadMesh in `chunk`-byte pieces.
+async fn upload(
+    client: &mut FairingClient<Channel>,
+    format: v1::MeshFormat,
+    data: &[u8],
+    chunk: usize,
+) -> Result<v1::Upload, Status> {
+    use v1::upload_mesh_chunk::Part;
+    let mut messages = vec![v1::UploadMeshChunk {
+        part: Some(Part::Header(v1::UploadHeader {
+            format: format as i32,
+            size_bytes: data.len() as u64,
+        })),
+    }];
+    messages.extend(data.chunks(chunk).map(|c| v1::UploadMeshChunk {
+        part: Some(Part::Data(Bytes::copy_from_slice(c))),
+    }));
+    upload_raw(client, messages).await
+}
+
+async fn upload_raw(
+    client: &mut FairingClient<Channel>,
+    messages: Vec<v1::UploadMeshChunk>,
+) -> Result<v1::Upload, Status> {
+    client
+        .upload_mesh(futures::stream::iter(messages))
+        .await
+        .map(|r| r.into_inner())
+}
+
+fn inline(format: v1::MeshFormat, data: Vec<u8>) -> Option<v1::create_job_request::Mesh> {
+    Some(v1::create_job_request::Mesh::InlineMesh(v1::InlineMesh {
+        format: format as i32,
+        data: data.into(),
+    }))
+}
+
+fn params(method: v1::Method, steps: u32) -> v1::JobParams {
+    v1::JobParams {
+        method: method as i32,
+        steps: Some(steps),
+        ..Default::default()
+    }
+}
+
+async fn create(
+    client: &mut FairingClient<Channel>,
+    mesh: Option<v1::create_job_request::Mesh>,
+    params: v1::JobParams,
+    request_id: &str,
+) -> Result<lro::Operation, Status> {
+    client
+        .create_job(v1::CreateJobRequest {
+            mesh,
+            params: Some(params),
+            request_id: request_id.to_string(),
+        })
+        .await
+        .map(|r| r.into_inner())
+}
+
+async fn get_job(client: &mut FairingClient<Channel>, name: &str) -> Result<v1::Job, Status> {
+    client
+        .get_job(v1::GetJobRequest {
+            name: name.to_string(),
+        })
+        .await
+        .map(|r| r.into_inner())
+}
+
+fn state(job: &v1::Job) -> v1::job::State {
+    v1::job::State::try_from(job.state).expect("known state")
+}
+
+/// Poll GetJob until `done(job)` holds.
+async fn poll_until(
+    client: &mut FairingClient<Channel>,
+    name: &str,
+    done: impl Fn(&v1::Job) -> bool,
+) -> v1::Job {
+    let polling = async {
+        loop {
+            let job = get_job(client, name).await.expect("GetJob");
+            if done(&job) {
+                return job;
+            }
+            tokio::time::sleep(Duration::from_millis(25)).await;
+        }
+    };
+    tokio::time::timeout(PATIENCE, polling)
+        .await
+        .unwrap_or_else(|_| panic!("{name} did not reach the expected state"))
+}
+
+/// Everything StreamFrames sends for `name` from `from_step`, until the server closes it.
+async fn stream_all(
+    client: &mut FairingClient<Channel>,
+    name: &str,
+    from_step: u32,
+) -> Vec<v1::stream_frames_response::Event> {
+    let mut stream = client
+        .stream_frames(v1::StreamFramesRequest {
+            name: name.to_string(),
+            from_step,
+        })
+        .await
+        .expect("StreamFrames accepted")
+        .into_inner();
+    let collecting = async {
+        let mut events = Vec::new();
+        while let Some(msg) = stream.message().await.expect("stream stays healthy") {
+            events.push(msg.event.expect("every message carries an event"));
+        }
+        events
+    };
+    tokio::time::timeout(PATIENCE, collecting)
+        .await
+        .expect("the frame stream ends")
+}
+
+fn job_from_any(any: &prost_types::Any) -> v1::Job {
+    assert_eq!(any.type_url, "type.googleapis.com/willow.v1.Job");
+    v1::Job::decode(any.value.as_slice()).expect("Any holds a Job")
+}
+
+fn violations(status: &Status) -> Vec<String> {
+    status
+        .get_details_bad_request()
+        .map(|b| b.field_violations.into_iter().map(|v| v.field).collect())
+        .unwrap_or_default()
+}
+
+/// Assert INVALID_ARGUMENT whose BadRequest names exactly `field`.
+fn assert_bad_field(result: Result<impl std::fmt::Debug, Status>, field: &str) {
+    let status = result.expect_err("the request must be refused");
+    assert_eq!(
+        status.code(),
+        Code::InvalidArgument,
+        "{field}: {}",
+        status.message()
+    );
+    assert_eq!(violations(&status), vec![field.to_string()], "{status:?}");
+}
+
+fn uuid() -> String {
+    uuid::Uuid::new_v4().to_string()
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tests
+
+/// Chunked GLB upload → job → every frame by StreamFrames (complete, ordered, positions on the
+/// frame interval, decodable) → resume from a later step → poll and Operations views agree →
+/// result download.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn glb_upload_job_streams_every_frame_and_resumes() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let mut ops = server.operations().await;
+
+    let glb = small_glb();
+    let up = upload(&mut client, v1::MeshFormat::Glb, &glb, 4096)
+        .await
+        .expect("GLB upload");
+    assert!(up.name.starts_with("uploads/"), "{}", up.name);
+    assert_eq!(up.size_bytes, glb.len() as u64);
+    assert_eq!(up.format, v1::MeshFormat::Glb as i32);
+
+    let steps = 6;
+    let op = create(
+        &mut client,
+        Some(v1::create_job_request::Mesh::Upload(up.name.clone())),
+        v1::JobParams {
+            frame_interval: Some(2),
+            include_positions: Some(true),
+            tau: Some(0.1),
+            ..params(v1::Method::Mcf, steps)
+        },
+        &uuid(),
+    )
+    .await
+    .expect("CreateJob");
+    assert!(op.name.starts_with("jobs/"), "{}", op.name);
+    let meta = job_from_any(op.metadata.as_ref().expect("metadata"));
+    assert_eq!(meta.name, op.name);
+    assert_eq!(meta.total_steps, steps);
+    assert_eq!(meta.input_format, v1::MeshFormat::Glb as i32);
+
+    use v1::stream_frames_response::Event;
+    let events = stream_all(&mut client, &op.name, 0).await;
+    assert!(
+        matches!(events.first(), Some(Event::Job(_))),
+        "the stream opens with the job's state"
+    );
+    let last = match events.last() {
+        Some(Event::Job(job)) => job.clone(),
+        other => panic!("the stream must end with the terminal job, got {other:?}"),
+    };
+    assert_eq!(state(&last), v1::job::State::Succeeded, "{:?}", last.error);
+    let frames: Vec<&v1::Frame> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Frame(f) => Some(f),
+            Event::Job(_) => None,
+        })
+        .collect();
+    let seen: Vec<u32> = frames.iter().map(|f| f.step).collect();
+    assert_eq!(
+        seen,
+        (0..=steps).collect::<Vec<_>>(),
+        "every step once, in order"
+    );
+    let vertex_bytes = last.vertex_count as usize * 12;
+    assert!(last.vertex_count > 0);
+    for f in &frames {
+        let m = f.metrics.as_ref().expect("metrics on every frame");
+        assert_eq!(m.step, f.step);
+        assert!(m.area > 0.0 && m.willmore_energy.is_finite());
+        // Positions at step 0, every 2nd step and the last.
+        let keyframe = f.step % 2 == 0 || f.step == steps;
+        match &f.positions {
+            Some(p) if keyframe => {
+                assert_eq!(p.len(), vertex_bytes, "12 bytes per vertex");
+                let floats: Vec<f32> = p
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect();
+                assert!(floats.iter().all(|x| x.is_finite() && x.abs() < 10.0));
+            }
+            None if !keyframe => {}
+            other => panic!(
+                "step {}: positions {:?}",
+                f.step,
+                other.as_ref().map(|p| p.len())
+            ),
+        }
+    }
+    // The input frame's positions are the uploaded vertices, in file order.
+    let input = Asset::read(&glb, Format::Glb, &willow::mesh::Limits::default()).expect("GLB");
+    let expected = input.file_positions(&input.surface().positions);
+    let p0 = frames[0].positions.as_ref().expect("step 0 positions");
+    let first = [
+        f32::from_le_bytes([p0[0], p0[1], p0[2], p0[3]]),
+        f32::from_le_bytes([p0[4], p0[5], p0[6], p0[7]]),
+        f32::from_le_bytes([p0[8], p0[9], p0[10], p0[11]]),
+    ];
+    assert_eq!(first, expected[0]);
+
+    // Reconnect from a later step: only the rest is replayed.
+    let resumed = stream_all(&mut client, &op.name, 4).await;
+    let resumed_steps: Vec<u32> = resumed
+        .iter()
+        .filter_map(|e| match e {
+            Event::Frame(f) => Some(f.step),
+            Event::Job(_) => None,
+        })
+        .collect();
+    assert_eq!(resumed_steps, vec![4, 5, 6]);
+    assert!(matches!(resumed.last(), Some(Event::Job(j)) if state(j) == v1::job::State::Succeeded));
+
+    // Polling and the Operations view agree.
+    let job = get_job(&mut client, &op.name).await.expect("GetJob");
+    assert_eq!(state(&job), v1::job::State::Succeeded);
+    assert_eq!(job.step, steps);
+    assert_eq!(job.latest.as_ref().map(|m| m.step), Some(steps));
+    assert!(job.end_time.is_some() && job.start_time.is_some());
+    let op2 = ops
+        .get_operation(lro::GetOperationRequest {
+            name: op.name.clone(),
+        })
+        .await
+        .expect("Operations.GetOperation")
+        .into_inner();
+    assert!(op2.done);
+    match op2.result {
+        Some(lro::operation::Result::Response(any)) => {
+            assert_eq!(job_from_any(&any).name, op.name)
+        }
+        other => panic!("a succeeded operation carries the Job as response, got {other:?}"),
+    }
+
+    // The faired mesh, in chunks, in the input's format.
+    let mut download = client
+        .download_result(v1::DownloadResultRequest {
+            name: op.name.clone(),
+            format: v1::MeshFormat::Unspecified as i32,
+        })
+        .await
+        .expect("DownloadResult")
+        .into_inner();
+    let mut file = Vec::new();
+    let mut first_format = None;
+    while let Some(chunk) = download.message().await.expect("download stream") {
+        first_format.get_or_insert(chunk.format);
+        file.extend_from_slice(&chunk.data);
+    }
+    assert_eq!(first_format, Some(v1::MeshFormat::Glb as i32));
+    let result = Asset::read(&file, Format::Glb, &willow::mesh::Limits::default())
+        .expect("the result is a valid GLB");
+    assert_eq!(result.file_vertex_count(), last.vertex_count as usize);
+}
+
+/// A 16 MiB OBJ (4x gRPC's message limit) arrives through chunked UploadMesh and is usable by
+/// CreateJob; inline OBJ works for small meshes; a full queue answers RESOURCE_EXHAUSTED with
+/// RetryInfo; cancelling queued and running jobs; cancel of a finished job and delete of an
+/// unfinished one are FAILED_PRECONDITION.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn large_upload_queue_full_and_cancel() {
+    let server = Server::start(|c| c.queue_capacity = 1).await;
+    let mut client = server.fairing().await;
+    let mut ops = server.operations().await;
+
+    let large = large_obj();
+    assert!(large.len() > 12 << 20, "{} bytes", large.len());
+    let big = upload(&mut client, v1::MeshFormat::Obj, &large, 1 << 20)
+        .await
+        .expect("16 MiB upload in 1 MiB chunks");
+    assert_eq!(big.size_bytes, large.len() as u64);
+
+    // A: long-running, on the one worker.
+    let running = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, slow_obj()),
+        params(v1::Method::Conformal, 5000),
+        "",
+    )
+    .await
+    .expect("CreateJob A");
+    poll_until(&mut client, &running.name, |j| {
+        state(j) == v1::job::State::Running && j.step >= 1
+    })
+    .await;
+
+    // B: the large upload, queued behind A (fills the queue of capacity 1).
+    let queued = create(
+        &mut client,
+        Some(v1::create_job_request::Mesh::Upload(big.name.clone())),
+        params(v1::Method::Mcf, 1),
+        "",
+    )
+    .await
+    .expect("CreateJob B from the large upload");
+    let queued_job = job_from_any(queued.metadata.as_ref().expect("metadata"));
+    assert_eq!(state(&queued_job), v1::job::State::Queued);
+    assert_eq!(queued_job.vertex_count, 163_842);
+
+    // C: no room.
+    let full = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, small_obj()),
+        params(v1::Method::Mcf, 1),
+        "",
+    )
+    .await
+    .expect_err("the queue is full");
+    assert_eq!(full.code(), Code::ResourceExhausted, "{}", full.message());
+    let retry = full
+        .get_details_retry_info()
+        .and_then(|r| r.retry_delay)
+        .expect("RetryInfo with a delay");
+    assert!(retry >= Duration::from_secs(1), "{retry:?}");
+    assert_eq!(
+        full.get_details_error_info().map(|e| e.reason),
+        Some("QUEUE_FULL".to_string())
+    );
+
+    // Deleting an unfinished job is refused.
+    let del = client
+        .delete_job(v1::DeleteJobRequest {
+            name: running.name.clone(),
+        })
+        .await
+        .expect_err("delete of a running job");
+    assert_eq!(del.code(), Code::FailedPrecondition, "{}", del.message());
+
+    // Cancel the queued job (through the Operations service): cancelled at once.
+    ops.cancel_operation(lro::CancelOperationRequest {
+        name: queued.name.clone(),
+    })
+    .await
+    .expect("CancelOperation of a queued job");
+    let b = get_job(&mut client, &queued.name).await.expect("GetJob B");
+    assert_eq!(state(&b), v1::job::State::Cancelled);
+    assert_eq!(
+        b.error.as_ref().map(|e| e.code),
+        Some(Code::Cancelled as i32)
+    );
+
+    // Cancel the running job: it stops at its next step, well before its 5000.
+    let a = client
+        .cancel_job(v1::CancelJobRequest {
+            name: running.name.clone(),
+        })
+        .await
+        .expect("CancelJob of a running job")
+        .into_inner();
+    assert!(
+        matches!(
+            state(&a),
+            v1::job::State::Running | v1::job::State::Cancelled
+        ),
+        "{a:?}"
+    );
+    let waited = ops
+        .wait_operation(lro::WaitOperationRequest {
+            name: running.name.clone(),
+            timeout: Some(prost_types::Duration {
+                seconds: 60,
+                nanos: 0,
+            }),
+        })
+        .await
+        .expect("WaitOperation")
+        .into_inner();
+    assert!(waited.done, "cancelled within a step");
+    match &waited.result {
+        Some(lro::operation::Result::Error(e)) => assert_eq!(e.code, Code::Cancelled as i32),
+        other => panic!("a cancelled operation carries error CANCELLED, got {other:?}"),
+    }
+    let a = get_job(&mut client, &running.name).await.expect("GetJob A");
+    assert!(a.step < 5000, "stopped early at step {}", a.step);
+
+    // Cancelling again: it already finished.
+    let again = client
+        .cancel_job(v1::CancelJobRequest {
+            name: running.name.clone(),
+        })
+        .await
+        .expect_err("cancel of a finished job");
+    assert_eq!(
+        again.code(),
+        Code::FailedPrecondition,
+        "{}",
+        again.message()
+    );
+    assert!(again
+        .get_details_precondition_failure()
+        .is_some_and(|p| !p.violations.is_empty()));
+
+    // Now the queue has room again, and the finished job can be deleted.
+    create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, small_obj()),
+        params(v1::Method::Mcf, 1),
+        "",
+    )
+    .await
+    .expect("room in the queue again");
+    ops.delete_operation(lro::DeleteOperationRequest {
+        name: running.name.clone(),
+    })
+    .await
+    .expect("DeleteOperation of a finished job");
+    let gone = get_job(&mut client, &running.name)
+        .await
+        .expect_err("deleted");
+    assert_eq!(gone.code(), Code::NotFound);
+    assert_eq!(
+        gone.get_details_resource_info().map(|r| r.resource_name),
+        Some(running.name.clone())
+    );
+}
+
+/// AIP-155: a retried CreateJob with the same request_id returns the original operation; the
+/// same id with a different request is ALREADY_EXISTS; a malformed id is INVALID_ARGUMENT.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn request_id_makes_create_job_idempotent() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let id = uuid();
+
+    let first = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, small_obj()),
+        params(v1::Method::Mcf, 2),
+        &id,
+    )
+    .await
+    .expect("first CreateJob");
+    let retry = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, small_obj()),
+        params(v1::Method::Mcf, 2),
+        &id.to_uppercase(),
+    )
+    .await
+    .expect("retried CreateJob");
+    assert_eq!(retry.name, first.name, "the retry returns the original job");
+
+    let list = client
+        .list_jobs(v1::ListJobsRequest::default())
+        .await
+        .expect("ListJobs")
+        .into_inner();
+    assert_eq!(list.jobs.len(), 1, "one job despite two calls");
+
+    let other = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, small_obj()),
+        params(v1::Method::Mcf, 3),
+        &id,
+    )
+    .await
+    .expect_err("same request_id, different request");
+    assert_eq!(other.code(), Code::AlreadyExists, "{}", other.message());
+    assert_eq!(violations(&other), vec!["request_id".to_string()]);
+    assert_eq!(
+        other.get_details_error_info().map(|e| e.reason),
+        Some("REQUEST_ID_REUSED".to_string())
+    );
+
+    assert_bad_field(
+        create(
+            &mut client,
+            inline(v1::MeshFormat::Obj, small_obj()),
+            params(v1::Method::Mcf, 2),
+            "retry-1",
+        )
+        .await,
+        "request_id",
+    );
+}
+
+/// Every bad input gets its canonical code and a detail naming what was wrong.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_bad_input_gets_its_status_and_detail() {
+    let server = Server::start(|c| c.limits.max_upload_bytes = 200_000).await;
+    let mut client = server.fairing().await;
+    let mut ops = server.operations().await;
+    let obj = || inline(v1::MeshFormat::Obj, small_obj());
+    let mcf = |steps| params(v1::Method::Mcf, steps);
+
+    // Meshes.
+    assert_bad_field(
+        create(
+            &mut client,
+            inline(v1::MeshFormat::Obj, b"v 0 0 0\nf 1 2 3\n".to_vec()),
+            mcf(1),
+            "",
+        )
+        .await,
+        "inline_mesh.data",
+    );
+    assert_bad_field(
+        create(
+            &mut client,
+            inline(v1::MeshFormat::Unspecified, small_obj()),
+            mcf(1),
+            "",
+        )
+        .await,
+        "inline_mesh.format",
+    );
+    assert_bad_field(create(&mut client, None, mcf(1), "").await, "mesh");
+    // Two triangles sharing an edge with a third: non-manifold, refused with its rule named.
+    let fin = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nf 1 2 3\nf 2 1 4\nf 1 2 5\n".to_vec();
+    let status = create(&mut client, inline(v1::MeshFormat::Obj, fin), mcf(1), "")
+        .await
+        .expect_err("non-manifold mesh");
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert_eq!(violations(&status), vec!["inline_mesh.data".to_string()]);
+    let reason = status
+        .get_details_error_info()
+        .map(|e| e.reason)
+        .unwrap_or_default();
+    assert!(
+        reason.starts_with("NON_MANIFOLD"),
+        "{reason}: {}",
+        status.message()
+    );
+
+    // Parameters.
+    assert_bad_field(create(&mut client, obj(), mcf(0), "").await, "params.steps");
+    assert_bad_field(
+        create(&mut client, obj(), mcf(1_000_000), "").await,
+        "params.steps",
+    );
+    let bad = |p: v1::JobParams| p;
+    assert_bad_field(
+        create(
+            &mut client,
+            obj(),
+            bad(v1::JobParams {
+                tau: Some(-1.0),
+                ..mcf(1)
+            }),
+            "",
+        )
+        .await,
+        "params.tau",
+    );
+    assert_bad_field(
+        create(
+            &mut client,
+            obj(),
+            bad(v1::JobParams {
+                tau: Some(f64::NAN),
+                ..mcf(1)
+            }),
+            "",
+        )
+        .await,
+        "params.tau",
+    );
+    assert_bad_field(
+        create(
+            &mut client,
+            obj(),
+            bad(v1::JobParams {
+                method: 99,
+                ..mcf(1)
+            }),
+            "",
+        )
+        .await,
+        "params.method",
+    );
+    assert_bad_field(
+        create(
+            &mut client,
+            obj(),
+            bad(v1::JobParams {
+                iterations: Some(0),
+                ..mcf(1)
+            }),
+            "",
+        )
+        .await,
+        "params.iterations",
+    );
+    assert_bad_field(
+        create(
+            &mut client,
+            obj(),
+            bad(v1::JobParams {
+                frame_interval: Some(0),
+                ..mcf(1)
+            }),
+            "",
+        )
+        .await,
+        "params.frame_interval",
+    );
+    let negative = prost_types::Duration {
+        seconds: -1,
+        nanos: 0,
+    };
+    assert_bad_field(
+        create(
+            &mut client,
+            obj(),
+            bad(v1::JobParams {
+                deadline: Some(negative),
+                ..mcf(1)
+            }),
+            "",
+        )
+        .await,
+        "params.deadline",
+    );
+
+    // Names.
+    assert_bad_field(get_job(&mut client, "not-a-name").await, "name");
+    assert_bad_field(get_job(&mut client, "jobs/a/b").await, "name");
+    let missing = get_job(&mut client, "jobs/00000000-0000-4000-8000-000000000000")
+        .await
+        .expect_err("unknown job");
+    assert_eq!(missing.code(), Code::NotFound);
+    assert!(missing.get_details_resource_info().is_some());
+    let no_upload = create(
+        &mut client,
+        Some(v1::create_job_request::Mesh::Upload("uploads/nope".into())),
+        mcf(1),
+        "",
+    )
+    .await
+    .expect_err("unknown upload");
+    assert_eq!(no_upload.code(), Code::NotFound, "{}", no_upload.message());
+    assert_bad_field(
+        create(
+            &mut client,
+            Some(v1::create_job_request::Mesh::Upload("nope".into())),
+            mcf(1),
+            "",
+        )
+        .await,
+        "upload",
+    );
+
+    // Upload streams.
+    use v1::upload_mesh_chunk::Part;
+    let header = |format: v1::MeshFormat, size: u64| v1::UploadMeshChunk {
+        part: Some(Part::Header(v1::UploadHeader {
+            format: format as i32,
+            size_bytes: size,
+        })),
+    };
+    let data = |b: &[u8]| v1::UploadMeshChunk {
+        part: Some(Part::Data(Bytes::copy_from_slice(b))),
+    };
+    assert_bad_field(upload_raw(&mut client, vec![]).await, "header");
+    assert_bad_field(
+        upload_raw(&mut client, vec![data(b"v 0 0 0\n")]).await,
+        "header",
+    );
+    assert_bad_field(
+        upload_raw(
+            &mut client,
+            vec![
+                header(v1::MeshFormat::Obj, 0),
+                header(v1::MeshFormat::Obj, 0),
+            ],
+        )
+        .await,
+        "header",
+    );
+    assert_bad_field(
+        upload_raw(
+            &mut client,
+            vec![header(v1::MeshFormat::Unspecified, 0), data(b"v")],
+        )
+        .await,
+        "header.format",
+    );
+    assert_bad_field(
+        upload_raw(
+            &mut client,
+            vec![header(v1::MeshFormat::Obj, 100), data(b"v 0 0 0\n")],
+        )
+        .await,
+        "header.size_bytes",
+    );
+    assert_bad_field(
+        upload(&mut client, v1::MeshFormat::Glb, b"not a glb at all", 4).await,
+        "data",
+    );
+    // Over the server's 200 000-byte limit: announced, and not announced.
+    for (announce, field) in [(true, "header.size_bytes"), (false, "data")] {
+        let big = vec![b'#'; 300_000];
+        let size = if announce { big.len() as u64 } else { 0 };
+        let msgs = vec![
+            header(v1::MeshFormat::Obj, size),
+            data(&big[..150_000]),
+            data(&big[150_000..]),
+        ];
+        let status = upload_raw(&mut client, msgs)
+            .await
+            .expect_err("over the limit");
+        assert_eq!(
+            status.code(),
+            Code::ResourceExhausted,
+            "{}",
+            status.message()
+        );
+        assert!(
+            status.get_details_retry_info().is_none(),
+            "retrying cannot help"
+        );
+        let quota = status.get_details_quota_failure().expect("QuotaFailure");
+        assert!(
+            quota.violations[0].description.contains("200000"),
+            "{quota:?}"
+        );
+        assert_eq!(violations(&status), vec![field.to_string()]);
+    }
+
+    // Lists.
+    assert_bad_field(
+        client
+            .list_jobs(v1::ListJobsRequest {
+                page_size: -1,
+                ..Default::default()
+            })
+            .await,
+        "page_size",
+    );
+    assert_bad_field(
+        ops.list_operations(lro::ListOperationsRequest {
+            name: "jobs".into(),
+            filter: "done=true".into(),
+            ..Default::default()
+        })
+        .await,
+        "filter",
+    );
+
+    // A result before the job has one.
+    let op = create(&mut client, obj(), mcf(1), "")
+        .await
+        .expect("a good job");
+    let early = client
+        .download_result(v1::DownloadResultRequest {
+            name: op.name.clone(),
+            format: v1::MeshFormat::Obj as i32,
+        })
+        .await;
+    if let Err(status) = early {
+        assert_eq!(
+            status.code(),
+            Code::FailedPrecondition,
+            "{}",
+            status.message()
+        );
+    } // (the 1-step job may already have succeeded: then there is a result, which is fine)
+}
+
+/// A job over its deadline finishes FAILED with DEADLINE_EXCEEDED in Job.error and
+/// Operation.error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn job_deadline_gives_deadline_exceeded() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let mut ops = server.operations().await;
+    let op = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, slow_obj()),
+        v1::JobParams {
+            deadline: Some(prost_types::Duration {
+                seconds: 0,
+                nanos: 300_000_000,
+            }),
+            ..params(v1::Method::Conformal, 5000)
+        },
+        "",
+    )
+    .await
+    .expect("CreateJob");
+    let done = poll_until(&mut client, &op.name, |j| {
+        state(j) != v1::job::State::Queued && state(j) != v1::job::State::Running
+    })
+    .await;
+    assert_eq!(state(&done), v1::job::State::Failed);
+    let error = done.error.expect("Job.error");
+    assert_eq!(
+        error.code,
+        Code::DeadlineExceeded as i32,
+        "{}",
+        error.message
+    );
+    let op = ops
+        .get_operation(lro::GetOperationRequest { name: op.name })
+        .await
+        .expect("GetOperation")
+        .into_inner();
+    assert!(op.done);
+    assert!(
+        matches!(op.result, Some(lro::operation::Result::Error(e)) if e.code == Code::DeadlineExceeded as i32)
+    );
+}
+
+/// Operations.List pages over the jobs, filters by state, and WaitOperation returns a
+/// not-done operation when its timeout passes first.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn operations_list_pages_and_wait_times_out() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let mut ops = server.operations().await;
+    let slow = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, slow_obj()),
+        params(v1::Method::Conformal, 5000),
+        "",
+    )
+    .await
+    .expect("slow job");
+    let mut names = vec![slow.name.clone()];
+    for _ in 0..2 {
+        let op = create(
+            &mut client,
+            inline(v1::MeshFormat::Obj, small_obj()),
+            params(v1::Method::Mcf, 1),
+            "",
+        )
+        .await
+        .expect("job");
+        names.push(op.name);
+    }
+
+    let mut seen = Vec::new();
+    let mut token = String::new();
+    loop {
+        let page = ops
+            .list_operations(lro::ListOperationsRequest {
+                name: "jobs".into(),
+                page_size: 2,
+                page_token: token.clone(),
+                ..Default::default()
+            })
+            .await
+            .expect("ListOperations")
+            .into_inner();
+        assert!(page.operations.len() <= 2);
+        seen.extend(page.operations.into_iter().map(|o| o.name));
+        if page.next_page_token.is_empty() {
+            break;
+        }
+        token = page.next_page_token;
+    }
+    seen.sort();
+    names.sort();
+    assert_eq!(seen, names, "paging visits every job once");
+
+    let queued = ops
+        .list_operations(lro::ListOperationsRequest {
+            filter: "state=QUEUED".into(),
+            ..Default::default()
+        })
+        .await
+        .expect("filtered list")
+        .into_inner();
+    assert!(queued.operations.iter().all(|o| !o.done));
+
+    let started = std::time::Instant::now();
+    let op = ops
+        .wait_operation(lro::WaitOperationRequest {
+            name: slow.name.clone(),
+            timeout: Some(prost_types::Duration {
+                seconds: 0,
+                nanos: 300_000_000,
+            }),
+        })
+        .await
+        .expect("WaitOperation")
+        .into_inner();
+    assert!(!op.done, "a 5000-step job is not done in 0.3 s");
+    assert!(started.elapsed() >= Duration::from_millis(250));
+    let meta = job_from_any(op.metadata.as_ref().expect("metadata"));
+    assert!(matches!(
+        state(&meta),
+        v1::job::State::Queued | v1::job::State::Running
+    ));
+    client
+        .cancel_job(v1::CancelJobRequest { name: slow.name })
+        .await
+        .expect("cancel the slow job");
+}
+
+/// grpc.health.v1 answers SERVING while the core is ready and NOT_SERVING once it drains;
+/// reflection lists every service, health included, and serves their descriptors.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_and_reflection() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::health_client::HealthClient;
+    use tonic_health::pb::HealthCheckRequest;
+    use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+    use tonic_reflection::pb::v1::ServerReflectionRequest;
+
+    let server = Server::start(|_| {}).await;
+    let mut health = HealthClient::new(server.channel().await);
+    let check = |service: &str| HealthCheckRequest {
+        service: service.to_string(),
+    };
+    // Workers mark themselves alive just after start: allow them a moment.
+    let mut status = 0;
+    for _ in 0..100 {
+        status = health
+            .check(check(""))
+            .await
+            .expect("Check")
+            .into_inner()
+            .status;
+        if status == ServingStatus::Serving as i32 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(status, ServingStatus::Serving as i32);
+    for service in willow::api::grpc::SERVICE_NAMES {
+        let s = health
+            .check(check(service))
+            .await
+            .expect("Check")
+            .into_inner();
+        assert_eq!(s.status, ServingStatus::Serving as i32, "{service}");
+    }
+    let unknown = health
+        .check(check("no.such.Service"))
+        .await
+        .expect_err("unknown");
+    assert_eq!(unknown.code(), Code::NotFound);
+
+    let mut reflection = ServerReflectionClient::new(server.channel().await);
+    let ask = |m: MessageRequest| ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(m),
+    };
+    let mut replies = reflection
+        .server_reflection_info(futures::stream::iter(vec![
+            ask(MessageRequest::ListServices(String::new())),
+            ask(MessageRequest::FileContainingSymbol(
+                "willow.v1.Fairing".into(),
+            )),
+        ]))
+        .await
+        .expect("reflection stream")
+        .into_inner();
+    let mut services = Vec::new();
+    let mut files = 0;
+    while let Some(reply) = replies.message().await.expect("reflection reply") {
+        match reply.message_response {
+            Some(MessageResponse::ListServicesResponse(list)) => {
+                services.extend(list.service.into_iter().map(|s| s.name))
+            }
+            Some(MessageResponse::FileDescriptorResponse(fds)) => {
+                files += fds.file_descriptor_proto.len()
+            }
+            other => panic!("unexpected reflection reply {other:?}"),
+        }
+    }
+    for want in [
+        "willow.v1.Fairing",
+        "google.longrunning.Operations",
+        "grpc.health.v1.Health",
+        "grpc.reflection.v1.ServerReflection",
+    ] {
+        assert!(
+            services.iter().any(|s| s == want),
+            "{want} not in {services:?}"
+        );
+    }
+    assert!(files >= 1, "fairing.proto's descriptor is served");
+
+    // Draining flips health at once.
+    server.jobs.begin_drain();
+    let s = health.check(check("")).await.expect("Check").into_inner();
+    assert_eq!(s.status, ServingStatus::NotServing as i32);
+    let refused = create(
+        &mut server.fairing().await,
+        inline(v1::MeshFormat::Obj, small_obj()),
+        params(v1::Method::Mcf, 1),
+        "",
+    )
+    .await
+    .expect_err("no new jobs while draining");
+    assert_eq!(refused.code(), Code::Unavailable);
+    assert!(refused.get_details_retry_info().is_some());
+}
