@@ -605,7 +605,8 @@ async fn every_bad_input_gets_its_specific_problem() {
         .send()
         .await
         .expect("send");
-    assert!(res.status() == 404, "{}", res.status());
+    let (st, p) = problem(res).await;
+    assert_eq!((st, p["code"].as_str()), (404, Some("no_route")), "{p}");
     let res = srv
         .client
         .get(srv.url("/v1/jobs?state=done"))

@@ -18,7 +18,7 @@ use crate::jobs::{
 use crate::mesh::io::Format;
 use axum::body::Body;
 use axum::extract::{FromRequest, Path, Request, State};
-use axum::http::{header, HeaderMap, HeaderValue, StatusCode, Uri};
+use axum::http::{header, HeaderMap, HeaderName, HeaderValue, StatusCode, Uri};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
@@ -814,6 +814,33 @@ pub async fn openapi_json() -> Response {
 /// elsewhere) that renders `/openapi.json`.
 pub async fn docs() -> Html<&'static str> {
     Html(include_str!("docs.html"))
+}
+
+/// Unknown paths: gRPC clients get `UNIMPLEMENTED` (gRPC status 12, HTTP 200 as the gRPC
+/// protocol requires); everyone else a 404 problem.
+pub async fn no_route(req: Request<Body>) -> Response {
+    let is_grpc = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/grpc"));
+    if is_grpc {
+        return (
+            StatusCode::OK,
+            [
+                (header::CONTENT_TYPE, "application/grpc"),
+                (HeaderName::from_static("grpc-status"), "12"),
+                (HeaderName::from_static("grpc-message"), "unknown method"),
+            ],
+        )
+            .into_response();
+    }
+    Problem::new(
+        StatusCode::NOT_FOUND,
+        "no_route",
+        format!("no route for {} {}", req.method(), req.uri().path()),
+    )
+    .instance(req.uri().path().to_string())
+    .into_response()
 }
 
 /// Turn any 413 produced below the handlers (tower-http's body limit) into a problem that

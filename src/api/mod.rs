@@ -4,7 +4,7 @@
 //! - [`problem`]: RFC 9457 problem details; the one place job errors become HTTP statuses.
 //! - [`server`]: the single router serving HTTP/1.1, h2c and gRPC on one port, and
 //!   `willow serve`.
-//! - `grpc`: the tonic services (package `willow.v1`, longrunning Operations, health,
+//! - [`grpc`]: the tonic services (package `willow.v1`, longrunning Operations, health,
 //!   reflection), merged into the same router by [`server::app`].
 
 pub mod grpc;

@@ -119,9 +119,12 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
     .layer(cors);
 
     // gRPC: the other transport, merged on the same port (its paths are /pkg.Service/Method,
-    // so nothing collides). GRPC-MERGE: enabled once `src/api/grpc.rs` provides
-    // `pub fn routes(jobs: Jobs) -> axum::Router`.
-    let app = with_grpc(rest, &jobs);
+    // so nothing collides). Its limits live on the generated services, not on these layers.
+    // The merged router's fallback answers both worlds: tonic's own fallback would give every
+    // unknown *HTTP* path a 200 with a grpc-status header.
+    let app = rest
+        .merge(super::grpc::routes(jobs.clone()))
+        .fallback(http::no_route);
 
     app.layer(
         TraceLayer::new_for_http().make_span_with(|req: &Request<_>| {
@@ -141,13 +144,6 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
     )
     .layer(PropagateRequestIdLayer::new(REQUEST_ID))
     .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
-}
-
-/// GRPC-MERGE: the spot where the gRPC router joins the HTTP one.
-fn with_grpc(rest: Router, jobs: &Jobs) -> Router {
-    let _ = jobs;
-    // rest.merge(crate::api::grpc::routes(jobs.clone()))
-    rest
 }
 
 /// Serve `jobs` on `listener` until `shutdown` resolves; then drain the job core for `grace`
