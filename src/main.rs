@@ -22,6 +22,8 @@ enum Command {
     Fair(cli::fair::FairArgs),
     /// Measure per-step time and peak memory of the conformal flow against implicit MCF.
     Bench(cli::bench::BenchArgs),
+    /// Run the fairing service: HTTP/1.1, h2c and gRPC on one port (jobs kept in --data-dir).
+    Serve(willow::api::server::ServeArgs),
 }
 
 fn main() -> ExitCode {
@@ -29,5 +31,12 @@ fn main() -> ExitCode {
     match args.command {
         Command::Fair(a) => cli::fair::run(a),
         Command::Bench(a) => cli::bench::run(a),
+        Command::Serve(a) => match willow::api::server::run(a) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("error: {e}");
+                ExitCode::FAILURE
+            }
+        },
     }
 }
