@@ -855,3 +855,65 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
     assert_eq!(p["code"], "shutting_down");
     srv.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn textured_upload_keeps_uvs_in_the_validated_result() {
+    use willow::mesh::io::{Asset, Format};
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot_triangulated.obj");
+    let input = std::fs::read(&path).expect("tests/data/spot_triangulated.obj (Spot, with UVs)");
+    let limits = willow::mesh::Limits::default();
+    let input_asset = Asset::read(&input, Format::Obj, &limits).expect("spot parses");
+    let input_uvs = input_asset.file_uvs().expect("spot has UVs");
+
+    let srv = start(|_| {}).await;
+    let res = srv
+        .client
+        .post(srv.url("/v1/jobs?steps=1&include_positions=false"))
+        .header("content-type", "model/obj")
+        .body(input)
+        .send()
+        .await
+        .expect("POST spot");
+    assert_eq!(res.status(), 202);
+    let job: serde_json::Value = res.json().await.expect("json");
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+
+    for format in [Format::Glb, Format::Obj] {
+        let name = match format {
+            Format::Glb => "glb",
+            _ => "obj",
+        };
+        let res = srv
+            .client
+            .get(srv.url(&format!("/v1/jobs/{id}/result?format={name}")))
+            .send()
+            .await
+            .expect("GET result");
+        assert_eq!(res.status(), 200);
+        let bytes = res.bytes().await.expect("body");
+        if format == Format::Glb {
+            validate_gltf_if_available(&bytes);
+        }
+        let out = Asset::read(&bytes, format, &limits).expect("result parses");
+        assert_eq!(out.file_vertex_count(), input_asset.file_vertex_count());
+        assert_eq!(
+            out.file_uvs().expect("result keeps UVs"),
+            input_uvs,
+            "UVs identical ({name})"
+        );
+        let moved = out
+            .surface()
+            .positions
+            .iter()
+            .zip(&input_asset.surface().positions)
+            .any(|(a, b)| a != b);
+        assert!(
+            moved,
+            "the result is the faired surface, not the input ({name})"
+        );
+    }
+    srv.stop().await;
+}
