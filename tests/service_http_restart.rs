@@ -80,10 +80,18 @@ async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
 
     server.kill().expect("SIGKILL"); // Child::kill is SIGKILL on Unix
     let _ = server.wait();
+    let killed_at = willow::jobs::rfc3339(willow::jobs::now_ms());
 
     let (mut server, base) = spawn_server(dir.path());
     let v = poll_until(&client, &base, &running, JOB_TIMEOUT, is_terminal).await;
     assert_eq!(v["state"], "succeeded", "the interrupted job re-ran: {v}");
+    // RFC 3339 UTC strings of one format compare in time order.
+    assert!(
+        v["started_time"]
+            .as_str()
+            .is_some_and(|t| t > killed_at.as_str()),
+        "it was running at the kill and started again after the restart: {v}"
+    );
     for id in &queued {
         let v = poll_until(&client, &base, id, JOB_TIMEOUT, is_terminal).await;
         assert_eq!(v["state"], "succeeded", "{v}");
