@@ -356,6 +356,14 @@ async fn memory_per_queued_job(obj_small: &str) {
 }
 
 fn main() {
+    // `cargo bench` passes `--bench`; `cargo test --all-targets` runs this binary without it,
+    // and a load benchmark has no place in the test suite (it is not a test and takes minutes).
+    if !std::env::args().any(|a| a == "--bench") {
+        println!(
+            "service_load: run with `cargo bench --bench service_load` (skipped under cargo test)"
+        );
+        return;
+    }
     let steps: usize = std::env::var("WILLOW_BENCH_STEPS")
         .ok()
         .and_then(|v| v.parse().ok())
