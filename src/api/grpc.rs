@@ -4,7 +4,7 @@
 //! The wire contract is `proto/willow/v1/fairing.proto`; `build.rs` generates [`pb`] from it.
 //! This file only translates: wire request → validated [`JobSpec`] / [`UploadRef`] → a call on
 //! [`Jobs`] → wire response. Every [`JobError`] becomes a [`tonic::Status`] in exactly one
-//! place, [`job_error`], with the google.rpc error details the proto documents.
+//! place, `job_error`, with the google.rpc error details the proto documents.
 //!
 //! Entry point for the server: [`routes`] returns an axum router serving all of the above on
 //! the `/{package}.{Service}/{Method}` paths, to merge into the HTTP router on one port.
