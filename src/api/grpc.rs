@@ -1082,7 +1082,13 @@ mod tests {
 
     #[test]
     fn methods_round_trip_through_their_proto_names() {
-        for m in [Method::Conformal, Method::Mcf] {
+        for m in [
+            Method::Conformal,
+            Method::Mcf,
+            Method::Cmcf,
+            Method::Bilaplacian,
+            Method::Taubin,
+        ] {
             let wire = method_pb(m);
             assert_ne!(wire, v1::Method::Unspecified, "{m:?} has no proto value");
             assert_eq!(method_from_pb(wire as i32).ok(), Some(m));

@@ -71,7 +71,7 @@ pub fn routes(state: AppState) -> Router {
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]
 pub struct JobParams {
-    /// `conformal` (default) or `mcf`.
+    /// `conformal` (default), `mcf`, `cmcf`, `bilaplacian` or `taubin`.
     pub method: Option<String>,
     /// Flow steps to take (default 20).
     pub steps: Option<usize>,
@@ -95,12 +95,16 @@ impl JobParams {
             spec.method = match m.to_ascii_lowercase().as_str() {
                 "conformal" => Method::Conformal,
                 "mcf" => Method::Mcf,
+                "cmcf" => Method::Cmcf,
+                "bilaplacian" => Method::Bilaplacian,
+                "taubin" => Method::Taubin,
                 other => {
                     return Err(Problem::bad_request(
                         "invalid_parameter",
                         format!(
-                        "invalid parameter `method`: expected `conformal` or `mcf`, got `{other}`"
-                    ),
+                            "invalid parameter `method`: expected `conformal`, `mcf`, `cmcf`, \
+                             `bilaplacian` or `taubin`, got `{other}`"
+                        ),
                     )
                     .with("field", "method"))
                 }

@@ -21,7 +21,8 @@ pub struct FairArgs {
     #[arg(long, default_value_t = 10)]
     pub steps: usize,
     /// Time step. Conformal flow: the paper's τ, stable below 1 (0.5 removes the unconstrained
-    /// curvature in one step). MCF: unitless, the step is τ·area/4π.
+    /// curvature in one step). MCF and cMCF: unitless, the step is τ·area/4π; bi-Laplacian:
+    /// τ·(area/4π)² (0.01 is stable, 0.5 is not); Taubin: λ = τ (below 0.7).
     #[arg(long, default_value_t = 0.5)]
     pub tau: f64,
     /// Inverse power iterations per step.
@@ -41,6 +42,12 @@ pub struct FairArgs {
 pub enum MethodArg {
     Conformal,
     Mcf,
+    /// Conformalized MCF (Kazhdan et al. 2012), genus 0 only.
+    Cmcf,
+    /// Implicit bi-Laplacian flow.
+    Bilaplacian,
+    /// Taubin λ|μ smoothing (λ = τ).
+    Taubin,
 }
 
 impl From<MethodArg> for Method {
@@ -48,6 +55,9 @@ impl From<MethodArg> for Method {
         match m {
             MethodArg::Conformal => Method::Conformal,
             MethodArg::Mcf => Method::Mcf,
+            MethodArg::Cmcf => Method::Cmcf,
+            MethodArg::Bilaplacian => Method::Bilaplacian,
+            MethodArg::Taubin => Method::Taubin,
         }
     }
 }

@@ -28,6 +28,12 @@ pub enum Method {
     Conformal,
     /// Implicit mean curvature flow (Desbrun et al. 1999, backward Euler): the yardstick.
     Mcf,
+    /// Conformalized mean curvature flow (Kazhdan, Solomon, Ben-Chen 2012); genus 0 only.
+    Cmcf,
+    /// Implicit bi-Laplacian flow (backward Euler on `ḟ = −Δ²f`).
+    Bilaplacian,
+    /// Taubin λ|μ smoothing (Taubin 1995), explicit.
+    Taubin,
 }
 
 /// What happens at the boundary of a surface with boundary (§6.3). Closed surfaces ignore it.
@@ -49,7 +55,9 @@ pub struct FlowParams {
     pub method: Method,
     /// Time step. For the conformal flow it has the paper's meaning (§4: the curvature update
     /// is `u ← (1 − 2τ)u`, stable for τ < 1). For MCF it is unitless: the backward Euler step is
-    /// `τ · area / 4π`, so τ = 0.1 moves a unit sphere's radius by about 10%.
+    /// `τ · area / 4π`, so τ = 0.1 moves a unit sphere's radius by about 10%; the same for
+    /// cMCF, `τ · (area / 4π)²` for the bi-Laplacian flow, and Taubin's λ for λ|μ smoothing
+    /// (see `classic`).
     pub tau: f64,
     /// Inverse power iterations per step for the smallest eigenvector (§6.4.2 uses one).
     pub iterations: usize,
@@ -104,5 +112,8 @@ pub fn new_flow(mesh: &Mesh, params: &FlowParams) -> Result<Box<dyn Flow>, FlowE
     Ok(match params.method {
         Method::Conformal => Box::new(willmore::ConformalFlow::new(mesh, params)?),
         Method::Mcf => Box::new(classic::ImplicitMeanCurvatureFlow::new(mesh, params)?),
+        Method::Cmcf => Box::new(classic::ConformalizedMeanCurvatureFlow::new(mesh, params)?),
+        Method::Bilaplacian => Box::new(classic::ImplicitBilaplacianFlow::new(mesh, params)?),
+        Method::Taubin => Box::new(classic::TaubinSmoothing::new(mesh, params)?),
     })
 }
