@@ -22,6 +22,8 @@ enum Command {
     Fair(cli::fair::FairArgs),
     /// Measure per-step time and peak memory of the conformal flow against implicit MCF.
     Bench(cli::bench::BenchArgs),
+    /// Flow a planar polyline to a round curve, keeping its edge lengths (format: .json, .obj).
+    Curve(cli::curve::CurveArgs),
     /// Run the fairing service: HTTP/1.1, h2c and gRPC on one port (jobs kept in --data-dir).
     Serve(willow::api::server::ServeArgs),
 }
@@ -31,6 +33,7 @@ fn main() -> ExitCode {
     match args.command {
         Command::Fair(a) => cli::fair::run(a),
         Command::Bench(a) => cli::bench::run(a),
+        Command::Curve(a) => cli::curve::run(a),
         Command::Serve(a) => match willow::api::server::run(a) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {
