@@ -43,7 +43,11 @@ pub fn opposite_edges(positions: &[[f64; 3]], tri: &[usize; 3]) -> [Quaternion; 
     ]
 }
 
-/// Refill `values` (on a block-2 `pattern`) with `X(ρ) + diag(shift_i)`.
+/// Refill `values` (on a block-2 `pattern`) with `X(ρ) + diag(shift_i)`; returns the mean
+/// real diagonal of `X(ρ)` without the shift (the scale a relative shift refers to).
+///
+/// Each unordered corner pair is computed once: `X_ji = conj(X_ij)`, whose complex block is
+/// the conjugate transpose of `X_ij`'s.
 pub fn assemble_dirac_into(
     pattern: &BlockPattern,
     positions: &[[f64; 3]],
@@ -52,20 +56,36 @@ pub fn assemble_dirac_into(
     rho: &[f64],
     shift: &[f64],
     values: &mut [c64],
-) {
+) -> f64 {
     debug_assert_eq!(pattern.block, 2);
     values.fill(c64::new(0.0, 0.0));
+    let mut trace = 0.0;
     for ((tri, slots), &area) in triangles.iter().zip(&pattern.face_slots).zip(face_areas) {
         let e = opposite_edges(positions, tri);
+        let stride = [
+            pattern.column_stride(tri[0]),
+            pattern.column_stride(tri[1]),
+            pattern.column_stride(tri[2]),
+        ];
         for a in 0..3 {
-            for b in 0..3 {
+            for b in a..3 {
                 let q = dirac_face_entry(e[a], e[b], rho[tri[a]], rho[tri[b]], area);
                 let m = q.to_complex();
-                let slot = slots[3 * a + b];
-                for (ri, row) in m.iter().enumerate() {
-                    for (rj, &z) in row.iter().enumerate() {
-                        values[pattern.entry(slot, tri[b], ri, rj)] += z;
-                    }
+                // Block (a, b): column vertex tri[b].
+                let (slot, st) = (slots[3 * a + b], stride[b]);
+                values[slot] += m[0][0];
+                values[slot + 1] += m[1][0];
+                values[slot + st] += m[0][1];
+                values[slot + st + 1] += m[1][1];
+                if a == b {
+                    trace += q.w;
+                } else {
+                    // Block (b, a) = conjugate transpose, in column vertex tri[a].
+                    let (slot, st) = (slots[3 * b + a], stride[a]);
+                    values[slot] += m[0][0].conj();
+                    values[slot + 1] += m[0][1].conj();
+                    values[slot + st] += m[1][0].conj();
+                    values[slot + st + 1] += m[1][1].conj();
                 }
             }
         }
@@ -74,6 +94,11 @@ pub fn assemble_dirac_into(
         let slot = pattern.diagonal_slot(v);
         values[pattern.entry(slot, v, 0, 0)] += c64::new(s, 0.0);
         values[pattern.entry(slot, v, 1, 1)] += c64::new(s, 0.0);
+    }
+    if shift.is_empty() {
+        0.0
+    } else {
+        trace / shift.len() as f64
     }
 }
 

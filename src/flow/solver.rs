@@ -111,6 +111,13 @@ impl BlockPattern {
         self.block_slot(v, v)
     }
 
+    /// Distance between consecutive columns of a block in column vertex `j`: entry
+    /// `(ri, rj)` of a block with base index `slot` is at `slot + rj · stride + ri`.
+    #[inline]
+    pub fn column_stride(&self, j: usize) -> usize {
+        self.block * (self.vertex_col_ptr[j + 1] - self.vertex_col_ptr[j])
+    }
+
     /// Index of entry `(ri, rj)` of the block whose base index is `slot` in column vertex `j`.
     #[inline]
     pub fn entry(&self, slot: usize, j: usize, ri: usize, rj: usize) -> usize {

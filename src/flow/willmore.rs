@@ -16,7 +16,7 @@
 //! every buffer is allocated in [`ConformalFlow::new`], so the step loop does not allocate.
 
 use super::constraints::ConstraintBasis;
-use super::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
+use super::dirac::{assemble_dirac_into, sparse_matvec};
 use super::dirichlet;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
@@ -414,48 +414,49 @@ impl ConformalFlow {
         let g = &self.geometry;
         let n = self.positions.len();
         let mean_area = g.total_area() / n as f64;
+        self.shift.fill(0.0);
+        let mean_diagonal = assemble_dirac_into(
+            &self.dirac_pattern,
+            &self.positions,
+            &self.triangles,
+            &g.face_areas,
+            &self.rho,
+            &self.shift,
+            &mut self.dirac_values,
+        );
+        let fixed = if dirichlet {
+            self.fixed.as_deref()
+        } else {
+            None
+        };
+        if let Some(fixed) = fixed {
+            // λ = 1 on the boundary: the boundary keeps its tangents (§6.3.2 with the input
+            // boundary as target).
+            self.solve_rhs.fill(c64::new(0.0, 0.0));
+            dirichlet::apply_complex(
+                &self.dirac_pattern,
+                &mut self.dirac_values,
+                fixed,
+                |_| Quaternion::ONE.to_complex_column(),
+                Some(&mut self.solve_rhs[..]),
+            );
+        }
         // X is dimensionless (|e|²/A and Aρ² are scale-free), so the shift is relative to its
         // mean diagonal; weighting by relative vertex area makes it a multiple of the mass M.
-        let mut mean_diagonal = 0.0;
-        for (tri, &area) in self.triangles.iter().zip(&g.face_areas) {
-            let e = opposite_edges(&self.positions, tri);
-            for (c, &v) in tri.iter().enumerate() {
-                let r = self.rho[v];
-                mean_diagonal += e[c].norm2() / (4.0 * area) + area * r * r / 9.0;
-            }
-        }
-        mean_diagonal /= n as f64;
+        // A failed factorization adds more shift on the diagonal, without reassembling.
         let mut attempt = 0;
         loop {
             let eps = DIRAC_SHIFT * 100f64.powi(attempt as i32) * mean_diagonal;
-            for (s, &a) in self.shift.iter_mut().zip(&g.vertex_areas) {
-                *s = eps * a / mean_area;
-            }
-            assemble_dirac_into(
-                &self.dirac_pattern,
-                &self.positions,
-                &self.triangles,
-                &g.face_areas,
-                &self.rho,
-                &self.shift,
-                &mut self.dirac_values,
-            );
-            if dirichlet {
-                if let Some(fixed) = &self.fixed {
-                    // λ = 1 on the boundary: the boundary keeps its tangents (§6.3.2 with the
-                    // input boundary as target). The right-hand side is built on the first
-                    // attempt only.
-                    if attempt == 0 {
-                        self.solve_rhs.fill(c64::new(0.0, 0.0));
-                    }
-                    dirichlet::apply_complex(
-                        &self.dirac_pattern,
-                        &mut self.dirac_values,
-                        fixed,
-                        |_| Quaternion::ONE.to_complex_column(),
-                        (attempt == 0).then_some(&mut self.solve_rhs[..]),
-                    );
+            for (v, (s, &a)) in self.shift.iter_mut().zip(&g.vertex_areas).enumerate() {
+                if fixed.is_some_and(|f| f[v]) {
+                    continue;
                 }
+                let target = eps * a / mean_area;
+                let slot = self.dirac_pattern.diagonal_slot(v);
+                let add = c64::new(target - *s, 0.0);
+                self.dirac_values[self.dirac_pattern.entry(slot, v, 0, 0)] += add;
+                self.dirac_values[self.dirac_pattern.entry(slot, v, 1, 1)] += add;
+                *s = target;
             }
             match self
                 .dirac
