@@ -335,7 +335,10 @@ fn on_a_torus_the_conformal_flow_beats_the_classic_flows() {
     let mesh = bumpy_torus();
     let conformal = torus_run(&mesh, Method::Conformal, 0.5);
     let round = torus_of_revolution_energy(2.5);
-    assert!(!conformal.degenerated() && !conformal.raised_w(), "{conformal:?}");
+    assert!(
+        !conformal.degenerated() && !conformal.raised_w(),
+        "{conformal:?}"
+    );
     assert!(
         conformal.last.willmore_energy < 0.65 * conformal.w0,
         "{conformal:?}"
