@@ -8,6 +8,7 @@
 //! - Closure residual `|d f̃ − ẽ| / |ẽ|` over all half-edges: how far the edges produced by λ
 //!   (Table 1 step VI) are from integrable; the Poisson solve (step VII) spreads this error.
 
+use crate::geometry::cache::GeometryCache;
 use serde::{Deserialize, Serialize};
 
 /// The metrics of the surface after one step (step 0 describes the input).
@@ -95,6 +96,70 @@ impl ConformalReference {
             } else {
                 Q_CAP
             };
+        }
+    }
+}
+
+/// The per-step report every flow shares: Q against the input (with its buffers allocated
+/// once), and the geometry's energy and area.
+pub struct StepReporter {
+    reference: ConformalReference,
+    q: Vec<f64>,
+    scratch: Vec<f64>,
+}
+
+impl StepReporter {
+    pub fn new(positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> Self {
+        StepReporter {
+            reference: ConformalReference::new(positions, triangles),
+            q: vec![1.0; triangles.len()],
+            scratch: vec![1.0; triangles.len()],
+        }
+    }
+
+    /// Step 0: the input itself (Q = 1 everywhere, no residuals).
+    pub fn initial(geometry: &GeometryCache) -> StepMetrics {
+        StepMetrics {
+            step: 0,
+            willmore_energy: geometry.willmore_energy(),
+            q_mean: 1.0,
+            q_area_mean: 1.0,
+            q_p95: 1.0,
+            q_max: 1.0,
+            closure_residual: 0.0,
+            eigen_residual: 0.0,
+            area: geometry.total_area(),
+            step_ms: 0.0,
+        }
+    }
+
+    /// The metrics of the surface at `positions` (whose geometry is `geometry`) after `step`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn report(
+        &mut self,
+        step: usize,
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+        geometry: &GeometryCache,
+        closure_residual: f64,
+        eigen_residual: f64,
+        started: std::time::Instant,
+    ) -> StepMetrics {
+        self.reference
+            .quasi_conformal_errors_into(positions, triangles, &mut self.q);
+        let (q_mean, q_area_mean, q_p95, q_max) =
+            summarize_q(&self.q, &geometry.face_areas, &mut self.scratch);
+        StepMetrics {
+            step,
+            willmore_energy: geometry.willmore_energy(),
+            q_mean,
+            q_area_mean,
+            q_p95,
+            q_max,
+            closure_residual,
+            eigen_residual,
+            area: geometry.total_area(),
+            step_ms: started.elapsed().as_secs_f64() * 1e3,
         }
     }
 }

@@ -8,7 +8,7 @@ use super::{Flow, FlowError, FlowParams};
 use crate::geometry::cache::GeometryCache;
 use crate::mesh::topology::Topology;
 use crate::mesh::Mesh;
-use crate::metrics::{summarize_q, ConformalReference, StepMetrics};
+use crate::metrics::{StepMetrics, StepReporter};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::matmul::{
     sparse_sparse_matmul_numeric, sparse_sparse_matmul_numeric_scratch,
@@ -24,66 +24,30 @@ use std::time::Instant;
 /// of the conformal flow restores each component's area and centroid after every step, so
 /// both flows report comparable shapes.
 pub struct ImplicitMeanCurvatureFlow {
-    triangles: Vec<[usize; 3]>,
-    positions: Vec<[f64; 3]>,
+    surface: ClassicSurface,
     tau: f64,
-    step: usize,
-    geometry: GeometryCache,
-    reference: ConformalReference,
-    scale: ScalePolicy,
-    initial: StepMetrics,
     pattern: BlockPattern,
     values: Vec<f64>,
     cholesky: Cholesky<f64>,
     rhs: Vec<f64>,
-    q: Vec<f64>,
-    q_scratch: Vec<f64>,
 }
 
 impl ImplicitMeanCurvatureFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
         check_params(params)?;
         let topology = Topology::new(mesh);
-        let n = mesh.vertex_count();
-        let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
-        let scale = ScalePolicy::new(
-            topology.vertex_component.clone(),
-            topology.components.len(),
-            &mesh.positions,
-            &geometry.vertex_areas,
-        );
-        let pattern = BlockPattern::new(n, &mesh.triangles, 1);
+        let pattern = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 1);
         let cholesky = Cholesky::<f64>::analyze(&pattern, 3).map_err(|e| FlowError::Numerical {
             step: 0,
             reason: e.to_string(),
         })?;
-        let initial = StepMetrics {
-            step: 0,
-            willmore_energy: geometry.willmore_energy(),
-            q_mean: 1.0,
-            q_area_mean: 1.0,
-            q_p95: 1.0,
-            q_max: 1.0,
-            closure_residual: 0.0,
-            eigen_residual: 0.0,
-            area: geometry.total_area(),
-            step_ms: 0.0,
-        };
         Ok(ImplicitMeanCurvatureFlow {
-            triangles: mesh.triangles.clone(),
-            positions: mesh.positions.clone(),
+            surface: ClassicSurface::new(mesh, &topology, true),
             tau: params.tau,
-            step: 0,
-            reference: ConformalReference::new(&mesh.positions, &mesh.triangles),
-            geometry,
-            scale,
-            initial,
             values: vec![0.0; pattern.nnz()],
             pattern,
             cholesky,
-            rhs: vec![0.0; 3 * n],
-            q: vec![1.0; mesh.face_count()],
-            q_scratch: vec![1.0; mesh.face_count()],
+            rhs: vec![0.0; 3 * mesh.vertex_count()],
         })
     }
 }
@@ -91,12 +55,12 @@ impl ImplicitMeanCurvatureFlow {
 impl Flow for ImplicitMeanCurvatureFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let start = Instant::now();
-        let n = self.positions.len();
-        let g = &self.geometry;
-        let h = self.tau * g.total_area() / (4.0 * std::f64::consts::PI);
+        let s = &mut self.surface;
+        let g = &s.geometry;
+        let h = self.tau * squared_radius(g);
         assemble_cotan_laplacian_into(
             &self.pattern,
-            &self.triangles,
+            &s.triangles,
             &g.cotangents,
             h,
             &mut self.values,
@@ -108,58 +72,19 @@ impl Flow for ImplicitMeanCurvatureFlow {
         );
         self.cholesky
             .factorize(&self.pattern, &self.values)
-            .map_err(|e| FlowError::Numerical {
-                step: self.step + 1,
-                reason: format!("M + hL: {e}"),
-            })?;
-        for (i, (p, &a)) in self.positions.iter().zip(&g.vertex_areas).enumerate() {
-            for k in 0..3 {
-                self.rhs[k * n + i] = a * p[k];
-            }
-        }
+            .map_err(|e| s.numerical(format!("M + hL: {e}")))?;
+        s.mass_times_positions(&mut self.rhs);
         self.cholesky.solve_in_place(&mut self.rhs, 3);
-        for (i, p) in self.positions.iter_mut().enumerate() {
-            *p = [self.rhs[i], self.rhs[n + i], self.rhs[2 * n + i]];
-        }
-        if self
-            .positions
-            .iter()
-            .any(|p| !(p[0].is_finite() && p[1].is_finite() && p[2].is_finite()))
-        {
-            return Err(FlowError::Numerical {
-                step: self.step + 1,
-                reason: "implicit MCF produced non-finite positions".into(),
-            });
-        }
-        self.geometry.refresh(&self.positions, &self.triangles);
-        self.scale
-            .restore(&mut self.positions, &self.geometry.vertex_areas);
-        self.geometry.refresh(&self.positions, &self.triangles);
-        self.step += 1;
-        self.reference
-            .quasi_conformal_errors_into(&self.positions, &self.triangles, &mut self.q);
-        let (q_mean, q_area_mean, q_p95, q_max) =
-            summarize_q(&self.q, &self.geometry.face_areas, &mut self.q_scratch);
-        Ok(StepMetrics {
-            step: self.step,
-            willmore_energy: self.geometry.willmore_energy(),
-            q_mean,
-            q_area_mean,
-            q_p95,
-            q_max,
-            closure_residual: 0.0,
-            eigen_residual: 0.0,
-            area: self.geometry.total_area(),
-            step_ms: start.elapsed().as_secs_f64() * 1e3,
-        })
+        s.set_positions(&self.rhs);
+        s.finish_step(start, "implicit MCF")
     }
 
     fn positions(&self) -> &[[f64; 3]] {
-        &self.positions
+        &self.surface.positions
     }
 
     fn initial_metrics(&self) -> StepMetrics {
-        self.initial
+        self.surface.initial
     }
 }
 
@@ -170,13 +95,11 @@ struct ClassicSurface {
     positions: Vec<[f64; 3]>,
     step: usize,
     geometry: GeometryCache,
-    reference: ConformalReference,
+    reporter: StepReporter,
     /// `None` for Taubin smoothing: not shrinking is its whole point, so rescaling it would
     /// hide what the comparison is meant to show.
     scale: Option<ScalePolicy>,
     initial: StepMetrics,
-    q: Vec<f64>,
-    q_scratch: Vec<f64>,
 }
 
 impl ClassicSurface {
@@ -190,28 +113,15 @@ impl ClassicSurface {
                 &geometry.vertex_areas,
             )
         });
-        let initial = StepMetrics {
-            step: 0,
-            willmore_energy: geometry.willmore_energy(),
-            q_mean: 1.0,
-            q_area_mean: 1.0,
-            q_p95: 1.0,
-            q_max: 1.0,
-            closure_residual: 0.0,
-            eigen_residual: 0.0,
-            area: geometry.total_area(),
-            step_ms: 0.0,
-        };
+        let initial = StepReporter::initial(&geometry);
         ClassicSurface {
             triangles: mesh.triangles.clone(),
             positions: mesh.positions.clone(),
             step: 0,
-            reference: ConformalReference::new(&mesh.positions, &mesh.triangles),
+            reporter: StepReporter::new(&mesh.positions, &mesh.triangles),
             geometry,
             scale,
             initial,
-            q: vec![1.0; mesh.face_count()],
-            q_scratch: vec![1.0; mesh.face_count()],
         }
     }
 
@@ -257,22 +167,15 @@ impl ClassicSurface {
             self.geometry.refresh(&self.positions, &self.triangles);
         }
         self.step += 1;
-        self.reference
-            .quasi_conformal_errors_into(&self.positions, &self.triangles, &mut self.q);
-        let (q_mean, q_area_mean, q_p95, q_max) =
-            summarize_q(&self.q, &self.geometry.face_areas, &mut self.q_scratch);
-        Ok(StepMetrics {
-            step: self.step,
-            willmore_energy: self.geometry.willmore_energy(),
-            q_mean,
-            q_area_mean,
-            q_p95,
-            q_max,
-            closure_residual: 0.0,
-            eigen_residual: 0.0,
-            area: self.geometry.total_area(),
-            step_ms: start.elapsed().as_secs_f64() * 1e3,
-        })
+        Ok(self.reporter.report(
+            self.step,
+            &self.positions,
+            &self.triangles,
+            &self.geometry,
+            0.0,
+            0.0,
+            start,
+        ))
     }
 
     fn numerical(&self, reason: String) -> FlowError {

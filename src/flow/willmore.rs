@@ -29,7 +29,7 @@ use crate::geometry::vec3::{norm2, sub};
 use crate::geometry::Quaternion;
 use crate::mesh::topology::Topology;
 use crate::mesh::Mesh;
-use crate::metrics::{summarize_q, ConformalReference, StepMetrics};
+use crate::metrics::{StepMetrics, StepReporter};
 use faer::c64;
 use std::time::Instant;
 
@@ -72,7 +72,7 @@ pub struct ConformalFlow {
     boundary_sums: Vec<f64>,
 
     geometry: GeometryCache,
-    reference: ConformalReference,
+    reporter: StepReporter,
     scale: ScalePolicy,
     constraints: ConstraintBasis,
     initial: StepMetrics,
@@ -96,8 +96,6 @@ pub struct ConformalFlow {
     divergence: Vec<f64>,
     component_norms: Vec<f64>,
     component_areas: Vec<f64>,
-    q: Vec<f64>,
-    q_scratch: Vec<f64>,
 }
 
 impl ConformalFlow {
@@ -130,7 +128,7 @@ impl ConformalFlow {
             (!topology.boundary_loops.is_empty()).then(|| topology.boundary_vertex_mask(n));
 
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
-        let reference = ConformalReference::new(&mesh.positions, &mesh.triangles);
+        let reporter = StepReporter::new(&mesh.positions, &mesh.triangles);
         let scale = ScalePolicy::new(
             vertex_component.clone(),
             n_components,
@@ -158,18 +156,7 @@ impl ConformalFlow {
             })?),
             None => None,
         };
-        let initial = StepMetrics {
-            step: 0,
-            willmore_energy: geometry.willmore_energy(),
-            q_mean: 1.0,
-            q_area_mean: 1.0,
-            q_p95: 1.0,
-            q_max: 1.0,
-            closure_residual: 0.0,
-            eigen_residual: 0.0,
-            area: geometry.total_area(),
-            step_ms: 0.0,
-        };
+        let initial = StepReporter::initial(&geometry);
         Ok(ConformalFlow {
             triangles: mesh.triangles.clone(),
             positions: mesh.positions.clone(),
@@ -208,7 +195,7 @@ impl ConformalFlow {
             boundary_vertex,
             vertex_component,
             geometry,
-            reference,
+            reporter,
             scale,
             initial,
             dirac_values: vec![c64::new(0.0, 0.0); dirac_pattern.nnz()],
@@ -228,8 +215,6 @@ impl ConformalFlow {
             divergence: vec![0.0; 3 * n],
             component_norms: vec![0.0; n_components],
             component_areas: vec![0.0; n_components],
-            q: vec![1.0; nf],
-            q_scratch: vec![1.0; nf],
         })
     }
 
@@ -777,22 +762,15 @@ impl Flow for ConformalFlow {
                 .rescale(&self.triangles, &self.vertex_component, scales);
         }
         self.step += 1;
-        self.reference
-            .quasi_conformal_errors_into(&self.positions, &self.triangles, &mut self.q);
-        let (q_mean, q_area_mean, q_p95, q_max) =
-            summarize_q(&self.q, &self.geometry.face_areas, &mut self.q_scratch);
-        Ok(StepMetrics {
-            step: self.step,
-            willmore_energy: self.geometry.willmore_energy(),
-            q_mean,
-            q_area_mean,
-            q_p95,
-            q_max,
+        Ok(self.reporter.report(
+            self.step,
+            &self.positions,
+            &self.triangles,
+            &self.geometry,
             closure_residual,
             eigen_residual,
-            area: self.geometry.total_area(),
-            step_ms: start.elapsed().as_secs_f64() * 1e3,
-        })
+            start,
+        ))
     }
 
     fn positions(&self) -> &[[f64; 3]] {
