@@ -150,3 +150,40 @@ fn bench_prints_figures_and_ratio() {
     );
     assert!(c > 0.0 && m > 0.0 && (r - c / m).abs() < 1e-9 * r.max(1.0));
 }
+
+#[test]
+fn paper_options_reach_the_flow() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let run = |extra: &[&str]| {
+        willow()
+            .args(["fair", &spot(), "-o"])
+            .arg(dir.path().join("o.obj"))
+            .args(["--steps", "1", "--json"])
+            .args(extra)
+            .output()
+            .expect("run willow")
+    };
+    let plain = run(&[]);
+    let filtered = run(&["--filter-sigma", "0.01", "--filter-k", "2", "--mobius"]);
+    assert!(plain.status.success() && filtered.status.success());
+    // The filter changes the step: the reported energies differ.
+    let w = |out: &std::process::Output| -> f64 {
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON line");
+        v["willmore_energy"].as_f64().unwrap_or(f64::NAN)
+    };
+    assert!(
+        (w(&plain) - w(&filtered)).abs() > 1e-6 * w(&plain),
+        "filter had no effect"
+    );
+    // A bad filter order is refused with the reason.
+    let bad = run(&["--filter-sigma", "0.01", "--filter-k", "7"]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("filter"));
+    // --filter-sigma alone is a usage error.
+    let alone = run(&["--filter-sigma", "0.01"]);
+    assert_eq!(alone.status.code(), Some(2));
+    // A closed surface ignores --boundary fixed (it has no boundary) and still flows.
+    assert!(run(&["--boundary", "fixed", "--no-exactness"])
+        .status
+        .success());
+}

@@ -7,7 +7,8 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use willow::flow::{new_flow, FlowParams, Method};
+use willow::flow::filter::SpectralFilter;
+use willow::flow::{new_flow, Boundary, FlowParams, Method};
 use willow::mesh::io::{Asset, Format, Limits};
 
 #[derive(Args, Debug)]
@@ -36,6 +37,31 @@ pub struct FairArgs {
     /// One JSON object per step on stdout instead of a progress bar.
     #[arg(long)]
     pub json: bool,
+    /// Leave out the exactness constraints on surfaces of genus > 0 (App. C): only to see
+    /// what they prevent (the paper's Figure 12).
+    #[arg(long)]
+    pub no_exactness: bool,
+    /// Möbius balancing toward the input's area distribution (App. E).
+    #[arg(long)]
+    pub mobius: bool,
+    /// Spectral filter strength σ (§4, unitless: σ = (l(l+1))^−k puts the crossover at
+    /// spherical degree l); needs --filter-k.
+    #[arg(long, requires = "filter_k")]
+    pub filter_sigma: Option<f64>,
+    /// Spectral filter shape k (0..=3); k = 2 approximates position-based Willmore flow.
+    #[arg(long, requires = "filter_sigma")]
+    pub filter_k: Option<u32>,
+    /// Boundary condition for surfaces with boundary (§6.3).
+    #[arg(long, value_enum, default_value_t = BoundaryArg::Free)]
+    pub boundary: BoundaryArg,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum BoundaryArg {
+    /// The boundary moves freely.
+    Free,
+    /// Boundary vertices stay exactly where they are.
+    Fixed,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -97,7 +123,16 @@ pub fn run(args: FairArgs) -> ExitCode {
         method: args.method.into(),
         tau: args.tau,
         iterations: args.iterations,
-        ..FlowParams::default()
+        exactness: !args.no_exactness,
+        mobius_balancing: args.mobius,
+        filter: match (args.filter_sigma, args.filter_k) {
+            (Some(sigma), Some(k)) => Some(SpectralFilter { sigma, k }),
+            _ => None,
+        },
+        boundary: match args.boundary {
+            BoundaryArg::Free => Boundary::Free,
+            BoundaryArg::Fixed => Boundary::Fixed,
+        },
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
