@@ -17,4 +17,7 @@ if [[ -x scripts/python-env.sh ]]; then
     scripts/python-env.sh
 fi
 
-cargo test --all-targets "$@"
+# Unit, integration and doc tests. Benchmarks are compiled by clippy in .ci/run and run by
+# `cargo bench`; they are not tests, so they stay out of this run.
+cargo test --lib --bins --tests "$@"
+cargo test --doc "$@"
