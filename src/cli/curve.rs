@@ -3,7 +3,7 @@
 //! "closed": bool}` or a bare point array, which is open) and `.obj` (`v` lines and one `l`
 //! line; repeating the first index closes the curve).
 
-use super::{fail, EXIT_BAD_INPUT, EXIT_FAILURE};
+use super::{fail, read_input, EXIT_BAD_INPUT, EXIT_FAILURE};
 use clap::Args;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -60,14 +60,9 @@ pub fn run(args: CurveArgs) -> ExitCode {
         Ok(f) => f,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
-    let bytes = match std::fs::read(&args.input) {
+    let bytes = match read_input(&args.input) {
         Ok(b) => b,
-        Err(e) => {
-            return fail(
-                EXIT_BAD_INPUT,
-                format!("cannot read {}: {e}", args.input.display()),
-            )
-        }
+        Err(code) => return code,
     };
     let parsed = match input_format {
         CurveFormat::Json => Curve::from_json(&bytes),

@@ -1,7 +1,7 @@
 //! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
 //! [--frames-dir DIR] [--json]`: the contract other tools rely on.
 
-use super::{fail, EXIT_BAD_INPUT, EXIT_FAILURE};
+use super::{fail, read_input, EXIT_BAD_INPUT, EXIT_FAILURE};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
@@ -106,14 +106,9 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(f) => f,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
-    let bytes = match std::fs::read(&args.input) {
+    let bytes = match read_input(&args.input) {
         Ok(b) => b,
-        Err(e) => {
-            return fail(
-                EXIT_BAD_INPUT,
-                format!("cannot read {}: {e}", args.input.display()),
-            )
-        }
+        Err(code) => return code,
     };
     let asset = match Asset::read(&bytes, input_format, &Limits::default()) {
         Ok(a) => a,

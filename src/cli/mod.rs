@@ -15,3 +15,13 @@ pub fn fail(code: u8, message: impl std::fmt::Display) -> ExitCode {
     eprintln!("error: {message}");
     ExitCode::from(code)
 }
+
+/// Read an input file, or report why not (exit code 2: the input is refused).
+pub fn read_input(path: &std::path::Path) -> Result<Vec<u8>, ExitCode> {
+    std::fs::read(path).map_err(|e| {
+        fail(
+            EXIT_BAD_INPUT,
+            format!("cannot read {}: {e}", path.display()),
+        )
+    })
+}
