@@ -197,7 +197,7 @@ fn real_disks_flow_free_and_fixed() {
             continue;
         };
         for (boundary, tau) in [(Boundary::Free, 0.05), (Boundary::Fixed, 0.3)] {
-            let mut flow = new_flow(&mesh, &params(tau, boundary)).expect("flow");
+            let mut flow = new_flow(&mesh, &params(tau, boundary.clone())).expect("flow");
             let w0 = flow.initial_metrics().willmore_energy;
             let metrics = run(flow.as_mut(), 4);
             let last = metrics.last().expect("steps");

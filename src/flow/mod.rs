@@ -37,15 +37,70 @@ pub enum Method {
 }
 
 /// What happens at the boundary of a surface with boundary (§6.3). Closed surfaces ignore it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum Boundary {
-    /// The boundary moves freely (§6.2: disks need no constraint).
+    /// The boundary moves freely (§6.2: disks need no constraint). Not elliptic at the
+    /// boundary (Bohle and Pinkall 2013): large steps may need a small τ there.
     #[default]
     Free,
     /// Boundary positions stay exactly where they are (§6.3.2): λ = 1 on the boundary and a
     /// Dirichlet Poisson problem for the positions.
     Fixed,
+    /// Prescribed vectors (§6.3.1): at every boundary vertex a direction `V` of the
+    /// boundary frame is mapped to a target `Ṽ`.
+    Prescribed(PrescribedVectors),
+    /// `V = B` held at the input's binormals (§6.3.1, last sentence): Willmore flow then
+    /// converges to a surface of constant mean curvature with the input's boundary conormals.
+    /// The same as `Prescribed` with every field at its default.
+    Cmc,
+}
+
+/// §6.3.1: `V = cos φ·B + sin φ·N` in the boundary frame (`T` the boundary tangent, `N` the
+/// normal, `B = T × N`), and the target `Ṽ` = `V` of the *input* surface rotated by an angle
+/// about an axis. Targets are fixed in space when the flow is built; each step maps the
+/// current `V` to them, so after the first step the boundary keeps them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default)]
+pub struct PrescribedVectors {
+    /// φ in radians, |φ| < π/2: `V` must not be `±N`, where the boundary problem stops being
+    /// elliptic; φ = 0 (`V = B`, perpendicular to `T`) is also self-adjoint (§6.3.1).
+    pub frame_angle: f64,
+    /// Axis of the rotation from `V` to `Ṽ`.
+    pub axis: RotationAxis,
+    /// Rotation angles in radians.
+    pub angles: BoundaryAngles,
+}
+
+/// Axis of the rotation that makes the target `Ṽ` from the input's `V`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum RotationAxis {
+    /// The boundary tangent `T` at each vertex: turns `V` within the N–B plane (flares or
+    /// tucks the boundary; oscillating angles give Figure 14's hemisphere).
+    #[default]
+    Tangent,
+    /// One fixed direction in space for every vertex (tilts a whole loop: the bend of
+    /// Figure 14's cylinder). Need not be unit length; must not be zero.
+    Fixed([f64; 3]),
+}
+
+/// Rotation angle per boundary vertex, in radians.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BoundaryAngles {
+    /// The same angle everywhere.
+    Uniform(f64),
+    /// One angle per boundary loop, in the order of `Topology::boundary_loops`.
+    PerLoop(Vec<f64>),
+    /// Angles for listed boundary vertices (mesh vertex indices); unlisted ones get 0.
+    PerVertex(Vec<(usize, f64)>),
+}
+
+impl Default for BoundaryAngles {
+    fn default() -> Self {
+        BoundaryAngles::Uniform(0.0)
+    }
 }
 
 /// Parameters of a flow run.

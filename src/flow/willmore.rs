@@ -122,6 +122,13 @@ impl ConformalFlow {
             .iter()
             .map(|&c| topology.components[c].is_closed())
             .collect();
+        if matches!(params.boundary, Boundary::Prescribed(_) | Boundary::Cmc)
+            && !topology.boundary_loops.is_empty()
+        {
+            return Err(FlowError::Unsupported(
+                "prescribed boundary vectors are not implemented yet".into(),
+            ));
+        }
         let fixed = (params.boundary == Boundary::Fixed && !topology.boundary_loops.is_empty())
             .then(|| topology.boundary_vertex_mask(n));
         let boundary_vertex =
