@@ -24,6 +24,8 @@ use tonic::{Code, Request, Response, Status, Streaming};
 use tonic_types::{ErrorDetails, StatusExt};
 
 use crate::flow::Method;
+use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
+use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{Frame, JobError, JobEvent, JobSpec, JobState, JobStatus, Jobs, UploadRef};
 use crate::mesh::io::Format;
 use crate::metrics::StepMetrics;
@@ -405,6 +407,69 @@ impl v1::fairing_server::Fairing for GrpcApi {
             .collect();
         Ok(Response::new(futures::stream::iter(chunks).boxed()))
     }
+
+    async fn fair_curve(
+        &self,
+        request: Request<v1::FairCurveRequest>,
+    ) -> Result<Response<v1::FairCurveResponse>, Status> {
+        // Answer a little before the client's own deadline, so it hears why.
+        let client_deadline =
+            grpc_timeout(&request).map(|d| d.saturating_sub(WAIT_DEADLINE_MARGIN));
+        let request = request.into_inner();
+        let curve = request
+            .curve
+            .ok_or_else(|| bad_request("curve", "required: the points to fair"))?;
+        if curve.xy.len() % 2 != 0 {
+            return Err(bad_request(
+                "curve.xy",
+                format!(
+                    "must hold x, y pairs (an even count of numbers), got {}",
+                    curve.xy.len()
+                ),
+            ));
+        }
+        let count = curve.xy.len() / 2;
+        let limit = self.jobs.config().limits.max_curve_points;
+        if count > limit {
+            return Err(curve_error(JobError::TooLarge {
+                what: "curve points",
+                limit: limit as u64,
+            }));
+        }
+        let mut points = Vec::new();
+        points
+            .try_reserve_exact(count)
+            .map_err(|_| Status::resource_exhausted("not enough memory for the curve"))?;
+        points.extend(curve.xy.chunks_exact(2).map(|c| [c[0], c[1]]));
+
+        let mut spec = CurveSpec::default();
+        if let Some(steps) = request.steps {
+            spec.steps = steps as usize;
+        }
+        if let Some(tau) = request.tau {
+            spec.tau = tau;
+        }
+        if request.frame_interval > 0 {
+            spec.frame_interval = Some(request.frame_interval as usize);
+        }
+        if let Some(deadline) = request.deadline {
+            let d = duration_from_pb("deadline", &deadline)?;
+            if d.is_zero() {
+                return Err(bad_request("deadline", "must be > 0 when set"));
+            }
+            spec.deadline_secs = Some(d.as_secs_f64());
+        }
+        let input = CurveInput::Points {
+            points,
+            closed: curve.closed,
+        };
+        let outcome = self
+            .jobs
+            .fair_curve(input, spec, client_deadline)
+            .await
+            .map_err(curve_error)?;
+        Ok(Response::new(curve_response_pb(&outcome)))
+    }
 }
 
 #[tonic::async_trait]
@@ -594,13 +659,22 @@ fn bad_request(field: &str, description: impl Into<String>) -> Status {
     )
 }
 
-/// The request field a job-core parameter name corresponds to.
+/// The request field a job-core parameter name corresponds to. The core names nested fields
+/// by their JSON path (`filter.k`, `boundary.prescribed.axis.fixed`), which the proto mirrors
+/// under `params`.
 fn spec_field(core_field: &str) -> String {
     match core_field {
         "deadline_secs" => "params.deadline".into(),
         "idempotency_key" => "request_id".into(),
-        "method" | "steps" | "tau" | "iterations" | "frame_interval" | "include_positions" => {
+        "boundary.prescribed.angles.per_loop" => {
+            "params.boundary.prescribed.angles.per_loop.values".into()
+        }
+        "method" | "steps" | "tau" | "iterations" | "frame_interval" | "include_positions"
+        | "exactness" | "mobius_balancing" | "filter" | "boundary" => {
             format!("params.{core_field}")
+        }
+        nested if nested.starts_with("filter.") || nested.starts_with("boundary.") => {
+            format!("params.{nested}")
         }
         other => other.into(),
     }
@@ -708,6 +782,33 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
             details.set_retry_info(Some(Duration::from_secs(1)));
             Code::Unavailable
         }
+        JobError::InvalidCurve(curve) => {
+            details.add_bad_request_violation(mesh_field, curve.to_string());
+            details.set_error_info(
+                crate::jobs::curve::curve_error_code(curve).to_ascii_uppercase(),
+                ERROR_DOMAIN,
+                HashMap::new(),
+            );
+            Code::InvalidArgument
+        }
+        JobError::Busy {
+            retry_after_secs,
+            slots,
+        } => {
+            details.set_retry_info(Some(Duration::from_secs(*retry_after_secs)));
+            details.set_error_info(
+                "BUSY",
+                ERROR_DOMAIN,
+                HashMap::from([("slots".to_string(), slots.to_string())]),
+            );
+            Code::ResourceExhausted
+        }
+        JobError::DeadlineExceeded { .. } => Code::DeadlineExceeded,
+        JobError::Numerical { .. } => {
+            // As a job's numerical failure: not the client's fault, not retryable (job_failure).
+            details.set_error_info("NUMERICAL", ERROR_DOMAIN, HashMap::new());
+            Code::Unknown
+        }
         JobError::Internal(detail) => {
             // The detail may name files and SQL: log it, don't send it.
             tracing::error!(error = %detail, "internal error in a gRPC call");
@@ -715,6 +816,30 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
         }
     };
     Status::with_error_details(code, message, details)
+}
+
+/// Map a [`Jobs::fair_curve`] error: its parameters are top-level fields of
+/// `FairCurveRequest` (not `params.*` as for jobs), and the curve is `curve.xy`.
+fn curve_error(err: JobError) -> Status {
+    match err {
+        JobError::InvalidSpec { field, reason } => {
+            let field = match field {
+                "deadline_secs" => "deadline",
+                "curve" => "curve.xy",
+                other => other,
+            };
+            bad_request(field, reason)
+        }
+        // A step count over the limit is a parameter out of range, as for jobs.
+        JobError::TooLarge {
+            what: "steps",
+            limit,
+        } => bad_request(
+            "steps",
+            format!("must be at most {limit} (the server's limit for curves)"),
+        ),
+        other => job_error(other, "curve.xy"),
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -849,7 +974,79 @@ fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Status> {
         }
         spec.deadline_secs = Some(d.as_secs_f64());
     }
+    if let Some(exactness) = p.exactness {
+        spec.exactness = exactness;
+    }
+    if let Some(mobius) = p.mobius_balancing {
+        spec.mobius_balancing = mobius;
+    }
+    spec.filter = p.filter.map(|f| FilterSpec {
+        sigma: f.sigma,
+        k: f.k,
+    });
+    if let Some(boundary) = p.boundary {
+        spec.boundary = boundary_from_pb(boundary);
+    }
     Ok(spec)
+}
+
+/// Wire boundary → [`BoundarySpec`]. Unset oneofs take the defaults the proto documents
+/// (free; tangent axis; uniform 0); the numbers are checked by [`JobSpec::validate`].
+fn boundary_from_pb(boundary: v1::Boundary) -> BoundarySpec {
+    use v1::boundary::Condition;
+    match boundary.condition {
+        None | Some(Condition::Free(())) => BoundarySpec::Free,
+        Some(Condition::Fixed(())) => BoundarySpec::Fixed,
+        Some(Condition::Cmc(())) => BoundarySpec::Cmc,
+        Some(Condition::Prescribed(p)) => BoundarySpec::Prescribed(PrescribedSpec {
+            frame_angle: p.frame_angle,
+            axis: match p.axis.and_then(|a| a.axis) {
+                None | Some(v1::rotation_axis::Axis::Tangent(())) => AxisSpec::Tangent,
+                Some(v1::rotation_axis::Axis::Fixed(v)) => AxisSpec::Fixed([v.x, v.y, v.z]),
+            },
+            angles: match p.angles.and_then(|a| a.angles) {
+                None => AnglesSpec::default(),
+                Some(v1::boundary_angles::Angles::Uniform(a)) => AnglesSpec::Uniform(a),
+                Some(v1::boundary_angles::Angles::PerLoop(list)) => {
+                    AnglesSpec::PerLoop(list.values)
+                }
+            },
+        }),
+    }
+}
+
+/// [`BoundarySpec`] → wire, every oneof set (GetJob reports the effective condition).
+fn boundary_pb(boundary: &BoundarySpec) -> v1::Boundary {
+    use v1::boundary::Condition;
+    let condition = match boundary {
+        BoundarySpec::Free => Condition::Free(()),
+        BoundarySpec::Fixed => Condition::Fixed(()),
+        BoundarySpec::Cmc => Condition::Cmc(()),
+        BoundarySpec::Prescribed(p) => Condition::Prescribed(v1::PrescribedVectors {
+            frame_angle: p.frame_angle,
+            axis: Some(v1::RotationAxis {
+                axis: Some(match p.axis {
+                    AxisSpec::Tangent => v1::rotation_axis::Axis::Tangent(()),
+                    AxisSpec::Fixed([x, y, z]) => {
+                        v1::rotation_axis::Axis::Fixed(v1::Vector3 { x, y, z })
+                    }
+                }),
+            }),
+            angles: Some(v1::BoundaryAngles {
+                angles: Some(match &p.angles {
+                    AnglesSpec::Uniform(a) => v1::boundary_angles::Angles::Uniform(*a),
+                    AnglesSpec::PerLoop(values) => {
+                        v1::boundary_angles::Angles::PerLoop(v1::AngleList {
+                            values: values.clone(),
+                        })
+                    }
+                }),
+            }),
+        }),
+    };
+    v1::Boundary {
+        condition: Some(condition),
+    }
 }
 
 /// AIP-155: `request_id` is optional and, when set, a UUID (any version, any case).
@@ -959,6 +1156,58 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
         frame_interval: Some(count(spec.frame_interval)),
         include_positions: Some(spec.include_positions),
         deadline: spec
+            .deadline_secs
+            .and_then(|s| Duration::try_from_secs_f64(s).ok())
+            .and_then(|d| prost_types::Duration::try_from(d).ok()),
+        exactness: Some(spec.exactness),
+        mobius_balancing: Some(spec.mobius_balancing),
+        filter: spec.filter.map(|f| v1::SpectralFilter {
+            sigma: f.sigma,
+            k: f.k,
+        }),
+        boundary: Some(boundary_pb(&spec.boundary)),
+    }
+}
+
+fn curve_pb(points: &[[f64; 2]], closed: bool) -> v1::Curve {
+    v1::Curve {
+        xy: points.iter().flat_map(|p| [p[0], p[1]]).collect(),
+        closed,
+    }
+}
+
+fn curve_response_pb(outcome: &CurveOutcome) -> v1::FairCurveResponse {
+    let closed = outcome.curve.closed;
+    v1::FairCurveResponse {
+        curve: Some(curve_pb(&outcome.curve.points, closed)),
+        metrics: outcome
+            .metrics
+            .iter()
+            .map(|m| v1::CurveStepMetrics {
+                step: count(m.step),
+                energy: m.energy,
+                curvature_std_over_mean: m.curvature_std_over_mean,
+                max_edge_length_distortion: m.max_edge_length_distortion,
+                closure_gap: m.closure_gap,
+                poisson_residual: m.poisson_residual,
+                total_length: m.total_length,
+                total_curvature: m.total_curvature,
+                step_ms: m.step_ms,
+            })
+            .collect(),
+        frames: outcome
+            .frames
+            .iter()
+            .map(|f| v1::CurveFrame {
+                step: count(f.step),
+                curve: Some(curve_pb(&f.points, closed)),
+            })
+            .collect(),
+        steps: count(outcome.spec.steps),
+        tau: outcome.spec.tau,
+        frame_interval: outcome.spec.frame_interval.map_or(0, count),
+        deadline: outcome
+            .spec
             .deadline_secs
             .and_then(|s| Duration::try_from_secs_f64(s).ok())
             .and_then(|d| prost_types::Duration::try_from(d).ok()),
@@ -1210,5 +1459,54 @@ mod tests {
             .map(|b| b.field_violations.into_iter().map(|v| v.field).collect())
             .unwrap_or_default();
         assert_eq!(fields, vec!["params.deadline".to_string()]);
+        for (core, wire) in [
+            ("filter.k", "params.filter.k"),
+            ("exactness", "params.exactness"),
+            (
+                "boundary.prescribed.axis.fixed",
+                "params.boundary.prescribed.axis.fixed",
+            ),
+            (
+                "boundary.prescribed.angles.per_loop",
+                "params.boundary.prescribed.angles.per_loop.values",
+            ),
+        ] {
+            assert_eq!(spec_field(core), wire);
+        }
+    }
+
+    #[test]
+    fn boundaries_round_trip_through_the_wire() {
+        for b in [
+            BoundarySpec::Free,
+            BoundarySpec::Fixed,
+            BoundarySpec::Cmc,
+            BoundarySpec::Prescribed(PrescribedSpec {
+                frame_angle: -0.4,
+                axis: AxisSpec::Fixed([1.0, 0.0, 0.5]),
+                angles: AnglesSpec::PerLoop(vec![0.25, -0.5]),
+            }),
+            BoundarySpec::Prescribed(PrescribedSpec {
+                frame_angle: 0.1,
+                axis: AxisSpec::Tangent,
+                angles: AnglesSpec::Uniform(0.3),
+            }),
+        ] {
+            assert_eq!(boundary_from_pb(boundary_pb(&b)), b);
+        }
+        // Empty messages take the documented defaults.
+        assert_eq!(
+            boundary_from_pb(v1::Boundary::default()),
+            BoundarySpec::Free
+        );
+        let bare = v1::Boundary {
+            condition: Some(v1::boundary::Condition::Prescribed(
+                v1::PrescribedVectors::default(),
+            )),
+        };
+        assert_eq!(
+            boundary_from_pb(bare),
+            BoundarySpec::Prescribed(PrescribedSpec::default())
+        );
     }
 }

@@ -11,6 +11,8 @@
 
 use super::problem::Problem;
 use crate::flow::Method;
+use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
+use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{
     format_media_type, format_name, parse_format, rfc3339, JobEvent, JobSpec, JobState, JobStatus,
     Jobs, UploadRef,
@@ -54,6 +56,8 @@ pub fn routes(state: AppState) -> Router {
         .route("/v1/jobs/{id}/frames", get(list_frames))
         .route("/v1/jobs/{id}/frames/{step}", get(frame_mesh))
         .route("/v1/jobs/{id}/result", get(job_result))
+        // AIP-136 custom method: a literal colon, not a path parameter.
+        .route("/v1/curves:fair", post(fair_curve))
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
@@ -65,11 +69,12 @@ pub fn routes(state: AppState) -> Router {
 // ---------------------------------------------------------------------------------------------
 // Wire types
 
-/// Job parameters: query string of a raw upload, or the `params` part of a multipart upload.
-/// Every field is optional; the server's defaults fill the rest.
-#[derive(Debug, Default, Clone, Deserialize, Serialize, ToSchema, IntoParams)]
+/// Job parameters as JSON: the `params` part of a multipart upload. Every field is optional;
+/// the server's defaults fill the rest. The shape is that of a job's reported `params`, so
+/// those can be sent again as they are. (A raw upload takes the same parameters in the query
+/// string: [`JobQuery`].)
+#[derive(Debug, Default, Clone, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
-#[into_params(parameter_in = Query)]
 pub struct JobParams {
     /// `conformal` (default), `mcf`, `cmcf`, `bilaplacian` or `taubin`.
     pub method: Option<String>,
@@ -85,6 +90,14 @@ pub struct JobParams {
     pub include_positions: Option<bool>,
     /// Deadline in seconds from submission (default: the server's).
     pub deadline_secs: Option<f64>,
+    /// Exactness constraints for genus > 0 (default true). Conformal flow only.
+    pub exactness: Option<bool>,
+    /// Möbius balancing (default false). Conformal flow only.
+    pub mobius_balancing: Option<bool>,
+    /// Spectral filter `{"sigma": σ, "k": k}` (default none). Conformal flow only.
+    pub filter: Option<FilterSpec>,
+    /// `"free"` (default), `"fixed"`, `"cmc"` or `{"prescribed": {…}}`. Conformal flow only.
+    pub boundary: Option<BoundarySpec>,
 }
 
 impl JobParams {
@@ -92,23 +105,7 @@ impl JobParams {
     pub fn into_spec(self) -> Result<JobSpec, Problem> {
         let mut spec = JobSpec::default();
         if let Some(m) = self.method {
-            spec.method = match m.to_ascii_lowercase().as_str() {
-                "conformal" => Method::Conformal,
-                "mcf" => Method::Mcf,
-                "cmcf" => Method::Cmcf,
-                "bilaplacian" => Method::Bilaplacian,
-                "taubin" => Method::Taubin,
-                other => {
-                    return Err(Problem::bad_request(
-                        "invalid_parameter",
-                        format!(
-                            "invalid parameter `method`: expected `conformal`, `mcf`, `cmcf`, \
-                             `bilaplacian` or `taubin`, got `{other}`"
-                        ),
-                    )
-                    .with("field", "method"))
-                }
-            };
+            spec.method = parse_method(&m)?;
         }
         if let Some(v) = self.steps {
             spec.steps = v;
@@ -126,8 +123,226 @@ impl JobParams {
             spec.include_positions = v;
         }
         spec.deadline_secs = self.deadline_secs;
+        if let Some(v) = self.exactness {
+            spec.exactness = v;
+        }
+        if let Some(v) = self.mobius_balancing {
+            spec.mobius_balancing = v;
+        }
+        spec.filter = self.filter;
+        if let Some(v) = self.boundary {
+            spec.boundary = v;
+        }
         Ok(spec)
     }
+}
+
+fn parse_method(m: &str) -> Result<Method, Problem> {
+    Ok(match m.to_ascii_lowercase().as_str() {
+        "conformal" => Method::Conformal,
+        "mcf" => Method::Mcf,
+        "cmcf" => Method::Cmcf,
+        "bilaplacian" => Method::Bilaplacian,
+        "taubin" => Method::Taubin,
+        other => {
+            return Err(bad_field(
+                "method",
+                format!(
+                    "expected `conformal`, `mcf`, `cmcf`, `bilaplacian` or `taubin`, got `{other}`"
+                ),
+            ))
+        }
+    })
+}
+
+/// 400 `invalid_parameter` naming `field`, as the core's own parameter errors do.
+fn bad_field(field: &str, reason: impl std::fmt::Display) -> Problem {
+    Problem::bad_request(
+        "invalid_parameter",
+        format!("invalid parameter `{field}`: {reason}"),
+    )
+    .with("field", field)
+}
+
+/// Job parameters in the query string of a raw upload. The names are those of [`JobParams`];
+/// nested fields are dotted paths (as Google's HTTP transcoding spells them), lists are comma
+/// separated: `?filter.sigma=0.01&filter.k=2`,
+/// `?boundary=prescribed&boundary.prescribed.frame_angle=0.2&boundary.prescribed.angles.per_loop=0.1,-0.1`.
+/// Any `boundary.prescribed.*` parameter implies `boundary=prescribed`.
+#[derive(Debug, Default, Clone, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct JobQuery {
+    /// `conformal` (default), `mcf`, `cmcf`, `bilaplacian` or `taubin`.
+    pub method: Option<String>,
+    /// Flow steps to take (default 20).
+    pub steps: Option<usize>,
+    /// Time step τ (default 0.5; conformal needs 0 < τ < 1).
+    pub tau: Option<f64>,
+    /// Inverse iterations per step (default 1).
+    pub iterations: Option<usize>,
+    /// Keep positions every this many steps (default 1).
+    pub frame_interval: Option<usize>,
+    /// Send positions in frames (default true).
+    pub include_positions: Option<bool>,
+    /// Deadline in seconds from submission (default: the server's).
+    pub deadline_secs: Option<f64>,
+    /// Exactness constraints for genus > 0 (default true). Conformal flow only.
+    pub exactness: Option<bool>,
+    /// Möbius balancing (default false). Conformal flow only.
+    pub mobius_balancing: Option<bool>,
+    /// Spectral filter strength σ > 0, unitless; needs `filter.k`. Conformal flow only.
+    #[serde(rename = "filter.sigma")]
+    #[param(rename = "filter.sigma")]
+    pub filter_sigma: Option<f64>,
+    /// Spectral filter shape k, 0..=3; needs `filter.sigma`.
+    #[serde(rename = "filter.k")]
+    #[param(rename = "filter.k")]
+    pub filter_k: Option<u32>,
+    /// `free` (default), `fixed`, `cmc` or `prescribed`. Conformal flow only.
+    pub boundary: Option<String>,
+    /// Prescribed vectors: φ in radians, |φ| < π/2 (default 0).
+    #[serde(rename = "boundary.prescribed.frame_angle")]
+    #[param(rename = "boundary.prescribed.frame_angle")]
+    pub frame_angle: Option<f64>,
+    /// Prescribed vectors: `tangent` (the default rotation axis).
+    #[serde(rename = "boundary.prescribed.axis")]
+    #[param(rename = "boundary.prescribed.axis")]
+    pub axis: Option<String>,
+    /// Prescribed vectors: a fixed rotation axis `x,y,z`, finite and non-zero.
+    #[serde(rename = "boundary.prescribed.axis.fixed")]
+    #[param(rename = "boundary.prescribed.axis.fixed")]
+    pub axis_fixed: Option<String>,
+    /// Prescribed vectors: one rotation angle in radians for every boundary vertex (default 0).
+    #[serde(rename = "boundary.prescribed.angles.uniform")]
+    #[param(rename = "boundary.prescribed.angles.uniform")]
+    pub angles_uniform: Option<f64>,
+    /// Prescribed vectors: one angle per boundary loop, `a,b,…` (as many as the mesh has loops).
+    #[serde(rename = "boundary.prescribed.angles.per_loop")]
+    #[param(rename = "boundary.prescribed.angles.per_loop")]
+    pub angles_per_loop: Option<String>,
+}
+
+impl JobQuery {
+    /// The same parameters in their JSON shape.
+    pub fn into_params(self) -> Result<JobParams, Problem> {
+        let filter = match (self.filter_sigma, self.filter_k) {
+            (None, None) => None,
+            (Some(sigma), Some(k)) => Some(FilterSpec { sigma, k }),
+            (Some(_), None) => return Err(bad_field("filter.k", "required with `filter.sigma`")),
+            (None, Some(_)) => return Err(bad_field("filter.sigma", "required with `filter.k`")),
+        };
+        let prescribed_given = self.frame_angle.is_some()
+            || self.axis.is_some()
+            || self.axis_fixed.is_some()
+            || self.angles_uniform.is_some()
+            || self.angles_per_loop.is_some();
+        let boundary = match self.boundary.as_deref().map(str::to_ascii_lowercase) {
+            None if !prescribed_given => None,
+            None => Some(BoundarySpec::Prescribed(PrescribedSpec::default())),
+            Some(name) => Some(match name.as_str() {
+                "free" => BoundarySpec::Free,
+                "fixed" => BoundarySpec::Fixed,
+                "cmc" => BoundarySpec::Cmc,
+                "prescribed" => BoundarySpec::Prescribed(PrescribedSpec::default()),
+                other => {
+                    return Err(bad_field(
+                        "boundary",
+                        format!("expected `free`, `fixed`, `cmc` or `prescribed`, got `{other}`"),
+                    ))
+                }
+            }),
+        };
+        let boundary = match boundary {
+            Some(BoundarySpec::Prescribed(mut p)) => {
+                if let Some(a) = self.frame_angle {
+                    p.frame_angle = a;
+                }
+                p.axis = match (self.axis.as_deref(), self.axis_fixed.as_deref()) {
+                    (Some(_), Some(_)) => {
+                        return Err(bad_field(
+                            "boundary.prescribed.axis",
+                            "give either `boundary.prescribed.axis=tangent` or `boundary.prescribed.axis.fixed=x,y,z`, not both",
+                        ))
+                    }
+                    (Some(name), None) if name.eq_ignore_ascii_case("tangent") => {
+                        AxisSpec::Tangent
+                    }
+                    (Some(other), None) => {
+                        return Err(bad_field(
+                            "boundary.prescribed.axis",
+                            format!(
+                                "expected `tangent` (a fixed axis is `boundary.prescribed.axis.fixed=x,y,z`), got `{other}`"
+                            ),
+                        ))
+                    }
+                    (None, Some(text)) => {
+                        let field = "boundary.prescribed.axis.fixed";
+                        let v = parse_list(field, text)?;
+                        let xyz: [f64; 3] = v.try_into().map_err(|v: Vec<f64>| {
+                            bad_field(field, format!("expected 3 numbers x,y,z, got {}", v.len()))
+                        })?;
+                        AxisSpec::Fixed(xyz)
+                    }
+                    (None, None) => AxisSpec::Tangent,
+                };
+                p.angles = match (self.angles_uniform, self.angles_per_loop.as_deref()) {
+                    (Some(_), Some(_)) => {
+                        return Err(bad_field(
+                            "boundary.prescribed.angles",
+                            "give either `angles.uniform` or `angles.per_loop`, not both",
+                        ))
+                    }
+                    (Some(a), None) => AnglesSpec::Uniform(a),
+                    (None, Some(text)) => AnglesSpec::PerLoop(parse_list(
+                        "boundary.prescribed.angles.per_loop",
+                        text,
+                    )?),
+                    (None, None) => AnglesSpec::default(),
+                };
+                Some(BoundarySpec::Prescribed(p))
+            }
+            Some(other) if prescribed_given => {
+                return Err(bad_field(
+                    "boundary",
+                    format!(
+                        "`boundary.prescribed.*` parameters need `boundary=prescribed`, got `{}`",
+                        serde_json::to_string(&other)
+                            .unwrap_or_default()
+                            .trim_matches('"')
+                    ),
+                ))
+            }
+            other => other,
+        };
+        Ok(JobParams {
+            method: self.method,
+            steps: self.steps,
+            tau: self.tau,
+            iterations: self.iterations,
+            frame_interval: self.frame_interval,
+            include_positions: self.include_positions,
+            deadline_secs: self.deadline_secs,
+            exactness: self.exactness,
+            mobius_balancing: self.mobius_balancing,
+            filter,
+            boundary,
+        })
+    }
+}
+
+/// Comma-separated numbers (`0.1,-0.2`); empty text is an empty list.
+fn parse_list(field: &str, text: &str) -> Result<Vec<f64>, Problem> {
+    if text.trim().is_empty() {
+        return Ok(Vec::new());
+    }
+    text.split(',')
+        .map(|t| {
+            t.trim()
+                .parse::<f64>()
+                .map_err(|_| bad_field(field, format!("`{}` is not a number", t.trim())))
+        })
+        .collect()
 }
 
 #[derive(Debug, Serialize, ToSchema)]
@@ -165,7 +380,7 @@ pub struct JobView {
     pub error: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error_code: Option<String>,
-    #[schema(value_type = Object)]
+    /// The parameters the job runs with, defaults filled in.
     pub params: JobSpec,
     /// `obj`, `glb` or `gltf`.
     pub input_format: String,
@@ -365,7 +580,7 @@ fn record_job(id: &str) {
 /// Submit a job: the mesh as the raw body (parameters in the query) or as multipart.
 #[utoipa::path(
     post, path = "/v1/jobs", tag = "jobs",
-    params(JobParams,
+    params(JobQuery,
         ("Idempotency-Key" = Option<String>, Header, description = "Retries with the same key and request return the same job")),
     request_body(description = "The mesh: raw `model/obj`, `model/gltf-binary` or `model/gltf+json`, or `multipart/form-data` with a `mesh` file part and an optional `params` JSON part (same fields as the query)",
         content(
@@ -436,7 +651,7 @@ async fn create_job_inner(st: &AppState, req: Request) -> Result<JobStatus, Prob
             }));
         }
     }
-    let query_params: JobParams = query(req.uri())?;
+    let query_params = query::<JobQuery>(req.uri())?.into_params()?;
 
     let (data, format, params) = if let Some(format) = format_of_media_type(&content_type) {
         let data = axum::body::to_bytes(
@@ -763,6 +978,181 @@ pub async fn job_result(State(st): State<AppState>, Path(id): Path<String>, uri:
     }
 }
 
+/// Curve fairing parameters (query string of `POST /v1/curves:fair`).
+#[derive(Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct CurveQuery {
+    /// Flow steps (default 8; the flow reaches its minimum in about six at τ = 0.5).
+    pub steps: Option<usize>,
+    /// Time step τ, 0 < τ < 1 (default 0.5): unconstrained curvature becomes (1 − 2τ)κ.
+    pub tau: Option<f64>,
+    /// Also return the points of step 0, every `frame_interval`-th step and the last in
+    /// `frames` (default: no frames).
+    pub frame_interval: Option<usize>,
+    /// Time budget in seconds (default 10, at most 60).
+    pub deadline_secs: Option<f64>,
+}
+
+/// A planar curve, in the JSON format `POST /v1/curves:fair` and `willow curve` read.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CurveBody {
+    /// `[x, y]` per point, in order (a closed curve does not repeat its first point).
+    pub points: Vec<[f64; 2]>,
+    pub closed: bool,
+}
+
+/// The points of one step.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CurveFrameView {
+    pub step: usize,
+    pub points: Vec<[f64; 2]>,
+}
+
+/// The parameters a curve request ran with, defaults filled in.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CurveParamsView {
+    pub steps: usize,
+    pub tau: f64,
+    pub frame_interval: Option<usize>,
+    /// The time budget that applied, in seconds.
+    pub deadline_secs: f64,
+}
+
+/// A faired curve.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CurveResult {
+    pub params: CurveParamsView,
+    /// The faired curve: the input's points (same count and order) moved, same `closed`.
+    pub curve: CurveBody,
+    /// Per step from 0 (the input): `step`, `energy` (Σκ²ℓ*), `curvature_std_over_mean` (0 for a
+    /// circle; `null` when the mean curvature is 0 but κ varies), `max_edge_length_distortion`,
+    /// `closure_gap`, `poisson_residual`, `total_length`, `total_curvature`, `step_ms`.
+    #[schema(value_type = Vec<Object>)]
+    pub metrics: Vec<crate::flow::curve::CurveStepMetrics>,
+    /// The kept frames, present when `frame_interval` was given.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frames: Option<Vec<CurveFrameView>>,
+}
+
+impl From<CurveOutcome> for CurveResult {
+    fn from(o: CurveOutcome) -> CurveResult {
+        CurveResult {
+            params: CurveParamsView {
+                steps: o.spec.steps,
+                tau: o.spec.tau,
+                frame_interval: o.spec.frame_interval,
+                deadline_secs: o.spec.deadline_secs.unwrap_or_default(),
+            },
+            frames: o.spec.frame_interval.map(|_| {
+                o.frames
+                    .into_iter()
+                    .map(|f| CurveFrameView {
+                        step: f.step,
+                        points: f.points,
+                    })
+                    .collect()
+            }),
+            curve: CurveBody {
+                points: o.curve.points,
+                closed: o.curve.closed,
+            },
+            metrics: o.metrics,
+        }
+    }
+}
+
+/// Fair a planar curve now (isometric curvature flow, paper §5): edge lengths kept, curvature
+/// driven to a constant. Synchronous: the flow costs ~0.1 ms a step at 2k points. Runs on a
+/// bounded set of blocking slots; when all are busy for a second the answer is 429 with
+/// `Retry-After`.
+#[utoipa::path(
+    post, path = "/v1/curves:fair", tag = "curves",
+    params(CurveQuery),
+    request_body(description = "The curve: `application/json` (`{\"points\": [[x, y], …], \"closed\": bool}`, or a bare `[[x, y], …]` array, which is open) or `model/obj` (`v` lines and one `l` line; repeating the first index closes it)",
+        content((Vec<u8> = "application/json"), (Vec<u8> = "model/obj"))),
+    responses(
+        (status = 200, description = "The faired curve, per-step metrics and the kept frames", body = CurveResult),
+        (status = 400, description = "Bad parameters (the field is named)", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Over a limit: `curve bytes`, `curve points` or `steps`", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not JSON or OBJ", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "A curve the flow cannot take: `too_few_points`, `non_finite`, `zero_length_edge`, `cusp`, `invalid_json`, `invalid_obj` (with `index` or `line`)", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "Every curve slot busy; see Retry-After", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Shutting down", body = Problem, content_type = "application/problem+json"),
+        (status = 504, description = "The time budget ran out", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn fair_curve(State(st): State<AppState>, req: Request) -> Response {
+    match fair_curve_inner(&st, req).await {
+        Ok(result) => Json(result).into_response(),
+        Err(p) => p.instance("/v1/curves:fair").into_response(),
+    }
+}
+
+async fn fair_curve_inner(st: &AppState, req: Request) -> Result<CurveResult, Problem> {
+    let limit = st.jobs.config().limits.max_curve_bytes;
+    let q: CurveQuery = query(req.uri())?;
+    let content_type = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string();
+    let essence = content_type
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
+    let obj = match essence.as_str() {
+        "application/json" => false,
+        "model/obj" => true,
+        _ => {
+            return Err(Problem::new(
+                StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                "unsupported_media_type",
+                format!(
+                    "Content-Type `{}` is not accepted: send the curve as application/json or \
+                     model/obj",
+                    if content_type.is_empty() {
+                        "(none)"
+                    } else {
+                        &content_type
+                    }
+                ),
+            ))
+        }
+    };
+    let announced = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if announced.is_some_and(|len| len > limit) {
+        return Err(Problem::too_large("curve bytes", limit));
+    }
+    let data = axum::body::to_bytes(
+        req.into_body(),
+        usize::try_from(limit).unwrap_or(usize::MAX),
+    )
+    .await
+    .map_err(|_| Problem::too_large("curve bytes", limit))?;
+    let input = if obj {
+        CurveInput::Obj(data)
+    } else {
+        CurveInput::Json(data)
+    };
+    let defaults = CurveSpec::default();
+    let spec = CurveSpec {
+        steps: q.steps.unwrap_or(defaults.steps),
+        tau: q.tau.unwrap_or(defaults.tau),
+        frame_interval: q.frame_interval,
+        deadline_secs: q.deadline_secs,
+    };
+    let outcome = st.jobs.fair_curve(input, spec, None).await?;
+    Ok(CurveResult::from(outcome))
+}
+
 /// Liveness: the process answers.
 #[utoipa::path(get, path = "/healthz", tag = "ops", responses((status = 200, description = "ok")))]
 pub async fn healthz() -> &'static str {
@@ -799,9 +1189,9 @@ pub async fn metrics(State(st): State<AppState>) -> Response {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
-    paths(create_job, list_jobs, get_job, cancel_job, delete_job, job_events, list_frames, frame_mesh, job_result, healthz, readyz, metrics),
-    components(schemas(JobView, JobList, JobParams, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links)),
-    tags((name = "jobs", description = "Fairing jobs"), (name = "ops", description = "Probes and metrics"))
+    paths(create_job, list_jobs, get_job, cancel_job, delete_job, job_events, list_frames, frame_mesh, job_result, fair_curve, healthz, readyz, metrics),
+    components(schemas(JobView, JobList, JobParams, JobSpec, FilterSpec, BoundarySpec, PrescribedSpec, AxisSpec, AnglesSpec, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
+    tags((name = "jobs", description = "Fairing jobs"), (name = "curves", description = "Curve fairing (paper §5), synchronous"), (name = "ops", description = "Probes and metrics"))
 )]
 pub struct ApiDoc;
 

@@ -127,6 +127,38 @@ impl From<JobError> for Problem {
                 p.retry_after = Some(5);
                 p
             }
+            JobError::InvalidCurve(curve) => {
+                use crate::flow::curve::CurveError;
+                let p = Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail);
+                // Where in the input: a point index, or an OBJ line.
+                match curve {
+                    CurveError::NonFinite { index, .. }
+                    | CurveError::ZeroLengthEdge { index }
+                    | CurveError::Cusp { index } => p.with("index", index),
+                    CurveError::Obj { line, .. } if line > 0 => p.with("line", line),
+                    _ => p,
+                }
+            }
+            JobError::Busy {
+                retry_after_secs,
+                slots,
+            } => {
+                let mut p = Problem::new(StatusCode::TOO_MANY_REQUESTS, code, detail)
+                    .with("retry_after_secs", retry_after_secs)
+                    .with("capacity", slots);
+                p.retry_after = Some(retry_after_secs);
+                p
+            }
+            // 504 as google.rpc maps DEADLINE_EXCEEDED: the server gave up within the budget.
+            JobError::DeadlineExceeded { step, steps, .. } => {
+                Problem::new(StatusCode::GATEWAY_TIMEOUT, code, detail)
+                    .with("step", step)
+                    .with("steps", steps)
+            }
+            // The input is valid but the flow broke down on it: not retryable as it is.
+            JobError::Numerical { step, .. } => {
+                Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail).with("step", step)
+            }
             JobError::Internal(msg) => {
                 // The cause goes to the log, not to the client.
                 tracing::error!(error = %msg, "internal error");

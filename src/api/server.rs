@@ -69,7 +69,9 @@ impl ServeArgs {
     pub fn config(&self) -> Result<Config, String> {
         let mut c = Config::new(&self.data_dir);
         if let Some(w) = self.workers {
+            // Curve requests get as many blocking slots as jobs get workers (see jobs::curve).
             c.workers = w;
+            c.curve_slots = w;
         }
         c.queue_capacity = self.queue_capacity;
         c.limits.max_upload_bytes = self.max_upload_mib.saturating_mul(1 << 20);

@@ -24,12 +24,15 @@
 //! jobs that were running are re-queued and **restart from step 0** (their stored frames are
 //! discarded), because a flow carries solver state that is not checkpointed.
 
+pub mod curve;
 pub mod events;
 pub mod queue;
+pub mod spec;
 pub mod store;
 pub mod telemetry;
 pub mod worker;
 
+use crate::flow::curve::CurveError;
 use crate::flow::{FlowParams, Method};
 use crate::mesh::io::{Asset, Format};
 use crate::mesh::{Limits, MeshError};
@@ -51,10 +54,16 @@ pub type JobId = String;
 
 /// What to run on an uploaded mesh. Transports turn their wire parameters into this and call
 /// [`JobSpec::validate`] (which [`Jobs::submit`] calls again, so no transport can skip it).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+///
+/// Stored as JSON with the job: a field added later must have a default (`#[serde(default)]`
+/// fills it in for rows written before it existed) and is appended at the end (see
+/// `store::request_hash`). Every field of [`FlowParams`] has one here.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct JobSpec {
-    /// Which flow: `conformal` (the paper) or `mcf` (the yardstick).
+    /// Which flow: `conformal` (the paper), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
+    /// `taubin`.
+    #[schema(value_type = String, example = "conformal")]
     pub method: Method,
     /// Number of flow steps to take (step 0 is the input).
     pub steps: usize,
@@ -69,6 +78,15 @@ pub struct JobSpec {
     pub include_positions: bool,
     /// Wall-clock budget from submission, in seconds; `None` takes the server default.
     pub deadline_secs: Option<f64>,
+    /// Exactness constraints on surfaces of genus > 0 (§6.2, App. C); conformal flow only.
+    pub exactness: bool,
+    /// Möbius balancing toward the input's area distribution (App. E.1); conformal flow only.
+    pub mobius_balancing: bool,
+    /// Spectral filter of the flow direction (§4); `None` is the paper's plain flow. Conformal
+    /// flow only.
+    pub filter: Option<spec::FilterSpec>,
+    /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
+    pub boundary: spec::BoundarySpec,
 }
 
 impl Default for JobSpec {
@@ -82,6 +100,10 @@ impl Default for JobSpec {
             frame_interval: 1,
             include_positions: true,
             deadline_secs: None,
+            exactness: flow.exactness,
+            mobius_balancing: flow.mobius_balancing,
+            filter: None,
+            boundary: spec::BoundarySpec::Free,
         }
     }
 }
@@ -145,17 +167,60 @@ impl JobSpec {
                 );
             }
         }
+        if let Some(filter) = &self.filter {
+            if let Err((field, reason)) = spec::check_filter(filter) {
+                return bad(field, reason);
+            }
+        }
+        if let Err((field, reason)) = spec::check_boundary(&self.boundary) {
+            return bad(field, reason);
+        }
+        if self.method != Method::Conformal {
+            // The other flows would run and silently ignore these (the library only reads them
+            // in the conformal flow); a client that asks for them should hear so.
+            let ignored = [
+                ("exactness", !self.exactness),
+                ("mobius_balancing", self.mobius_balancing),
+                ("filter", self.filter.is_some()),
+                ("boundary", !self.boundary.is_free()),
+            ];
+            if let Some((field, _)) = ignored.iter().find(|(_, set)| *set) {
+                return bad(
+                    field,
+                    format!(
+                        "applies only to method `conformal`, got `{}`",
+                        method_name(self.method)
+                    ),
+                );
+            }
+        }
         Ok(())
     }
 
-    /// The flow parameters this spec asks for.
+    /// Checks that need the uploaded surface: one per-loop boundary angle per boundary loop.
+    pub fn validate_for_mesh(&self, mesh: &crate::mesh::Mesh) -> Result<(), JobError> {
+        if let spec::BoundarySpec::Prescribed(p) = &self.boundary {
+            if matches!(p.angles, spec::AnglesSpec::PerLoop(_)) {
+                let loops = crate::mesh::topology::Topology::new(mesh)
+                    .boundary_loops
+                    .len();
+                spec::check_loop_count(&self.boundary, loops)
+                    .map_err(|(field, reason)| JobError::InvalidSpec { field, reason })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The flow parameters this spec asks for: every field of [`FlowParams`].
     pub fn flow_params(&self) -> FlowParams {
-        // Solver knobs the spec does not expose keep the library's defaults.
         FlowParams {
             method: self.method,
             tau: self.tau,
             iterations: self.iterations,
-            ..FlowParams::default()
+            exactness: self.exactness,
+            mobius_balancing: self.mobius_balancing,
+            filter: self.filter.map(spec::FilterSpec::to_flow),
+            boundary: self.boundary.to_flow(),
         }
     }
 
@@ -163,6 +228,14 @@ impl JobSpec {
     pub fn keeps_positions(&self, step: usize) -> bool {
         self.include_positions
             && (step.is_multiple_of(self.frame_interval.max(1)) || step == self.steps)
+    }
+}
+
+/// The wire name of a method (`conformal`, `mcf`, …): its serde name.
+pub fn method_name(method: Method) -> String {
+    match serde_json::to_value(method) {
+        Ok(serde_json::Value::String(name)) => name,
+        _ => format!("{method:?}").to_ascii_lowercase(),
     }
 }
 
@@ -304,6 +377,22 @@ pub enum JobError {
     /// An upload id that [`Jobs::store_upload`] never returned (or that expired).
     #[error("upload `{0}` not found")]
     UploadNotFound(String),
+    /// A curve the curve flow refuses (see [`CurveError`]).
+    #[error("invalid curve: {0}")]
+    InvalidCurve(CurveError),
+    /// Every slot for synchronous work is taken (curve fairing); retry shortly.
+    #[error("all {slots} curve slots are busy; retry in about {retry_after_secs} s")]
+    Busy { retry_after_secs: u64, slots: usize },
+    /// A synchronous request ran out of its time budget.
+    #[error("deadline of {secs} s exceeded after step {step} of {steps}")]
+    DeadlineExceeded {
+        secs: f64,
+        step: usize,
+        steps: usize,
+    },
+    /// The flow broke down on this input (non-finite positions).
+    #[error("numerical failure at step {step}: {reason}")]
+    Numerical { step: usize, reason: String },
 }
 
 impl JobError {
@@ -322,6 +411,10 @@ impl JobError {
             JobError::Internal(_) => "internal",
             JobError::FrameNotFound { .. } => "frame_not_found",
             JobError::UploadNotFound(_) => "upload_not_found",
+            JobError::InvalidCurve(e) => curve::curve_error_code(e),
+            JobError::Busy { .. } => "busy",
+            JobError::DeadlineExceeded { .. } => "deadline_exceeded",
+            JobError::Numerical { .. } => "numerical",
         }
     }
 }
@@ -349,6 +442,14 @@ pub struct JobLimits {
     pub max_faces: usize,
     /// Most steps one job may ask for.
     pub max_steps: usize,
+    /// Most points of a curve sent to [`Jobs::fair_curve`].
+    pub max_curve_points: usize,
+    /// Most steps one curve request may ask for.
+    pub max_curve_steps: usize,
+    /// Largest curve file (JSON or OBJ) in bytes.
+    pub max_curve_bytes: u64,
+    /// Most points a curve response may carry in its frames, all frames together.
+    pub max_curve_frame_points: usize,
 }
 
 impl Default for JobLimits {
@@ -360,6 +461,17 @@ impl Default for JobLimits {
             max_vertices: 1_000_000,
             max_faces: 2_000_000,
             max_steps: 10_000,
+            // A curve step costs ~0.1 ms per 2k points and a flow holds ~15 f64 per point, so
+            // 100k points are ~5 ms a step and ~12 MB a request: a synchronous answer stays
+            // well inside the deadline even at a few hundred steps.
+            max_curve_points: 100_000,
+            // The flow reaches its minimum in about six steps at τ = 0.5 (§5); a thousand is
+            // room for small τ without letting one request hold a slot for long.
+            max_curve_steps: 1_000,
+            // 100k points as JSON or OBJ text are ~5 MB.
+            max_curve_bytes: 8 << 20,
+            // ~45 MB of JSON at most: a few hundred frames of a detailed curve.
+            max_curve_frame_points: 1_000_000,
         }
     }
 }
@@ -397,6 +509,14 @@ pub struct Config {
     /// Readiness turns false when a job is running and no step finished for this long: a
     /// wedged worker must not keep a pod in the load balancer.
     pub stall_after: Duration,
+    /// Curve requests that may run at once, each on one blocking thread (default: `workers`).
+    /// Separate from the job workers, whose jobs may hold them for hours; see [`curve`].
+    pub curve_slots: usize,
+    /// Time budget of a curve request that names none.
+    pub curve_default_deadline: Duration,
+    /// Largest time budget a curve request may ask for: the answer is synchronous, and common
+    /// proxies cut idle requests after 60 s.
+    pub curve_max_deadline: Duration,
 }
 
 impl Config {
@@ -413,6 +533,11 @@ impl Config {
             max_deadline: Duration::from_secs(24 * 3600),
             sweep_interval: Duration::from_secs(60),
             stall_after: Duration::from_secs(600),
+            curve_slots: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1),
+            curve_default_deadline: Duration::from_secs(10),
+            curve_max_deadline: Duration::from_secs(60),
         }
     }
 }
@@ -505,6 +630,8 @@ pub(crate) struct Inner {
     pub workers_alive: AtomicUsize,
     /// Exponential moving average of job wall time in ms, for `Retry-After` estimates.
     pub avg_job_ms: AtomicU64,
+    /// Permits for curve requests ([`Config::curve_slots`]).
+    pub curve_slots: Arc<tokio::sync::Semaphore>,
 }
 
 /// The cheap, cloneable handle every transport holds.
@@ -534,6 +661,12 @@ impl Jobs {
         if config.queue_capacity == 0 {
             return Err(JobError::InvalidSpec {
                 field: "queue_capacity",
+                reason: "must be at least 1".into(),
+            });
+        }
+        if config.curve_slots == 0 {
+            return Err(JobError::InvalidSpec {
+                field: "curve_slots",
                 reason: "must be at least 1".into(),
             });
         }
@@ -578,6 +711,7 @@ impl Jobs {
             running: AtomicUsize::new(0),
             workers_alive: AtomicUsize::new(0),
             avg_job_ms: AtomicU64::new(5_000),
+            curve_slots: Arc::new(tokio::sync::Semaphore::new(config.curve_slots)),
         });
         let jobs = Jobs { inner };
         jobs.inner
@@ -661,10 +795,12 @@ impl Jobs {
         // must keep serving status polls and streams meanwhile.
         let limits = self.inner.config.limits.clone();
         let parse_data = data.clone();
+        let parse_spec = spec.clone();
         let (vertex_count, face_count) = tokio::task::spawn_blocking(move || {
             let asset =
                 Asset::read(&parse_data, format, &limits.mesh_limits()).map_err(mesh_error)?;
             let surface = asset.surface();
+            parse_spec.validate_for_mesh(surface)?;
             if surface.vertex_count() > limits.max_vertices {
                 return Err(JobError::TooLarge {
                     what: "vertices",

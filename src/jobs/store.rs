@@ -99,10 +99,77 @@ pub fn request_hash(data: &[u8], format: Format, spec: &JobSpec) -> String {
     let mut h = Sha256::new();
     h.update(format_name(format).as_bytes());
     h.update([0]);
-    h.update(serde_json::to_vec(spec).unwrap_or_default());
+    h.update(serde_json::to_vec(&HashedSpec::from(spec)).unwrap_or_default());
     h.update([0]);
     h.update(data);
     h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The spec as [`request_hash`] sees it: the fields of the first release in their order, then
+/// each later field only when it differs from its default. Keys are stored with their hash, so
+/// a request sent again after an upgrade must hash as before, or its retry would be refused
+/// as a different request. New [`JobSpec`] fields go at the end here too, skipped at default.
+#[derive(serde::Serialize)]
+struct HashedSpec<'a> {
+    method: crate::flow::Method,
+    steps: usize,
+    tau: f64,
+    iterations: usize,
+    frame_interval: usize,
+    include_positions: bool,
+    deadline_secs: Option<f64>,
+    #[serde(skip_serializing_if = "is_true")]
+    exactness: bool,
+    #[serde(skip_serializing_if = "is_false")]
+    mobius_balancing: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    filter: Option<super::spec::FilterSpec>,
+    #[serde(skip_serializing_if = "is_free")]
+    boundary: &'a super::spec::BoundarySpec,
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
+}
+
+fn is_free(b: &&super::spec::BoundarySpec) -> bool {
+    b.is_free()
+}
+
+impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
+    fn from(s: &'a JobSpec) -> Self {
+        // Destructured, so a field added to JobSpec fails to compile until it is hashed.
+        let JobSpec {
+            method,
+            steps,
+            tau,
+            iterations,
+            frame_interval,
+            include_positions,
+            deadline_secs,
+            exactness,
+            mobius_balancing,
+            filter,
+            boundary,
+        } = s;
+        HashedSpec {
+            method: *method,
+            steps: *steps,
+            tau: *tau,
+            iterations: *iterations,
+            frame_interval: *frame_interval,
+            include_positions: *include_positions,
+            deadline_secs: *deadline_secs,
+            exactness: *exactness,
+            mobius_balancing: *mobius_balancing,
+            filter: *filter,
+            boundary,
+        }
+    }
 }
 
 /// The fixed binary form of [`StepMetrics`] (step as u64, then nine f64, all LE). Binary and
@@ -784,6 +851,32 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A spec with the later fields at their defaults hashes exactly as the first release
+    /// hashed it (its JSON then), so stored idempotency keys survive the upgrade; a spec that
+    /// sets one hashes differently.
+    #[test]
+    fn request_hash_is_stable_across_new_spec_fields() {
+        let first_release = br#"{"method":"conformal","steps":20,"tau":0.5,"iterations":1,"frame_interval":1,"include_positions":true,"deadline_secs":null}"#;
+        let mut h = Sha256::new();
+        h.update(b"obj");
+        h.update([0]);
+        h.update(first_release);
+        h.update([0]);
+        h.update(b"mesh");
+        let old: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+        let spec = JobSpec::default();
+        assert_eq!(request_hash(b"mesh", Format::Obj, &spec), old);
+        let cmc = JobSpec {
+            boundary: crate::jobs::spec::BoundarySpec::Cmc,
+            ..JobSpec::default()
+        };
+        assert_ne!(request_hash(b"mesh", Format::Obj, &cmc), old);
+        // And an old stored spec (without the new fields) still loads, with their defaults.
+        let stored: JobSpec =
+            serde_json::from_slice(first_release).expect("a first-release spec loads");
+        assert_eq!(stored, spec);
+    }
 
     #[test]
     fn metrics_round_trip_including_nan() {

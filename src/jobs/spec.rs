@@ -1,0 +1,321 @@
+//! The flow options of a job beyond method and step size: the spectral filter (§4) and the
+//! boundary condition (§6.3), as a job spec carries them.
+//!
+//! They mirror the library's [`SpectralFilter`] and [`Boundary`] and serialize to the same
+//! JSON (`"cmc"`, `{"prescribed": {"frame_angle": 0.2, "axis": {"fixed": [0, 0, 1]},
+//! "angles": {"per_loop": [0.1, -0.1]}}}`), with two differences that make them fit for input
+//! from the network: unknown fields are errors (a misspelt `frame_angel` must not silently
+//! become 0), and [`BoundaryAngles::PerVertex`] has no counterpart (it names mesh vertex
+//! indices, which a client of the service sees only in the welded order; it stays in the
+//! library). The same names are the field paths errors report: `filter.k`,
+//! `boundary.prescribed.axis.fixed`, and so on.
+
+use crate::flow::filter::SpectralFilter;
+use crate::flow::{Boundary, BoundaryAngles, PrescribedVectors, RotationAxis};
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+/// Largest filter order: the library's `FilterSolver` builds `L (M⁻¹L)^{k−1}` for k ≤ 3.
+pub const MAX_FILTER_K: u32 = 3;
+
+/// Spectral filter of the flow direction (§4): `v ← v − (id + σ(−Δ)^k)⁻¹ v`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FilterSpec {
+    /// Strength σ, unitless and > 0: σ = (l(l+1))^−k puts the crossover at spherical degree
+    /// l whatever the mesh's size (see `willow::flow::filter`).
+    pub sigma: f64,
+    /// Shape k ∈ 0..=3; k = 2 approximates position-based Willmore flow (Figure 19).
+    pub k: u32,
+}
+
+impl FilterSpec {
+    /// The library's filter.
+    pub fn to_flow(self) -> SpectralFilter {
+        SpectralFilter {
+            sigma: self.sigma,
+            k: self.k,
+        }
+    }
+}
+
+/// Boundary condition for surfaces with boundary (§6.3); closed surfaces ignore it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, ToSchema)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum BoundarySpec {
+    /// The boundary moves freely (§6.2).
+    #[default]
+    Free,
+    /// Boundary vertices stay exactly where they are (§6.3.2).
+    Fixed,
+    /// `V = B` held at the input's conormals: converges to constant mean curvature (§6.3.1).
+    Cmc,
+    /// Prescribed boundary vectors (§6.3.1).
+    Prescribed(PrescribedSpec),
+}
+
+impl BoundarySpec {
+    pub fn is_free(&self) -> bool {
+        *self == BoundarySpec::Free
+    }
+
+    /// The library's boundary condition.
+    pub fn to_flow(&self) -> Boundary {
+        match self {
+            BoundarySpec::Free => Boundary::Free,
+            BoundarySpec::Fixed => Boundary::Fixed,
+            BoundarySpec::Cmc => Boundary::Cmc,
+            BoundarySpec::Prescribed(p) => Boundary::Prescribed(p.to_flow()),
+        }
+    }
+}
+
+/// §6.3.1: at each boundary vertex `V = cos φ·B + sin φ·N` is mapped to a target, the input's
+/// `V` rotated by an angle about an axis. Every field may be left out (all defaults: the CMC
+/// condition).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct PrescribedSpec {
+    /// φ in radians, |φ| < π/2 (at ±π/2, `V = ±N` and the boundary problem is not elliptic).
+    pub frame_angle: f64,
+    /// Axis of the rotation from `V` to its target (default: the boundary tangent).
+    pub axis: AxisSpec,
+    /// Rotation angles in radians (default: 0 everywhere).
+    pub angles: AnglesSpec,
+}
+
+impl PrescribedSpec {
+    pub fn to_flow(&self) -> PrescribedVectors {
+        PrescribedVectors {
+            frame_angle: self.frame_angle,
+            axis: match self.axis {
+                AxisSpec::Tangent => RotationAxis::Tangent,
+                AxisSpec::Fixed(a) => RotationAxis::Fixed(a),
+            },
+            angles: match &self.angles {
+                AnglesSpec::Uniform(a) => BoundaryAngles::Uniform(*a),
+                AnglesSpec::PerLoop(a) => BoundaryAngles::PerLoop(a.clone()),
+            },
+        }
+    }
+}
+
+/// Axis of the rotation that makes the target from the input's `V`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default, ToSchema)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum AxisSpec {
+    /// The boundary tangent at each vertex (flares or tucks the boundary).
+    #[default]
+    Tangent,
+    /// One direction in space for every vertex, `[x, y, z]`, finite and non-zero (need not be
+    /// unit length): tilts a whole loop.
+    Fixed([f64; 3]),
+}
+
+/// Rotation angles in radians.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum AnglesSpec {
+    /// The same angle at every boundary vertex.
+    Uniform(f64),
+    /// One angle per boundary loop, in the order of the mesh's boundary loops; the count must
+    /// match the uploaded mesh.
+    PerLoop(Vec<f64>),
+}
+
+impl Default for AnglesSpec {
+    fn default() -> Self {
+        AnglesSpec::Uniform(0.0)
+    }
+}
+
+/// What is wrong with a filter or boundary spec, as (field path, reason).
+pub type SpecViolation = (&'static str, String);
+
+/// Check a filter against the library's rules (`FilterSolver::new`), naming the field.
+pub fn check_filter(filter: &FilterSpec) -> Result<(), SpecViolation> {
+    if filter.k > MAX_FILTER_K {
+        return Err((
+            "filter.k",
+            format!("must be 0, 1, 2 or 3, got {}", filter.k),
+        ));
+    }
+    if !(filter.sigma.is_finite() && filter.sigma > 0.0) {
+        return Err((
+            "filter.sigma",
+            format!("must be a finite number > 0, got {}", filter.sigma),
+        ));
+    }
+    Ok(())
+}
+
+/// Check a boundary spec's numbers (the per-loop count needs the mesh: [`check_loop_count`]).
+pub fn check_boundary(boundary: &BoundarySpec) -> Result<(), SpecViolation> {
+    let BoundarySpec::Prescribed(p) = boundary else {
+        return Ok(());
+    };
+    // §6.3.1: V = ±N (φ = ±π/2) makes the boundary problem non-elliptic (Bohle and Pinkall).
+    if !(p.frame_angle.is_finite() && p.frame_angle.abs() < std::f64::consts::FRAC_PI_2) {
+        return Err((
+            "boundary.prescribed.frame_angle",
+            format!(
+                "must be finite with |frame_angle| < π/2 (V = ±N is not elliptic, §6.3.1), got {}",
+                p.frame_angle
+            ),
+        ));
+    }
+    if let AxisSpec::Fixed(a) = p.axis {
+        let length = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        if !(a.iter().all(|c| c.is_finite()) && length > 0.0 && length.is_finite()) {
+            return Err((
+                "boundary.prescribed.axis.fixed",
+                format!("must be finite and non-zero, got {a:?}"),
+            ));
+        }
+    }
+    match &p.angles {
+        AnglesSpec::Uniform(a) if !a.is_finite() => Err((
+            "boundary.prescribed.angles.uniform",
+            format!("must be finite, got {a}"),
+        )),
+        AnglesSpec::PerLoop(list) => match list.iter().position(|a| !a.is_finite()) {
+            Some(i) => Err((
+                "boundary.prescribed.angles.per_loop",
+                format!("must be finite, got {} at index {i}", list[i]),
+            )),
+            None => Ok(()),
+        },
+        AnglesSpec::Uniform(_) => Ok(()),
+    }
+}
+
+/// A per-loop angle list must have one angle per boundary loop of the mesh.
+pub fn check_loop_count(boundary: &BoundarySpec, loops: usize) -> Result<(), SpecViolation> {
+    if let BoundarySpec::Prescribed(PrescribedSpec {
+        angles: AnglesSpec::PerLoop(list),
+        ..
+    }) = boundary
+    {
+        if list.len() != loops {
+            return Err((
+                "boundary.prescribed.angles.per_loop",
+                format!(
+                    "gives {} angle(s) but the mesh has {loops} boundary loop(s)",
+                    list.len()
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The JSON of these types is the library's JSON for the same boundary condition, so a
+    /// spec written for `FlowParams` reads here and back.
+    #[test]
+    fn boundary_json_is_the_librarys() {
+        let cases = [
+            BoundarySpec::Free,
+            BoundarySpec::Fixed,
+            BoundarySpec::Cmc,
+            BoundarySpec::Prescribed(PrescribedSpec {
+                frame_angle: 0.25,
+                axis: AxisSpec::Fixed([0.0, 0.0, 2.0]),
+                angles: AnglesSpec::PerLoop(vec![0.1, -0.3]),
+            }),
+            BoundarySpec::Prescribed(PrescribedSpec::default()),
+        ];
+        for spec in cases {
+            let ours = serde_json::to_value(&spec).expect("serializes");
+            let library = serde_json::to_value(spec.to_flow()).expect("serializes");
+            assert_eq!(ours, library);
+            let back: BoundarySpec = serde_json::from_value(library).expect("reads back");
+            assert_eq!(back, spec);
+        }
+    }
+
+    #[test]
+    fn unknown_fields_and_per_vertex_are_refused() {
+        for text in [
+            r#"{"prescribed": {"frame_angel": 0.1}}"#,
+            r#"{"prescribed": {"angles": {"per_vertex": [[3, 0.1]]}}}"#,
+            r#"{"prescribed": {"axis": {"fixed": [0, 0]}}}"#,
+            r#""clamped""#,
+        ] {
+            assert!(
+                serde_json::from_str::<BoundarySpec>(text).is_err(),
+                "{text} was accepted"
+            );
+        }
+        assert!(serde_json::from_str::<FilterSpec>(r#"{"sigma": 1, "k": 2, "x": 0}"#).is_err());
+        let defaults: BoundarySpec =
+            serde_json::from_str(r#"{"prescribed": {}}"#).expect("all fields default");
+        assert_eq!(
+            defaults,
+            BoundarySpec::Prescribed(PrescribedSpec::default())
+        );
+    }
+
+    #[test]
+    fn checks_name_the_field() {
+        let field = |b: BoundarySpec| check_boundary(&b).err().map(|(f, _)| f);
+        let prescribed = |frame_angle, axis, angles| {
+            BoundarySpec::Prescribed(PrescribedSpec {
+                frame_angle,
+                axis,
+                angles,
+            })
+        };
+        let tangent = AxisSpec::Tangent;
+        let zero = AnglesSpec::Uniform(0.0);
+        assert_eq!(field(prescribed(1.5, tangent, zero.clone())), None);
+        assert_eq!(
+            field(prescribed(1.6, tangent, zero.clone())),
+            Some("boundary.prescribed.frame_angle")
+        );
+        assert_eq!(
+            field(prescribed(f64::NAN, tangent, zero.clone())),
+            Some("boundary.prescribed.frame_angle")
+        );
+        assert_eq!(
+            field(prescribed(0.0, AxisSpec::Fixed([0.0; 3]), zero.clone())),
+            Some("boundary.prescribed.axis.fixed")
+        );
+        assert_eq!(
+            field(prescribed(
+                0.0,
+                AxisSpec::Fixed([1e300, 1e300, 0.0]),
+                zero.clone()
+            )),
+            Some("boundary.prescribed.axis.fixed"),
+            "the length overflows"
+        );
+        assert_eq!(
+            field(prescribed(0.0, tangent, AnglesSpec::Uniform(f64::INFINITY))),
+            Some("boundary.prescribed.angles.uniform")
+        );
+        assert_eq!(
+            field(prescribed(
+                0.0,
+                tangent,
+                AnglesSpec::PerLoop(vec![0.0, f64::NAN])
+            )),
+            Some("boundary.prescribed.angles.per_loop")
+        );
+        let per_loop = prescribed(0.0, tangent, AnglesSpec::PerLoop(vec![0.1, 0.2]));
+        assert!(check_loop_count(&per_loop, 2).is_ok());
+        assert_eq!(
+            check_loop_count(&per_loop, 1).err().map(|(f, _)| f),
+            Some("boundary.prescribed.angles.per_loop")
+        );
+        assert!(check_loop_count(&BoundarySpec::Cmc, 3).is_ok());
+        let filter = |sigma, k| check_filter(&FilterSpec { sigma, k }).err().map(|(f, _)| f);
+        assert_eq!(filter(0.01, 3), None);
+        assert_eq!(filter(0.01, 4), Some("filter.k"));
+        assert_eq!(filter(0.0, 2), Some("filter.sigma"));
+        assert_eq!(filter(f64::NAN, 2), Some("filter.sigma"));
+    }
+}
