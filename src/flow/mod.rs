@@ -11,6 +11,7 @@ pub mod dirac;
 pub mod dirichlet;
 pub mod filter;
 pub mod mobius;
+pub mod prescribed;
 pub mod scale;
 pub mod solver;
 pub mod willmore;

@@ -20,9 +20,10 @@ use super::dirac::{assemble_dirac_into, sparse_matvec};
 use super::dirichlet;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
+use super::prescribed::{PrescribedError, PrescribedSolver, SurfaceState};
 use super::scale::ScalePolicy;
 use super::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
-use super::{Boundary, Flow, FlowError, FlowParams};
+use super::{Boundary, Flow, FlowError, FlowParams, PrescribedVectors};
 use crate::geometry::cache::GeometryCache;
 use crate::geometry::hodge::{harmonic_vector_field_into, HarmonicBasisSolver};
 use crate::geometry::vec3::{norm2, sub};
@@ -65,6 +66,8 @@ pub struct ConformalFlow {
     /// Boundary vertices held in place (§6.3.2), with their positions; `None` for a free boundary.
     fixed: Option<Vec<bool>>,
     fixed_positions: Vec<[f64; 3]>,
+    /// Prescribed boundary vectors (§6.3.1, CMC with `V = B`); `None` otherwise.
+    prescribed: Option<PrescribedSolver>,
     /// The Dirichlet right-hand side of the λ solve, kept for its residual.
     solve_rhs: Vec<c64>,
     /// Boundary vertices (any boundary condition), and scratch for averaging onto them.
@@ -122,19 +125,37 @@ impl ConformalFlow {
             .iter()
             .map(|&c| topology.components[c].is_closed())
             .collect();
-        if matches!(params.boundary, Boundary::Prescribed(_) | Boundary::Cmc)
-            && !topology.boundary_loops.is_empty()
-        {
-            return Err(FlowError::Unsupported(
-                "prescribed boundary vectors are not implemented yet".into(),
-            ));
-        }
         let fixed = (params.boundary == Boundary::Fixed && !topology.boundary_loops.is_empty())
             .then(|| topology.boundary_vertex_mask(n));
         let boundary_vertex =
             (!topology.boundary_loops.is_empty()).then(|| topology.boundary_vertex_mask(n));
 
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
+        let prescribed = match (&params.boundary, topology.boundary_loops.is_empty()) {
+            (_, true) | (Boundary::Free | Boundary::Fixed, _) => None,
+            (Boundary::Prescribed(spec), false) => Some(spec.clone()),
+            (Boundary::Cmc, false) => Some(PrescribedVectors::default()),
+        };
+        let prescribed = match prescribed {
+            Some(spec) => Some(
+                PrescribedSolver::new(
+                    &spec,
+                    &topology,
+                    &mesh.positions,
+                    &mesh.triangles,
+                    &geometry.normals,
+                    n_components,
+                )
+                .map_err(|e| match e {
+                    PrescribedError::Solver(reason) => FlowError::Numerical { step: 0, reason },
+                    other => FlowError::InvalidParameter {
+                        name: "boundary",
+                        reason: other.to_string(),
+                    },
+                })?,
+            ),
+            None => None,
+        };
         let reporter = StepReporter::new(&mesh.positions, &mesh.triangles);
         let scale = ScalePolicy::new(
             vertex_component.clone(),
@@ -194,6 +215,7 @@ impl ConformalFlow {
                 Vec::new()
             },
             fixed,
+            prescribed,
             boundary_sums: if boundary_vertex.is_some() {
                 vec![0.0; 2 * n]
             } else {
@@ -470,6 +492,30 @@ impl ConformalFlow {
     fn solve_lambda(&mut self) -> Result<f64, FlowError> {
         if self.fixed.is_some() {
             return self.solve_lambda_dirichlet();
+        }
+        if let Some(prescribed) = &mut self.prescribed {
+            let g = &self.geometry;
+            let state = SurfaceState {
+                positions: &self.positions,
+                triangles: &self.triangles,
+                face_areas: &g.face_areas,
+                vertex_areas: &g.vertex_areas,
+                normals: &g.normals,
+                vertex_component: &self.vertex_component,
+            };
+            return prescribed
+                .solve(
+                    &state,
+                    &self.rho,
+                    self.iterations,
+                    DIRAC_SHIFT,
+                    SHIFT_RETRIES,
+                    &mut self.lambda,
+                )
+                .map_err(|e| FlowError::Numerical {
+                    step: self.step + 1,
+                    reason: format!("prescribed boundary: {e}"),
+                });
         }
         self.factor_dirac(false)?;
         let g = &self.geometry;
