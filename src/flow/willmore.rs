@@ -16,7 +16,7 @@
 //! every buffer is allocated in [`ConformalFlow::new`], so the step loop does not allocate.
 
 use super::constraints::ConstraintBasis;
-use super::dirac::{assemble_dirac_into, sparse_matvec};
+use super::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
 use super::dirichlet;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
@@ -344,9 +344,10 @@ impl ConformalFlow {
         Ok(())
     }
 
-    /// Appendix C.1: harmonic 1-forms → per-face harmonic vector fields `v_i` → `X₀ Z_i = v_i`
-    /// (X at ρ = 0) → the imaginary parts `Z_i^{x,y,z}` join the constraint basis. X₀ is
-    /// factored once for all 2g solves, in the same factor storage that X(ρ) uses next.
+    /// Appendix C.1: harmonic 1-forms → per-face harmonic vector fields `v_i` → `D Z_i = v_i`
+    /// in the least-squares sense of X₀ = D*MD (X at ρ = 0), i.e. `X₀ Z_i = D*M v_i` → the
+    /// imaginary parts `Z_i^{x,y,z}` join the constraint basis. X₀ is factored once for all 2g
+    /// solves, in the same factor storage that X(ρ) uses next.
     fn exactness_constraints(&mut self) -> Result<(), FlowError> {
         let Some(harmonic) = self.harmonic.as_mut() else {
             return Ok(());
@@ -370,17 +371,19 @@ impl ConformalFlow {
                 form,
                 &mut self.face_field,
             );
-            // Right-hand side M v: each face gives A_k/3 of its vector to its corners.
+            // App. C needs `D Z = v` with the first-order D (the derivation pairs Z with
+            // `D λ̇ = ρ̇`). X₀ = D*MD is second order, so the right-hand side of its normal
+            // equations is `D*M v`: per face, corner i gets `A_k c̄_i v = ½ e_i v` (c_i = −e_i/2A_k,
+            // see `dirac`). Solving `X₀ Z = M v` instead gives Z ≈ D⁻²v: the period error then
+            // stays first order in ρ, and the torus's conformal distortion stopped converging
+            // under mesh refinement (tests/flow_convergence.rs). `D*M v` sums to zero per face,
+            // so it is orthogonal to X₀'s constant kernel.
             self.lambda.fill(Quaternion::default());
-            for ((tri, v), &area) in self
-                .triangles
-                .iter()
-                .zip(&self.face_field)
-                .zip(&g.face_areas)
-            {
-                let q = Quaternion::imaginary(*v).scale(area / 3.0);
-                for &i in tri {
-                    self.lambda[i] += q;
+            for (tri, v) in self.triangles.iter().zip(&self.face_field) {
+                let e = opposite_edges(&self.positions, tri);
+                let v = Quaternion::imaginary(*v);
+                for (&i, &e_i) in tri.iter().zip(&e) {
+                    self.lambda[i] += (e_i * v).scale(0.5);
                 }
             }
             // The constant quaternions are X₀'s kernel: remove them from the right-hand side
