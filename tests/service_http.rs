@@ -917,3 +917,875 @@ async fn textured_upload_keeps_uvs_in_the_validated_result() {
     }
     srv.stop().await;
 }
+
+// ---------------------------------------------------------------------------------------------
+// Issue 4: every flow option of the library as a job parameter, and the curve endpoint.
+
+/// A bumpy spherical cap (one boundary loop): an icosphere cut below z = −0.3, with bumps.
+fn bumpy_cap_obj() -> String {
+    let sphere = willow::mesh::generate::icosphere(3);
+    let keep: Vec<[usize; 3]> = sphere
+        .triangles
+        .iter()
+        .copied()
+        .filter(|t| t.iter().all(|&v| sphere.positions[v][2] > -0.3))
+        .collect();
+    let mut used = vec![usize::MAX; sphere.positions.len()];
+    let mut text = String::new();
+    let mut count = 0;
+    for t in &keep {
+        for &v in t {
+            if used[v] == usize::MAX {
+                used[v] = count;
+                count += 1;
+                let p = sphere.positions[v];
+                let r = 1.0 + 0.06 * (7.0 * p[0]).sin() * (6.0 * p[1]).cos();
+                text.push_str(&format!("v {} {} {}\n", p[0] * r, p[1] * r, p[2] * r));
+            }
+        }
+    }
+    for t in &keep {
+        text.push_str(&format!(
+            "f {} {} {}\n",
+            used[t[0]] + 1,
+            used[t[1]] + 1,
+            used[t[2]] + 1
+        ));
+    }
+    text
+}
+
+/// A bumpy torus (genus 1).
+fn bumpy_torus_obj() -> String {
+    let mut torus = willow::mesh::generate::torus(1.0, 0.4, 24, 12);
+    for p in &mut torus.positions {
+        let s = 1.0 + 0.05 * (5.0 * p[0]).sin() * (4.0 * p[1]).cos();
+        *p = [p[0] * s, p[1] * s, p[2] * s];
+    }
+    obj_text(&torus)
+}
+
+/// The library run the job should have been: the same OBJ, `params`, `steps` steps; the
+/// metrics of the last step.
+fn library_run(obj: &str, params: &willow::flow::FlowParams, steps: usize) -> serde_json::Value {
+    use willow::mesh::io::{Asset, Format};
+    let asset = Asset::read(
+        obj.as_bytes(),
+        Format::Obj,
+        &willow::mesh::Limits::default(),
+    )
+    .expect("test mesh parses");
+    let mut flow = willow::flow::new_flow(asset.surface(), params).expect("library flow builds");
+    let mut last = None;
+    for _ in 0..steps {
+        last = Some(flow.step().expect("library step"));
+    }
+    serde_json::to_value(last.expect("at least one step")).expect("metrics serialize")
+}
+
+/// The metrics a job and a library run must agree on (not the step time).
+const COMPARED: [&str; 4] = ["willmore_energy", "q_mean", "closure_residual", "area"];
+
+fn relative_gap(a: &serde_json::Value, b: &serde_json::Value) -> f64 {
+    COMPARED
+        .iter()
+        .map(|k| {
+            let (x, y) = (
+                a[k].as_f64().unwrap_or(f64::NAN),
+                b[k].as_f64().unwrap_or(f64::NAN),
+            );
+            (x - y).abs() / x.abs().max(y.abs()).max(1e-300)
+        })
+        .fold(0.0, f64::max)
+}
+
+/// Submit `obj` with `query`, wait for the end, and return the final job view.
+async fn run_job(srv: &TestServer, obj: &str, query: &str) -> serde_json::Value {
+    let (status, _, job) = srv.submit_obj(obj, query).await;
+    assert_eq!(status, 202, "{query}: {job}");
+    let id = job["id"].as_str().expect("id").to_string();
+    srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await
+}
+
+/// Each option reaches the flow: the job's last metrics are those of the library run with the
+/// `FlowParams` the option names, and (where the option changes anything on that mesh) not
+/// those of the run without it. Also: every method runs to completion, and `params` reports
+/// the option back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_flow_option_reaches_the_flow_and_is_reported_back() {
+    use willow::flow::filter::SpectralFilter;
+    use willow::flow::{Boundary, BoundaryAngles, FlowParams, Method, PrescribedVectors};
+    let srv = start(|_| {}).await;
+    let sphere = small_obj();
+    let cap = bumpy_cap_obj();
+    let torus = bumpy_torus_obj();
+    let plain = FlowParams::default();
+    struct Case<'a> {
+        mesh: &'a str,
+        query: &'a str,
+        params: FlowParams,
+        steps: usize,
+        /// Whether the option changes the result on this mesh (closed surfaces ignore the
+        /// boundary condition, for example).
+        changes: bool,
+        reported: serde_json::Value,
+    }
+    let cases = [
+        Case {
+            mesh: &sphere,
+            query: "steps=3&filter.sigma=0.01&filter.k=2",
+            params: FlowParams {
+                filter: Some(SpectralFilter { sigma: 0.01, k: 2 }),
+                ..plain.clone()
+            },
+            steps: 3,
+            changes: true,
+            reported: serde_json::json!({"filter": {"sigma": 0.01, "k": 2}}),
+        },
+        Case {
+            mesh: &sphere,
+            query: "steps=3&mobius_balancing=true",
+            params: FlowParams {
+                mobius_balancing: true,
+                ..plain.clone()
+            },
+            steps: 3,
+            changes: true,
+            reported: serde_json::json!({"mobius_balancing": true}),
+        },
+        Case {
+            mesh: &torus,
+            query: "steps=2&exactness=false",
+            params: FlowParams {
+                exactness: false,
+                ..plain.clone()
+            },
+            steps: 2,
+            changes: true,
+            reported: serde_json::json!({"exactness": false}),
+        },
+        Case {
+            mesh: &sphere,
+            query: "steps=3&method=taubin&tau=0.3",
+            params: FlowParams {
+                method: Method::Taubin,
+                tau: 0.3,
+                ..plain.clone()
+            },
+            steps: 3,
+            changes: true,
+            reported: serde_json::json!({"method": "taubin", "tau": 0.3}),
+        },
+        Case {
+            mesh: &sphere,
+            query: "steps=2&method=cmcf&tau=0.05",
+            params: FlowParams {
+                method: Method::Cmcf,
+                tau: 0.05,
+                ..plain.clone()
+            },
+            steps: 2,
+            changes: true,
+            reported: serde_json::json!({"method": "cmcf"}),
+        },
+        Case {
+            mesh: &sphere,
+            query: "steps=2&method=bilaplacian&tau=0.01",
+            params: FlowParams {
+                method: Method::Bilaplacian,
+                tau: 0.01,
+                ..plain.clone()
+            },
+            steps: 2,
+            changes: true,
+            reported: serde_json::json!({"method": "bilaplacian"}),
+        },
+        Case {
+            mesh: &cap,
+            query: "steps=2&boundary=fixed",
+            params: FlowParams {
+                boundary: Boundary::Fixed,
+                ..plain.clone()
+            },
+            steps: 2,
+            changes: true,
+            reported: serde_json::json!({"boundary": "fixed"}),
+        },
+        Case {
+            mesh: &sphere,
+            query: "steps=1&boundary=fixed",
+            params: FlowParams {
+                boundary: Boundary::Fixed,
+                ..plain.clone()
+            },
+            steps: 1,
+            changes: false,
+            reported: serde_json::json!({"boundary": "fixed"}),
+        },
+        // The lead's prescribed-vectors solver: until it lands, the library (and so the job)
+        // answers `unsupported` here.
+        Case {
+            mesh: &cap,
+            query: "steps=2&boundary=cmc",
+            params: FlowParams {
+                boundary: Boundary::Cmc,
+                ..plain.clone()
+            },
+            steps: 2,
+            changes: true,
+            reported: serde_json::json!({"boundary": "cmc"}),
+        },
+        Case {
+            mesh: &cap,
+            query: "steps=2&boundary.prescribed.frame_angle=0.2&boundary.prescribed.axis.fixed=0,0,1&boundary.prescribed.angles.per_loop=0.15",
+            params: FlowParams {
+                boundary: Boundary::Prescribed(PrescribedVectors {
+                    frame_angle: 0.2,
+                    axis: willow::flow::RotationAxis::Fixed([0.0, 0.0, 1.0]),
+                    angles: BoundaryAngles::PerLoop(vec![0.15]),
+                }),
+                ..plain.clone()
+            },
+            steps: 2,
+            changes: true,
+            reported: serde_json::json!({"boundary": {"prescribed": {
+                "frame_angle": 0.2, "axis": {"fixed": [0.0, 0.0, 1.0]}, "angles": {"per_loop": [0.15]}}}}),
+        },
+    ];
+    for case in &cases {
+        let done = run_job(&srv, case.mesh, case.query).await;
+        assert_eq!(
+            done["state"], "succeeded",
+            "{}: {} {}",
+            case.query, done["error_code"], done["error"]
+        );
+        for (key, want) in case.reported.as_object().expect("object") {
+            assert_eq!(&done["params"][key], want, "{}: params.{key}", case.query);
+        }
+        let job = &done["metrics"]["latest"];
+        let expected = library_run(case.mesh, &case.params, case.steps);
+        assert!(
+            relative_gap(job, &expected) < 1e-9,
+            "{}: job {job} vs library {expected}",
+            case.query
+        );
+        let without = library_run(
+            case.mesh,
+            &FlowParams {
+                method: case.params.method,
+                tau: case.params.tau,
+                ..FlowParams::default()
+            },
+            case.steps,
+        );
+        let differs = case.params.method != Method::Conformal || relative_gap(job, &without) > 1e-6;
+        assert_eq!(
+            differs, case.changes,
+            "{}: with {job} vs without {without}",
+            case.query
+        );
+    }
+
+    // Without the exactness constraints a torus no longer closes up (Figure 12).
+    let closure = |q: &str| {
+        let q = q.to_string();
+        let torus = torus.clone();
+        let srv = &srv;
+        async move { run_job(srv, &torus, &q).await["metrics"]["latest"]["closure_residual"].as_f64() }
+    };
+    let (with, without) = (
+        closure("steps=2").await.expect("closure"),
+        closure("steps=2&exactness=false").await.expect("closure"),
+    );
+    assert!(
+        without > 10.0 * with,
+        "closure with {with}, without {without}"
+    );
+
+    // Defaults are reported too, and the reported params submit again as they are (JSON part).
+    let done = run_job(&srv, &sphere, "steps=1").await;
+    let params = &done["params"];
+    assert_eq!(params["exactness"], true);
+    assert_eq!(params["mobius_balancing"], false);
+    assert_eq!(params["filter"], serde_json::Value::Null);
+    assert_eq!(params["boundary"], "free");
+    let prescribed = run_job(
+        &srv,
+        &cap,
+        "steps=1&boundary=prescribed&boundary.prescribed.angles.uniform=-0.1&boundary.prescribed.axis=tangent",
+    )
+    .await;
+    assert_eq!(
+        prescribed["params"]["boundary"],
+        serde_json::json!({"prescribed": {"frame_angle": 0.0, "axis": "tangent", "angles": {"uniform": -0.1}}})
+    );
+    for view in [&done, &prescribed] {
+        let form = reqwest::multipart::Form::new()
+            .part(
+                "mesh",
+                reqwest::multipart::Part::text(if view["vertex_count"] == done["vertex_count"] {
+                    sphere.clone()
+                } else {
+                    cap.clone()
+                })
+                .file_name("m.obj"),
+            )
+            .text("params", view["params"].to_string());
+        let res = srv
+            .client
+            .post(srv.url("/v1/jobs"))
+            .multipart(form)
+            .send()
+            .await
+            .expect("POST multipart");
+        assert_eq!(res.status(), 202);
+        let again: serde_json::Value = res.json().await.expect("json");
+        assert_eq!(again["params"], view["params"], "round trip");
+        let (_, polled) = srv
+            .get_json(&format!("/v1/jobs/{}", again["id"].as_str().expect("id")))
+            .await;
+        assert_eq!(polled["params"], view["params"], "GET reports the same");
+    }
+    srv.stop().await;
+}
+
+/// Each bad value of a flow option is a 400 naming the field, before anything is queued.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_flow_options_are_refused_with_the_field_named() {
+    let srv = start(|_| {}).await;
+    let sphere = small_obj();
+    let cap = bumpy_cap_obj();
+    let cases: [(&str, &str, &str); 22] = [
+        (&sphere, "filter.sigma=0.1&filter.k=4", "filter.k"),
+        (&sphere, "filter.sigma=0&filter.k=2", "filter.sigma"),
+        (&sphere, "filter.sigma=NaN&filter.k=2", "filter.sigma"),
+        (&sphere, "filter.sigma=inf&filter.k=2", "filter.sigma"),
+        (&sphere, "filter.sigma=0.1", "filter.k"),
+        (&sphere, "filter.k=1", "filter.sigma"),
+        (&sphere, "boundary=clamped", "boundary"),
+        (
+            &cap,
+            "boundary.prescribed.frame_angle=1.6",
+            "boundary.prescribed.frame_angle",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.frame_angle=-1.58",
+            "boundary.prescribed.frame_angle",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.frame_angle=NaN",
+            "boundary.prescribed.frame_angle",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.axis.fixed=0,0,0",
+            "boundary.prescribed.axis.fixed",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.axis.fixed=1,2",
+            "boundary.prescribed.axis.fixed",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.axis.fixed=inf,0,0",
+            "boundary.prescribed.axis.fixed",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.axis=north",
+            "boundary.prescribed.axis",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.angles.uniform=NaN",
+            "boundary.prescribed.angles.uniform",
+        ),
+        (
+            &cap,
+            "boundary.prescribed.angles.per_loop=0.1,x",
+            "boundary.prescribed.angles.per_loop",
+        ),
+        // The cap has one boundary loop, the sphere none: the count is checked on the upload.
+        (
+            &cap,
+            "boundary.prescribed.angles.per_loop=0.1,0.2",
+            "boundary.prescribed.angles.per_loop",
+        ),
+        (
+            &sphere,
+            "boundary.prescribed.angles.per_loop=0.1",
+            "boundary.prescribed.angles.per_loop",
+        ),
+        (
+            &cap,
+            "boundary=fixed&boundary.prescribed.frame_angle=0.1",
+            "boundary",
+        ),
+        // Options of the conformal flow with another method.
+        (&sphere, "method=mcf&filter.sigma=0.1&filter.k=1", "filter"),
+        (&sphere, "method=taubin&exactness=false", "exactness"),
+        (&sphere, "method=cmcf&boundary=cmc", "boundary"),
+    ];
+    for (mesh, query, field) in cases {
+        let (status, _, p) = srv.submit_obj(mesh, query).await;
+        assert_eq!(status, 400, "{query}: {p}");
+        assert_eq!(p["code"], "invalid_parameter", "{query}: {p}");
+        assert_eq!(p["field"], field, "{query}: {p}");
+    }
+    let (status, _, p) = srv
+        .submit_obj(&sphere, "method=mcf&mobius_balancing=true")
+        .await;
+    assert_eq!(
+        (status.as_u16(), p["field"].as_str()),
+        (400, Some("mobius_balancing"))
+    );
+    // Unparseable values name their parameter in the detail.
+    let (status, _, p) = srv.submit_obj(&sphere, "exactness=maybe").await;
+    assert_eq!(status, 400, "{p}");
+    assert!(
+        p["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("exactness")),
+        "{p}"
+    );
+    // The conformal flow's τ < 1 is the conformal flow's: other methods may go above.
+    let (status, _, p) = srv.submit_obj(&sphere, "method=mcf&tau=1.5&steps=1").await;
+    assert_eq!(status, 202, "{p}");
+    // Nothing refused above was queued.
+    let (_, list) = srv.get_json("/v1/jobs").await;
+    assert_eq!(list["jobs"].as_array().map(Vec::len), Some(1), "{list}");
+
+    // The JSON params part: nested shapes, unknown fields refused, per-vertex angles library-only.
+    for (params, field) in [
+        (r#"{"filter": {"sigma": 0.1, "k": 9}}"#, "filter.k"),
+        (
+            r#"{"boundary": {"prescribed": {"frame_angle": 2.0}}}"#,
+            "boundary.prescribed.frame_angle",
+        ),
+        (
+            r#"{"boundary": {"prescribed": {"frame_angel": 0.1}}}"#,
+            "params",
+        ),
+        (
+            r#"{"boundary": {"prescribed": {"angles": {"per_vertex": [[0, 0.1]]}}}}"#,
+            "params",
+        ),
+        (r#"{"filter": {"sigma": 0.1}}"#, "params"),
+        (r#"{"boundary": "clamped"}"#, "params"),
+    ] {
+        let form = reqwest::multipart::Form::new()
+            .part(
+                "mesh",
+                reqwest::multipart::Part::text(cap.clone()).file_name("cap.obj"),
+            )
+            .text("params", params.to_string());
+        let res = srv
+            .client
+            .post(srv.url("/v1/jobs"))
+            .multipart(form)
+            .send()
+            .await
+            .expect("POST multipart");
+        assert_eq!(res.status(), 400, "{params}");
+        let p: serde_json::Value = res.json().await.expect("problem");
+        assert_eq!(p["field"], field, "{params}: {p}");
+    }
+    srv.stop().await;
+}
+
+/// r = 1 + 0.2 sin 5t plus a deterministic jitter: curvature far from constant.
+fn noisy_closed_curve(n: usize) -> Vec<[f64; 2]> {
+    (0..n)
+        .map(|i| {
+            let t = std::f64::consts::TAU * i as f64 / n as f64;
+            let jitter = 0.01 * (((i * 7919) % 13) as f64 / 13.0 - 0.5);
+            let r = 1.0 + 0.2 * (5.0 * t).sin() + jitter;
+            [r * t.cos(), r * t.sin()]
+        })
+        .collect()
+}
+
+/// The library's measures of a curve: (σ(κ)/κ̄ with its own dual lengths, total length).
+fn curve_measures(points: &[[f64; 2]], closed: bool) -> (f64, f64) {
+    use willow::flow::curve::{curvature_std_over_mean, dual_lengths, Curve};
+    let curve = Curve::new(points.to_vec(), closed).expect("valid curve");
+    let mut dual = vec![0.0; points.len()];
+    dual_lengths(&curve.edge_lengths(), closed, &mut dual);
+    (
+        curvature_std_over_mean(&curve.curvature(), &dual),
+        curve.length(),
+    )
+}
+
+fn points_of(v: &serde_json::Value) -> Vec<[f64; 2]> {
+    v.as_array()
+        .expect("points array")
+        .iter()
+        .map(|p| [p[0].as_f64().expect("x"), p[1].as_f64().expect("y")])
+        .collect()
+}
+
+async fn post_curve(
+    srv: &TestServer,
+    content_type: &str,
+    body: impl Into<reqwest::Body>,
+    query: &str,
+) -> (u16, serde_json::Value) {
+    let res = srv
+        .client
+        .post(srv.url(&format!("/v1/curves:fair?{query}")))
+        .header("content-type", content_type)
+        .body(body)
+        .send()
+        .await
+        .expect("POST /v1/curves:fair");
+    let status = res.status().as_u16();
+    if status != 200 {
+        assert_eq!(
+            res.headers()
+                .get("content-type")
+                .and_then(|v| v.to_str().ok()),
+            Some("application/problem+json"),
+            "status {status}"
+        );
+    }
+    (status, res.json().await.unwrap_or(serde_json::Value::Null))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn curve_endpoint_rounds_a_noisy_curve_keeping_its_length() {
+    use willow::flow::curve::{Curve, CurveFlow, CurveParams};
+    let srv = start(|_| {}).await;
+    let input = noisy_closed_curve(256);
+    let (before, length) = curve_measures(&input, true);
+    assert!(before > 0.5, "the test curve is noisy: σ/κ̄ = {before}");
+
+    let body = serde_json::json!({"points": input, "closed": true}).to_string();
+    let (status, out) = post_curve(&srv, "application/json", body, "steps=6&tau=0.5").await;
+    assert_eq!(status, 200, "{out}");
+    assert_eq!(out["curve"]["closed"], true);
+    let faired = points_of(&out["curve"]["points"]);
+    assert_eq!(faired.len(), input.len());
+    let (after, new_length) = curve_measures(&faired, true);
+    assert!(after < 1e-2 * before, "σ/κ̄ from {before} to {after}");
+    assert!(
+        (new_length / length - 1.0).abs() < 1e-3,
+        "length {length} → {new_length}"
+    );
+    // The same numbers as the library's own flow.
+    let mut flow = CurveFlow::new(
+        Curve::new(input.clone(), true).expect("curve"),
+        CurveParams { tau: 0.5 },
+    )
+    .expect("flow");
+    for _ in 0..6 {
+        flow.step();
+    }
+    for (a, b) in faired.iter().zip(flow.points()) {
+        assert!((a[0] - b[0]).abs() < 1e-12 && (a[1] - b[1]).abs() < 1e-12);
+    }
+    let metrics = out["metrics"].as_array().expect("metrics");
+    assert_eq!(metrics.len(), 7, "step 0 and six steps");
+    assert_eq!(metrics[0]["step"], 0);
+    assert_eq!(metrics[6]["step"], 6);
+    let last = metrics[6]["curvature_std_over_mean"]
+        .as_f64()
+        .expect("number");
+    assert!((last - flow.last_metrics().curvature_std_over_mean).abs() < 1e-12);
+    assert!(metrics[0]["curvature_std_over_mean"].as_f64() > Some(0.5));
+    assert_eq!(out["params"]["steps"], 6);
+    assert_eq!(out["params"]["tau"], 0.5);
+    assert_eq!(
+        out["params"]["deadline_secs"], 10.0,
+        "the server default applied"
+    );
+    assert!(out.get("frames").is_none(), "no frames unless asked");
+
+    // OBJ in (`l` closing on its first index), frames out: steps 0, 2, 4 and the last.
+    let mut obj = String::new();
+    for p in &input {
+        obj.push_str(&format!("v {} {} 0\n", p[0], p[1]));
+    }
+    obj.push('l');
+    for i in 1..=input.len() {
+        obj.push_str(&format!(" {i}"));
+    }
+    obj.push_str(" 1\n");
+    let (status, out) = post_curve(&srv, "model/obj", obj, "steps=5&frame_interval=2").await;
+    assert_eq!(status, 200, "{out}");
+    assert_eq!(out["curve"]["closed"], true);
+    let steps: Vec<u64> = out["frames"]
+        .as_array()
+        .expect("frames")
+        .iter()
+        .map(|f| f["step"].as_u64().expect("step"))
+        .collect();
+    assert_eq!(steps, vec![0, 2, 4, 5]);
+    // Within an ulp: this test parses with serde_json's default (not round-trip exact) reader.
+    let close = |a: &[[f64; 2]], b: &[[f64; 2]]| {
+        a.len() == b.len()
+            && a.iter().zip(b).all(|(p, q)| {
+                (p[0] - q[0]).abs() <= 1e-15 * p[0].abs().max(1.0)
+                    && (p[1] - q[1]).abs() <= 1e-15 * p[1].abs().max(1.0)
+            })
+    };
+    assert!(
+        close(&points_of(&out["frames"][0]["points"]), &input),
+        "frame 0 is the input"
+    );
+    assert_eq!(
+        points_of(&out["frames"][3]["points"]),
+        points_of(&out["curve"]["points"]),
+        "the last frame is the result"
+    );
+
+    // An open curve (a bare array) straightens, its length kept.
+    let open: Vec<[f64; 2]> = (0..50)
+        .map(|i| {
+            let x = i as f64 / 49.0;
+            [x, 0.1 * (9.0 * x).sin()]
+        })
+        .collect();
+    let (_, open_length) = curve_measures(&open, false);
+    let (status, out) = post_curve(
+        &srv,
+        "application/json; charset=utf-8",
+        serde_json::to_string(&open).expect("json"),
+        "steps=20",
+    )
+    .await;
+    assert_eq!(status, 200, "{out}");
+    assert_eq!(out["curve"]["closed"], false);
+    let (_, straightened) = curve_measures(&points_of(&out["curve"]["points"]), false);
+    assert!((straightened / open_length - 1.0).abs() < 1e-3);
+
+    // The OpenAPI document has the endpoint and the new job parameters, dotted names included.
+    let (_, doc) = srv.get_json("/openapi.json").await;
+    assert!(
+        doc["paths"]["/v1/curves:fair"]["post"].is_object(),
+        "{}",
+        doc["paths"]
+    );
+    let names: Vec<&str> = doc["paths"]["/v1/jobs"]["post"]["parameters"]
+        .as_array()
+        .expect("parameters")
+        .iter()
+        .filter_map(|p| p["name"].as_str())
+        .collect();
+    for want in [
+        "exactness",
+        "mobius_balancing",
+        "filter.sigma",
+        "filter.k",
+        "boundary",
+        "boundary.prescribed.frame_angle",
+        "boundary.prescribed.axis.fixed",
+        "boundary.prescribed.angles.per_loop",
+    ] {
+        assert!(names.contains(&want), "{want} not in {names:?}");
+    }
+    assert!(doc["components"]["schemas"]["BoundarySpec"].is_object());
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn curve_endpoint_refuses_hostile_input_with_specific_problems() {
+    let srv = start(|c| {
+        c.limits.max_curve_points = 1000;
+        c.limits.max_curve_bytes = 64 * 1024;
+        c.limits.max_curve_frame_points = 5000;
+    })
+    .await;
+    let json = "application/json";
+    let circle = noisy_closed_curve(100);
+    let good = serde_json::json!({"points": circle, "closed": true}).to_string();
+
+    // Curves the flow cannot take: 422 with the library's reason as the code.
+    let mut repeated = circle.clone();
+    repeated.push(circle[0]);
+    for (ct, body, code) in [
+        (json, String::new(), "invalid_json"),
+        (json, "{}".to_string(), "invalid_json"),
+        (
+            json,
+            r#"{"points": [], "closed": true}"#.to_string(),
+            "too_few_points",
+        ),
+        (
+            json,
+            r#"{"points": [[0, 0], [1, 0]], "closed": true}"#.to_string(),
+            "too_few_points",
+        ),
+        (
+            json,
+            r#"{"points": [[0, 0], [1e999, 0], [0, 1]], "closed": true}"#.to_string(),
+            "invalid_json",
+        ),
+        (
+            json,
+            r#"{"points": [[0, 0], [1, 0], [0, 1]], "closed": true, "extra": 1}"#.to_string(),
+            "invalid_json",
+        ),
+        (
+            json,
+            serde_json::json!({"points": repeated, "closed": true}).to_string(),
+            "zero_length_edge",
+        ),
+        (json, "[[0, 0], [1, 0], [0, 0]]".to_string(), "cusp"),
+        (
+            "model/obj",
+            "v 0 0 0\nv nan 0 0\nv 0 1 0\nl 1 2 3 1\n".to_string(),
+            "non_finite",
+        ),
+        (
+            "model/obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 1\n".to_string(),
+            "too_few_points",
+        ),
+        (
+            "model/obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".to_string(),
+            "invalid_obj",
+        ),
+        (
+            "model/obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 5\nl 1 2 3 1\n".to_string(),
+            "invalid_obj",
+        ),
+        (
+            "model/obj",
+            "v 0 0 0\nv 1 0 0\nl 1 2 9\n".to_string(),
+            "invalid_obj",
+        ),
+    ] {
+        let (status, p) = post_curve(&srv, ct, body.clone(), "").await;
+        assert_eq!(status, 422, "{body}: {p}");
+        assert_eq!(p["code"], code, "{body}: {p}");
+        assert_eq!(p["instance"], "/v1/curves:fair");
+    }
+    let (_, p) = post_curve(
+        &srv,
+        json,
+        serde_json::json!({"points": repeated, "closed": true}).to_string(),
+        "",
+    )
+    .await;
+    assert_eq!(p["index"], 100, "the closing edge: {p}");
+
+    // Parameters: each names its field.
+    for (query, field) in [
+        ("steps=0", "steps"),
+        ("tau=1", "tau"),
+        ("tau=0", "tau"),
+        ("tau=NaN", "tau"),
+        ("frame_interval=0", "frame_interval"),
+        ("deadline_secs=0", "deadline_secs"),
+        ("deadline_secs=1000", "deadline_secs"),
+        // 100 points × 101 frames is over the 5000-point limit of this server.
+        ("steps=100&frame_interval=1", "frame_interval"),
+    ] {
+        let (status, p) = post_curve(&srv, json, good.clone(), query).await;
+        assert_eq!(status, 400, "{query}: {p}");
+        assert_eq!(p["field"], field, "{query}: {p}");
+    }
+    let (status, p) = post_curve(&srv, json, good.clone(), "steps=100&frame_interval=1").await;
+    assert!(
+        p["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("at least 3")),
+        "{status} {p}"
+    );
+    let (status, p) = post_curve(&srv, json, good.clone(), "stepz=3").await;
+    assert_eq!(status, 400, "{p}");
+    // Limits: steps, points, bytes (announced or not).
+    let (status, p) = post_curve(&srv, json, good.clone(), "steps=5000").await;
+    assert_eq!((status, p["what"].as_str()), (413, Some("steps")), "{p}");
+    let many = serde_json::json!({"points": noisy_closed_curve(1001), "closed": true}).to_string();
+    let (status, p) = post_curve(&srv, json, many, "").await;
+    assert_eq!(
+        (status, p["what"].as_str()),
+        (413, Some("curve points")),
+        "{p}"
+    );
+    assert_eq!(p["limit"], 1000);
+    let huge = format!("[{}[0,0]]", "[0,0],".repeat(20_000));
+    let (status, p) = post_curve(&srv, json, huge.clone(), "").await;
+    assert_eq!(
+        (status, p["what"].as_str()),
+        (413, Some("curve bytes")),
+        "{p}"
+    );
+    let stream = futures::stream::iter(vec![Ok::<_, std::io::Error>(huge.into_bytes())]);
+    let (status, p) = post_curve(&srv, json, reqwest::Body::wrap_stream(stream), "").await;
+    assert_eq!(
+        (status, p["what"].as_str()),
+        (413, Some("curve bytes")),
+        "chunked: {p}"
+    );
+    // Content types.
+    let (status, p) = post_curve(&srv, "text/plain", good.clone(), "").await;
+    assert_eq!(status, 415, "{p}");
+    // Still serving after all that.
+    let (status, _) = post_curve(&srv, json, good, "").await;
+    assert_eq!(status, 200);
+    srv.stop().await;
+}
+
+/// The curve slots are bounded: with one slot held by a long request, the next waits a second
+/// and gets 429 + Retry-After; the long one ends at its deadline with 504; then the slot is
+/// free again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn curve_slots_are_bounded_and_deadlines_end_long_requests() {
+    let srv = start(|c| c.curve_slots = 1).await;
+    // 100k points × 1000 steps: several seconds even in release, so the deadline ends it.
+    let long =
+        serde_json::json!({"points": noisy_closed_curve(100_000), "closed": true}).to_string();
+    let url = srv.url("/v1/curves:fair?steps=1000&deadline_secs=4");
+    let client = srv.client.clone();
+    let holder = tokio::spawn(async move {
+        let res = client
+            .post(url)
+            .header("content-type", "application/json")
+            .body(long)
+            .send()
+            .await
+            .expect("long request");
+        let status = res.status().as_u16();
+        (
+            status,
+            res.json::<serde_json::Value>().await.unwrap_or_default(),
+        )
+    });
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let small = serde_json::json!({"points": noisy_closed_curve(64), "closed": true}).to_string();
+    let res = srv
+        .client
+        .post(srv.url("/v1/curves:fair"))
+        .header("content-type", "application/json")
+        .body(small.clone())
+        .send()
+        .await
+        .expect("second request");
+    assert_eq!(res.status(), 429);
+    assert_eq!(
+        res.headers()
+            .get("retry-after")
+            .and_then(|v| v.to_str().ok()),
+        Some("1")
+    );
+    let p: serde_json::Value = res.json().await.expect("problem");
+    assert_eq!(p["code"], "busy", "{p}");
+    let (status, p) = tokio::time::timeout(JOB_TIMEOUT, holder)
+        .await
+        .expect("the long request ends")
+        .expect("task");
+    assert_eq!(status, 504, "{p}");
+    assert_eq!(p["code"], "deadline_exceeded", "{p}");
+    assert!(p["step"].as_u64() < Some(1000), "{p}");
+    let (status, out) = post_curve(&srv, "application/json", small, "").await;
+    assert_eq!(status, 200, "{out}");
+    srv.stop().await;
+}
