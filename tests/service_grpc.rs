@@ -1155,3 +1155,536 @@ async fn health_and_reflection() {
     assert_eq!(refused.code(), Code::Unavailable);
     assert!(refused.get_details_retry_info().is_some());
 }
+
+// ---------------------------------------------------------------------------------------------
+// Issue 4: the rest of FlowParams as JobParams fields, and FairCurve.
+
+/// A bumpy spherical cap (one boundary loop): an icosphere cut below z = −0.3, with bumps.
+fn bumpy_cap_obj() -> Vec<u8> {
+    let mut sphere = generate::icosphere(3);
+    let keep: Vec<[usize; 3]> = sphere
+        .triangles
+        .iter()
+        .copied()
+        .filter(|t| t.iter().all(|&v| sphere.positions[v][2] > -0.3))
+        .collect();
+    let mut used = vec![usize::MAX; sphere.positions.len()];
+    let mut positions = Vec::new();
+    for t in &keep {
+        for &v in t {
+            if used[v] == usize::MAX {
+                used[v] = positions.len();
+                let p = sphere.positions[v];
+                let r = 1.0 + 0.06 * (7.0 * p[0]).sin() * (6.0 * p[1]).cos();
+                positions.push([p[0] * r, p[1] * r, p[2] * r]);
+            }
+        }
+    }
+    sphere.triangles = keep
+        .iter()
+        .map(|t| [used[t[0]], used[t[1]], used[t[2]]])
+        .collect();
+    sphere.positions = positions;
+    obj_text(&sphere).into_bytes()
+}
+
+fn prescribed(
+    frame_angle: f64,
+    axis: Option<v1::rotation_axis::Axis>,
+    angles: Option<v1::boundary_angles::Angles>,
+) -> Option<v1::Boundary> {
+    Some(v1::Boundary {
+        condition: Some(v1::boundary::Condition::Prescribed(v1::PrescribedVectors {
+            frame_angle,
+            axis: Some(v1::RotationAxis { axis }),
+            angles: Some(v1::BoundaryAngles { angles }),
+        })),
+    })
+}
+
+fn condition(c: v1::boundary::Condition) -> Option<v1::Boundary> {
+    Some(v1::Boundary { condition: Some(c) })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn flow_options_are_reported_back_refused_by_field_and_run() {
+    use v1::boundary::Condition;
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let sphere = || inline(v1::MeshFormat::Obj, small_obj());
+    let cap = || inline(v1::MeshFormat::Obj, bumpy_cap_obj());
+
+    // Every field set: accepted, reported by CreateJob's metadata and by GetJob, and run.
+    let options = v1::JobParams {
+        exactness: Some(false),
+        mobius_balancing: Some(true),
+        filter: Some(v1::SpectralFilter { sigma: 0.01, k: 2 }),
+        boundary: prescribed(
+            0.2,
+            Some(v1::rotation_axis::Axis::Fixed(v1::Vector3 {
+                x: 0.0,
+                y: 0.0,
+                z: 1.0,
+            })),
+            Some(v1::boundary_angles::Angles::PerLoop(v1::AngleList {
+                values: vec![0.15],
+            })),
+        ),
+        ..params(v1::Method::Conformal, 2)
+    };
+    let op = create(&mut client, cap(), options.clone(), "")
+        .await
+        .expect("CreateJob with every option");
+    let reported = job_from_any(op.metadata.as_ref().expect("metadata"))
+        .params
+        .expect("params");
+    assert_eq!(reported.exactness, Some(false));
+    assert_eq!(reported.mobius_balancing, Some(true));
+    assert_eq!(reported.filter, options.filter);
+    assert_eq!(reported.boundary, options.boundary);
+    let done = poll_until(&mut client, &op.name, |j| {
+        state(j) != v1::job::State::Queued && state(j) != v1::job::State::Running
+    })
+    .await;
+    assert_eq!(state(&done), v1::job::State::Succeeded, "{:?}", done.error);
+    assert_eq!(
+        done.params.as_ref().map(|p| &p.boundary),
+        Some(&options.boundary)
+    );
+
+    // Unset fields report their defaults; an empty Boundary is free.
+    let op = create(
+        &mut client,
+        sphere(),
+        v1::JobParams {
+            boundary: Some(v1::Boundary::default()),
+            ..params(v1::Method::Conformal, 1)
+        },
+        "",
+    )
+    .await
+    .expect("CreateJob");
+    let p = get_job(&mut client, &op.name)
+        .await
+        .expect("GetJob")
+        .params
+        .expect("params");
+    assert_eq!(p.exactness, Some(true));
+    assert_eq!(p.mobius_balancing, Some(false));
+    assert_eq!(p.filter, None);
+    assert_eq!(p.boundary, condition(Condition::Free(())));
+
+    // Taubin and a CMC boundary run to completion (CMC needs the prescribed-vectors solver).
+    for (mesh, p) in [
+        (
+            sphere(),
+            v1::JobParams {
+                tau: Some(0.3),
+                ..params(v1::Method::Taubin, 3)
+            },
+        ),
+        (
+            cap(),
+            v1::JobParams {
+                boundary: condition(Condition::Cmc(())),
+                ..params(v1::Method::Conformal, 2)
+            },
+        ),
+    ] {
+        let op = create(&mut client, mesh, p.clone(), "")
+            .await
+            .expect("CreateJob");
+        let done = poll_until(&mut client, &op.name, |j| {
+            !matches!(state(j), v1::job::State::Queued | v1::job::State::Running)
+        })
+        .await;
+        assert_eq!(
+            state(&done),
+            v1::job::State::Succeeded,
+            "{p:?}: {:?}",
+            done.error
+        );
+        assert_eq!(
+            done.params.map(|q| q.boundary),
+            Some(p.boundary.or(condition(Condition::Free(()))))
+        );
+    }
+
+    // Each bad value: INVALID_ARGUMENT naming the field's path in the request.
+    let conformal = || params(v1::Method::Conformal, 1);
+    let filter = |sigma, k| Some(v1::SpectralFilter { sigma, k });
+    let fixed = |x, y, z| Some(v1::rotation_axis::Axis::Fixed(v1::Vector3 { x, y, z }));
+    let uniform = |a| Some(v1::boundary_angles::Angles::Uniform(a));
+    let cases: Vec<(Option<v1::create_job_request::Mesh>, v1::JobParams, &str)> = vec![
+        (
+            sphere(),
+            v1::JobParams {
+                filter: filter(0.1, 4),
+                ..conformal()
+            },
+            "params.filter.k",
+        ),
+        (
+            sphere(),
+            v1::JobParams {
+                filter: filter(0.0, 2),
+                ..conformal()
+            },
+            "params.filter.sigma",
+        ),
+        (
+            sphere(),
+            v1::JobParams {
+                filter: filter(f64::NAN, 2),
+                ..conformal()
+            },
+            "params.filter.sigma",
+        ),
+        (
+            cap(),
+            v1::JobParams {
+                boundary: prescribed(1.6, None, None),
+                ..conformal()
+            },
+            "params.boundary.prescribed.frame_angle",
+        ),
+        (
+            cap(),
+            v1::JobParams {
+                boundary: prescribed(-1.6, None, None),
+                ..conformal()
+            },
+            "params.boundary.prescribed.frame_angle",
+        ),
+        (
+            cap(),
+            v1::JobParams {
+                boundary: prescribed(0.0, fixed(0.0, 0.0, 0.0), None),
+                ..conformal()
+            },
+            "params.boundary.prescribed.axis.fixed",
+        ),
+        (
+            cap(),
+            v1::JobParams {
+                boundary: prescribed(0.0, fixed(f64::NAN, 0.0, 1.0), None),
+                ..conformal()
+            },
+            "params.boundary.prescribed.axis.fixed",
+        ),
+        (
+            cap(),
+            v1::JobParams {
+                boundary: prescribed(0.0, None, uniform(f64::INFINITY)),
+                ..conformal()
+            },
+            "params.boundary.prescribed.angles.uniform",
+        ),
+        (
+            sphere(),
+            v1::JobParams {
+                boundary: prescribed(
+                    0.0,
+                    None,
+                    Some(v1::boundary_angles::Angles::PerLoop(v1::AngleList {
+                        values: vec![0.1],
+                    })),
+                ),
+                ..conformal()
+            },
+            "params.boundary.prescribed.angles.per_loop.values",
+        ),
+        (
+            sphere(),
+            v1::JobParams {
+                filter: filter(0.1, 1),
+                ..params(v1::Method::Mcf, 1)
+            },
+            "params.filter",
+        ),
+        (
+            sphere(),
+            v1::JobParams {
+                exactness: Some(false),
+                ..params(v1::Method::Taubin, 1)
+            },
+            "params.exactness",
+        ),
+        (
+            sphere(),
+            v1::JobParams {
+                mobius_balancing: Some(true),
+                ..params(v1::Method::Mcf, 1)
+            },
+            "params.mobius_balancing",
+        ),
+        (
+            sphere(),
+            v1::JobParams {
+                boundary: condition(Condition::Fixed(())),
+                ..params(v1::Method::Bilaplacian, 1)
+            },
+            "params.boundary",
+        ),
+    ];
+    for (mesh, p, field) in cases {
+        assert_bad_field(create(&mut client, mesh, p, "").await, field);
+    }
+    // The defaults of conformal-only options are fine with any method.
+    let op = create(
+        &mut client,
+        sphere(),
+        v1::JobParams {
+            exactness: Some(true),
+            mobius_balancing: Some(false),
+            boundary: condition(Condition::Free(())),
+            tau: Some(0.1),
+            ..params(v1::Method::Mcf, 1)
+        },
+        "",
+    )
+    .await;
+    assert!(op.is_ok(), "{op:?}");
+}
+
+/// r = 1 + 0.2 sin 5t plus a deterministic jitter, as packed x, y.
+fn noisy_closed_curve(n: usize) -> Vec<f64> {
+    (0..n)
+        .flat_map(|i| {
+            let t = std::f64::consts::TAU * i as f64 / n as f64;
+            let jitter = 0.01 * (((i * 7919) % 13) as f64 / 13.0 - 0.5);
+            let r = 1.0 + 0.2 * (5.0 * t).sin() + jitter;
+            [r * t.cos(), r * t.sin()]
+        })
+        .collect()
+}
+
+/// The library's measures of a closed curve: (σ(κ)/κ̄ with its own dual lengths, length).
+fn curve_measures(xy: &[f64]) -> (f64, f64) {
+    use willow::flow::curve::{curvature_std_over_mean, dual_lengths, Curve};
+    let points: Vec<[f64; 2]> = xy.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+    let curve = Curve::new(points, true).expect("valid curve");
+    let mut dual = vec![0.0; curve.points.len()];
+    dual_lengths(&curve.edge_lengths(), true, &mut dual);
+    (
+        curvature_std_over_mean(&curve.curvature(), &dual),
+        curve.length(),
+    )
+}
+
+fn curve_request(xy: Vec<f64>, closed: bool) -> v1::FairCurveRequest {
+    v1::FairCurveRequest {
+        curve: Some(v1::Curve { xy, closed }),
+        ..Default::default()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fair_curve_rounds_a_noisy_curve_and_refuses_hostile_input() {
+    let server = Server::start(|c| {
+        c.limits.max_curve_points = 60_000;
+        c.limits.max_curve_frame_points = 5_000;
+    })
+    .await;
+    let mut client = server.fairing().await;
+    let input = noisy_closed_curve(256);
+    let (before, length) = curve_measures(&input);
+    assert!(before > 0.5, "noisy: σ/κ̄ = {before}");
+
+    let out = client
+        .fair_curve(v1::FairCurveRequest {
+            steps: Some(6),
+            ..curve_request(input.clone(), true)
+        })
+        .await
+        .expect("FairCurve")
+        .into_inner();
+    let curve = out.curve.expect("curve");
+    assert!(curve.closed);
+    assert_eq!(curve.xy.len(), input.len());
+    let (after, new_length) = curve_measures(&curve.xy);
+    assert!(after < 1e-2 * before, "σ/κ̄ from {before} to {after}");
+    assert!(
+        (new_length / length - 1.0).abs() < 1e-3,
+        "{length} → {new_length}"
+    );
+    assert_eq!(out.metrics.len(), 7);
+    assert_eq!(out.metrics.last().map(|m| m.step), Some(6));
+    assert!((out.metrics[6].curvature_std_over_mean - after).abs() < 1e-3);
+    assert_eq!((out.steps, out.tau, out.frame_interval), (6, 0.5, 0));
+    assert_eq!(
+        out.deadline.map(|d| d.seconds),
+        Some(10),
+        "the server default"
+    );
+    assert!(out.frames.is_empty());
+
+    let out = client
+        .fair_curve(v1::FairCurveRequest {
+            steps: Some(5),
+            frame_interval: 2,
+            ..curve_request(input.clone(), true)
+        })
+        .await
+        .expect("FairCurve with frames")
+        .into_inner();
+    let steps: Vec<u32> = out.frames.iter().map(|f| f.step).collect();
+    assert_eq!(steps, vec![0, 2, 4, 5]);
+    assert_eq!(
+        out.frames[0].curve.as_ref().map(|c| &c.xy),
+        Some(&input),
+        "frame 0 is the input, bit for bit"
+    );
+    assert_eq!(out.frames[3].curve, out.curve);
+
+    // Hostile input: each refused with the field (and for curves, the reason) named.
+    let reason = |s: &Status| {
+        s.get_details_error_info()
+            .map(|e| e.reason)
+            .unwrap_or_default()
+    };
+    let mut repeated = input.clone();
+    repeated.extend_from_slice(&input[..2]);
+    let mut nan = input.clone();
+    nan[7] = f64::NAN;
+    for (request, field, why) in [
+        (curve_request(input[..5].to_vec(), true), "curve.xy", ""),
+        (curve_request(nan, true), "curve.xy", "NON_FINITE"),
+        (
+            curve_request(repeated, true),
+            "curve.xy",
+            "ZERO_LENGTH_EDGE",
+        ),
+        (
+            curve_request(vec![0.0, 0.0, 1.0, 0.0], true),
+            "curve.xy",
+            "TOO_FEW_POINTS",
+        ),
+        (
+            curve_request(Vec::new(), false),
+            "curve.xy",
+            "TOO_FEW_POINTS",
+        ),
+        (
+            curve_request(vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0], false),
+            "curve.xy",
+            "CUSP",
+        ),
+        (v1::FairCurveRequest::default(), "curve", ""),
+        (
+            v1::FairCurveRequest {
+                steps: Some(0),
+                ..curve_request(input.clone(), true)
+            },
+            "steps",
+            "",
+        ),
+        (
+            v1::FairCurveRequest {
+                steps: Some(5000),
+                ..curve_request(input.clone(), true)
+            },
+            "steps",
+            "",
+        ),
+        (
+            v1::FairCurveRequest {
+                tau: Some(1.0),
+                ..curve_request(input.clone(), true)
+            },
+            "tau",
+            "",
+        ),
+        (
+            v1::FairCurveRequest {
+                tau: Some(f64::NAN),
+                ..curve_request(input.clone(), true)
+            },
+            "tau",
+            "",
+        ),
+        (
+            v1::FairCurveRequest {
+                deadline: Some(prost_types::Duration {
+                    seconds: 0,
+                    nanos: 0,
+                }),
+                ..curve_request(input.clone(), true)
+            },
+            "deadline",
+            "",
+        ),
+        (
+            v1::FairCurveRequest {
+                deadline: Some(prost_types::Duration {
+                    seconds: 1000,
+                    nanos: 0,
+                }),
+                ..curve_request(input.clone(), true)
+            },
+            "deadline",
+            "",
+        ),
+        // 256 points × 101 frames is over this server's 5000 frame points.
+        (
+            v1::FairCurveRequest {
+                steps: Some(100),
+                frame_interval: 1,
+                ..curve_request(input.clone(), true)
+            },
+            "frame_interval",
+            "",
+        ),
+    ] {
+        let status = client.fair_curve(request).await.expect_err("refused");
+        assert_eq!(
+            status.code(),
+            Code::InvalidArgument,
+            "{field}: {}",
+            status.message()
+        );
+        assert_eq!(violations(&status), vec![field.to_string()], "{status:?}");
+        if !why.is_empty() {
+            assert_eq!(reason(&status), why, "{}", status.message());
+        }
+    }
+    // Too many points: a named quota, like an oversized mesh.
+    let status = client
+        .fair_curve(curve_request(noisy_closed_curve(60_001), true))
+        .await
+        .expect_err("too many points");
+    assert_eq!(status.code(), Code::ResourceExhausted);
+    let quota = status
+        .get_details_quota_failure()
+        .map(|q| {
+            q.violations
+                .into_iter()
+                .map(|v| v.subject)
+                .collect::<Vec<_>>()
+        })
+        .unwrap_or_default();
+    assert_eq!(quota, vec!["curve points".to_string()]);
+    // The request's deadline ends a long run (50k points, 1000 steps) with DEADLINE_EXCEEDED.
+    let status = client
+        .fair_curve(v1::FairCurveRequest {
+            steps: Some(1000),
+            deadline: Some(prost_types::Duration {
+                seconds: 0,
+                nanos: 300_000_000,
+            }),
+            ..curve_request(noisy_closed_curve(50_000), true)
+        })
+        .await
+        .expect_err("over its deadline");
+    assert_eq!(
+        status.code(),
+        Code::DeadlineExceeded,
+        "{}",
+        status.message()
+    );
+    assert!(
+        status.message().contains("deadline of 0.3 s"),
+        "{}",
+        status.message()
+    );
+}
