@@ -258,3 +258,120 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
     ));
     core.shutdown(Duration::from_secs(1)).await;
 }
+
+/// Specs stored before the flow options existed (issue 4) still load after an upgrade, with
+/// the options at their defaults, and the idempotency key stored with them still matches the
+/// same request sent again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn specs_stored_before_the_flow_options_load_with_defaults() {
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
+    let job = jobs
+        .submit(obj(small_obj()), spec(1), Some("before-upgrade".into()))
+        .await
+        .expect("submit");
+    jobs.wait(&job.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    core.shutdown(Duration::from_secs(1)).await;
+
+    // Rewrite the row as the first release stored it.
+    let old = r#"{"method":"conformal","steps":1,"tau":0.5,"iterations":1,"frame_interval":1,"include_positions":true,"deadline_secs":null}"#;
+    let db = rusqlite::Connection::open(dir.path().join("willow.sqlite3")).expect("open db");
+    let changed = db
+        .execute(
+            "UPDATE jobs SET spec = ?1 WHERE id = ?2",
+            rusqlite::params![old, job.id],
+        )
+        .expect("update");
+    assert_eq!(changed, 1);
+    // And its idempotency hash as the first release computed it: sha256 of format, 0, the
+    // spec's JSON, 0, the mesh bytes.
+    let old_hash: String = {
+        use sha2::{Digest, Sha256};
+        let mut h = Sha256::new();
+        h.update(b"obj");
+        h.update([0]);
+        h.update(old.as_bytes());
+        h.update([0]);
+        h.update(small_obj().as_bytes());
+        h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+    };
+    let changed = db
+        .execute(
+            "UPDATE idempotency SET request_hash = ?1 WHERE key = 'before-upgrade'",
+            rusqlite::params![old_hash],
+        )
+        .expect("update");
+    assert_eq!(changed, 1);
+    drop(db);
+
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");
+    let status = jobs.get(&job.id).await.expect("the old row loads");
+    assert_eq!(status.spec, spec(1), "new fields take their defaults");
+    assert_eq!(status.state, JobState::Succeeded);
+    let again = jobs
+        .submit(obj(small_obj()), spec(1), Some("before-upgrade".into()))
+        .await
+        .expect("the same request with the same key");
+    assert_eq!(again.id, job.id, "still recognised as the same request");
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// A curve request whose caller goes away stops at its next step and frees its slot: with
+/// one slot, a second request is `Busy` while the first runs, and succeeds once the first
+/// caller's future is dropped.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dropped_curve_request_frees_its_slot() {
+    use willow::jobs::curve::{CurveInput, CurveSpec};
+    use willow::jobs::JobError;
+    let dir = tempfile::tempdir().expect("dir");
+    let mut c = config(dir.path());
+    c.curve_slots = 1;
+    let (jobs, core) = Jobs::start(c).await.expect("start");
+    let circle = |n: usize| CurveInput::Points {
+        points: (0..n)
+            .map(|i| {
+                let t = std::f64::consts::TAU * i as f64 / n as f64;
+                let r = 1.0 + 0.1 * (7.0 * t).sin();
+                [r * t.cos(), r * t.sin()]
+            })
+            .collect(),
+        closed: true,
+    };
+    let long_jobs = jobs.clone();
+    let long = tokio::spawn(async move {
+        long_jobs
+            .fair_curve(
+                circle(100_000),
+                CurveSpec {
+                    steps: 1000,
+                    deadline_secs: Some(60.0),
+                    ..CurveSpec::default()
+                },
+                None,
+            )
+            .await
+    });
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let busy = jobs
+        .fair_curve(circle(50), CurveSpec::default(), None)
+        .await;
+    assert!(
+        matches!(busy, Err(JobError::Busy { slots: 1, .. })),
+        "{busy:?}"
+    );
+    long.abort();
+    let started = std::time::Instant::now();
+    let freed = jobs
+        .fair_curve(circle(50), CurveSpec::default(), None)
+        .await;
+    let outcome = freed.expect("the slot was freed");
+    assert_eq!(outcome.metrics.len(), CurveSpec::default().steps + 1);
+    assert!(
+        started.elapsed() < Duration::from_secs(1),
+        "{:?}",
+        started.elapsed()
+    );
+    core.shutdown(Duration::from_secs(1)).await;
+}
