@@ -187,3 +187,82 @@ fn paper_options_reach_the_flow() {
         .status
         .success());
 }
+
+/// An open tube (two boundary loops) as OBJ text.
+fn tube_obj() -> String {
+    let (m, rings) = (16, 6);
+    let mut s = String::new();
+    for j in 0..=rings {
+        for i in 0..m {
+            let t = 2.0 * std::f64::consts::PI * i as f64 / m as f64;
+            s += &format!("v {} {} {}\n", t.cos(), t.sin(), j as f64 / 3.0);
+        }
+    }
+    for j in 0..rings {
+        for i in 0..m {
+            let a = j * m + i + 1;
+            let b = j * m + (i + 1) % m + 1;
+            let (c, d) = (b + m, a + m);
+            s += &format!("f {a} {b} {c}\nf {a} {c} {d}\n");
+        }
+    }
+    s
+}
+
+#[test]
+fn prescribed_and_cmc_boundaries_from_the_command_line() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let input = dir.path().join("tube.obj");
+    std::fs::write(&input, tube_obj()).expect("write tube");
+    let run = |extra: &[&str]| {
+        willow()
+            .arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(dir.path().join("o.obj"))
+            .args(["--steps", "2", "--json"])
+            .args(extra)
+            .output()
+            .expect("run willow")
+    };
+    for extra in [
+        &["--boundary", "cmc"][..],
+        &[
+            "--boundary",
+            "prescribed",
+            "--boundary-axis",
+            "1,0,0",
+            "--boundary-rotation",
+            "0.2,-0.2",
+            "--frame-angle",
+            "-0.3",
+        ][..],
+    ] {
+        let out = run(extra);
+        assert!(
+            out.status.success(),
+            "{extra:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert_eq!(String::from_utf8_lossy(&out.stdout).lines().count(), 2);
+    }
+    for (extra, needle) in [
+        (
+            &["--boundary", "prescribed", "--frame-angle", "1.6"][..],
+            "frame_angle",
+        ),
+        (
+            &["--boundary", "prescribed", "--boundary-axis", "up"][..],
+            "--boundary-axis",
+        ),
+        (
+            &["--boundary", "prescribed", "--boundary-rotation", "1,2,3"][..],
+            "3 per-loop angles given for a mesh with 2 boundary loops",
+        ),
+    ] {
+        let out = run(extra);
+        assert_eq!(out.status.code(), Some(2), "{extra:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(needle), "{extra:?}: {err}");
+    }
+}

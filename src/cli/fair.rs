@@ -8,7 +8,9 @@ use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use willow::flow::filter::SpectralFilter;
-use willow::flow::{new_flow, Boundary, FlowParams, Method};
+use willow::flow::{
+    new_flow, Boundary, BoundaryAngles, FlowParams, Method, PrescribedVectors, RotationAxis,
+};
 use willow::mesh::io::{Asset, Format, Limits};
 
 #[derive(Args, Debug)]
@@ -54,6 +56,32 @@ pub struct FairArgs {
     /// Boundary condition for surfaces with boundary (§6.3).
     #[arg(long, value_enum, default_value_t = BoundaryArg::Free)]
     pub boundary: BoundaryArg,
+    /// With --boundary prescribed: V = cos φ·B + sin φ·N, φ in radians, |φ| ≤ 1.5 (§6.3.1).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub frame_angle: f64,
+    /// With --boundary prescribed: the target Ṽ is the input's V turned by this angle
+    /// (radians); one value for every loop, or one per boundary loop, comma-separated.
+    #[arg(long, value_delimiter = ',', allow_negative_numbers = true)]
+    pub boundary_rotation: Vec<f64>,
+    /// With --boundary prescribed: the rotation axis, `tangent` (the boundary tangent at each
+    /// vertex) or a fixed direction `x,y,z`.
+    #[arg(long, default_value = "tangent", allow_negative_numbers = true)]
+    pub boundary_axis: String,
+}
+
+/// `--boundary-axis`: `tangent` or `x,y,z`.
+fn parse_axis(text: &str) -> Result<RotationAxis, String> {
+    if text.eq_ignore_ascii_case("tangent") {
+        return Ok(RotationAxis::Tangent);
+    }
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let values: Result<Vec<f64>, _> = parts.iter().map(|p| p.parse::<f64>()).collect();
+    match values {
+        Ok(v) if v.len() == 3 => Ok(RotationAxis::Fixed([v[0], v[1], v[2]])),
+        _ => Err(format!(
+            "--boundary-axis must be `tangent` or three numbers `x,y,z`, got {text:?}"
+        )),
+    }
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -62,6 +90,10 @@ pub enum BoundaryArg {
     Free,
     /// Boundary vertices stay exactly where they are.
     Fixed,
+    /// V = B kept at the input's binormals: flows to constant mean curvature.
+    Cmc,
+    /// Prescribed boundary vectors: see --frame-angle, --boundary-rotation, --boundary-axis.
+    Prescribed,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -114,6 +146,27 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(a) => a,
         Err(e) => return fail(EXIT_BAD_INPUT, format!("{}: {e}", args.input.display())),
     };
+    let boundary = match args.boundary {
+        BoundaryArg::Free => Boundary::Free,
+        BoundaryArg::Fixed => Boundary::Fixed,
+        BoundaryArg::Cmc => Boundary::Cmc,
+        BoundaryArg::Prescribed => {
+            let axis = match parse_axis(&args.boundary_axis) {
+                Ok(a) => a,
+                Err(e) => return fail(EXIT_BAD_INPUT, e),
+            };
+            let angles = match args.boundary_rotation.as_slice() {
+                [] => BoundaryAngles::Uniform(0.0),
+                [a] => BoundaryAngles::Uniform(*a),
+                many => BoundaryAngles::PerLoop(many.to_vec()),
+            };
+            Boundary::Prescribed(PrescribedVectors {
+                frame_angle: args.frame_angle,
+                axis,
+                angles,
+            })
+        }
+    };
     let params = FlowParams {
         method: args.method.into(),
         tau: args.tau,
@@ -124,10 +177,7 @@ pub fn run(args: FairArgs) -> ExitCode {
             (Some(sigma), Some(k)) => Some(SpectralFilter { sigma, k }),
             _ => None,
         },
-        boundary: match args.boundary {
-            BoundaryArg::Free => Boundary::Free,
-            BoundaryArg::Fixed => Boundary::Fixed,
-        },
+        boundary,
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,

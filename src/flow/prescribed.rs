@@ -39,7 +39,9 @@ pub enum PrescribedError {
     LoopCount { given: usize, loops: usize },
     #[error("vertex {0} is not a boundary vertex of the mesh")]
     NotBoundary(usize),
-    #[error("the boundary frame at vertex {0} is degenerate (zero tangent or normal parallel to it)")]
+    #[error(
+        "the boundary frame at vertex {0} is degenerate (zero tangent or normal parallel to it)"
+    )]
     DegenerateFrame(usize),
     #[error("{0}")]
     Solver(String),
@@ -610,7 +612,11 @@ mod tests {
 
     #[test]
     fn rodrigues_rotates_right_handed() {
-        let r = rotate([1.0, 0.0, 0.0], [0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2);
+        let r = rotate(
+            [1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0],
+            std::f64::consts::FRAC_PI_2,
+        );
         assert!(close(r, [0.0, 1.0, 0.0]));
     }
 

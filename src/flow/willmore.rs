@@ -253,18 +253,30 @@ impl ConformalFlow {
         if self.fixed.is_none() {
             let g = &self.geometry;
             let closed = &self.closed_vertex;
+            // Prescribed boundary vectors (§6.3.1) change which curvature changes can be
+            // integrated on a component with boundary. The constant one cannot: with `V = B`
+            // fixed along the boundary, a uniform ρ would change the annulus' or disk's
+            // conformal shape, so the λ problem has no good solution and the flow drifts
+            // (measured: W rising step after step on a bumpy hemisphere). Projecting `1` out
+            // there too, as App. B does for closed surfaces, leaves the flow only the
+            // non-constant part of H to remove, so its fixed points are the CMC surfaces the
+            // paper promises for `V = B`. Sphere inversions, which `N` excludes on closed
+            // components (App. D), do not respect the prescribed boundary anyway; keeping
+            // `N` out there too held H away from constant (std/mean 0.089 vs 0.055 after 10
+            // steps on the same hemisphere).
+            let prescribed = self.prescribed.is_some();
             for axis in 0..3 {
                 self.constraints.push_with(&g.vertex_areas, |f| {
-                    for (fi, n) in f.iter_mut().zip(&g.normals) {
-                        *fi = n[axis];
+                    for ((fi, n), &c) in f.iter_mut().zip(&g.normals).zip(closed) {
+                        *fi = if c || !prescribed { n[axis] } else { 0.0 };
                     }
                 });
             }
-            // Total curvature is conserved on closed components only (App. B integrates
-            // over a surface without boundary).
+            // Total curvature is conserved on closed components (App. B integrates over a
+            // surface without boundary), and held under prescribed boundary vectors (above).
             self.constraints.push_with(&g.vertex_areas, |f| {
                 for (fi, &c) in f.iter_mut().zip(closed) {
-                    *fi = if c { 1.0 } else { 0.0 };
+                    *fi = if c || prescribed { 1.0 } else { 0.0 };
                 }
             });
         }
