@@ -147,7 +147,7 @@ impl Default for FlowParams {
 pub enum FlowError {
     #[error("invalid parameter `{name}`: {reason}")]
     InvalidParameter { name: &'static str, reason: String },
-    #[error("not yet supported: {0}")]
+    #[error("not supported: {0}")]
     Unsupported(String),
     #[error("numerical failure at step {step}: {reason}")]
     Numerical { step: usize, reason: String },
