@@ -14,6 +14,7 @@ Prints one line per check and a closing "N passed, N failed"; exits non-zero on 
 """
 
 import argparse
+import math
 import os
 import struct
 import sys
@@ -64,6 +65,7 @@ generate_stubs()
 from google.longrunning import operations_pb2, operations_pb2_grpc  # noqa: E402
 from google.rpc import code_pb2, error_details_pb2, status_pb2  # noqa: E402
 from grpc_health.v1 import health_pb2, health_pb2_grpc  # noqa: E402
+from google.protobuf import empty_pb2  # noqa: E402
 from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (  # noqa: E402
     ProtoReflectionDescriptorDatabase,
 )
@@ -261,7 +263,18 @@ class Suite:
         assert bad_fields(err) == ["request_id"]
 
     def test_poll_obj_job_to_done(self):
-        op = self.create_inline(self.small_obj, method=pb.METHOD_CONFORMAL, steps=3)
+        # The flow options of JobParams 8-11, set the way a Python client sets messages.
+        op = self.create_inline(
+            self.small_obj,
+            method=pb.METHOD_CONFORMAL,
+            steps=3,
+            mobius_balancing=True,
+            filter=pb.SpectralFilter(sigma=0.01, k=2),
+            boundary=pb.Boundary(cmc=empty_pb2.Empty()),
+        )
+        meta = job_from_any(op.metadata)
+        assert meta.params.mobius_balancing and meta.params.exactness, meta.params
+        assert meta.params.filter.k == 2 and meta.params.boundary.WhichOneof("condition") == "cmc"
         deadline = time.monotonic() + PATIENCE_S
         while True:
             got = self.ops.GetOperation(operations_pb2.GetOperationRequest(name=op.name), timeout=30)
@@ -272,6 +285,38 @@ class Suite:
         job = self.fairing.GetJob(pb.GetJobRequest(name=op.name), timeout=30)
         assert job.state == pb.Job.SUCCEEDED, job
         assert job.input_format == pb.MESH_FORMAT_OBJ
+        assert abs(job.params.filter.sigma - 0.01) < 1e-15, job.params
+
+    def test_fair_curve(self):
+        # r = 1 + 0.2 sin 5t, 200 points: the flow rounds it and keeps its length.
+        n = 200
+        xy = []
+        for i in range(n):
+            t = 2 * math.pi * i / n
+            r = 1 + 0.2 * math.sin(5 * t)
+            xy += [r * math.cos(t), r * math.sin(t)]
+
+        def length(v):
+            return sum(
+                math.hypot(v[2 * ((i + 1) % n)] - v[2 * i], v[2 * ((i + 1) % n) + 1] - v[2 * i + 1])
+                for i in range(n)
+            )
+
+        out = self.fairing.FairCurve(
+            pb.FairCurveRequest(curve=pb.Curve(xy=xy, closed=True), steps=6), timeout=60
+        )
+        assert len(out.curve.xy) == 2 * n and out.curve.closed
+        first, last = out.metrics[0], out.metrics[-1]
+        assert last.step == 6 and first.curvature_std_over_mean > 0.5, first
+        assert last.curvature_std_over_mean < 1e-2 * first.curvature_std_over_mean, last
+        assert abs(length(out.curve.xy) / length(xy) - 1) < 1e-3
+        err = expect_error(
+            lambda: self.fairing.FairCurve(
+                pb.FairCurveRequest(curve=pb.Curve(xy=xy[:-1], closed=True)), timeout=10
+            ),
+            grpc.StatusCode.INVALID_ARGUMENT,
+        )
+        assert bad_fields(err) == ["curve.xy"], bad_fields(err)
 
     def test_bad_inputs(self):
         err = expect_error(
