@@ -1,4 +1,5 @@
-//! The HTTP transport (axum): `/v1/jobs…`, SSE events, probes, metrics and the OpenAPI doc.
+//! The HTTP transport (axum): `/v1/jobs…`, SSE events, `/v1/curves:fair`, probes, metrics and
+//! the OpenAPI doc.
 //!
 //! Each handler parses its request into the job core's terms ([`JobSpec`], [`UploadRef`]),
 //! calls one [`Jobs`] method, and renders the result; every error leaves as a [`Problem`]. The

@@ -15,6 +15,8 @@
 //! - [`worker`]: the bounded pool that runs flows step by step on blocking threads, checking
 //!   cancellation, deadline and shutdown between steps.
 //! - [`telemetry`]: the Prometheus metrics of the core (queue depth, running, outcomes, durations).
+//! - [`spec`]: the filter and boundary options of a [`JobSpec`], as the network may send them.
+//! - [`curve`]: synchronous curve fairing ([`Jobs::fair_curve`]) on its own bounded slots.
 //!
 //! Times in [`JobStatus`] are **unix milliseconds** (`u64`): cheap to compare and to turn into a
 //! protobuf `Timestamp` or an RFC 3339 string at the edge ([`rfc3339`] does the latter).
