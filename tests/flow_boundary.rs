@@ -1,8 +1,10 @@
 //! Surfaces with boundary (§6.2–§6.3): free boundaries and fixed boundaries, issue 4.
 
+mod mesh_support;
+use mesh_support::shared_surface;
+
 use willow::flow::{new_flow, Boundary, Flow, FlowParams};
 use willow::mesh::generate::{icosphere, torus};
-use willow::mesh::io::{Asset, Format, Limits};
 use willow::mesh::{Mesh, Topology};
 use willow::metrics::StepMetrics;
 
@@ -169,23 +171,6 @@ fn an_annulus_flows_with_the_exactness_constraint() {
     );
 }
 
-fn shared_mesh(name: &str) -> Option<Mesh> {
-    let dir =
-        std::env::var("WILLOW_SHARED_MESHES").unwrap_or_else(|_| "/work/shared/meshes".into());
-    let path = std::path::Path::new(&dir).join(name);
-    if !path.exists() {
-        eprintln!("note: {} absent, skipping", path.display());
-        return None;
-    }
-    let bytes = std::fs::read(&path).ok()?;
-    Some(
-        Asset::read(&bytes, Format::Obj, &Limits::default())
-            .expect("valid")
-            .surface()
-            .clone(),
-    )
-}
-
 #[test]
 fn real_disks_flow_free_and_fixed() {
     // Free boundaries here have no boundary condition for λ at all, which is not elliptic
@@ -193,7 +178,7 @@ fn real_disks_flow_free_and_fixed() {
     // oscillates and blows up from τ ≈ 0.3 once the disk is nearly flat. Until the N–B-plane
     // condition exists, free boundaries are tested at the small step they tolerate.
     for name in ["cat_head.obj", "alligator.obj"] {
-        let Some(mesh) = shared_mesh(name) else {
+        let Some(mesh) = shared_surface(name) else {
             continue;
         };
         for (boundary, tau) in [(Boundary::Free, 0.05), (Boundary::Fixed, 0.3)] {

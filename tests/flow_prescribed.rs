@@ -1,5 +1,8 @@
 //! Prescribed boundary vectors and CMC surfaces (§6.3.1, Figure 14), issue 4.
 
+mod mesh_support;
+use mesh_support::shared_surface;
+
 use std::f64::consts::PI;
 use willow::flow::prescribed::{boundary_frame, frame_vector, BoundaryVertices};
 use willow::flow::{
@@ -7,7 +10,6 @@ use willow::flow::{
 };
 use willow::geometry::cache::GeometryCache;
 use willow::geometry::vec3::{cross, dot, norm};
-use willow::mesh::io::{Asset, Format, Limits};
 use willow::mesh::{Mesh, Topology};
 
 fn params(tau: f64, boundary: Boundary) -> FlowParams {
@@ -343,29 +345,12 @@ fn a_tilted_frame_vector_is_prescribed_too() {
     assert!(err < 0.01, "boundary vectors off by {err} rad");
 }
 
-fn shared_mesh(name: &str) -> Option<Mesh> {
-    let dir =
-        std::env::var("WILLOW_SHARED_MESHES").unwrap_or_else(|_| "/work/shared/meshes".into());
-    let path = std::path::Path::new(&dir).join(name);
-    if !path.exists() {
-        eprintln!("note: {} absent, skipping", path.display());
-        return None;
-    }
-    let bytes = std::fs::read(&path).ok()?;
-    Some(
-        Asset::read(&bytes, Format::Obj, &Limits::default())
-            .expect("valid")
-            .surface()
-            .clone(),
-    )
-}
-
 /// The real disks of issue 4 with `V = B`: the boundary problem is elliptic, so the paper's
 /// τ = 0.5 is stable where the free boundary needs τ ≈ 0.05 (tests/flow_boundary.rs).
 #[test]
 fn real_disks_flow_with_the_cmc_boundary_at_the_papers_step() {
     for name in ["cat_head.obj", "alligator.obj"] {
-        let Some(mesh) = shared_mesh(name) else {
+        let Some(mesh) = shared_surface(name) else {
             continue;
         };
         let mut flow = new_flow(&mesh, &params(0.5, Boundary::Cmc)).expect("flow");

@@ -5,8 +5,10 @@
 //! around the generating loops of a torus, and the Gram system of the vector fields. The shared
 //! genus-2 and genus-5 meshes are skipped with a note when `/work/shared/meshes` is absent.
 
+mod mesh_support;
+use mesh_support::shared_surface;
+
 use std::collections::HashMap;
-use std::path::Path;
 use std::time::Instant;
 
 use faer::sparse::SparseColMat;
@@ -17,8 +19,7 @@ use willow::geometry::hodge::{
 use willow::geometry::vec3::{cross, dot, norm, sub};
 use willow::geometry::{cotan_laplacian, face_areas};
 use willow::mesh::generate::{icosphere, irregular_sphere, torus};
-use willow::mesh::io::{Asset, Format};
-use willow::mesh::{Limits, Mesh, Topology};
+use willow::mesh::{Mesh, Topology};
 
 const SEED: u64 = 0x5EED_1234;
 
@@ -87,18 +88,6 @@ fn disk(n: usize) -> Mesh {
         positions,
         triangles,
     }
-}
-
-/// Reads one of the shared meshes, or prints why the test is skipped.
-fn shared_mesh(name: &str) -> Option<Mesh> {
-    let path = Path::new("/work/shared/meshes").join(name);
-    let Ok(bytes) = std::fs::read(&path) else {
-        eprintln!("note: {} not found, skipping", path.display());
-        return None;
-    };
-    let asset = Asset::read(&bytes, Format::Obj, &Limits::default())
-        .unwrap_or_else(|e| panic!("{name} should read: {e}"));
-    Some(asset.surface().clone())
 }
 
 /// `max |d1 h| / max |h|`.
@@ -469,7 +458,7 @@ fn forms_are_per_component_and_bordered_components_count_their_betti_number() {
 #[test]
 fn shared_genus_2_and_5_meshes_have_4_and_10_harmonic_forms() {
     for (name, genus) in [("genus2_24.obj", 2), ("botijo_genus5_irregular.obj", 5)] {
-        let Some(mesh) = shared_mesh(name) else {
+        let Some(mesh) = shared_surface(name) else {
             continue;
         };
         let topology = Topology::new(&mesh);

@@ -114,18 +114,33 @@ pub fn consistently_wound(t: &[[usize; 3]]) -> bool {
     true
 }
 
-/// Where the shared test meshes live, or `None` (with a note) when this checkout has none.
+/// Where the shared test meshes live: `$WILLOW_SHARED_MESHES`, else `../shared/meshes` beside
+/// the checkout, else `/work/shared/meshes`; `None` (with a note) when this machine has none.
 pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
-    let dir = std::env::var_os("WILLOW_SHARED_MESHES")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| std::path::PathBuf::from("/work/shared/meshes"));
-    let path = dir.join(name);
-    if path.is_file() {
-        Some(path)
-    } else {
-        eprintln!("note: {} not found; skipping this check", path.display());
-        None
+    let candidates = match std::env::var_os("WILLOW_SHARED_MESHES") {
+        Some(dir) => vec![std::path::PathBuf::from(dir)],
+        None => vec![
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/meshes"),
+            std::path::PathBuf::from("/work/shared/meshes"),
+        ],
+    };
+    let found = candidates
+        .iter()
+        .map(|dir| dir.join(name))
+        .find(|path| path.is_file());
+    if found.is_none() {
+        eprintln!("note: {name} not found in {candidates:?}; skipping this check");
     }
+    found
+}
+
+/// One of the shared OBJ meshes as a validated surface, or `None` as [`shared_mesh`] says.
+pub fn shared_surface(name: &str) -> Option<willow::mesh::Mesh> {
+    use willow::mesh::io::{Asset, Format, Limits};
+    let bytes = std::fs::read(shared_mesh(name)?).ok()?;
+    let asset = Asset::read(&bytes, Format::Obj, &Limits::default())
+        .unwrap_or_else(|e| panic!("{name} should read: {e}"));
+    Some(asset.surface().clone())
 }
 
 /// A 1×1 RGBA PNG: a real image so the glTF validator accepts the embedded texture.
