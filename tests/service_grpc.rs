@@ -1351,7 +1351,7 @@ async fn flow_options_are_reported_back_refused_by_field_and_run() {
         (
             cap(),
             v1::JobParams {
-                boundary: prescribed(-1.6, None, None),
+                boundary: prescribed(-1.55, None, None),
                 ..conformal()
             },
             "params.boundary.prescribed.frame_angle",

@@ -1270,7 +1270,7 @@ async fn bad_flow_options_are_refused_with_the_field_named() {
         ),
         (
             &cap,
-            "boundary.prescribed.frame_angle=-1.58",
+            "boundary.prescribed.frame_angle=-1.55",
             "boundary.prescribed.frame_angle",
         ),
         (

@@ -202,7 +202,7 @@ pub struct JobQuery {
     pub filter_k: Option<u32>,
     /// `free` (default), `fixed`, `cmc` or `prescribed`. Conformal flow only.
     pub boundary: Option<String>,
-    /// Prescribed vectors: φ in radians, |φ| < π/2 (default 0).
+    /// Prescribed vectors: φ in radians, |φ| ≤ 1.5 (default 0).
     #[serde(rename = "boundary.prescribed.frame_angle")]
     #[param(rename = "boundary.prescribed.frame_angle")]
     pub frame_angle: Option<f64>,

@@ -11,6 +11,7 @@
 //! `boundary.prescribed.axis.fixed`, and so on.
 
 use crate::flow::filter::SpectralFilter;
+use crate::flow::prescribed::MAX_FRAME_ANGLE;
 use crate::flow::{Boundary, BoundaryAngles, PrescribedVectors, RotationAxis};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
@@ -76,7 +77,8 @@ impl BoundarySpec {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, ToSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct PrescribedSpec {
-    /// φ in radians, |φ| < π/2 (at ±π/2, `V = ±N` and the boundary problem is not elliptic).
+    /// φ in radians, |φ| ≤ 1.5 (`flow::prescribed::MAX_FRAME_ANGLE`: at ±π/2, `V = ±N` and the
+    /// boundary problem is not elliptic).
     pub frame_angle: f64,
     /// Axis of the rotation from `V` to its target (default: the boundary tangent).
     pub axis: AxisSpec,
@@ -154,12 +156,15 @@ pub fn check_boundary(boundary: &BoundarySpec) -> Result<(), SpecViolation> {
     let BoundarySpec::Prescribed(p) = boundary else {
         return Ok(());
     };
-    // §6.3.1: V = ±N (φ = ±π/2) makes the boundary problem non-elliptic (Bohle and Pinkall).
-    if !(p.frame_angle.is_finite() && p.frame_angle.abs() < std::f64::consts::FRAC_PI_2) {
+    // §6.3.1: V = ±N (φ = ±π/2) makes the boundary problem non-elliptic (Bohle and Pinkall);
+    // the library keeps a margin from it, and the same bound here refuses the job at the door
+    // instead of failing it in the worker.
+    if !(p.frame_angle.is_finite() && p.frame_angle.abs() <= MAX_FRAME_ANGLE) {
         return Err((
             "boundary.prescribed.frame_angle",
             format!(
-                "must be finite with |frame_angle| < π/2 (V = ±N is not elliptic, §6.3.1), got {}",
+                "must be finite with |frame_angle| <= {MAX_FRAME_ANGLE} rad (V must stay away \
+                 from ±N, where the boundary problem is not elliptic, §6.3.1), got {}",
                 p.frame_angle
             ),
         ));
@@ -273,8 +278,9 @@ mod tests {
         let zero = AnglesSpec::Uniform(0.0);
         assert_eq!(field(prescribed(1.5, tangent, zero.clone())), None);
         assert_eq!(
-            field(prescribed(1.6, tangent, zero.clone())),
-            Some("boundary.prescribed.frame_angle")
+            field(prescribed(1.55, tangent, zero.clone())),
+            Some("boundary.prescribed.frame_angle"),
+            "the library's bound, short of π/2"
         );
         assert_eq!(
             field(prescribed(f64::NAN, tangent, zero.clone())),
