@@ -4,7 +4,7 @@ mod mesh_support;
 use mesh_support::shared_surface;
 
 use willow::flow::{new_flow, Boundary, Flow, FlowParams};
-use willow::mesh::generate::{icosphere, torus};
+use willow::mesh::generate::{bumpy_cap, torus};
 use willow::mesh::{Mesh, Topology};
 use willow::metrics::StepMetrics;
 
@@ -16,42 +16,13 @@ fn params(tau: f64, boundary: Boundary) -> FlowParams {
     }
 }
 
-/// A bumpy spherical cap: the part of a bumpy unit sphere above z = −0.3 (a disk).
-fn bumpy_cap() -> Mesh {
-    let mut sphere = icosphere(4);
-    let keep: Vec<[usize; 3]> = sphere
-        .triangles
-        .iter()
-        .copied()
-        .filter(|t| t.iter().all(|&v| sphere.positions[v][2] > -0.3))
-        .collect();
-    let mut used = vec![usize::MAX; sphere.positions.len()];
-    let mut positions = Vec::new();
-    for t in &keep {
-        for &v in t {
-            if used[v] == usize::MAX {
-                used[v] = positions.len();
-                let p = sphere.positions[v];
-                let r = 1.0 + 0.06 * (7.0 * p[0]).sin() * (6.0 * p[1]).cos();
-                positions.push([p[0] * r, p[1] * r, p[2] * r]);
-            }
-        }
-    }
-    sphere.triangles = keep
-        .iter()
-        .map(|t| [used[t[0]], used[t[1]], used[t[2]]])
-        .collect();
-    sphere.positions = positions;
-    sphere
-}
-
 fn run(flow: &mut dyn Flow, steps: usize) -> Vec<StepMetrics> {
     (0..steps).map(|_| flow.step().expect("step")).collect()
 }
 
 #[test]
 fn a_disk_flows_with_its_boundary_free() {
-    let mesh = bumpy_cap();
+    let mesh = bumpy_cap(4, 0.06);
     let topology = Topology::new(&mesh);
     assert_eq!(topology.boundary_loops.len(), 1, "the cap is a disk");
     let mut flow = new_flow(&mesh, &params(0.3, Boundary::Free)).expect("flow");
@@ -91,7 +62,7 @@ fn boundary_motion(mesh: &Mesh, topology: &Topology, positions: &[[f64; 3]]) -> 
 
 #[test]
 fn a_fixed_boundary_does_not_move_and_the_interior_fairs() {
-    let mesh = bumpy_cap();
+    let mesh = bumpy_cap(4, 0.06);
     let topology = Topology::new(&mesh);
     let mut flow = new_flow(&mesh, &params(0.3, Boundary::Fixed)).expect("flow");
     let w0 = flow.initial_metrics().willmore_energy;

@@ -17,9 +17,10 @@ use tonic_types::StatusExt;
 use willow::api::grpc::pb::google::longrunning as lro;
 use willow::api::grpc::pb::willow::v1;
 use willow::jobs::{Config, Jobs, Shutdown};
+mod service_http_support;
+use service_http_support::obj_text;
 use willow::mesh::generate;
 use willow::mesh::io::{Asset, Format};
-use willow::mesh::Mesh;
 
 use lro::operations_client::OperationsClient;
 use v1::fairing_client::FairingClient;
@@ -30,17 +31,6 @@ const PATIENCE: Duration = Duration::from_secs(180);
 
 // ---------------------------------------------------------------------------------------------
 // Meshes
-
-fn obj_text(mesh: &Mesh) -> String {
-    let mut s = String::new();
-    for p in &mesh.positions {
-        s.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
-    }
-    for t in &mesh.triangles {
-        s.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
-    }
-    s
-}
 
 /// 162 vertices: a few flow steps take milliseconds.
 fn small_obj() -> Vec<u8> {
@@ -1159,35 +1149,6 @@ async fn health_and_reflection() {
 // ---------------------------------------------------------------------------------------------
 // Issue 4: the rest of FlowParams as JobParams fields, and FairCurve.
 
-/// A bumpy spherical cap (one boundary loop): an icosphere cut below z = −0.3, with bumps.
-fn bumpy_cap_obj() -> Vec<u8> {
-    let mut sphere = generate::icosphere(3);
-    let keep: Vec<[usize; 3]> = sphere
-        .triangles
-        .iter()
-        .copied()
-        .filter(|t| t.iter().all(|&v| sphere.positions[v][2] > -0.3))
-        .collect();
-    let mut used = vec![usize::MAX; sphere.positions.len()];
-    let mut positions = Vec::new();
-    for t in &keep {
-        for &v in t {
-            if used[v] == usize::MAX {
-                used[v] = positions.len();
-                let p = sphere.positions[v];
-                let r = 1.0 + 0.06 * (7.0 * p[0]).sin() * (6.0 * p[1]).cos();
-                positions.push([p[0] * r, p[1] * r, p[2] * r]);
-            }
-        }
-    }
-    sphere.triangles = keep
-        .iter()
-        .map(|t| [used[t[0]], used[t[1]], used[t[2]]])
-        .collect();
-    sphere.positions = positions;
-    obj_text(&sphere).into_bytes()
-}
-
 fn prescribed(
     frame_angle: f64,
     axis: Option<v1::rotation_axis::Axis>,
@@ -1212,7 +1173,12 @@ async fn flow_options_are_reported_back_refused_by_field_and_run() {
     let server = Server::start(|_| {}).await;
     let mut client = server.fairing().await;
     let sphere = || inline(v1::MeshFormat::Obj, small_obj());
-    let cap = || inline(v1::MeshFormat::Obj, bumpy_cap_obj());
+    let cap = || {
+        inline(
+            v1::MeshFormat::Obj,
+            obj_text(&generate::bumpy_cap(3, 0.06)).into_bytes(),
+        )
+    };
 
     // Every field set: accepted, reported by CreateJob's metadata and by GetJob, and run.
     let options = v1::JobParams {

@@ -11,9 +11,10 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+mod service_http_support;
+use service_http_support::obj_text;
 use willow::mesh::generate;
 use willow::mesh::io::{Asset, Format};
-use willow::mesh::Mesh;
 
 /// How long the server gets to print its address, and the Python suite to finish. Bounded so
 /// a hang fails the test instead of stalling CI; generous for a loaded 2-core machine.
@@ -28,17 +29,6 @@ impl Drop for KillOnDrop {
         let _ = self.0.kill();
         let _ = self.0.wait();
     }
-}
-
-fn obj_text(mesh: &Mesh) -> String {
-    let mut s = String::new();
-    for p in &mesh.positions {
-        s.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
-    }
-    for t in &mesh.triangles {
-        s.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
-    }
-    s
 }
 
 /// Writes the meshes the Python suite uses and returns their paths by flag name.

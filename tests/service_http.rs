@@ -921,40 +921,6 @@ async fn textured_upload_keeps_uvs_in_the_validated_result() {
 // ---------------------------------------------------------------------------------------------
 // Issue 4: every flow option of the library as a job parameter, and the curve endpoint.
 
-/// A bumpy spherical cap (one boundary loop): an icosphere cut below z = −0.3, with bumps.
-fn bumpy_cap_obj() -> String {
-    let sphere = willow::mesh::generate::icosphere(3);
-    let keep: Vec<[usize; 3]> = sphere
-        .triangles
-        .iter()
-        .copied()
-        .filter(|t| t.iter().all(|&v| sphere.positions[v][2] > -0.3))
-        .collect();
-    let mut used = vec![usize::MAX; sphere.positions.len()];
-    let mut text = String::new();
-    let mut count = 0;
-    for t in &keep {
-        for &v in t {
-            if used[v] == usize::MAX {
-                used[v] = count;
-                count += 1;
-                let p = sphere.positions[v];
-                let r = 1.0 + 0.06 * (7.0 * p[0]).sin() * (6.0 * p[1]).cos();
-                text.push_str(&format!("v {} {} {}\n", p[0] * r, p[1] * r, p[2] * r));
-            }
-        }
-    }
-    for t in &keep {
-        text.push_str(&format!(
-            "f {} {} {}\n",
-            used[t[0]] + 1,
-            used[t[1]] + 1,
-            used[t[2]] + 1
-        ));
-    }
-    text
-}
-
 /// A bumpy torus (genus 1).
 fn bumpy_torus_obj() -> String {
     let mut torus = willow::mesh::generate::torus(1.0, 0.4, 24, 12);
@@ -1017,7 +983,7 @@ async fn every_flow_option_reaches_the_flow_and_is_reported_back() {
     use willow::flow::{Boundary, BoundaryAngles, FlowParams, Method, PrescribedVectors};
     let srv = start(|_| {}).await;
     let sphere = small_obj();
-    let cap = bumpy_cap_obj();
+    let cap = obj_text(&willow::mesh::generate::bumpy_cap(3, 0.06));
     let torus = bumpy_torus_obj();
     let plain = FlowParams::default();
     struct Case<'a> {
@@ -1254,7 +1220,7 @@ async fn every_flow_option_reaches_the_flow_and_is_reported_back() {
 async fn bad_flow_options_are_refused_with_the_field_named() {
     let srv = start(|_| {}).await;
     let sphere = small_obj();
-    let cap = bumpy_cap_obj();
+    let cap = obj_text(&willow::mesh::generate::bumpy_cap(3, 0.06));
     let cases: [(&str, &str, &str); 22] = [
         (&sphere, "filter.sigma=0.1&filter.k=4", "filter.k"),
         (&sphere, "filter.sigma=0&filter.k=2", "filter.sigma"),

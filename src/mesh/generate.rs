@@ -83,6 +83,37 @@ pub fn bumpy_sphere(subdivisions: usize, amplitude: f64) -> Mesh {
     mesh
 }
 
+/// A bumpy spherical cap, a disk with one boundary loop: the faces of `icosphere(subdivisions)`
+/// whose corners all lie above z = −0.3, pushed onto `r = 1 + amplitude · sin 7x · cos 6y`.
+pub fn bumpy_cap(subdivisions: usize, amplitude: f64) -> Mesh {
+    let sphere = icosphere(subdivisions);
+    let keep: Vec<[usize; 3]> = sphere
+        .triangles
+        .iter()
+        .copied()
+        .filter(|t| t.iter().all(|&v| sphere.positions[v][2] > -0.3))
+        .collect();
+    let mut used = vec![usize::MAX; sphere.positions.len()];
+    let mut positions = Vec::new();
+    for t in &keep {
+        for &v in t {
+            if used[v] == usize::MAX {
+                used[v] = positions.len();
+                let [x, y, z] = sphere.positions[v];
+                let r = 1.0 + amplitude * (7.0 * x).sin() * (6.0 * y).cos();
+                positions.push([x * r, y * r, z * r]);
+            }
+        }
+    }
+    Mesh {
+        positions,
+        triangles: keep
+            .iter()
+            .map(|t| [used[t[0]], used[t[1]], used[t[2]]])
+            .collect(),
+    }
+}
+
 /// A torus of revolution around the z axis with tube radius `minor` and centre radius
 /// `major`, sampled on a `u_segments × v_segments` grid and split into right triangles.
 pub fn torus(major: f64, minor: f64, u_segments: usize, v_segments: usize) -> Mesh {
