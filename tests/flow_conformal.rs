@@ -291,7 +291,9 @@ fn real_irregular_sphere_is_stable_at_large_steps() {
     let mut unstable = new_flow(&mesh, &params(1.3)).expect("flow");
     let mut energies = vec![unstable.initial_metrics().willmore_energy];
     let mut failed = false;
-    for _ in 0..6 {
+    // Ten steps: with face-averaged new edges (willmore.rs) the blow-up is slower, W ×1.03,
+    // ×1.06, …, ×1.19 per step from the second (measured), past 2× W₁ at the eighth.
+    for _ in 0..10 {
         match unstable.step() {
             Ok(m) => energies.push(m.willmore_energy),
             Err(_) => {

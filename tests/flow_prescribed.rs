@@ -146,7 +146,7 @@ fn cmc_boundary_fairs_a_bumpy_hemisphere_to_constant_mean_curvature() {
     let spread0 = mean_curvature_spread(&mesh.positions, &mesh, &boundary);
     let mut flow = new_flow(&mesh, &params(0.5, Boundary::Cmc)).expect("flow");
     let w0 = flow.initial_metrics().willmore_energy;
-    for _ in 0..20 {
+    for _ in 0..30 {
         let m = flow.step().expect("step");
         eprintln!(
             "step {}: W {:.4} Q {:.4} closure {:.2e} eig {:.2e} spread {:.4}",
@@ -278,7 +278,7 @@ fn bad_prescriptions_are_refused_with_the_reason() {
 }
 
 /// Figure 14, bottom: binormals that oscillate around the equator of a round hemisphere,
-/// `Ṽ = B` turned about `T` by `0.3·sin 3φ`, give a CMC surface with those binormals.
+/// `Ṽ = B` turned about `T` by `0.5·sin 3φ`, give a CMC surface with those binormals.
 #[test]
 fn oscillating_binormals_on_a_hemisphere_give_a_cmc_surface() {
     let mesh = bumpy_hemisphere(48, 16, 0.0);
@@ -289,7 +289,7 @@ fn oscillating_binormals_on_a_hemisphere_give_a_cmc_surface() {
         .iter()
         .map(|&[_, v, _]| {
             let p = mesh.positions[v];
-            (v, 0.3 * (3.0 * p[1].atan2(p[0])).sin())
+            (v, 0.5 * (3.0 * p[1].atan2(p[0])).sin())
         })
         .collect();
     let spec = PrescribedVectors {
@@ -300,6 +300,7 @@ fn oscillating_binormals_on_a_hemisphere_give_a_cmc_surface() {
     let goal = targets(&mesh, &spec);
     let mask = topology.boundary_vertex_mask(mesh.vertex_count());
     let mut flow = new_flow(&mesh, &params(0.5, Boundary::Prescribed(spec.clone()))).expect("flow");
+    let round = mean_curvature_spread(&mesh.positions, &mesh, &mask);
     let mut spreads = Vec::new();
     for _ in 0..20 {
         let m = flow.step().expect("step");
@@ -307,14 +308,14 @@ fn oscillating_binormals_on_a_hemisphere_give_a_cmc_surface() {
         spreads.push(mean_curvature_spread(flow.positions(), &mesh, &mask));
     }
     let err = boundary_vector_error(&mesh, flow.positions(), &spec, &goal);
-    eprintln!("spread per step {spreads:.4?}, boundary error {err:.4} rad");
+    eprintln!("spread {round:.4} then per step {spreads:.4?}, boundary error {err:.4} rad");
     // The first step turns the boundary and bends the surface away from constant H; the flow
     // then removes the non-constant part.
     let worst = spreads.iter().cloned().fold(0.0, f64::max);
     let last = spreads[spreads.len() - 1];
     assert!(
-        worst > 0.05,
-        "the prescription should bend the surface first"
+        worst > 2.0 * round,
+        "the prescription should bend the surface first: {round} -> {worst}"
     );
     assert!(
         last < 0.05 && last < 0.5 * worst,

@@ -8,7 +8,7 @@
 //!    meaning, `u ← (1 − 2τ)u`, stable for τ < 1);
 //! 3. smallest eigenvector of `(D − ρ)λ = γλ` (Eq. 5) by inverse iteration on `X(ρ)`
 //!    (App. G), starting from `λ ≡ 1` because the previous surface is the reference;
-//! 4. new edges `ẽ = λ̄ e λ` integrated along each edge (Table 1 VI);
+//! 4. new edges `ẽ = λ̄ e λ`, averaged over each face so every face closes (Table 1 VI);
 //! 5. new positions from `L f̃ = ∇·ẽ` (Eq. 6, Table 1 VII);
 //! 6. scale policy: each component's centroid and area restored.
 //!
@@ -630,7 +630,8 @@ impl ConformalFlow {
     }
 
     /// Table 1 step VII: new edges, their divergence, and the Poisson solve. Returns the closure
-    /// residual `|d f̃ − ẽ| / |ẽ|` over all half-edges (unweighted).
+    /// residual `|d f̃ − ẽ| / |ẽ|` over all half-edges (unweighted), with `ẽ = ∫ λ̄ e λ` along
+    /// the edge: the integrability of the new edges, whichever quadrature feeds the solve.
     fn integrate(&mut self) -> Result<f64, FlowError> {
         let n = self.positions.len();
         let g = &self.geometry;
@@ -641,17 +642,42 @@ impl ConformalFlow {
             .zip(&g.cotangents)
             .zip(self.new_edges.iter_mut())
         {
+            // Each face maps its edges by the face average of λ̄ e λ with λ linear on the face,
+            // `T_f(e) = (1/A)∫_f λ̄ e λ dA = (1/12)(s̄ e s + Σ_i λ̄_i e λ_i)`, `s = Σ_i λ_i`
+            // (∫ φ_i φ_j = A(1 + δ_ij)/12). With the cotan weights below this is the Galerkin
+            // (P1 finite element) weak form of Eq. (6): the L² projection of the target
+            // differential λ̄ df λ onto gradients of piecewise linear maps (the cotan matrix is
+            // the P1 stiffness matrix; Wardetzky et al. 2007, "Discrete Laplace operators: no
+            // free lunch"). T_f is linear in e, so every face closes exactly (Σ e = 0).
+            // The edge integral ∫_edge λ̄ e λ (weights ⅓, ⅙, ⅙, ⅓; ALGORITHM.md §6) does
+            // not close a face, and on needles the gap is far wider than the face: on
+            // botijo_genus5_irregular (a 0.005°/179.6° face, width 1e-4 of its length) it
+            // folded the needle out of its plane in one step at τ = 0.02 (one vertex's H
+            // 0.7 → −57, W 557 → 628), so W rose at any τ. With T_f, W falls there. (Closing
+            // each face's edge integrals with a least-change correction does not help:
+            // W 557 → 601 in one step at τ = 0.0125.)
+            let l = [
+                self.lambda[tri[0]],
+                self.lambda[tri[1]],
+                self.lambda[tri[2]],
+            ];
+            let s = l[0] + l[1] + l[2];
             for c in 0..3 {
                 let (a, b) = (tri[(c + 1) % 3], tri[(c + 2) % 3]);
                 let e = Quaternion::imaginary(sub(self.positions[b], self.positions[a]));
+                let new_edge = (s.conj() * e * s
+                    + l[0].conj() * e * l[0]
+                    + l[1].conj() * e * l[1]
+                    + l[2].conj() * e * l[2])
+                    .scale(1.0 / 12.0)
+                    .vector();
+                // The closure residual keeps measuring the edge integral ∫ λ̄ e λ (λ linear:
+                // weights ⅓, ⅙, ⅙, ⅓), the paper's new edge: with T_f it would also count
+                // the O(h|∇λ|) spread between neighbouring faces' averages.
                 let (la, lb) = (self.lambda[a], self.lambda[b]);
-                // ∫ λ̄ e λ along the edge with λ linear: weights ⅓, ⅙, ⅙, ⅓ (ALGORITHM.md §6).
-                let t = (la.conj() * e * la).scale(1.0 / 3.0)
-                    + (la.conj() * e * lb).scale(1.0 / 6.0)
-                    + (lb.conj() * e * la).scale(1.0 / 6.0)
-                    + (lb.conj() * e * lb).scale(1.0 / 3.0);
-                let new_edge = t.vector();
-                edges[c] = new_edge;
+                edges[c] = ((la.conj() * e * la + lb.conj() * e * lb).scale(1.0 / 3.0)
+                    + (la.conj() * e * lb + lb.conj() * e * la).scale(1.0 / 6.0))
+                .vector();
                 let w = 0.5 * cots[c];
                 for k in 0..3 {
                     self.divergence[k * n + a] -= w * new_edge[k];
