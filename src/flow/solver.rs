@@ -6,10 +6,9 @@
 //! triplets costs more than the factorization itself).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
-    SymmetricOrdering,
+    SymbolicCholeskyRaw, SymmetricOrdering,
 };
 use faer::sparse::linalg::{amd, SupernodalThreshold};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
@@ -34,6 +33,8 @@ pub struct BlockPattern {
     /// For face `f` and ordered corner pair `(a, b)`, `face_slots[f][3a + b]` is the base index
     /// of the block at row vertex `tri[a]`, column vertex `tri[b]`.
     pub face_slots: Vec<[usize; 9]>,
+    /// Base index of each vertex's diagonal block.
+    diagonal_slots: Vec<usize>,
 }
 
 impl BlockPattern {
@@ -84,7 +85,12 @@ impl BlockPattern {
             vertex_row_idx,
             symbolic,
             face_slots: Vec::with_capacity(triangles.len()),
+            diagonal_slots: Vec::with_capacity(n_vertices),
         };
+        for v in 0..n_vertices {
+            let slot = pattern.block_slot(v, v);
+            pattern.diagonal_slots.push(slot);
+        }
         for tri in triangles {
             let mut slots = [0usize; 9];
             for a in 0..3 {
@@ -107,8 +113,9 @@ impl BlockPattern {
     }
 
     /// Base index of the diagonal block of vertex `v`.
+    #[inline]
     pub fn diagonal_slot(&self, v: usize) -> usize {
-        self.block_slot(v, v)
+        self.diagonal_slots[v]
     }
 
     /// Distance between consecutive columns of a block in column vertex `j`: entry
@@ -214,33 +221,42 @@ pub enum SolverError {
     OutOfMemory,
 }
 
-/// A supernodal LLᴴ factorization whose symbolic part and workspaces are built once.
+/// A sparse LLᴴ factorization whose ordering, symbolic part and workspaces are built once.
+///
+/// The fill-reducing permutation is applied once, at analysis: the analysis precomputes the
+/// permuted triangle (`P A Pᵀ`, the side faer's numeric kernel reads) together with the index
+/// of each of its entries in the caller's full-storage values. Each refactorization is then a
+/// plain gather into that triangle, and faer runs with the identity ordering, so it neither
+/// permutes nor transposes the matrix per call (its per-call permutation rebuilds the whole
+/// permuted pattern, indices included). The solve applies the permutation to the right-hand sides itself.
 pub struct Cholesky<T> {
     symbolic: SymbolicCholesky<usize>,
     factor: Vec<T>,
     factor_mem: MemBuffer,
     solve_mem: MemBuffer,
     nrhs: usize,
+    /// `fwd[new] = old` and its inverse.
+    fwd: Vec<usize>,
+    inv: Vec<usize>,
+    /// The triangle of `P A Pᵀ` faer's numeric factorization reads (lower for supernodal,
+    /// upper for simplicial).
+    side: Side,
+    triangle: SymbolicSparseColMat<usize>,
+    /// `triangle_values[k] = values[gather[k]]`.
+    gather: Vec<usize>,
+    triangle_values: Vec<T>,
+    /// Right-hand sides in the permuted order, `n × nrhs` column-major.
+    permuted_rhs: Vec<T>,
 }
 
 impl<T: ComplexField + Copy> Cholesky<T> {
-    /// Symbolic analysis of `pattern` for up to `nrhs` right-hand sides per solve.
+    /// Symbolic analysis of `pattern` for up to `nrhs` right-hand sides per solve, ordered by
+    /// AMD on its vertex graph.
     pub fn analyze(pattern: &BlockPattern, nrhs: usize) -> Result<Self, SolverError> {
         let (fwd, inv) = pattern
             .block_amd()
             .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
-        let perm = PermRef::new_checked(&fwd, &inv, pattern.dim());
-        let symbolic = factorize_symbolic_cholesky(
-            pattern.symbolic.as_ref(),
-            Side::Lower,
-            SymmetricOrdering::Custom(perm),
-            CholeskySymbolicParams {
-                supernodal_flop_ratio_threshold: SupernodalThreshold::AUTO,
-                ..Default::default()
-            },
-        )
-        .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
-        Self::with_symbolic(symbolic, nrhs)
+        Self::with_ordering(pattern.symbolic.as_ref(), fwd, inv, nrhs)
     }
 
     /// Symbolic analysis of an arbitrary symmetric pattern (both triangles stored), ordered by
@@ -249,37 +265,79 @@ impl<T: ComplexField + Copy> Cholesky<T> {
         pattern: faer::sparse::SymbolicSparseColMatRef<'_, usize>,
         nrhs: usize,
     ) -> Result<Self, SolverError> {
-        let symbolic = factorize_symbolic_cholesky(
+        let n = pattern.nrows();
+        let mut fwd = vec![0usize; n];
+        let mut inv = vec![0usize; n];
+        let mut mem = MemBuffer::try_new(amd::order_scratch::<usize>(n, pattern.row_idx().len()))
+            .map_err(|_| SolverError::OutOfMemory)?;
+        amd::order(
+            &mut fwd,
+            &mut inv,
             pattern,
-            Side::Lower,
-            SymmetricOrdering::Amd,
+            amd::Control::default(),
+            MemStack::new(&mut mem),
+        )
+        .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
+        drop(mem);
+        Self::with_ordering(pattern, fwd, inv, nrhs)
+    }
+
+    fn with_ordering(
+        pattern: faer::sparse::SymbolicSparseColMatRef<'_, usize>,
+        fwd: Vec<usize>,
+        inv: Vec<usize>,
+        nrhs: usize,
+    ) -> Result<Self, SolverError> {
+        let n = pattern.nrows();
+        // Only the upper triangle is analyzed (faer's contract with the identity ordering).
+        let (upper, _) = permuted_triangle(pattern, &inv, Side::Upper);
+        let symbolic = factorize_symbolic_cholesky(
+            upper.as_ref(),
+            Side::Upper,
+            SymmetricOrdering::Identity,
             CholeskySymbolicParams {
                 supernodal_flop_ratio_threshold: SupernodalThreshold::AUTO,
                 ..Default::default()
             },
         )
         .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
-        Self::with_symbolic(symbolic, nrhs)
-    }
-
-    fn with_symbolic(symbolic: SymbolicCholesky<usize>, nrhs: usize) -> Result<Self, SolverError> {
+        // The side faer's numeric kernel works on: anything else costs it a transpose per call.
+        let (side, (triangle, gather)) = match symbolic.raw() {
+            SymbolicCholeskyRaw::Supernodal(_) => {
+                drop(upper);
+                (Side::Lower, permuted_triangle(pattern, &inv, Side::Lower))
+            }
+            SymbolicCholeskyRaw::Simplicial(_) => {
+                let gather = permuted_triangle(pattern, &inv, Side::Upper).1;
+                (Side::Upper, (upper, gather))
+            }
+        };
         let factor_mem = MemBuffer::try_new(
             symbolic.factorize_numeric_llt_scratch::<T>(Par::Seq, Default::default()),
         )
         .map_err(|_| SolverError::OutOfMemory)?;
         let solve_mem = MemBuffer::try_new(symbolic.solve_in_place_scratch::<T>(nrhs, Par::Seq))
             .map_err(|_| SolverError::OutOfMemory)?;
-        let mut factor = Vec::new();
-        factor
-            .try_reserve_exact(symbolic.len_val())
-            .map_err(|_| SolverError::OutOfMemory)?;
-        factor.resize(symbolic.len_val(), T::zero_impl());
+        let zeros = |len: usize| -> Result<Vec<T>, SolverError> {
+            let mut v = Vec::new();
+            v.try_reserve_exact(len)
+                .map_err(|_| SolverError::OutOfMemory)?;
+            v.resize(len, T::zero_impl());
+            Ok(v)
+        };
         Ok(Cholesky {
+            factor: zeros(symbolic.len_val())?,
+            triangle_values: zeros(gather.len())?,
+            permuted_rhs: zeros(n * nrhs)?,
             symbolic,
-            factor,
             factor_mem,
             solve_mem,
             nrhs,
+            fwd,
+            inv,
+            side,
+            triangle,
+            gather,
         })
     }
 
@@ -293,11 +351,16 @@ impl<T: ComplexField + Copy> Cholesky<T> {
         &mut self,
         a: SparseColMatRef<'_, usize, T>,
     ) -> Result<(), SolverError> {
+        let values = a.val();
+        for (t, &k) in self.triangle_values.iter_mut().zip(&self.gather) {
+            let v = &values[k & !CONJ];
+            *t = if k & CONJ == 0 { *v } else { T::conj_impl(v) };
+        }
         self.symbolic
             .factorize_numeric_llt(
                 &mut self.factor,
-                a,
-                Side::Lower,
+                SparseColMatRef::new(self.triangle.as_ref(), &self.triangle_values),
+                self.side,
                 Default::default(),
                 Par::Seq,
                 MemStack::new(&mut self.factor_mem),
@@ -310,19 +373,94 @@ impl<T: ComplexField + Copy> Cholesky<T> {
     /// Solve `A x = rhs` in place for a column-major `n × k` block of right-hand sides, using
     /// the last successful [`Cholesky::factorize`].
     pub fn solve_in_place(&mut self, rhs: &mut [T], k: usize) {
-        debug_assert!(k <= self.nrhs);
+        assert!(k <= self.nrhs);
         let n = self.symbolic.nrows();
+        let permuted = &mut self.permuted_rhs[..n * k];
+        for (p, r) in permuted.chunks_exact_mut(n).zip(rhs.chunks_exact(n)) {
+            for (p, &old) in p.iter_mut().zip(&self.fwd) {
+                *p = r[old];
+            }
+        }
         let llt = LltRef::new(&self.symbolic, &self.factor);
-        let rhs = MatMut::from_column_major_slice_mut(rhs, n, k);
         // Par::Seq: parallel solves are several times slower on this class of machine
         // (SOLVER.md), and the library owns no threads.
-        llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(&mut self.solve_mem));
+        llt.solve_in_place_with_conj(
+            Conj::No,
+            MatMut::from_column_major_slice_mut(permuted, n, k),
+            Par::Seq,
+            MemStack::new(&mut self.solve_mem),
+        );
+        for (r, p) in rhs
+            .chunks_exact_mut(n)
+            .zip(self.permuted_rhs.chunks_exact(n))
+        {
+            for (r, &new) in r.iter_mut().zip(&self.inv) {
+                *r = p[new];
+            }
+        }
     }
 
     /// Entries of the factor (supernodal storage, explicit zeros included).
     pub fn factor_len(&self) -> usize {
         self.factor.len()
     }
+}
+
+/// Marks a [`Cholesky`] gather index whose value is conjugated.
+const CONJ: usize = 1 << (usize::BITS - 1);
+
+/// One triangle (`side`) of `P A Pᵀ` for the full (both triangles, structurally symmetric)
+/// pattern `a`, with `inv[old] = new`: its CSC pattern, and for each of its entries the index
+/// of its source in `a`'s values, with [`CONJ`] set when the value is the conjugate of the
+/// source. This is exactly what faer's own per-call permutation (`Side::Lower` input) builds,
+/// down to the order of the entries within a column (which the simplicial factorization's
+/// summation order depends on), so the factor is bitwise the same as with faer's ordering.
+fn permuted_triangle(
+    a: faer::sparse::SymbolicSparseColMatRef<'_, usize>,
+    inv: &[usize],
+    side: Side,
+) -> (SymbolicSparseColMat<usize>, Vec<usize>) {
+    let n = a.nrows();
+    // Where the original lower entry (i, j) lands: (new row, new column, conjugated).
+    let place = |i: usize, j: usize| {
+        let (ni, nj) = (inv[i], inv[j]);
+        let in_side = match side {
+            Side::Lower => ni >= nj,
+            Side::Upper => ni <= nj,
+        };
+        if in_side {
+            (ni, nj, false)
+        } else {
+            (nj, ni, true)
+        }
+    };
+    let mut col_ptr = vec![0usize; n + 1];
+    for j in 0..n {
+        for &i in a.row_idx_of_col_raw(j) {
+            if i >= j {
+                col_ptr[place(i, j).1 + 1] += 1;
+            }
+        }
+    }
+    for j in 0..n {
+        col_ptr[j + 1] += col_ptr[j];
+    }
+    let mut entries = vec![(0usize, 0usize); col_ptr[n]];
+    let mut next = col_ptr.clone();
+    for j in 0..n {
+        for (k, &i) in a.col_range(j).zip(a.row_idx_of_col_raw(j)) {
+            if i >= j {
+                let (row, col, conj) = place(i, j);
+                entries[next[col]] = (row, if conj { k | CONJ } else { k });
+                next[col] += 1;
+            }
+        }
+    }
+    let (row_idx, gather): (Vec<usize>, Vec<usize>) = entries.into_iter().unzip();
+    (
+        SymbolicSparseColMat::new_unsorted_checked(n, n, col_ptr, None, row_idx),
+        gather,
+    )
 }
 
 #[cfg(test)]
@@ -392,5 +530,120 @@ mod tests {
             residual = residual.max((s - b[j]).abs());
         }
         assert!(residual < 1e-12, "residual {residual}");
+    }
+
+    /// A Hermitian, diagonally dominant block-2 matrix on `p`: off-diagonal blocks `B` and `Bᴴ`,
+    /// diagonal `100·I`.
+    fn hermitian_block_values(p: &BlockPattern, triangles: &[[usize; 3]]) -> Vec<faer::c64> {
+        use faer::c64;
+        let mut values = vec![c64::new(0.0, 0.0); p.nnz()];
+        for (f, (tri, slots)) in triangles.iter().zip(&p.face_slots).enumerate() {
+            for a in 0..3 {
+                for b in 0..3 {
+                    if a == b {
+                        continue;
+                    }
+                    let (i, j) = (tri[a], tri[b]);
+                    let t = (f * 9 + 3 * a + b) as f64;
+                    let m = [
+                        [c64::new(t.sin(), 0.3), c64::new(0.2, t.cos())],
+                        [c64::new(-0.4, 0.1), c64::new(0.5, -t.sin())],
+                    ];
+                    for ri in 0..2 {
+                        for rj in 0..2 {
+                            values[p.entry(slots[3 * a + b], j, ri, rj)] += m[ri][rj];
+                            values[p.entry(slots[3 * b + a], i, rj, ri)] += m[ri][rj].conj();
+                        }
+                    }
+                }
+            }
+        }
+        for v in 0..p.vertex_col_ptr.len() - 1 {
+            for r in 0..2 {
+                values[p.entry(p.diagonal_slot(v), v, r, r)] += c64::new(100.0, 0.0);
+            }
+        }
+        values
+    }
+
+    #[test]
+    fn solves_a_hermitian_block_system_with_several_right_hand_sides() {
+        use faer::c64;
+        let mesh = icosphere(2);
+        let p = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 2);
+        let values = hermitian_block_values(&p, &mesh.triangles);
+        let n = p.dim();
+        let mut chol = Cholesky::<c64>::analyze(&p, 2).expect("analyze");
+        chol.factorize(&p, &values).expect("factorize");
+        let b: Vec<c64> = (0..2 * n)
+            .map(|i| c64::new((i as f64 * 0.37).sin(), (i as f64 * 0.11).cos()))
+            .collect();
+        let mut x = b.clone();
+        chol.solve_in_place(&mut x, 2);
+        let a = SparseColMatRef::new(p.symbolic.as_ref(), &values);
+        for k in 0..2 {
+            let mut y = vec![c64::new(0.0, 0.0); n];
+            for col in 0..n {
+                for idx in a.col_ptr()[col]..a.col_ptr()[col + 1] {
+                    y[a.row_idx()[idx]] += values[idx] * x[k * n + col];
+                }
+            }
+            let residual = y
+                .iter()
+                .zip(&b[k * n..(k + 1) * n])
+                .map(|(y, b)| (y - b).norm())
+                .fold(0.0, f64::max);
+            assert!(residual < 1e-12, "rhs {k}: residual {residual}");
+        }
+    }
+
+    /// The factor equals, bit for bit, the one faer computes when it applies the same ordering
+    /// itself on every call (`SymmetricOrdering::Custom`): same entries read, same order.
+    fn same_factor_as_faer_ordering<T: ComplexField + Copy + PartialEq + std::fmt::Debug>(
+        p: &BlockPattern,
+        values: &[T],
+    ) {
+        let mut chol = Cholesky::<T>::analyze(p, 1).expect("analyze");
+        chol.factorize(p, values).expect("factorize");
+        let (fwd, inv) = p.block_amd().expect("amd");
+        let perm = faer::perm::PermRef::new_checked(&fwd, &inv, p.dim());
+        let symbolic = factorize_symbolic_cholesky(
+            p.symbolic.as_ref(),
+            Side::Lower,
+            SymmetricOrdering::Custom(perm),
+            Default::default(),
+        )
+        .expect("symbolic");
+        let mut factor = vec![T::zero_impl(); symbolic.len_val()];
+        let mut mem = MemBuffer::new(
+            symbolic.factorize_numeric_llt_scratch::<T>(Par::Seq, Default::default()),
+        );
+        symbolic
+            .factorize_numeric_llt(
+                &mut factor,
+                SparseColMatRef::new(p.symbolic.as_ref(), values),
+                Side::Lower,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .expect("numeric");
+        assert!(factor == chol.factor);
+    }
+
+    #[test]
+    fn factors_are_bitwise_those_of_faers_own_ordering() {
+        let mesh = icosphere(3);
+        let nv = mesh.vertex_count();
+        let p2 = BlockPattern::new(nv, &mesh.triangles, 2);
+        same_factor_as_faer_ordering(&p2, &hermitian_block_values(&p2, &mesh.triangles));
+        // A shifted cotan Laplacian: simplicial at this size, where the entry order matters.
+        let p1 = BlockPattern::new(nv, &mesh.triangles, 1);
+        let mut values = vec![0.0; p1.nnz()];
+        let cot = crate::geometry::corner_cotangents(&mesh);
+        assemble_cotan_laplacian_into(&p1, &mesh.triangles, &cot, 1.0, &mut values);
+        add_diagonal(&p1, (0..nv).map(|_| 0.1), &mut values);
+        same_factor_as_faer_ordering(&p1, &values);
     }
 }
