@@ -29,6 +29,10 @@ pub struct BenchArgs {
     /// One JSON object per mesh instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Instead: the genus-g step with exactness constraints against a genus-0 mesh of the same
+    /// size (issue 4); MESH defaults to botijo_genus5_irregular from ../shared/meshes.
+    #[arg(long, conflicts_with = "json")]
+    pub genus: bool,
 }
 
 #[derive(serde::Serialize)]
@@ -46,6 +50,9 @@ struct Figures {
 }
 
 pub fn run(args: BenchArgs) -> ExitCode {
+    if args.genus {
+        return super::bench_genus::run(args.meshes.first().map(PathBuf::as_path), args.steps);
+    }
     let inputs = match load_inputs(&args.meshes) {
         Ok(i) => i,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
