@@ -20,8 +20,9 @@ pub struct BenchArgs {
     /// present, else generated bumpy spheres of 20k and 82k triangles.
     pub meshes: Vec<PathBuf>,
     /// Steps per flow (the first step is included: it pays for nothing extra, the symbolic
-    /// analysis happens when the flow is built and is reported separately).
-    #[arg(long, default_value_t = 5)]
+    /// analysis happens when the flow is built and is reported separately). Nine steps give a
+    /// median that a few steps slowed by other processes on a shared machine cannot move.
+    #[arg(long, default_value_t = 9)]
     pub steps: usize,
     /// Conformal time step.
     #[arg(long, default_value_t = 0.5)]
