@@ -59,6 +59,8 @@ pub struct ConformalFlow {
     /// Harmonic 1-forms for the exactness constraints; `None` for genus 0 or when switched off.
     harmonic: Option<HarmonicBasisSolver>,
     forms: Vec<Vec<f64>>,
+    /// Right-hand sides and solutions of the 2g solves `X₀ Z_i = D*M v_i`, column-major.
+    exact_rhs: Vec<c64>,
     face_field: Vec<[f64; 3]>,
     mobius: Option<MobiusBalancing>,
     /// Vertices of closed components: the total-curvature constraint (App. B) holds there only.
@@ -164,11 +166,12 @@ impl ConformalFlow {
             &geometry.vertex_areas,
         );
         let dirac_pattern = BlockPattern::new(n, &mesh.triangles, 2);
-        let dirac =
-            Cholesky::<c64>::analyze(&dirac_pattern, 1).map_err(|e| FlowError::Numerical {
+        let dirac = Cholesky::<c64>::analyze(&dirac_pattern, form_count.max(1)).map_err(|e| {
+            FlowError::Numerical {
                 step: 0,
                 reason: e.to_string(),
-            })?;
+            }
+        })?;
         let laplace_pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let laplace =
             Cholesky::<f64>::analyze(&laplace_pattern, 3).map_err(|e| FlowError::Numerical {
@@ -201,6 +204,7 @@ impl ConformalFlow {
                 .then(|| MobiusBalancing::new(&geometry.vertex_areas, n_components)),
             harmonic,
             forms: Vec::with_capacity(form_count),
+            exact_rhs: vec![c64::new(0.0, 0.0); 2 * n * form_count],
             face_field: vec![[0.0; 3]; nf],
             topology,
             closed_vertex,
@@ -375,7 +379,11 @@ impl ConformalFlow {
         self.factor_dirac(false)?;
         let g = &self.geometry;
         let n = self.positions.len();
-        for form in &self.forms {
+        for (form, rhs) in self
+            .forms
+            .iter()
+            .zip(self.exact_rhs.chunks_exact_mut(2 * n))
+        {
             harmonic_vector_field_into(
                 &self.positions,
                 &self.triangles,
@@ -409,12 +417,17 @@ impl ConformalFlow {
             );
             for (i, l) in self.lambda.iter().enumerate() {
                 let [z0, z1] = l.to_complex_column();
-                self.rhs[2 * i] = z0;
-                self.rhs[2 * i + 1] = z1;
+                rhs[2 * i] = z0;
+                rhs[2 * i + 1] = z1;
             }
-            self.dirac.solve_in_place(&mut self.rhs, 1);
+        }
+        // All 2g solves in one block: the supernodal solve then runs matrix-matrix kernels
+        // over the factor once instead of streaming it 2g times.
+        self.dirac
+            .solve_in_place(&mut self.exact_rhs, self.forms.len());
+        for z in self.exact_rhs.chunks_exact(2 * n) {
             for (i, l) in self.lambda.iter_mut().enumerate() {
-                *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
+                *l = Quaternion::from_complex_column([z[2 * i], z[2 * i + 1]]);
             }
             let lambda = &self.lambda;
             debug_assert_eq!(lambda.len(), n);
