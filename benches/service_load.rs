@@ -14,24 +14,16 @@
 //! `WILLOW_BENCH_MESH` a mesh file for part 2 (default: `../shared/meshes/cheburashka.obj` if
 //! present, else a generated 13 056-triangle torus).
 
+#[path = "../tests/service_http_support/mod.rs"]
+mod service_http_support;
+
 use futures::StreamExt;
+use service_http_support::{obj_text, start as start_server, TestServer};
 use std::time::{Duration, Instant};
-use willow::jobs::{Config, Jobs};
 use willow::mesh::io::{Asset, Format};
 
 /// Every request loop stops after this long, whatever its count: the benchmark must end.
 const PHASE_BUDGET: Duration = Duration::from_secs(60);
-
-fn obj_text(mesh: &willow::mesh::Mesh) -> String {
-    let mut s = String::new();
-    for p in &mesh.positions {
-        s.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
-    }
-    for t in &mesh.triangles {
-        s.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
-    }
-    s
-}
 
 fn rss_kib() -> u64 {
     std::fs::read_to_string("/proc/self/status")
@@ -51,50 +43,6 @@ fn pct(sorted: &[f64], p: f64) -> f64 {
     }
     let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
     sorted[i.min(sorted.len() - 1)]
-}
-
-struct Server {
-    base: String,
-    jobs: Jobs,
-    stop: tokio::sync::oneshot::Sender<()>,
-    task: tokio::task::JoinHandle<std::io::Result<()>>,
-    _dir: tempfile::TempDir,
-}
-
-async fn start(workers: usize, queue_capacity: usize) -> Server {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = Config::new(dir.path());
-    config.workers = workers;
-    config.queue_capacity = queue_capacity;
-    let (jobs, core) = Jobs::start(config).await.expect("start");
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let base = format!("http://{}", listener.local_addr().expect("addr"));
-    let (stop, rx) = tokio::sync::oneshot::channel::<()>();
-    let task = tokio::spawn(willow::api::server::serve(
-        listener,
-        jobs.clone(),
-        core,
-        async move {
-            let _ = rx.await;
-        },
-        Duration::from_secs(5),
-    ));
-    Server {
-        base,
-        jobs,
-        stop,
-        task,
-        _dir: dir,
-    }
-}
-
-impl Server {
-    async fn stop(self) {
-        let _ = self.stop.send(());
-        let _ = tokio::time::timeout(Duration::from_secs(30), self.task).await;
-    }
 }
 
 /// One client's loop: submit, read status, wait for the first SSE frame; `n` times.
@@ -388,4 +336,14 @@ fn main() {
         overhead(steps).await;
         memory_per_queued_job(&small).await;
     });
+}
+
+/// The real router on loopback with `workers` workers and a queue of `queue_capacity` (the
+/// tests' server, sized for load).
+async fn start(workers: usize, queue_capacity: usize) -> TestServer {
+    start_server(|c| {
+        c.workers = workers;
+        c.queue_capacity = queue_capacity;
+    })
+    .await
 }
