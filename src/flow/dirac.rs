@@ -13,7 +13,9 @@
 //! X is a complex Hermitian `2|V| × 2|V|` matrix: half the factorization time and memory of the
 //! real `4|V|` form with identical λ (SOLVER.md, "the complex form").
 
-use super::solver::BlockPattern;
+#[cfg(doc)]
+use super::solver::Cholesky;
+use super::solver::{BlockPattern, SolverError};
 use crate::geometry::vec3::sub;
 use crate::geometry::Quaternion;
 use faer::c64;
@@ -102,6 +104,137 @@ pub fn assemble_dirac_into(
     }
 }
 
+/// Marks a [`TriangleAssembly`] target that receives the conjugate of the assembled value.
+const CONJ_BIT: u32 = 1 << 31;
+
+/// `X(ρ)` assembled straight into the permuted triangle a [`Cholesky`] factors, skipping the
+/// full (both triangles) storage: half the entries written, no gather pass, and the diagonal
+/// shift written in place. Each triangle entry receives the same contributions in the same
+/// (face) order as the full storage would, and conjugation is exact, so the triangle, and
+/// with it the factor, is bit for bit the same.
+pub struct TriangleAssembly {
+    /// Per face, for the corner pairs (0,0), (0,1), (0,2), (1,1), (1,2), (2,2) in turn: the
+    /// triangle positions of the entries of block `X_{tri[a], tri[b]}`: `00, 10, 11` for a
+    /// diagonal block (its `01` is the conjugate of `10`, stored once), `00, 10, 01, 11`
+    /// otherwise, with [`CONJ_BIT`] set where the triangle holds the conjugate.
+    faces: Vec<[u32; 21]>,
+    /// Per vertex, the positions of its diagonal block's `00` and `11`.
+    diagonal: Vec<[u32; 2]>,
+}
+
+impl TriangleAssembly {
+    /// `slots` is the factor's [`Cholesky::triangle_slots`] for `pattern`.
+    pub fn new(
+        pattern: &BlockPattern,
+        triangles: &[[usize; 3]],
+        slots: &[Option<(usize, bool)>],
+    ) -> Result<Self, SolverError> {
+        debug_assert_eq!(pattern.block, 2);
+        let target = |k: usize, conj: bool| -> Result<u32, SolverError> {
+            let (t, c) = slots[k].ok_or_else(|| {
+                SolverError::Symbolic(format!("entry {k} is not in the factored triangle"))
+            })?;
+            let t = u32::try_from(t)
+                .ok()
+                .filter(|&t| t < CONJ_BIT)
+                .ok_or(SolverError::OutOfMemory)?;
+            Ok(if c != conj { t | CONJ_BIT } else { t })
+        };
+        let mut faces = Vec::with_capacity(triangles.len());
+        for (tri, face_slots) in triangles.iter().zip(&pattern.face_slots) {
+            let mut targets = [0u32; 21];
+            let mut next = 0;
+            for a in 0..3 {
+                for b in a..3 {
+                    let entries: &[(usize, usize)] = if a == b {
+                        &[(0, 0), (1, 0), (1, 1)]
+                    } else {
+                        &[(0, 0), (1, 0), (0, 1), (1, 1)]
+                    };
+                    for &(ri, rj) in entries {
+                        let k = pattern.entry(face_slots[3 * a + b], tri[b], ri, rj);
+                        targets[next] = if slots[k].is_some() {
+                            target(k, false)?
+                        } else {
+                            // The transposed partner carries the conjugate value.
+                            let k = pattern.entry(face_slots[3 * b + a], tri[a], rj, ri);
+                            target(k, true)?
+                        };
+                        next += 1;
+                    }
+                }
+            }
+            faces.push(targets);
+        }
+        let n = pattern.dim() / 2;
+        let mut diagonal = Vec::with_capacity(n);
+        for v in 0..n {
+            let slot = pattern.diagonal_slot(v);
+            diagonal.push([
+                target(pattern.entry(slot, v, 0, 0), false)?,
+                target(pattern.entry(slot, v, 1, 1), false)?,
+            ]);
+        }
+        Ok(TriangleAssembly { faces, diagonal })
+    }
+
+    /// Refill `values` (the factor's triangle) with `X(ρ)`; returns the mean real diagonal
+    /// (see [`assemble_dirac_into`]).
+    pub fn assemble(
+        &self,
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+        face_areas: &[f64],
+        rho: &[f64],
+        values: &mut [c64],
+    ) -> f64 {
+        #[inline(always)]
+        fn add(values: &mut [c64], target: u32, z: c64) {
+            if target & CONJ_BIT == 0 {
+                values[target as usize] += z;
+            } else {
+                values[(target & !CONJ_BIT) as usize] += z.conj();
+            }
+        }
+        values.fill(c64::new(0.0, 0.0));
+        let mut trace = 0.0;
+        for ((tri, targets), &area) in triangles.iter().zip(&self.faces).zip(face_areas) {
+            let e = opposite_edges(positions, tri);
+            let mut next = 0;
+            for a in 0..3 {
+                for b in a..3 {
+                    let q = dirac_face_entry(e[a], e[b], rho[tri[a]], rho[tri[b]], area);
+                    let m = q.to_complex();
+                    add(values, targets[next], m[0][0]);
+                    add(values, targets[next + 1], m[1][0]);
+                    if a == b {
+                        trace += q.w;
+                        add(values, targets[next + 2], m[1][1]);
+                        next += 3;
+                    } else {
+                        add(values, targets[next + 2], m[0][1]);
+                        add(values, targets[next + 3], m[1][1]);
+                        next += 4;
+                    }
+                }
+            }
+        }
+        if self.diagonal.is_empty() {
+            0.0
+        } else {
+            trace / self.diagonal.len() as f64
+        }
+    }
+
+    /// Add the real `value` to both diagonal entries of vertex `v`'s block.
+    #[inline]
+    pub fn add_to_diagonal(&self, v: usize, value: f64, values: &mut [c64]) {
+        for &t in &self.diagonal[v] {
+            values[t as usize] += c64::new(value, 0.0);
+        }
+    }
+}
+
 /// `y = A x` for a matrix stored on the full (both triangles) pattern.
 pub fn sparse_matvec(pattern: &BlockPattern, values: &[c64], x: &[c64], y: &mut [c64]) {
     y.fill(c64::new(0.0, 0.0));
@@ -149,6 +282,71 @@ mod tests {
             &mut values,
         );
         (mesh, pattern, values)
+    }
+
+    #[test]
+    fn triangle_assembly_is_bitwise_the_gathered_full_assembly() {
+        // Small: a simplicial factor (upper triangle); larger: supernodal (lower triangle).
+        for subdivisions in [1, 4] {
+            triangle_assembly_matches(&bumpy_sphere(subdivisions, 0.2));
+        }
+    }
+
+    fn triangle_assembly_matches(mesh: &crate::mesh::Mesh) {
+        use crate::flow::solver::Cholesky;
+        let n = mesh.vertex_count();
+        let pattern = BlockPattern::new(n, &mesh.triangles, 2);
+        let areas = crate::geometry::face_areas(mesh);
+        let rho: Vec<f64> = (0..n).map(|i| 1.3 * (i as f64 * 0.7).sin()).collect();
+        let shift: Vec<f64> = (0..n).map(|i| 0.01 * (1.0 + (i % 3) as f64)).collect();
+        let mut full = vec![c64::new(0.0, 0.0); pattern.nnz()];
+        let mean = assemble_dirac_into(
+            &pattern,
+            &mesh.positions,
+            &mesh.triangles,
+            &areas,
+            &rho,
+            &shift,
+            &mut full,
+        );
+        let mut reference = Cholesky::<c64>::analyze(&pattern, 1).expect("analyze");
+        reference.factorize(&pattern, &full).expect("factor");
+        let expected = reference.triangle_values_mut().to_vec();
+
+        let mut direct = Cholesky::<c64>::analyze(&pattern, 1).expect("analyze");
+        let assembly = TriangleAssembly::new(
+            &pattern,
+            &mesh.triangles,
+            &direct.triangle_slots(pattern.nnz()),
+        )
+        .expect("targets");
+        let direct_mean = assembly.assemble(
+            &mesh.positions,
+            &mesh.triangles,
+            &areas,
+            &rho,
+            direct.triangle_values_mut(),
+        );
+        for (v, &s) in shift.iter().enumerate() {
+            assembly.add_to_diagonal(v, s, direct.triangle_values_mut());
+        }
+        assert_eq!(mean, direct_mean);
+        assert!(direct.triangle_values_mut().to_vec() == expected);
+
+        // The Hermitian product from the triangle matches the full-storage product.
+        let x: Vec<c64> = (0..2 * n)
+            .map(|i| c64::new((i as f64 * 0.3).sin(), (i as f64 * 0.8).cos()))
+            .collect();
+        let (mut y_full, mut y_tri) = (
+            vec![c64::new(0.0, 0.0); 2 * n],
+            vec![c64::new(0.0, 0.0); 2 * n],
+        );
+        sparse_matvec(&pattern, &full, &x, &mut y_full);
+        direct.factorize_triangle().expect("factor");
+        direct.hermitian_matvec(&x, &mut y_tri);
+        for (a, b) in y_full.iter().zip(&y_tri) {
+            assert!((a - b).norm() < 1e-12 * (1.0 + a.norm()), "{a} vs {b}");
+        }
     }
 
     #[test]

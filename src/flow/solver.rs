@@ -13,7 +13,7 @@ use faer::sparse::linalg::cholesky::{
 use faer::sparse::linalg::{amd, SupernodalThreshold};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::traits::ComplexField;
-use faer::{Conj, MatMut, Par, Side};
+use faer::{c64, Conj, MatMut, Par, Side};
 
 /// The full (both triangles) sparsity pattern of a symmetric matrix over the vertex graph of a
 /// triangle mesh, with every vertex-pair entry expanded to a dense `block × block` block
@@ -356,18 +356,7 @@ impl<T: ComplexField + Copy> Cholesky<T> {
             let v = &values[k & !CONJ];
             *t = if k & CONJ == 0 { *v } else { T::conj_impl(v) };
         }
-        self.symbolic
-            .factorize_numeric_llt(
-                &mut self.factor,
-                SparseColMatRef::new(self.triangle.as_ref(), &self.triangle_values),
-                self.side,
-                Default::default(),
-                Par::Seq,
-                MemStack::new(&mut self.factor_mem),
-                Default::default(),
-            )
-            .map(|_| ())
-            .map_err(|e| SolverError::NotPositiveDefinite(format!("{e:?}")))
+        self.factorize_triangle()
     }
 
     /// Solve `A x = rhs` in place for a column-major `n × k` block of right-hand sides, using
@@ -403,6 +392,67 @@ impl<T: ComplexField + Copy> Cholesky<T> {
     /// Entries of the factor (supernodal storage, explicit zeros included).
     pub fn factor_len(&self) -> usize {
         self.factor.len()
+    }
+
+    /// Where each entry of the full-storage values lands in the triangle the numeric
+    /// factorization reads: `Some((index, conjugated))` for the entries it gathers (the lower
+    /// triangle in the caller's order), `None` for the others, whose transposed partner
+    /// carries their value. Lets a caller assemble straight into
+    /// [`Cholesky::triangle_values_mut`] and skip the full storage (see
+    /// `dirac::TriangleAssembly`).
+    pub fn triangle_slots(&self, nnz: usize) -> Vec<Option<(usize, bool)>> {
+        let mut slots = vec![None; nnz];
+        for (t, &k) in self.gather.iter().enumerate() {
+            slots[k & !CONJ] = Some((t, k & CONJ != 0));
+        }
+        slots
+    }
+
+    /// The values of the triangle [`Cholesky::factorize_triangle`] factors, in the order of
+    /// [`Cholesky::triangle_slots`].
+    pub fn triangle_values_mut(&mut self) -> &mut [T] {
+        &mut self.triangle_values
+    }
+
+    /// Numeric refactorization of the triangle values as the caller left them.
+    pub fn factorize_triangle(&mut self) -> Result<(), SolverError> {
+        self.symbolic
+            .factorize_numeric_llt(
+                &mut self.factor,
+                SparseColMatRef::new(self.triangle.as_ref(), &self.triangle_values),
+                self.side,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut self.factor_mem),
+                Default::default(),
+            )
+            .map(|_| ())
+            .map_err(|e| SolverError::NotPositiveDefinite(format!("{e:?}")))
+    }
+}
+
+impl Cholesky<c64> {
+    /// `y = A x` with the Hermitian matrix whose triangle was last factored (its values are
+    /// kept), in the caller's order.
+    pub fn hermitian_matvec(&self, x: &[c64], y: &mut [c64]) {
+        y.fill(c64::new(0.0, 0.0));
+        let col_ptr = self.triangle.col_ptr();
+        let row_idx = self.triangle.row_idx();
+        for (col, &old_col) in self.fwd.iter().enumerate() {
+            let x_col = x[old_col];
+            let mut y_col = c64::new(0.0, 0.0);
+            for (&row, v) in row_idx[col_ptr[col]..col_ptr[col + 1]]
+                .iter()
+                .zip(&self.triangle_values[col_ptr[col]..col_ptr[col + 1]])
+            {
+                let old_row = self.fwd[row];
+                y[old_row] += v * x_col;
+                if row != col {
+                    y_col += v.conj() * x[old_row];
+                }
+            }
+            y[old_col] += y_col;
+        }
     }
 }
 

@@ -16,7 +16,7 @@
 //! every buffer is allocated in [`ConformalFlow::new`], so the step loop does not allocate.
 
 use super::constraints::ConstraintBasis;
-use super::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
+use super::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec, TriangleAssembly};
 use super::dirichlet;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
@@ -83,7 +83,10 @@ pub struct ConformalFlow {
     initial: StepMetrics,
 
     dirac_pattern: BlockPattern,
+    /// X on the full pattern, for the Dirichlet solve of a fixed boundary only; every other
+    /// solve assembles X straight into the factor's triangle through `dirac_assembly`.
     dirac_values: Vec<c64>,
+    dirac_assembly: TriangleAssembly,
     dirac: Cholesky<c64>,
     laplace_pattern: BlockPattern,
     laplace_values: Vec<f64>,
@@ -172,6 +175,20 @@ impl ConformalFlow {
                 reason: e.to_string(),
             }
         })?;
+        let dirac_assembly = TriangleAssembly::new(
+            &dirac_pattern,
+            &mesh.triangles,
+            &dirac.triangle_slots(dirac_pattern.nnz()),
+        )
+        .map_err(|e| FlowError::Numerical {
+            step: 0,
+            reason: e.to_string(),
+        })?;
+        let dirac_values = if fixed.is_some() {
+            vec![c64::new(0.0, 0.0); dirac_pattern.nnz()]
+        } else {
+            Vec::new()
+        };
         let laplace_pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let laplace =
             Cholesky::<f64>::analyze(&laplace_pattern, 3).map_err(|e| FlowError::Numerical {
@@ -231,7 +248,8 @@ impl ConformalFlow {
             reporter,
             scale,
             initial,
-            dirac_values: vec![c64::new(0.0, 0.0); dirac_pattern.nnz()],
+            dirac_values,
+            dirac_assembly,
             dirac_pattern,
             dirac,
             laplace_values: vec![0.0; laplace_pattern.nnz()],
@@ -457,32 +475,42 @@ impl ConformalFlow {
         let n = self.positions.len();
         let mean_area = g.total_area() / n as f64;
         self.shift.fill(0.0);
-        let mean_diagonal = assemble_dirac_into(
-            &self.dirac_pattern,
-            &self.positions,
-            &self.triangles,
-            &g.face_areas,
-            &self.rho,
-            &self.shift,
-            &mut self.dirac_values,
-        );
         let fixed = if dirichlet {
             self.fixed.as_deref()
         } else {
             None
         };
-        if let Some(fixed) = fixed {
-            // λ = 1 on the boundary: the boundary keeps its tangents (§6.3.2 with the input
-            // boundary as target).
-            self.solve_rhs.fill(c64::new(0.0, 0.0));
-            dirichlet::apply_complex(
-                &self.dirac_pattern,
-                &mut self.dirac_values,
-                fixed,
-                |_| Quaternion::ONE.to_complex_column(),
-                Some(&mut self.solve_rhs[..]),
-            );
-        }
+        let mean_diagonal = match fixed {
+            None => self.dirac_assembly.assemble(
+                &self.positions,
+                &self.triangles,
+                &g.face_areas,
+                &self.rho,
+                self.dirac.triangle_values_mut(),
+            ),
+            Some(fixed) => {
+                let mean_diagonal = assemble_dirac_into(
+                    &self.dirac_pattern,
+                    &self.positions,
+                    &self.triangles,
+                    &g.face_areas,
+                    &self.rho,
+                    &self.shift,
+                    &mut self.dirac_values,
+                );
+                // λ = 1 on the boundary: the boundary keeps its tangents (§6.3.2 with the
+                // input boundary as target).
+                self.solve_rhs.fill(c64::new(0.0, 0.0));
+                dirichlet::apply_complex(
+                    &self.dirac_pattern,
+                    &mut self.dirac_values,
+                    fixed,
+                    |_| Quaternion::ONE.to_complex_column(),
+                    Some(&mut self.solve_rhs[..]),
+                );
+                mean_diagonal
+            }
+        };
         // X is dimensionless (|e|²/A and Aρ² are scale-free), so the shift is relative to its
         // mean diagonal; weighting by relative vertex area makes it a multiple of the mass M.
         // A failed factorization adds more shift on the diagonal, without reassembling.
@@ -490,20 +518,33 @@ impl ConformalFlow {
         loop {
             let eps = DIRAC_SHIFT * 100f64.powi(attempt as i32) * mean_diagonal;
             for (v, (s, &a)) in self.shift.iter_mut().zip(&g.vertex_areas).enumerate() {
-                if fixed.is_some_and(|f| f[v]) {
-                    continue;
-                }
                 let target = eps * a / mean_area;
-                let slot = self.dirac_pattern.diagonal_slot(v);
-                let add = c64::new(target - *s, 0.0);
-                self.dirac_values[self.dirac_pattern.entry(slot, v, 0, 0)] += add;
-                self.dirac_values[self.dirac_pattern.entry(slot, v, 1, 1)] += add;
+                let add = target - *s;
+                match fixed {
+                    None => {
+                        self.dirac_assembly.add_to_diagonal(
+                            v,
+                            add,
+                            self.dirac.triangle_values_mut(),
+                        );
+                    }
+                    Some(fixed) if !fixed[v] => {
+                        let slot = self.dirac_pattern.diagonal_slot(v);
+                        let add = c64::new(add, 0.0);
+                        self.dirac_values[self.dirac_pattern.entry(slot, v, 0, 0)] += add;
+                        self.dirac_values[self.dirac_pattern.entry(slot, v, 1, 1)] += add;
+                    }
+                    Some(_) => continue,
+                }
                 *s = target;
             }
-            match self
-                .dirac
-                .factorize(&self.dirac_pattern, &self.dirac_values)
-            {
+            let factored = match fixed {
+                None => self.dirac.factorize_triangle(),
+                Some(_) => self
+                    .dirac
+                    .factorize(&self.dirac_pattern, &self.dirac_values),
+            };
+            match factored {
                 Ok(()) => return Ok(()),
                 Err(e) if attempt >= SHIFT_RETRIES => {
                     return Err(FlowError::Numerical {
@@ -582,12 +623,7 @@ impl ConformalFlow {
             self.rhs[2 * i] = z0;
             self.rhs[2 * i + 1] = z1;
         }
-        sparse_matvec(
-            &self.dirac_pattern,
-            &self.dirac_values,
-            &self.rhs,
-            &mut self.product,
-        );
+        self.dirac.hermitian_matvec(&self.rhs, &mut self.product);
         let (mut x_dot, mut m_dot) = (0.0, 0.0);
         for i in 0..n {
             for r in 0..2 {
