@@ -710,23 +710,32 @@ impl ConformalFlow {
                 self.lambda[tri[1]],
                 self.lambda[tri[2]],
             ];
-            let s = l[0] + l[1] + l[2];
+            // Both maps are linear in e and every λ̄ e λ is `λ.sandwich_matrix()·e`, so each
+            // is summed as 3×3 matrices once per face and applied to the three edges.
+            let r = [
+                l[0].sandwich_matrix(),
+                l[1].sandwich_matrix(),
+                l[2].sandwich_matrix(),
+            ];
+            let face_map = mat3_scaled_sum(
+                &[(l[0] + l[1] + l[2]).sandwich_matrix(), r[0], r[1], r[2]],
+                1.0 / 12.0,
+            );
             for c in 0..3 {
-                let (a, b) = (tri[(c + 1) % 3], tri[(c + 2) % 3]);
-                let e = Quaternion::imaginary(sub(self.positions[b], self.positions[a]));
-                let new_edge = (s.conj() * e * s
-                    + l[0].conj() * e * l[0]
-                    + l[1].conj() * e * l[1]
-                    + l[2].conj() * e * l[2])
-                    .scale(1.0 / 12.0)
-                    .vector();
+                let (ca, cb) = ((c + 1) % 3, (c + 2) % 3);
+                let (a, b) = (tri[ca], tri[cb]);
+                let e = sub(self.positions[b], self.positions[a]);
+                let new_edge = mat3_apply(&face_map, e);
                 // The closure residual keeps measuring the edge integral ∫ λ̄ e λ (λ linear:
                 // weights ⅓, ⅙, ⅙, ⅓), the paper's new edge: with T_f it would also count
-                // the O(h|∇λ|) spread between neighbouring faces' averages.
-                let (la, lb) = (self.lambda[a], self.lambda[b]);
-                edges[c] = ((la.conj() * e * la + lb.conj() * e * lb).scale(1.0 / 3.0)
-                    + (la.conj() * e * lb + lb.conj() * e * la).scale(1.0 / 6.0))
-                .vector();
+                // the O(h|∇λ|) spread between neighbouring faces' averages. With
+                // `s = λ_a + λ_b` the cross terms are `s̄ e s − λ̄_a e λ_a − λ̄_b e λ_b`, so the
+                // integral is `(λ̄_a e λ_a + λ̄_b e λ_b + s̄ e s) / 6`.
+                let edge_map = mat3_scaled_sum(
+                    &[r[ca], r[cb], (l[ca] + l[cb]).sandwich_matrix()],
+                    1.0 / 6.0,
+                );
+                edges[c] = mat3_apply(&edge_map, e);
                 let w = 0.5 * cots[c];
                 for k in 0..3 {
                     self.divergence[k * n + a] -= w * new_edge[k];
@@ -807,6 +816,32 @@ impl ConformalFlow {
             0.0
         })
     }
+}
+
+/// `s · Σ m` for 3×3 matrices.
+fn mat3_scaled_sum(ms: &[[[f64; 3]; 3]], s: f64) -> [[f64; 3]; 3] {
+    let mut out = [[0.0; 3]; 3];
+    for m in ms {
+        for r in 0..3 {
+            for c in 0..3 {
+                out[r][c] += m[r][c];
+            }
+        }
+    }
+    for row in &mut out {
+        for v in row {
+            *v *= s;
+        }
+    }
+    out
+}
+
+fn mat3_apply(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+    [
+        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
+        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
+        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+    ]
 }
 
 /// Scale λ on each component so that `Σ |λ_i|² A_i = Σ A_i` there: λ is defined up to a

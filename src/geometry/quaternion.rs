@@ -70,6 +70,21 @@ impl Quaternion {
         [self.x, self.y, self.z]
     }
 
+    /// The 3×3 matrix (row major) of `v ↦ q̄ v q` on imaginary quaternions: `|q|²` times a
+    /// rotation (paper §2.3). Linear in `v`, so applying one map to many vectors, or a sum of
+    /// such maps to one vector, costs a matrix product instead of two quaternion products each.
+    pub fn sandwich_matrix(self) -> [[f64; 3]; 3] {
+        let Quaternion { w, x, y, z } = self;
+        let (ww, xx, yy, zz) = (w * w, x * x, y * y, z * z);
+        let (xy, xz, yz) = (2.0 * x * y, 2.0 * x * z, 2.0 * y * z);
+        let (wx, wy, wz) = (2.0 * w * x, 2.0 * w * y, 2.0 * w * z);
+        [
+            [ww + xx - yy - zz, xy + wz, xz - wy],
+            [xy - wz, ww - xx + yy - zz, yz + wx],
+            [xz + wy, yz - wx, ww - xx - yy + zz],
+        ]
+    }
+
     /// The first column of the 2×2 complex matrix of `self` (see [`Quaternion::to_complex`]):
     /// a quaternion vector becomes a complex vector of twice the length this way.
     pub fn to_complex_column(self) -> [c64; 2] {
@@ -173,6 +188,31 @@ mod tests {
         let v = r.conj() * Quaternion::imaginary([1.0, 0.0, 0.0]) * r;
         assert!((v.w).abs() < 1e-15 && (v.x).abs() < 1e-15);
         assert!((v.y - 1.0).abs() < 1e-15 && v.z.abs() < 1e-15);
+    }
+
+    #[test]
+    fn sandwich_matrix_is_conjugation() {
+        let a = q(0.3, -1.2, 0.7, 2.0);
+        let v = [0.4, -1.1, 0.9];
+        let expected = (a.conj() * Quaternion::imaginary(v) * a).vector();
+        let m = a.sandwich_matrix();
+        for r in 0..3 {
+            let got: f64 = (0..3).map(|c| m[r][c] * v[c]).sum();
+            assert!(
+                (got - expected[r]).abs() < 1e-13,
+                "row {r}: {got} vs {}",
+                expected[r]
+            );
+        }
+        // |q|² times a rotation: MᵀM = |q|⁴ I.
+        let n4 = a.norm2() * a.norm2();
+        for r in 0..3 {
+            for c in 0..3 {
+                let d: f64 = (0..3).map(|k| m[k][r] * m[k][c]).sum();
+                let e = if r == c { n4 } else { 0.0 };
+                assert!((d - e).abs() < 1e-12 * n4);
+            }
+        }
     }
 
     #[test]
