@@ -626,72 +626,36 @@ impl ConformalFlow {
     /// `X λ = c (M λ_prev − S λ')` up to the solve's rounding, far below any residual the
     /// iteration leaves: no product with X is needed (`rhs` holds λ', `product` M λ_prev).
     fn eigen_residual(&mut self) -> f64 {
-        let g = &self.geometry;
-        let n = self.positions.len();
-        let (mut x_dot, mut m_dot) = (0.0, 0.0);
-        for i in 0..n {
-            let c = self.vertex_component[i];
+        for (i, &c) in self.vertex_component.iter().enumerate() {
             let scale = if self.component_norms[c] > 0.0 {
                 (self.component_areas[c] / self.component_norms[c]).sqrt()
             } else {
                 1.0
             };
-            for r in 0..2 {
-                let k = 2 * i + r;
-                let lambda = self.rhs[k] * scale;
+            for k in [2 * i, 2 * i + 1] {
                 let x_lambda = (self.product[k] - self.rhs[k] * self.shift[i]) * scale;
-                self.rhs[k] = lambda;
+                self.rhs[k] *= scale;
                 self.product[k] = x_lambda;
-                x_dot += (lambda.conj() * x_lambda).re;
-                m_dot += lambda.norm_sqr() * g.vertex_areas[i];
             }
         }
-        let gamma = if m_dot > 0.0 { x_dot / m_dot } else { 0.0 };
-        let (mut res, mut xnorm) = (0.0, 0.0);
-        for i in 0..n {
-            for r in 0..2 {
-                let k = 2 * i + r;
-                res += (self.product[k] - self.rhs[k] * (gamma * g.vertex_areas[i])).norm_sqr();
-                xnorm += self.product[k].norm_sqr();
-            }
-        }
-        if xnorm > 0.0 {
-            (res / xnorm).sqrt()
-        } else {
-            0.0
-        }
+        relative_eigen_residual(&self.rhs, &self.product, &self.geometry.vertex_areas)
     }
 
     /// The same residual from an explicit product with X, to check [`Self::eigen_residual`].
     #[cfg(test)]
     fn eigen_residual_by_product(&mut self) -> f64 {
-        let g = &self.geometry;
-        let n = self.positions.len();
         for (i, l) in self.lambda.iter().enumerate() {
             let [z0, z1] = l.to_complex_column();
             self.rhs[2 * i] = z0;
             self.rhs[2 * i + 1] = z1;
         }
         self.dirac.hermitian_matvec(&self.rhs, &mut self.product);
-        let (mut x_dot, mut m_dot) = (0.0, 0.0);
-        for i in 0..n {
-            for r in 0..2 {
-                let k = 2 * i + r;
-                self.product[k] -= self.rhs[k] * self.shift[i];
-                x_dot += (self.rhs[k].conj() * self.product[k]).re;
-                m_dot += self.rhs[k].norm_sqr() * g.vertex_areas[i];
+        for (i, &s) in self.shift.iter().enumerate() {
+            for k in [2 * i, 2 * i + 1] {
+                self.product[k] -= self.rhs[k] * s;
             }
         }
-        let gamma = if m_dot > 0.0 { x_dot / m_dot } else { 0.0 };
-        let (mut res, mut xnorm) = (0.0, 0.0);
-        for i in 0..n {
-            for r in 0..2 {
-                let k = 2 * i + r;
-                res += (self.product[k] - self.rhs[k] * (gamma * g.vertex_areas[i])).norm_sqr();
-                xnorm += self.product[k].norm_sqr();
-            }
-        }
-        (res / xnorm).sqrt()
+        relative_eigen_residual(&self.rhs, &self.product, &self.geometry.vertex_areas)
     }
 
     /// §6.3.2: minimize `|(D − ρ)λ|²` with λ fixed on the boundary, a linear least-squares
@@ -860,6 +824,27 @@ impl ConformalFlow {
         } else {
             0.0
         })
+    }
+}
+
+/// `|Xλ − γMλ| / |Xλ|` with the Rayleigh quotient `γ = ⟨λ, Xλ⟩ / ⟨λ, Mλ⟩`, for λ and Xλ in
+/// complex form (two entries per vertex) and M the vertex areas.
+fn relative_eigen_residual(lambda: &[c64], x_lambda: &[c64], areas: &[f64]) -> f64 {
+    let (mut x_dot, mut m_dot) = (0.0, 0.0);
+    for (k, (l, xl)) in lambda.iter().zip(x_lambda).enumerate() {
+        x_dot += (l.conj() * xl).re;
+        m_dot += l.norm_sqr() * areas[k / 2];
+    }
+    let gamma = if m_dot > 0.0 { x_dot / m_dot } else { 0.0 };
+    let (mut res, mut xnorm) = (0.0, 0.0);
+    for (k, (l, xl)) in lambda.iter().zip(x_lambda).enumerate() {
+        res += (xl - l * (gamma * areas[k / 2])).norm_sqr();
+        xnorm += xl.norm_sqr();
+    }
+    if xnorm > 0.0 {
+        (res / xnorm).sqrt()
+    } else {
+        0.0
     }
 }
 
