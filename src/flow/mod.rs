@@ -14,6 +14,7 @@ pub mod mobius;
 pub mod prescribed;
 pub mod scale;
 pub mod solver;
+pub mod supernodal;
 pub mod willmore;
 
 use crate::mesh::Mesh;
