@@ -452,11 +452,7 @@ impl<T: Scalar> Cholesky<T> {
         {
             return kernel
                 .factorize(symbolic, &mut self.factor, &self.triangle_values)
-                .map_err(|NotPositive(column)| {
-                    SolverError::NotPositiveDefinite(format!(
-                        "non-positive pivot at column {column}"
-                    ))
-                });
+                .map_err(|NotPositive(column)| not_positive(column));
         }
         self.symbolic
             .factorize_numeric_llt(
