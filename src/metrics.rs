@@ -33,8 +33,16 @@ pub struct StepMetrics {
     pub eigen_residual: f64,
     /// Total surface area after the step.
     pub area: f64,
-    /// Wall time of the step in milliseconds, metrics included.
+    /// Wall time of the step in milliseconds, metrics included (rejected tries too).
     pub step_ms: f64,
+    /// The time step this step was taken with: the requested τ, or less where the safeguard
+    /// ([`crate::flow::safeguard`]) had to retry (0 for step 0). Rows stored before it
+    /// existed read as 0.
+    #[serde(default)]
+    pub tau: f64,
+    /// Tries of this step the safeguard rejected before the one taken.
+    #[serde(default)]
+    pub rejected: u32,
 }
 
 /// The input surface's per-triangle metric, kept to measure the quasi-conformal error of every
@@ -130,6 +138,8 @@ impl StepReporter {
             eigen_residual: 0.0,
             area: geometry.total_area(),
             step_ms: 0.0,
+            tau: 0.0,
+            rejected: 0,
         }
     }
 
@@ -160,6 +170,8 @@ impl StepReporter {
             eigen_residual,
             area: geometry.total_area(),
             step_ms: started.elapsed().as_secs_f64() * 1e3,
+            tau: 0.0,
+            rejected: 0,
         }
     }
 }

@@ -1,6 +1,7 @@
 //! Classic position-based flows, for comparison with the conformal flow (paper §6.4.2,
 //! Figure 17) through the same [`Flow`] interface and the same metrics.
 
+use super::safeguard::Retry;
 use super::scale::ScalePolicy;
 use super::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
 use super::willmore::check_params;
@@ -49,6 +50,20 @@ impl ImplicitMeanCurvatureFlow {
             cholesky,
             rhs: vec![0.0; 3 * mesh.vertex_count()],
         })
+    }
+}
+
+impl Retry for ImplicitMeanCurvatureFlow {
+    fn tau(&self) -> f64 {
+        self.tau
+    }
+
+    fn set_tau(&mut self, tau: f64) {
+        self.tau = tau;
+    }
+
+    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+        self.surface.restore(positions, step);
     }
 }
 
@@ -178,6 +193,13 @@ impl ClassicSurface {
         ))
     }
 
+    /// [`Retry::restore`] for every classic flow.
+    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+        self.positions.copy_from_slice(positions);
+        self.geometry.refresh(&self.positions, &self.triangles);
+        self.step = step;
+    }
+
     fn numerical(&self, reason: String) -> FlowError {
         FlowError::Numerical {
             step: self.step + 1,
@@ -253,6 +275,20 @@ impl ConformalizedMeanCurvatureFlow {
             cholesky,
             rhs: vec![0.0; 3 * n],
         })
+    }
+}
+
+impl Retry for ConformalizedMeanCurvatureFlow {
+    fn tau(&self) -> f64 {
+        self.tau
+    }
+
+    fn set_tau(&mut self, tau: f64) {
+        self.tau = tau;
+    }
+
+    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+        self.surface.restore(positions, step);
     }
 }
 
@@ -412,6 +448,20 @@ impl ImplicitBilaplacianFlow {
     }
 }
 
+impl Retry for ImplicitBilaplacianFlow {
+    fn tau(&self) -> f64 {
+        self.tau
+    }
+
+    fn set_tau(&mut self, tau: f64) {
+        self.tau = tau;
+    }
+
+    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+        self.surface.restore(positions, step);
+    }
+}
+
 impl Flow for ImplicitBilaplacianFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let start = Instant::now();
@@ -568,6 +618,23 @@ impl TaubinSmoothing {
                 p[c] += factor * k[c];
             }
         }
+    }
+}
+
+impl Retry for TaubinSmoothing {
+    fn tau(&self) -> f64 {
+        self.lambda
+    }
+
+    /// λ = τ with the pass band `k_PB = 1/λ + 1/μ` of the constructor kept: μ = λ/(k_PB·λ − 1).
+    fn set_tau(&mut self, tau: f64) {
+        let pass_band = 1.0 / self.lambda + 1.0 / self.mu;
+        self.lambda = tau;
+        self.mu = tau / (pass_band * tau - 1.0);
+    }
+
+    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+        self.surface.restore(positions, step);
     }
 }
 

@@ -9,9 +9,11 @@ pub mod constraints;
 pub mod curve;
 pub mod dirac;
 pub mod dirichlet;
+pub mod exactness;
 pub mod filter;
 pub mod mobius;
 pub mod prescribed;
+pub mod safeguard;
 pub mod scale;
 pub mod solver;
 pub mod supernodal;
@@ -127,6 +129,9 @@ pub struct FlowParams {
     pub filter: Option<filter::SpectralFilter>,
     /// Boundary condition for surfaces with boundary (§6.3).
     pub boundary: Boundary,
+    /// Safeguarded steps ([`safeguard`]): a step that raises W or damages the mesh is retried
+    /// at a smaller τ. On by default; off, every step is taken at τ whatever it does.
+    pub safeguard: bool,
 }
 
 impl Default for FlowParams {
@@ -139,6 +144,7 @@ impl Default for FlowParams {
             mobius_balancing: false,
             filter: None,
             boundary: Boundary::Free,
+            safeguard: true,
         }
     }
 }
@@ -152,6 +158,16 @@ pub enum FlowError {
     Unsupported(String),
     #[error("numerical failure at step {step}: {reason}")]
     Numerical { step: usize, reason: String },
+    /// The safeguard found no acceptable step down to τ = `tau`; the flow is still on the
+    /// last accepted surface.
+    #[error(
+        "no progress at step {step}: no acceptable step down to tau = {tau:e} (last try: {reason})"
+    )]
+    NoProgress {
+        step: usize,
+        tau: f64,
+        reason: String,
+    },
 }
 
 /// One running flow. Steps are explicit; nothing runs in the background.
@@ -164,13 +180,37 @@ pub trait Flow: Send {
     fn initial_metrics(&self) -> StepMetrics;
 }
 
-/// Build the flow `params.method` names on `mesh` (validated: see [`Mesh::new`]).
+/// Build the flow `params.method` names on `mesh` (validated: see [`Mesh::new`]), with its
+/// steps safeguarded unless `params.safeguard` is off ([`safeguard`]).
 pub fn new_flow(mesh: &Mesh, params: &FlowParams) -> Result<Box<dyn Flow>, FlowError> {
+    fn guard<F: safeguard::Retry + 'static>(
+        flow: F,
+        mesh: &Mesh,
+        params: &FlowParams,
+    ) -> Box<dyn Flow> {
+        Box::new(safeguard::Safeguarded::new(
+            flow,
+            &mesh.triangles,
+            params.safeguard,
+        ))
+    }
     Ok(match params.method {
-        Method::Conformal => Box::new(willmore::ConformalFlow::new(mesh, params)?),
-        Method::Mcf => Box::new(classic::ImplicitMeanCurvatureFlow::new(mesh, params)?),
-        Method::Cmcf => Box::new(classic::ConformalizedMeanCurvatureFlow::new(mesh, params)?),
-        Method::Bilaplacian => Box::new(classic::ImplicitBilaplacianFlow::new(mesh, params)?),
-        Method::Taubin => Box::new(classic::TaubinSmoothing::new(mesh, params)?),
+        Method::Conformal => guard(willmore::ConformalFlow::new(mesh, params)?, mesh, params),
+        Method::Mcf => guard(
+            classic::ImplicitMeanCurvatureFlow::new(mesh, params)?,
+            mesh,
+            params,
+        ),
+        Method::Cmcf => guard(
+            classic::ConformalizedMeanCurvatureFlow::new(mesh, params)?,
+            mesh,
+            params,
+        ),
+        Method::Bilaplacian => guard(
+            classic::ImplicitBilaplacianFlow::new(mesh, params)?,
+            mesh,
+            params,
+        ),
+        Method::Taubin => guard(classic::TaubinSmoothing::new(mesh, params)?, mesh, params),
     })
 }

@@ -16,8 +16,9 @@
 //! every buffer is allocated in [`ConformalFlow::new`], so the step loop does not allocate.
 
 use super::constraints::ConstraintBasis;
-use super::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec, TriangleAssembly};
+use super::dirac::{assemble_dirac_into, sparse_matvec, TriangleAssembly};
 use super::dirichlet;
+use super::exactness::Exactness;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
 use super::prescribed::{PrescribedError, PrescribedSolver, SurfaceState};
@@ -25,7 +26,6 @@ use super::scale::ScalePolicy;
 use super::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
 use super::{Boundary, Flow, FlowError, FlowParams, PrescribedVectors};
 use crate::geometry::cache::GeometryCache;
-use crate::geometry::hodge::{harmonic_vector_field_into, HarmonicBasisSolver};
 use crate::geometry::vec3::{norm2, sub};
 use crate::geometry::Quaternion;
 use crate::mesh::topology::Topology;
@@ -56,12 +56,9 @@ pub struct ConformalFlow {
     vertex_component: Vec<usize>,
 
     topology: Topology,
-    /// Harmonic 1-forms for the exactness constraints; `None` for genus 0 or when switched off.
-    harmonic: Option<HarmonicBasisSolver>,
-    forms: Vec<Vec<f64>>,
-    /// Right-hand sides and solutions of the 2g solves `X₀ Z_i = D*M v_i`, column-major.
-    exact_rhs: Vec<c64>,
-    face_field: Vec<[f64; 3]>,
+    /// Exactness constraints and period projection (App. C); `None` for genus 0 or when
+    /// switched off.
+    exactness: Option<Exactness>,
     mobius: Option<MobiusBalancing>,
     /// Vertices of closed components: the total-curvature constraint (App. B) holds there only.
     closed_vertex: Vec<bool>,
@@ -114,18 +111,15 @@ impl ConformalFlow {
         let nf = mesh.face_count();
         let n_components = topology.components.len();
         let vertex_component = topology.vertex_component.clone();
-        let harmonic = if params.exactness {
-            let solver = HarmonicBasisSolver::new(mesh, &topology, HARMONIC_SEED).map_err(|e| {
-                FlowError::Numerical {
-                    step: 0,
-                    reason: format!("harmonic 1-forms: {e}"),
-                }
-            })?;
-            (solver.form_count() > 0).then_some(solver)
+        let exactness = if params.exactness {
+            Exactness::new(mesh, &topology, HARMONIC_SEED).map_err(|e| FlowError::Numerical {
+                step: 0,
+                reason: e.to_string(),
+            })?
         } else {
             None
         };
-        let form_count = harmonic.as_ref().map_or(0, |h| h.form_count());
+        let form_count = exactness.as_ref().map_or(0, |h| h.form_count());
         let closed_vertex: Vec<bool> = vertex_component
             .iter()
             .map(|&c| topology.components[c].is_closed())
@@ -219,10 +213,7 @@ impl ConformalFlow {
             mobius: params
                 .mobius_balancing
                 .then(|| MobiusBalancing::new(&geometry.vertex_areas, n_components)),
-            harmonic,
-            forms: Vec::with_capacity(form_count),
-            exact_rhs: vec![c64::new(0.0, 0.0); 2 * n * form_count],
-            face_field: vec![[0.0; 3]; nf],
+            exactness,
             topology,
             closed_vertex,
             fixed_positions: if fixed.is_some() {
@@ -378,92 +369,31 @@ impl ConformalFlow {
         Ok(())
     }
 
-    /// Appendix C.1: harmonic 1-forms → per-face harmonic vector fields `v_i` → `D Z_i = v_i`
-    /// in the least-squares sense of X₀ = D*MD (X at ρ = 0), i.e. `X₀ Z_i = D*M v_i` → the
-    /// imaginary parts `Z_i^{x,y,z}` join the constraint basis. X₀ is factored once for all 2g
-    /// solves, in the same factor storage that X(ρ) uses next.
+    /// Appendix C.1 on the current surface (see [`Exactness::push_constraints`]): X₀ is
+    /// factored once for the 2g solves, in the same factor storage that X(ρ) uses next.
     fn exactness_constraints(&mut self) -> Result<(), FlowError> {
-        let Some(harmonic) = self.harmonic.as_mut() else {
+        if self.exactness.is_none() {
             return Ok(());
-        };
-        let step = self.step + 1;
-        harmonic
-            .compute(&self.positions, &mut self.forms)
-            .map_err(|e| FlowError::Numerical {
-                step,
-                reason: format!("harmonic 1-forms: {e}"),
-            })?;
+        }
         self.rho.fill(0.0);
         self.factor_dirac(false)?;
+        let step = self.step + 1;
         let g = &self.geometry;
-        let n = self.positions.len();
-        for (form, rhs) in self
-            .forms
-            .iter()
-            .zip(self.exact_rhs.chunks_exact_mut(2 * n))
-        {
-            harmonic_vector_field_into(
-                &self.positions,
-                &self.triangles,
-                &self.topology,
-                form,
-                &mut self.face_field,
-            );
-            // App. C needs `D Z = v` with the first-order D (the derivation pairs Z with
-            // `D λ̇ = ρ̇`). X₀ = D*MD is second order, so the right-hand side of its normal
-            // equations is `D*M v`: per face, corner i gets `A_k c̄_i v = ½ e_i v` (c_i = −e_i/2A_k,
-            // see `dirac`). Solving `X₀ Z = M v` instead gives Z ≈ D⁻²v: the period error then
-            // stays first order in ρ, and the torus's conformal distortion stopped converging
-            // under mesh refinement (tests/flow_convergence.rs). `D*M v` sums to zero per face,
-            // so it is orthogonal to X₀'s constant kernel.
-            self.lambda.fill(Quaternion::default());
-            for (tri, v) in self.triangles.iter().zip(&self.face_field) {
-                let e = opposite_edges(&self.positions, tri);
-                let v = Quaternion::imaginary(*v);
-                for (&i, &e_i) in tri.iter().zip(&e) {
-                    self.lambda[i] += (e_i * v).scale(0.5);
-                }
-            }
-            // The constant quaternions are X₀'s kernel: remove them from the right-hand side
-            // (per component) so the shifted solve does not amplify them by 1/ε.
-            remove_component_means(
-                &mut self.lambda,
-                &self.vertex_component,
-                &mut self.component_norms,
-                &mut self.component_areas,
-                None,
-            );
-            for (i, l) in self.lambda.iter().enumerate() {
-                let [z0, z1] = l.to_complex_column();
-                rhs[2 * i] = z0;
-                rhs[2 * i + 1] = z1;
-            }
-        }
-        // All 2g solves in one block: the supernodal solve then runs matrix-matrix kernels
-        // over the factor once instead of streaming it 2g times.
-        self.dirac
-            .solve_in_place(&mut self.exact_rhs, self.forms.len());
-        for z in self.exact_rhs.chunks_exact(2 * n) {
-            for (i, l) in self.lambda.iter_mut().enumerate() {
-                *l = Quaternion::from_complex_column([z[2 * i], z[2 * i + 1]]);
-            }
-            let lambda = &self.lambda;
-            debug_assert_eq!(lambda.len(), n);
-            self.constraints.push_with(&g.vertex_areas, |f| {
-                for (fi, z) in f.iter_mut().zip(lambda) {
-                    *fi = z.x;
-                }
-            });
-            self.constraints.push_with(&g.vertex_areas, |f| {
-                for (fi, z) in f.iter_mut().zip(lambda) {
-                    *fi = z.y;
-                }
-            });
-            self.constraints.push_with(&g.vertex_areas, |f| {
-                for (fi, z) in f.iter_mut().zip(lambda) {
-                    *fi = z.z;
-                }
-            });
+        if let Some(exactness) = self.exactness.as_mut() {
+            exactness
+                .push_constraints(
+                    &self.positions,
+                    &self.triangles,
+                    &self.topology,
+                    &g.face_areas,
+                    &g.vertex_areas,
+                    &mut self.dirac,
+                    &mut self.constraints,
+                )
+                .map_err(|e| FlowError::Numerical {
+                    step,
+                    reason: e.to_string(),
+                })?;
         }
         Ok(())
     }
@@ -617,7 +547,12 @@ impl ConformalFlow {
                 reason: "the eigenvector λ is not finite".into(),
             });
         }
-        Ok(self.eigen_residual())
+        let residual = self.eigen_residual();
+        if let Some(exactness) = self.exactness.as_mut() {
+            // App. C's constraint holds to first order only: cancel the rest of the periods.
+            exactness.project_periods(&self.triangles, &self.geometry.face_areas, &mut self.lambda);
+        }
+        Ok(residual)
     }
 
     /// Eigen-residual `|Xλ − γMλ| / |Xλ|` of the last inverse iteration, with the Rayleigh
@@ -901,41 +836,6 @@ fn normalize_per_component(
     }
 }
 
-/// Subtract from `q` its area-weighted mean on each component (with unit weights when `areas`
-/// is `None`). `sums` and `weights` are per-component scratch.
-fn remove_component_means(
-    q: &mut [Quaternion],
-    vertex_component: &[usize],
-    weights: &mut [f64],
-    scratch: &mut [f64],
-    areas: Option<&[f64]>,
-) {
-    // Four passes over the quaternion parts keep the scratch to one f64 per component.
-    for part in 0..4 {
-        weights.fill(0.0);
-        scratch.fill(0.0);
-        for (i, (value, &c)) in q.iter().zip(vertex_component).enumerate() {
-            let w = areas.map_or(1.0, |a| a[i]);
-            let v = [value.w, value.x, value.y, value.z][part];
-            scratch[c] += w * v;
-            weights[c] += w;
-        }
-        for (value, &c) in q.iter_mut().zip(vertex_component) {
-            let mean = if weights[c] > 0.0 {
-                scratch[c] / weights[c]
-            } else {
-                0.0
-            };
-            match part {
-                0 => value.w -= mean,
-                1 => value.x -= mean,
-                2 => value.y -= mean,
-                _ => value.z -= mean,
-            }
-        }
-    }
-}
-
 pub(super) fn check_params(params: &FlowParams) -> Result<(), FlowError> {
     if !(params.tau.is_finite() && params.tau > 0.0) {
         return Err(FlowError::InvalidParameter {
@@ -950,6 +850,22 @@ pub(super) fn check_params(params: &FlowParams) -> Result<(), FlowError> {
         });
     }
     Ok(())
+}
+
+impl super::safeguard::Retry for ConformalFlow {
+    fn tau(&self) -> f64 {
+        self.tau
+    }
+
+    fn set_tau(&mut self, tau: f64) {
+        self.tau = tau;
+    }
+
+    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+        self.positions.copy_from_slice(positions);
+        self.geometry.refresh(&self.positions, &self.triangles);
+        self.step = step;
+    }
 }
 
 impl Flow for ConformalFlow {

@@ -223,6 +223,7 @@ impl JobSpec {
             mobius_balancing: self.mobius_balancing,
             filter: self.filter.map(spec::FilterSpec::to_flow),
             boundary: self.boundary.to_flow(),
+            safeguard: true,
         }
     }
 

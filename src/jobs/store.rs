@@ -217,6 +217,8 @@ fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         eigen_residual: f(7),
         area: f(8),
         step_ms: f(9),
+        tau: 0.0,
+        rejected: 0,
     })
 }
 
@@ -891,6 +893,8 @@ mod tests {
             eigen_residual: 0.0,
             area: 4.0,
             step_ms: 3.25,
+            tau: 0.0,
+            rejected: 0,
         };
         let back = decode_metrics(&encode_metrics(&m)).expect("80 bytes decode");
         assert_eq!(back.step, 7);

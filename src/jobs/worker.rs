@@ -269,6 +269,7 @@ fn flow_error_code(e: &FlowError) -> &'static str {
         FlowError::InvalidParameter { .. } => "invalid_parameter",
         FlowError::Unsupported(_) => "unsupported",
         FlowError::Numerical { .. } => "numerical",
+        FlowError::NoProgress { .. } => "no_progress",
     }
 }
 

@@ -169,6 +169,131 @@ pub fn irregular_sphere(subdivisions: usize, seed: u64) -> Mesh {
     mesh
 }
 
+/// `mesh` with independent Gaussian noise of standard deviation `relative` × the mean edge
+/// length added to every coordinate: what a scan or a careless export uploads. Deterministic
+/// for a given `seed`; connectivity is unchanged.
+pub fn with_noise(mut mesh: Mesh, relative: f64, seed: u64) -> Mesh {
+    let sigma = relative * mean_edge_length(&mesh);
+    let mut rng = SplitMix64(seed);
+    for p in &mut mesh.positions {
+        for x in p.iter_mut() {
+            *x += sigma * rng.gaussian();
+        }
+    }
+    mesh
+}
+
+/// Mean length of the triangles' edges (interior edges counted twice).
+pub fn mean_edge_length(mesh: &Mesh) -> f64 {
+    let mut sum = 0.0;
+    for t in &mesh.triangles {
+        for k in 0..3 {
+            let (a, b) = (mesh.positions[t[k]], mesh.positions[t[(k + 1) % 3]]);
+            sum += ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+        }
+    }
+    sum / (3 * mesh.triangles.len().max(1)) as f64
+}
+
+/// A closed surface of genus `holes`: a slab `(2·holes + 1) × 3` cells wide with one square
+/// hole through every other cell of the middle row, each cell split into `resolution²` quads,
+/// its walls `resolution` rows high, then rounded by uniform Laplacian smoothing (a few
+/// hundred Jacobi sweeps) so it is a smooth "pretzel" rather than a box. Faces wind
+/// outward.
+pub fn pretzel(holes: usize, resolution: usize) -> Mesh {
+    let s = resolution.max(1);
+    let (cells_x, cells_y) = (2 * holes + 1, 3);
+    let (nx, ny) = (cells_x * s, cells_y * s);
+    // A fine cell is solid unless it lies inside a hole cell (odd column, middle row).
+    let solid = |i: usize, j: usize| -> bool {
+        let (cx, cy) = (i / s, j / s);
+        !(cy == 1 && cx % 2 == 1)
+    };
+    let h = 0.5 * cells_y as f64 / 3.0;
+    let mut positions: Vec<[f64; 3]> = Vec::new();
+    let mut index: HashMap<(usize, usize, usize), usize> = HashMap::new();
+    // Layer 0 is the top face, layer `s` the bottom one; 1..s are wall rows.
+    let mut vertex = |i: usize, j: usize, layer: usize, positions: &mut Vec<[f64; 3]>| -> usize {
+        *index.entry((i, j, layer)).or_insert_with(|| {
+            let z = h - 2.0 * h * layer as f64 / s as f64;
+            positions.push([i as f64 / s as f64, j as f64 / s as f64, z]);
+            positions.len() - 1
+        })
+    };
+    let mut triangles = Vec::new();
+    for i in 0..nx {
+        for j in 0..ny {
+            if !solid(i, j) {
+                continue;
+            }
+            let top = [(i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1)]
+                .map(|(a, b)| vertex(a, b, 0, &mut positions));
+            triangles.push([top[0], top[1], top[2]]);
+            triangles.push([top[0], top[2], top[3]]);
+            let bottom = [(i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1)]
+                .map(|(a, b)| vertex(a, b, s, &mut positions));
+            triangles.push([bottom[0], bottom[2], bottom[1]]);
+            triangles.push([bottom[0], bottom[3], bottom[2]]);
+            // Walls on the sides of this cell that face a hole or the outside, walked so the
+            // solid cell is on the left (counter-clockwise seen from above).
+            let neighbours = [
+                ((i, j), (i + 1, j), j == 0 || !solid(i, j - 1)),
+                ((i + 1, j), (i + 1, j + 1), i + 1 == nx || !solid(i + 1, j)),
+                ((i + 1, j + 1), (i, j + 1), j + 1 == ny || !solid(i, j + 1)),
+                ((i, j + 1), (i, j), i == 0 || !solid(i - 1, j)),
+            ];
+            for (p, q, open) in neighbours {
+                if !open {
+                    continue;
+                }
+                for layer in 0..s {
+                    let a = vertex(p.0, p.1, layer, &mut positions);
+                    let b = vertex(q.0, q.1, layer, &mut positions);
+                    let c = vertex(q.0, q.1, layer + 1, &mut positions);
+                    let d = vertex(p.0, p.1, layer + 1, &mut positions);
+                    triangles.push([a, d, c]);
+                    triangles.push([a, c, b]);
+                }
+            }
+        }
+    }
+    // Round the box: uniform Laplacian smoothing shrinks it toward a smooth handlebody.
+    let mut neighbours = vec![Vec::new(); positions.len()];
+    for t in &triangles {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            if !neighbours[a].contains(&b) {
+                neighbours[a].push(b);
+                neighbours[b].push(a);
+            }
+        }
+    }
+    for _ in 0..20 * s {
+        let next: Vec<[f64; 3]> = neighbours
+            .iter()
+            .zip(&positions)
+            .map(|(nb, p)| {
+                let mut m = [0.0; 3];
+                for &v in nb {
+                    for k in 0..3 {
+                        m[k] += positions[v][k] / nb.len() as f64;
+                    }
+                }
+                [
+                    0.5 * (p[0] + m[0]),
+                    0.5 * (p[1] + m[1]),
+                    0.5 * (p[2] + m[2]),
+                ]
+            })
+            .collect();
+        positions = next;
+    }
+    Mesh {
+        positions,
+        triangles,
+    }
+}
+
 fn normalize(p: [f64; 3]) -> [f64; 3] {
     let n = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
     [p[0] / n, p[1] / n, p[2] / n]
@@ -190,6 +315,14 @@ impl SplitMix64 {
     /// Uniform in [-1, 1).
     pub(crate) fn signed(&mut self) -> f64 {
         (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+
+    /// Standard normal (Box–Muller; the second variate is dropped for simplicity).
+    pub(crate) fn gaussian(&mut self) -> f64 {
+        // (0, 1]: the logarithm stays finite.
+        let u = ((self.next_u64() >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+        let v = (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
+        (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
     }
 }
 
