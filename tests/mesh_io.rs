@@ -16,11 +16,7 @@ fn read(bytes: &[u8], format: Format) -> Asset {
 
 /// Per corner of each file triangle: the UV, in surface face order.
 fn corner_uvs(a: &Asset) -> Vec<[[f32; 2]; 3]> {
-    let uvs = a.file_uvs().expect("file has UVs");
-    a.file_triangles()
-        .iter()
-        .map(|t| t.map(|fv| uvs[fv]))
-        .collect()
+    a.corner_uvs().expect("file has UVs")
 }
 
 /// Moves every welded vertex differently (so a seam that opened would show).
@@ -156,9 +152,10 @@ fn obj_with_seams_welds_by_position_and_keeps_corner_uvs() {
     assert_eq!(a.surface().face_count(), 4);
     assert_eq!(
         a.file_vertex_count(),
-        12,
-        "each face has its own UVs and normal"
+        4,
+        "the file's own vertices: its `v` lines"
     );
+    assert_eq!(a.file_to_welded().iter().flatten().count(), 4);
     let t = Topology::new(a.surface());
     assert_eq!((t.components.len(), t.genus()), (1, 0));
     assert!(t.is_closed());
@@ -172,20 +169,24 @@ fn obj_round_trip_keeps_faces_uvs_and_names() {
     let a = read(TETRA.as_bytes(), Format::Obj);
     let out = a.write(&a.surface().positions, Format::Obj).unwrap();
     let text = String::from_utf8(out.clone()).unwrap();
+    // The file's own text: names, materials, `vt` and `f` lines as they were.
     assert!(text.contains("\nmtllib tetra.mtl\n"), "{text}");
-    assert!(text.contains("\no tetra\nusemtl painted\n"), "{text}");
+    assert!(text.contains("\no tetra\n"), "{text}");
+    assert!(
+        text.contains("\nusemtl painted\nf 1/1/3 3/2/3 2/3/3\n"),
+        "{text}"
+    );
     assert!(text.contains("\nusemtl plain\n"), "{text}");
-    // Per-corner normals: flat faces → one recomputed vn per corner group (12).
-    assert_eq!(text.lines().filter(|l| l.starts_with("vn ")).count(), 12);
+    // One flat normal per face in the file → each `vn` line recomputed as its face's normal.
+    assert_eq!(text.lines().filter(|l| l.starts_with("vn ")).count(), 4);
     assert_eq!(text.lines().filter(|l| l.starts_with("vt ")).count(), 12);
-    // Welded vertices are numbered in order of first use: v 1, v 3, v 2, v 4.
-    assert!(text.contains("\nf 1/1/1 2/2/2 3/3/3\n"), "{text}");
 
     let b = read(&out, Format::Obj);
     assert_eq!(b.surface(), a.surface());
     assert_eq!(b.file_vertex_count(), a.file_vertex_count());
     assert_eq!(corner_uvs(&b), corner_uvs(&a));
-    // Written normals are the faces' unit normals: face 0 lies opposite vertex 4 (1,-1,-1).
+    // Written normals are the faces' unit normals: face 0 (`vn 3`) lies opposite vertex 4
+    // (1,-1,-1).
     let vn: Vec<[f64; 3]> = text
         .lines()
         .filter_map(|l| l.strip_prefix("vn "))
@@ -196,7 +197,7 @@ fn obj_round_trip_keeps_faces_uvs_and_names() {
         .collect();
     let s = 1.0 / 3f64.sqrt();
     for k in 0..3 {
-        assert!((vn[0][k] - [-s, s, s][k]).abs() < 1e-12, "{:?}", vn[0]);
+        assert!((vn[2][k] - [-s, s, s][k]).abs() < 1e-12, "{:?}", vn[2]);
     }
 }
 
@@ -246,7 +247,7 @@ fn spot_round_trip_keeps_uvs_faces_and_welded_count() {
     let a = read(bytes, Format::Obj);
     assert_eq!(a.surface().vertex_count(), 2930);
     assert_eq!(a.surface().face_count(), 5856);
-    assert_eq!(a.file_vertex_count(), 3225);
+    assert_eq!(a.file_vertex_count(), 2930, "spot's `v` lines");
     let moved = wobble(&a.surface().positions);
     assert_seams_closed(&a, &moved);
     for positions in [&a.surface().positions, &moved] {
@@ -255,7 +256,7 @@ fn spot_round_trip_keeps_uvs_faces_and_welded_count() {
         assert_eq!(b.surface().vertex_count(), 2930);
         assert_eq!(&b.surface().positions, positions);
         assert_eq!(b.surface().triangles, a.surface().triangles);
-        assert_eq!(b.file_vertex_count(), 3225);
+        assert_eq!(b.file_vertex_count(), 2930);
         assert_eq!(corner_uvs(&b), corner_uvs(&a));
     }
 }
@@ -347,7 +348,7 @@ fn gltf_with_embedded_buffer_round_trips_and_validates() {
     validate_with_khronos(&out, "gltf");
     let b = read(&out, Format::Gltf);
     assert_eq!(b.surface().triangles, a.surface().triangles);
-    assert_eq!(b.file_uvs(), a.file_uvs());
+    assert_eq!(b.corner_uvs(), a.corner_uvs());
     // And the same asset as GLB.
     let glb = a.write(&a.surface().positions, Format::Glb).unwrap();
     validate_with_khronos(&glb, "glb");
@@ -434,7 +435,7 @@ fn duck_round_trips_with_transform_uvs_indices_and_image() {
 fn primitives_with_separate_accessors_weld_into_one_surface() {
     // Two primitives over two POSITION accessors (aliasing the same data) share border
     // vertices only by position: welding must join them into one closed cube.
-    let (mut json, bin, _, _) = textured_cube_gltf();
+    let (mut json, bin, local, _) = textured_cube_gltf();
     let accessors = json["accessors"].as_array_mut().unwrap();
     accessors.push(accessors[0].clone()); // 4: POSITION copy
     accessors.push(
@@ -448,6 +449,20 @@ fn primitives_with_separate_accessors_weld_into_one_surface() {
     let input = glb_bytes(&json, &bin);
     let a = read(&input, Format::Glb);
     assert_eq!(a.file_vertex_count(), 48);
+    // glTF file vertex order: each POSITION accessor in order of first use, each in accessor
+    // order (what frames carry).
+    let both: Vec<[f32; 3]> = local.iter().chain(&local).copied().collect();
+    assert_eq!(a.file_positions(&a.surface().positions), both);
+    // The two accessors hold the same vertices (each primitive uses some of them): moved,
+    // a vertex used through both accessors gets one position.
+    let file = a.file_positions(&wobble(&a.surface().positions));
+    let map = a.file_to_welded();
+    for fv in 0..24 {
+        assert!(map[fv].or(map[fv + 24]).is_some(), "vertex {fv} is used");
+        if map[fv].is_some() && map[fv + 24].is_some() {
+            assert_eq!(file[fv], file[fv + 24], "vertex {fv}");
+        }
+    }
     assert_eq!(a.surface().vertex_count(), 8);
     assert_eq!(a.surface().face_count(), 12);
     let t = Topology::new(a.surface());
@@ -500,7 +515,7 @@ fn several_data_uri_buffers_and_interleaved_vertices_are_read_and_written() {
         let out = a.write(&wobble(&a.surface().positions), fmt).unwrap();
         validate_with_khronos(&out, fmt.extension());
         let b = read(&out, fmt);
-        assert_eq!(b.file_uvs(), a.file_uvs());
+        assert_eq!(b.corner_uvs(), a.corner_uvs());
         assert_eq!(b.surface().triangles, a.surface().triangles);
     }
 }
@@ -611,11 +626,14 @@ fn shared_meshes_round_trip_through_every_format() {
                 a.surface().face_count(),
                 "{name} {fmt:?}"
             );
-            assert_eq!(
-                b.file_vertex_count(),
-                a.file_vertex_count(),
-                "{name} {fmt:?}"
-            );
+            // Across formats the numbering changes (OBJ `v` lines vs glTF split vertices).
+            if Some(fmt) == Format::from_path(&path) {
+                assert_eq!(
+                    b.file_vertex_count(),
+                    a.file_vertex_count(),
+                    "{name} {fmt:?}"
+                );
+            }
             let t = Topology::new(b.surface());
             assert_eq!(
                 (t.genus(), t.boundary_loops.len(), t.components.len()),
@@ -627,5 +645,75 @@ fn shared_meshes_round_trip_through_every_format() {
                 "{name} {fmt:?}"
             );
         }
+    }
+}
+
+#[test]
+fn stale_tangents_are_dropped_from_written_gltf() {
+    // The cube with a TANGENT per vertex (unit, perpendicular to its face normal, w = 1).
+    let (mut json, mut bin, local, _) = textured_cube_gltf();
+    let normals_view = json["accessors"][1]["bufferView"].as_u64().unwrap() as usize;
+    let off = json["bufferViews"][normals_view]["byteOffset"]
+        .as_u64()
+        .unwrap() as usize;
+    let mut tangents = Vec::new();
+    for i in 0..local.len() {
+        let b = &bin[off + 12 * i..off + 12 * i + 4];
+        let nx = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        let t: [f32; 4] = if nx != 0.0 {
+            [0.0, 1.0, 0.0, 1.0]
+        } else {
+            [1.0, 0.0, 0.0, 1.0]
+        };
+        tangents.extend(t.iter().flat_map(|x| x.to_le_bytes()));
+    }
+    while bin.len() % 4 != 0 {
+        bin.push(0);
+    }
+    let at = bin.len();
+    bin.extend_from_slice(&tangents);
+    json["bufferViews"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!(
+            {"buffer": 0, "byteOffset": at, "byteLength": tangents.len(), "target": 34962}
+        ));
+    let view = json["bufferViews"].as_array().unwrap().len() - 1;
+    json["accessors"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!(
+            {"bufferView": view, "componentType": 5126, "count": local.len(), "type": "VEC4"}
+        ));
+    let acc = json["accessors"].as_array().unwrap().len() - 1;
+    json["meshes"][0]["primitives"][0]["attributes"]["TANGENT"] = serde_json::json!(acc);
+    json["buffers"][0]["byteLength"] = serde_json::json!(bin.len());
+    let input = glb_bytes(&json, &bin);
+    validate_with_khronos(&input, "glb");
+    let a = read(&input, Format::Glb);
+    assert!(open_glb(&input)
+        .doc
+        .meshes()
+        .next()
+        .unwrap()
+        .primitives()
+        .next()
+        .unwrap()
+        .get(&gltf::Semantic::Tangents)
+        .is_some());
+
+    for fmt in [Format::Glb, Format::Gltf] {
+        let out = a.write(&wobble(&a.surface().positions), fmt).unwrap();
+        validate_with_khronos(&out, fmt.extension());
+        let doc = gltf::Gltf::from_slice(&out).unwrap().document;
+        for prim in doc.meshes().flat_map(|m| m.primitives()) {
+            assert!(
+                prim.get(&gltf::Semantic::Tangents).is_none(),
+                "{fmt:?}: TANGENT would be stale after the positions moved"
+            );
+            assert!(prim.get(&gltf::Semantic::Normals).is_some(), "{fmt:?}");
+        }
+        let b = read(&out, fmt);
+        assert_eq!(b.corner_uvs(), a.corner_uvs());
     }
 }

@@ -408,6 +408,62 @@ async fn glb_upload_job_streams_every_frame_and_resumes() {
     assert_eq!(result.file_vertex_count(), last.vertex_count as usize);
 }
 
+/// A client applies the last streamed positions to the `v` lines of the OBJ it uploaded
+/// (shuffled vertex order, unused vertices) and gets the downloaded result.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streamed_positions_applied_to_the_upload_give_the_obj_result() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let upload = service_http_support::shuffled_obj();
+    let op = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, upload.clone().into_bytes()),
+        v1::JobParams {
+            frame_interval: Some(1),
+            include_positions: Some(true),
+            tau: Some(0.1),
+            ..params(v1::Method::Mcf, 3)
+        },
+        &uuid(),
+    )
+    .await
+    .expect("CreateJob");
+    use v1::stream_frames_response::Event;
+    let events = stream_all(&mut client, &op.name, 0).await;
+    let job = match events.last() {
+        Some(Event::Job(job)) => job.clone(),
+        other => panic!("the stream must end with the terminal job, got {other:?}"),
+    };
+    assert_eq!(state(&job), v1::job::State::Succeeded, "{:?}", job.error);
+    let v_lines = upload.lines().filter(|l| l.starts_with("v ")).count();
+    assert_eq!(job.vertex_count, v_lines as u64);
+    let last = events
+        .iter()
+        .rev()
+        .find_map(|e| match e {
+            Event::Frame(f) => f.positions.clone(),
+            Event::Job(_) => None,
+        })
+        .expect("a frame with positions");
+    let frame = service_http_support::f32_triples(&last);
+
+    let mut download = client
+        .download_result(v1::DownloadResultRequest {
+            name: op.name.clone(),
+            format: v1::MeshFormat::Obj as i32,
+        })
+        .await
+        .expect("DownloadResult")
+        .into_inner();
+    let mut file = Vec::new();
+    while let Some(chunk) = download.message().await.expect("download stream") {
+        file.extend_from_slice(&chunk.data);
+    }
+    let result = String::from_utf8(file).expect("OBJ text");
+    service_http_support::assert_frame_applies_to_upload(&upload, &frame, &result);
+    assert_ne!(result, upload, "the result is faired, not the upload");
+}
+
 /// A 16 MiB OBJ (4x gRPC's message limit) arrives through chunked UploadMesh and is usable by
 /// CreateJob; inline OBJ works for small meshes; a full queue answers RESOURCE_EXHAUSTED with
 /// RetryInfo; cancelling queued and running jobs; cancel of a finished job and delete of an

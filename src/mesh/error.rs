@@ -69,7 +69,9 @@ pub type FormatName = &'static str;
 ///
 /// Vertex and face indices are 0-based indices into the arrays given to
 /// [`Mesh::new`](super::Mesh::new) (for files: into the welded surface, in file order; see
-/// [`io::Asset`](super::io::Asset)).
+/// [`io::Asset`](super::io::Asset)), except that an OBJ's non-finite coordinates are named by
+/// 0-based `v` line (unused lines are checked too) and its out-of-range faces by 0-based `f`
+/// line.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 #[non_exhaustive]
 pub enum MeshError {

@@ -30,6 +30,99 @@ pub fn slow_obj() -> String {
     obj_text(&generate::bumpy_sphere(4, 0.1))
 }
 
+/// The small sphere as a user's file might hold it: `v` lines in an order unrelated to the
+/// faces (a stride permutation), unused vertices at the start, middle and end, vertex colours,
+/// an object name, a group, a smoothing group, comments and one CRLF line ending.
+pub fn shuffled_obj() -> String {
+    let mesh = generate::bumpy_sphere(2, 0.1);
+    let n = mesh.vertex_count();
+    // 37 is coprime to 162 (= 2 · 3⁴), so i ↦ 37 i mod n is a permutation.
+    assert_eq!(n, 162, "the stride below assumes 162 vertices");
+    let mut lines: Vec<Option<usize>> = (0..n).map(|j| Some(j * 37 % n)).collect();
+    lines.insert(n / 2, None);
+    lines.insert(0, None);
+    lines.push(None);
+    let mut number = vec![0; n];
+    for (k, v) in lines.iter().enumerate() {
+        if let Some(v) = v {
+            number[*v] = k + 1;
+        }
+    }
+    let mut s = String::from("# shuffled on purpose\r\no sphere\n");
+    for (k, v) in lines.iter().enumerate() {
+        match v {
+            Some(v) => {
+                let p = mesh.positions[*v];
+                s.push_str(&format!("v {} {} {}", p[0], p[1], p[2]));
+                if k % 5 == 0 {
+                    s.push_str(" 0.25 0.5 1");
+                }
+                s.push('\n');
+            }
+            None => s.push_str(&format!("v {} 9 -9\n", k)),
+        }
+    }
+    s.push_str("\ng shell\ns 1\n");
+    for t in &mesh.triangles {
+        s.push_str(&format!(
+            "f {} {} {}\n",
+            number[t[0]], number[t[1]], number[t[2]]
+        ));
+    }
+    s.push_str("# end\n");
+    s
+}
+
+/// Little-endian f32 xyz triples, as frames carry them.
+pub fn f32_triples(bytes: &[u8]) -> Vec<[f32; 3]> {
+    bytes
+        .chunks_exact(12)
+        .map(|c| {
+            let f = |i: usize| f32::from_le_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
+            [f(0), f(4), f(8)]
+        })
+        .collect()
+}
+
+/// What a client does with a frame: apply its positions, in order, to the `v` lines of the
+/// file it uploaded. Checks that this gives the downloaded OBJ `result`: every `v` line at the
+/// frame's position (to f32 precision) with its other words (colours) unchanged, and every
+/// other line byte for byte.
+pub fn assert_frame_applies_to_upload(upload: &str, frame: &[[f32; 3]], result: &str) {
+    let (up, res): (Vec<&str>, Vec<&str>) = (
+        upload.split_inclusive('\n').collect(),
+        result.split_inclusive('\n').collect(),
+    );
+    assert_eq!(up.len(), res.len(), "the result has the upload's lines");
+    let v_lines = up.iter().filter(|l| l.starts_with("v ")).count();
+    assert_eq!(frame.len(), v_lines, "one frame position per `v` line");
+    let mut k = 0;
+    for (n, (u, r)) in up.iter().zip(&res).enumerate() {
+        if !u.starts_with("v ") {
+            assert_eq!(u, r, "line {} is kept byte for byte", n + 1);
+            continue;
+        }
+        let (uw, rw): (Vec<&str>, Vec<&str>) = (
+            u.split_whitespace().collect(),
+            r.split_whitespace().collect(),
+        );
+        assert_eq!(rw[0], "v", "line {}", n + 1);
+        assert_eq!(uw[4..], rw[4..], "line {}: colours kept", n + 1);
+        let got: Vec<f32> = rw[1..4]
+            .iter()
+            .map(|x| x.parse::<f64>().expect("a number") as f32)
+            .collect();
+        assert_eq!(
+            got,
+            frame[k],
+            "line {}: `v` {} is at the frame's position",
+            n + 1,
+            k + 1
+        );
+        k += 1;
+    }
+}
+
 /// GLB bytes of the small mesh, written by the library's own writer from the OBJ.
 pub fn small_glb() -> Vec<u8> {
     use willow::mesh::io::{Asset, Format};

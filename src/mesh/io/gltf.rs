@@ -7,8 +7,9 @@
 //!
 //! Writing keeps the input document as raw JSON, so extensions and extras this crate does not
 //! model survive: all original buffers are concatenated unchanged into one buffer, new
-//! POSITION (and NORMAL) data is appended, and those accessors are repointed in place. Images,
-//! samplers, materials, UVs, indices and nodes are untouched.
+//! POSITION (and NORMAL) data is appended, and those accessors are repointed in place. TANGENT
+//! is dropped from the primitives (see `drop_tangents`). Images, samplers, materials, UVs,
+//! indices and nodes are untouched.
 
 use super::{
     format_name, normalize_or_z, Affine, Asset, Block, FileGeometry, Format, Limits, MeshError,
@@ -821,6 +822,39 @@ fn push_view(
     Ok(views.len() - 1)
 }
 
+/// Per split vertex position in its block's local space, as f32 (glTF stores f32).
+fn split_f32(asset: &Asset, positions: &[[f64; 3]]) -> Vec<[f32; 3]> {
+    asset
+        .split_positions(positions)
+        .into_iter()
+        .map(|p| p.map(|x| x as f32))
+        .collect()
+}
+
+/// Removes TANGENT from every primitive and morph target: tangents follow positions, so the
+/// stored ones are stale once the surface moves. glTF says viewers compute MikkTSpace tangents
+/// when none are given, which is more faithful than a second implementation here (MikkTSpace's
+/// exact splitting rules would have to match). The accessors stay (unused, which is valid).
+fn drop_tangents(doc: &mut Value) {
+    let meshes = doc.get_mut("meshes").and_then(Value::as_array_mut);
+    for mesh in meshes.into_iter().flatten() {
+        let prims = mesh.get_mut("primitives").and_then(Value::as_array_mut);
+        for prim in prims.into_iter().flatten() {
+            if let Some(a) = prim.get_mut("attributes").and_then(Value::as_object_mut) {
+                a.remove("TANGENT");
+            }
+            let targets = prim.get_mut("targets").and_then(Value::as_array_mut);
+            for t in targets
+                .into_iter()
+                .flatten()
+                .filter_map(Value::as_object_mut)
+            {
+                t.remove("TANGENT");
+            }
+        }
+    }
+}
+
 /// Rewrites the input document with new positions (see the module docs).
 pub(crate) fn write_document(
     asset: &Asset,
@@ -829,6 +863,7 @@ pub(crate) fn write_document(
     glb: bool,
 ) -> Result<Vec<u8>, MeshError> {
     let mut doc = src.json.clone();
+    drop_tangents(&mut doc);
     // One buffer: every original buffer unchanged, each at an 8-aligned offset so the
     // alignment of every original view (at most 4 is required) is kept.
     let mut bin: Vec<u8> = Vec::new();
@@ -853,7 +888,7 @@ pub(crate) fn write_document(
         }
     }
 
-    let local = asset.file_positions(positions);
+    let local = split_f32(asset, positions);
     for (&acc, block) in src.position_accessors.iter().zip(&asset.file.blocks) {
         let values = local
             .get(block.start..block.start + block.len)
@@ -863,7 +898,7 @@ pub(crate) fn write_document(
         repoint_accessor(&mut doc, acc, view, values.len(), Some(bounds(values)))?;
     }
 
-    if let Some(world_normals) = asset.file_normals_world(positions) {
+    if let Some(world_normals) = asset.split_normals_world(positions) {
         for &(acc, bi) in &src.normal_accessors {
             let block = asset
                 .file
@@ -937,7 +972,7 @@ pub(crate) fn write_new(
     positions: &[[f64; 3]],
     glb: bool,
 ) -> Result<Vec<u8>, MeshError> {
-    let local = asset.file_positions(positions);
+    let local = split_f32(asset, positions);
     let mut bin = Vec::new();
     let mut accessors = Vec::new();
     let mut views = Vec::new();
@@ -964,7 +999,7 @@ pub(crate) fn write_new(
         json!({"componentType": FLOAT, "count": local.len(), "type": "VEC3", "min": lo, "max": hi}),
     );
     attributes.insert("POSITION".into(), json!(pos));
-    if let Some(normals) = asset.file_normals_world(positions) {
+    if let Some(normals) = asset.split_normals_world(positions) {
         let values: Vec<[f32; 3]> = normals.iter().map(|n| n.map(|x| x as f32)).collect();
         let n = add(
             &mut bin,
@@ -974,7 +1009,11 @@ pub(crate) fn write_new(
         );
         attributes.insert("NORMAL".into(), json!(n));
     }
-    if let Some(uvs) = asset.file_uvs() {
+    if let Some(uvs) = &asset.file.uvs {
+        let uvs: Vec<[f32; 2]> = uvs
+            .iter()
+            .map(|uv| uv.unwrap_or([0.0; 2]).map(|x| x as f32))
+            .collect();
         let data: Vec<u8> = uvs.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
         let t = add(
             &mut bin,
@@ -984,7 +1023,7 @@ pub(crate) fn write_new(
         );
         attributes.insert("TEXCOORD_0".into(), json!(t));
     }
-    let triangles = asset.oriented_file_triangles();
+    let triangles = asset.oriented_split_triangles();
     let mut index_bytes = Vec::with_capacity(triangles.len() * 12);
     for i in triangles.iter().flatten() {
         let i = u32::try_from(*i).map_err(|_| MeshError::TooLarge {

@@ -1,15 +1,20 @@
 //! Reading and writing OBJ, glTF and GLB while keeping everything the flow does not touch.
 //!
-//! An [`Asset`] holds two views of one file:
+//! An [`Asset`] holds three views of one file:
 //!
-//! - the **file vertices**, as stored: split at UV seams and hard normals, one block per glTF
-//!   POSITION accessor, in the file's local space; and
-//! - the **surface** ([`Asset::surface`]): file vertices welded by exact world-space position
+//! - the **file vertices**, in the user's own numbering: for OBJ the `v` lines, in file order
+//!   and count (unused ones included); for glTF/GLB the vertices of each POSITION accessor, in
+//!   the file's local space. Streamed frames and [`Asset::file_positions`] use this order;
+//! - the **split vertices** (internal): file vertices split at UV seams and hard normals
+//!   (for OBJ each distinct `v/vt/vn` corner; for glTF the accessor vertices themselves), which
+//!   carry one UV and one normal each, as glTF and GPUs want them; and
+//! - the **surface** ([`Asset::surface`]): split vertices welded by exact world-space position
 //!   into one validated, oriented [`Mesh`], which is what the flow moves.
 //!
-//! The map file vertex → welded vertex is kept, so new positions scatter back to every split
-//! copy of a vertex identically and seams never open. Writing replaces positions (and
-//! recomputes normals) but keeps UVs, indices, materials, textures and the node hierarchy.
+//! The maps split vertex → welded vertex and split vertex → file vertex are kept, so new
+//! positions scatter back to every copy of a vertex identically and seams never open. Writing
+//! replaces positions (and recomputes normals) but keeps the rest of the file: for OBJ the text
+//! itself, byte for byte apart from the numbers on `v` and `vn` lines; for glTF the document.
 //!
 //! Uploads are untrusted: nothing here reads a file or the network, every size is checked
 //! against [`Limits`] before allocation, and every malformed input is a [`MeshError`].
@@ -167,7 +172,7 @@ impl Affine {
     }
 }
 
-/// A run of file vertices sharing one local→world transform (one glTF POSITION accessor).
+/// A run of split vertices sharing one local→world transform (one glTF POSITION accessor).
 #[derive(Clone, Debug)]
 pub(crate) struct Block {
     pub(crate) start: usize,
@@ -176,30 +181,32 @@ pub(crate) struct Block {
     pub(crate) to_local: Affine,
 }
 
-/// The file's own vertices and triangles, before welding.
+/// The file's split vertices (see the module docs) and triangles, before welding.
 #[derive(Clone, Debug)]
 pub(crate) struct FileGeometry {
     /// Positions as stored, in each block's local space.
     pub(crate) local: Vec<[f64; 3]>,
-    /// Consecutive blocks covering every file vertex.
+    /// Consecutive blocks covering every split vertex.
     pub(crate) blocks: Vec<Block>,
-    /// Triangles over file vertices, in the order the surface's faces follow.
+    /// Triangles over split vertices, in the order the surface's faces follow.
     pub(crate) triangles: Vec<[usize; 3]>,
-    /// Per file vertex UV in glTF's convention (origin top left), if the file has UVs.
+    /// Per split vertex UV in glTF's convention (origin top left), if the file has UVs.
     pub(crate) uvs: Option<Vec<Option<[f64; 2]>>>,
-    /// Per file vertex identity of its stored normal (OBJ `vn` index, or glTF normal value),
+    /// Per split vertex identity of its stored normal (OBJ `vn` index, or glTF normal value),
     /// if the file has normals: copies of a welded vertex with the same key are smooth, with
     /// different keys a crease.
     pub(crate) normal_keys: Option<Vec<u64>>,
 }
 
-/// Welded vertex of a file vertex that no triangle uses.
+/// Welded vertex of a split vertex that no triangle uses.
 const UNWELDED: usize = usize::MAX;
 
 #[derive(Clone)]
 enum Source {
     Obj(obj::ObjSource),
     Gltf(gltf::GltfSource),
+    /// Made in code ([`Asset::from_mesh`]): no file to keep; file vertices are the welded ones.
+    Code,
 }
 
 /// A mesh file read into memory: its welded surface plus everything needed to write it back.
@@ -208,9 +215,9 @@ pub struct Asset {
     format: Format,
     surface: Mesh,
     file: FileGeometry,
-    /// File vertex → welded vertex (`UNWELDED` if unused).
+    /// Split vertex → welded vertex (`UNWELDED` if unused).
     to_welded: Vec<usize>,
-    /// Per file vertex normal group (`UNWELDED` if unused) and the number of groups, when the
+    /// Per split vertex normal group (`UNWELDED` if unused) and the number of groups, when the
     /// file has normals: a group is the copies of one welded vertex sharing a stored normal.
     normal_groups: Option<(Vec<usize>, usize)>,
     source: Source,
@@ -221,7 +228,8 @@ impl fmt::Debug for Asset {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("Asset")
             .field("format", &self.format)
-            .field("file_vertices", &self.file.local.len())
+            .field("file_vertices", &self.file_vertex_count())
+            .field("split_vertices", &self.file.local.len())
             .field("welded_vertices", &self.surface.vertex_count())
             .field("faces", &self.surface.face_count())
             .field("has_uvs", &self.file.uvs.is_some())
@@ -250,7 +258,7 @@ impl Asset {
         }
     }
 
-    /// Welds the file vertices by exact world position and validates the result.
+    /// Welds the split vertices by exact world position and validates the result.
     fn assemble(
         format: Format,
         file: FileGeometry,
@@ -347,7 +355,7 @@ impl Asset {
             file,
             to_welded: (0..n).collect(),
             normal_groups: None,
-            source: Source::Obj(obj::ObjSource::empty(n)),
+            source: Source::Code,
         })
     }
 
@@ -367,70 +375,108 @@ impl Asset {
     ///
     /// Writing the format it was read from keeps everything else: for glTF/GLB the whole
     /// document (materials, textures, image bytes, samplers, UVs, indices, nodes) with only
-    /// POSITION replaced and NORMAL recomputed; for OBJ the `vt` list, per-corner UV indices,
-    /// `mtllib`/`usemtl` and object names. Across formats, positions, UVs, normals and faces
-    /// carry over (OBJ has no textures to carry into glTF). Faces follow the oriented surface,
-    /// except in glTF→glTF where index data is kept byte for byte.
+    /// POSITION replaced, NORMAL recomputed and TANGENT dropped (stale once positions move;
+    /// viewers compute MikkTSpace tangents themselves when none are given); for OBJ the text
+    /// byte for byte except the coordinates of every `v` line (in file order, unused ones
+    /// keeping their stored position) and the numbers of every `vn` line a face uses
+    /// (recomputed). Across formats, positions, UVs, normals and faces carry over (OBJ has no
+    /// textures to carry into glTF); faces then follow the oriented surface.
     pub fn write(&self, positions: &[[f64; 3]], format: Format) -> Result<Vec<u8>, MeshError> {
         self.check_positions(positions)?;
         match (&self.source, format) {
-            (Source::Obj(src), Format::Obj) => Ok(obj::write(self, positions, Some(src))),
-            (Source::Gltf(_), Format::Obj) => Ok(obj::write(self, positions, None)),
+            (Source::Obj(src), Format::Obj) => Ok(obj::write_kept(self, src, positions)),
+            (Source::Gltf(_) | Source::Code, Format::Obj) => Ok(obj::write_new(self, positions)),
             (Source::Gltf(src), Format::Gltf | Format::Glb) => {
                 gltf::write_document(self, src, positions, format == Format::Glb)
             }
-            (Source::Obj(_), Format::Gltf | Format::Glb) => {
+            (Source::Obj(_) | Source::Code, Format::Gltf | Format::Glb) => {
                 gltf::write_new(self, positions, format == Format::Glb)
             }
         }
     }
 
-    /// The number of the file's own vertices: as stored, split at UV seams and hard normals.
+    /// The number of the file's own vertices, in the user's numbering.
     ///
-    /// Order: for glTF, the vertices of each POSITION accessor used by a triangle primitive of
-    /// the scene, accessors in order of first use (scene nodes depth first, children in order,
-    /// each mesh's primitives in order); for OBJ, each distinct `v/vt/vn` corner in order of
-    /// first use.
+    /// For OBJ, the `v` lines (all of them, used by a face or not). For glTF/GLB, the
+    /// vertices of each POSITION accessor used by a triangle primitive of the scene, accessors
+    /// in order of first use (scene nodes depth first, children in order, each mesh's
+    /// primitives in order), each accessor's vertices in accessor order. For an asset made in
+    /// code, its welded vertices. Streamed frames carry this many positions, in this order.
     pub fn file_vertex_count(&self) -> usize {
-        self.file.local.len()
+        match &self.source {
+            Source::Obj(src) => src.v_count(),
+            Source::Gltf(_) | Source::Code => self.file.local.len(),
+        }
     }
 
-    /// New welded world-space positions scattered to the file's vertex order, in the file's
-    /// local space (node transforms undone), as f32: what streamed frames carry.
+    /// New welded world-space positions scattered to the file's vertex order (see
+    /// [`Asset::file_vertex_count`]), in the file's local space (node transforms undone), as
+    /// f32: what streamed frames carry. For OBJ, entry `k` is the new position of the k-th `v`
+    /// line, which the written OBJ holds (in f64) on that line.
     ///
     /// Vertices no triangle uses keep their stored position. `positions` should have
     /// `surface().vertex_count()` entries; a vertex beyond a shorter slice keeps its stored
     /// position too (this cannot fail, so it degrades rather than panics).
     pub fn file_positions(&self, positions: &[[f64; 3]]) -> Vec<[f32; 3]> {
-        self.local_positions(positions)
+        self.file_positions_f64(positions)
             .into_iter()
             .map(|p| p.map(|x| x as f32))
             .collect()
     }
 
     /// Triangles over file vertices (see [`Asset::file_vertex_count`]), wound like the
-    /// oriented surface: with [`Asset::file_positions`] and [`Asset::file_uvs`] this is what
-    /// a viewer draws.
+    /// oriented surface and in its face order: for OBJ the `v` indices (0-based) of each
+    /// fan-triangulated `f` line.
     pub fn file_triangles(&self) -> Vec<[usize; 3]> {
-        self.oriented_file_triangles()
+        let split = self.oriented_split_triangles();
+        match &self.source {
+            Source::Obj(src) => {
+                let v_of = src.v_of_split();
+                split
+                    .iter()
+                    .map(|t| t.map(|sv| v_of.get(sv).copied().unwrap_or(0)))
+                    .collect()
+            }
+            Source::Gltf(_) | Source::Code => split,
+        }
     }
 
-    /// Per file vertex UV (glTF convention: origin at the top left of the image), if the file
-    /// has UVs; vertices without one get `[0, 0]`.
-    pub fn file_uvs(&self) -> Option<Vec<[f32; 2]>> {
-        self.file.uvs.as_ref().map(|uvs| {
-            uvs.iter()
-                .map(|uv| uv.unwrap_or([0.0; 2]).map(|x| x as f32))
-                .collect()
-        })
+    /// Per triangle of [`Asset::file_triangles`], the UV of each corner (glTF convention:
+    /// origin at the top left of the image), if the file has UVs; corners without one get
+    /// `[0, 0]`. Per corner, because an OBJ `v` has one UV per face around it at a seam.
+    pub fn corner_uvs(&self) -> Option<Vec<[[f32; 2]; 3]>> {
+        let uvs = self.file.uvs.as_ref()?;
+        let uv = |sv: usize| {
+            uvs.get(sv)
+                .copied()
+                .flatten()
+                .unwrap_or([0.0; 2])
+                .map(|x| x as f32)
+        };
+        Some(
+            self.oriented_split_triangles()
+                .iter()
+                .map(|t| t.map(uv))
+                .collect(),
+        )
     }
 
-    /// The welded vertex of each file vertex (`None` for vertices no triangle uses).
+    /// The welded vertex of each file vertex (see [`Asset::file_vertex_count`]; `None` for
+    /// vertices no triangle uses).
     pub fn file_to_welded(&self) -> Vec<Option<usize>> {
-        self.to_welded
-            .iter()
-            .map(|&w| (w != UNWELDED).then_some(w))
-            .collect()
+        let split = self.to_welded.iter().map(|&w| (w != UNWELDED).then_some(w));
+        match &self.source {
+            Source::Obj(src) => {
+                let mut out = vec![None; src.v_count()];
+                for (&v, w) in src.v_of_split().iter().zip(split) {
+                    if let Some(slot) = out.get_mut(v) {
+                        *slot = slot.or(w);
+                    }
+                }
+                out
+            }
+            Source::Gltf(_) | Source::Code => split.collect(),
+        }
     }
 
     fn check_positions(&self, positions: &[[f64; 3]]) -> Result<(), MeshError> {
@@ -452,8 +498,27 @@ impl Asset {
         Ok(())
     }
 
-    /// Per file vertex position in its block's local space, in f64.
-    pub(crate) fn local_positions(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    /// Per file vertex position (see [`Asset::file_positions`]), in f64.
+    pub(crate) fn file_positions_f64(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        let split = self.split_positions(positions);
+        match &self.source {
+            Source::Obj(src) => {
+                // Every copy of a `v` line has the same stored position, hence one welded
+                // vertex: writing each copy's new position gives the same value.
+                let mut out = src.stored_positions();
+                for ((&v, p), &w) in src.v_of_split().iter().zip(split).zip(&self.to_welded) {
+                    if let (Some(slot), true) = (out.get_mut(v), w != UNWELDED) {
+                        *slot = p;
+                    }
+                }
+                out
+            }
+            Source::Gltf(_) | Source::Code => split,
+        }
+    }
+
+    /// Per split vertex position in its block's local space, in f64.
+    pub(crate) fn split_positions(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
         let mut out = self.file.local.clone();
         for b in &self.file.blocks {
             for fv in b.start..b.start + b.len {
@@ -466,9 +531,9 @@ impl Asset {
         out
     }
 
-    /// File triangles wound like the oriented surface (Mesh::new only ever swaps corners 1
+    /// Split triangles wound like the oriented surface (Mesh::new only ever swaps corners 1
     /// and 2, and keeps face order, so comparing welded corners tells which were flipped).
-    pub(crate) fn oriented_file_triangles(&self) -> Vec<[usize; 3]> {
+    pub(crate) fn oriented_split_triangles(&self) -> Vec<[usize; 3]> {
         self.file
             .triangles
             .iter()
@@ -492,7 +557,7 @@ impl Asset {
         let (groups, count) = self.normal_groups.as_ref()?;
         let mut sums = vec![[0.0f64; 3]; *count];
         for (ft, st) in self
-            .oriented_file_triangles()
+            .oriented_split_triangles()
             .iter()
             .zip(&self.surface.triangles)
         {
@@ -511,8 +576,8 @@ impl Asset {
         Some(sums.into_iter().map(normalize_or_z).collect())
     }
 
-    /// Per file vertex world-space unit normal (`[0, 0, 1]` for unused vertices).
-    pub(crate) fn file_normals_world(&self, positions: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
+    /// Per split vertex world-space unit normal (`[0, 0, 1]` for unused vertices).
+    pub(crate) fn split_normals_world(&self, positions: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
         let group_normals = self.group_normals(positions)?;
         let (groups, _) = self.normal_groups.as_ref()?;
         Some(

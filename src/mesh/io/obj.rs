@@ -1,177 +1,343 @@
-//! Wavefront OBJ: read with tobj from memory, written by hand.
+//! Wavefront OBJ: parsed by hand from memory, written back by splicing new numbers into the
+//! user's own text.
 //!
-//! Connectivity comes from the position indices (`single_index = false`): keying vertices by
-//! (position, UV) would cut the surface open along every UV seam. UVs and normals stay per
-//! corner. A pre-scan of the text, before tobj allocates anything, enforces the limits,
-//! refuses point/line-only files, checks every face index (tobj can overflow on `f 0` or huge
-//! indices) and collects `mtllib`/`usemtl` names, which tobj only reports via material files
-//! we never open.
+//! The user's vertex numbering is the `v` lines. Faces are fan-triangulated, and each distinct
+//! `v/vt/vn` corner becomes a *split vertex* (what glTF conversion, UVs and normal groups
+//! need); every split vertex remembers its `v` line, so positions map back to the file's own
+//! order and count, unreferenced `v` lines included.
+//!
+//! Writing OBJ from OBJ keeps the text byte for byte except the coordinates of each `v` line
+//! and the numbers of each `vn` line some face uses: faces, `vt`, vertex colours, `o`/`g`/`s`/
+//! `usemtl`/`mtllib`, comments, blank lines and line endings (CRLF too) are copied through.
+//!
+//! Uploads are untrusted: a first pass counts elements and checks them against [`Limits`]
+//! before anything is allocated per element, every index is range-checked, and every
+//! malformed line is a [`MeshError`] naming its (1-based) line number.
 
-use super::{Affine, Asset, Block, FileGeometry, Limits, MeshError};
+use super::{normalize_or_z, Affine, Asset, Block, FileGeometry, Limits, MeshError, UNWELDED};
 use std::collections::HashMap;
 use std::fmt::Write as _;
+use std::ops::Range;
 
 const FORMAT: &str = "OBJ";
 
-/// What an OBJ file has that the surface does not: the `vt` list, per-corner indices and names.
+/// What an OBJ file has that the surface does not: its text and where its numbers are.
 #[derive(Clone, Debug)]
 pub(crate) struct ObjSource {
-    /// Every `vt` tobj read, models concatenated, in OBJ's convention (origin bottom left).
-    texcoords: Vec<[f64; 2]>,
-    /// Per file vertex: index into `texcoords`.
-    vt_of: Vec<Option<usize>>,
-    /// `mtllib` file names, in order of appearance.
-    mtllibs: Vec<String>,
-    /// Runs of faces sharing an object/group name and material.
-    groups: Vec<ObjGroup>,
+    /// The file as uploaded (checked UTF-8): written back with only numbers replaced.
+    text: String,
+    /// Every `v` line, in file order.
+    v_lines: Vec<VLine>,
+    /// Byte range of the three numbers of every `vn` line, in file order.
+    vn_spans: Vec<Range<usize>>,
+    /// Split vertex → index of its `v` line.
+    v_of_split: Vec<usize>,
+    /// Split vertex → index of its `vn` line, if its corner named one.
+    vn_of_split: Vec<Option<usize>>,
 }
 
+/// One `v` line: its stored position and the bytes that hold it.
 #[derive(Clone, Debug)]
-struct ObjGroup {
-    name: Option<String>,
-    material: Option<String>,
-    faces: std::ops::Range<usize>,
+struct VLine {
+    /// x, y, z as stored (divided by `w` when the line has one, as the OBJ spec says).
+    stored: [f64; 3],
+    /// Byte range of the numbers to replace: x y z, or x y z w when w ≠ 1 (the new line then
+    /// has no w, so that it reads back as exactly the new position). Colours r g b stay.
+    span: Range<usize>,
 }
-
-/// A file vertex is a distinct (position bits, `vt` index, `vn` index) corner.
-type CornerKey = ([u64; 3], Option<usize>, Option<usize>);
 
 impl ObjSource {
-    /// No UVs, names or libraries: for meshes made in code.
-    pub(crate) fn empty(file_vertices: usize) -> ObjSource {
-        ObjSource {
-            texcoords: Vec::new(),
-            vt_of: vec![None; file_vertices],
-            mtllibs: Vec::new(),
-            groups: Vec::new(),
-        }
+    /// The number of `v` lines: the file's own vertex count.
+    pub(crate) fn v_count(&self) -> usize {
+        self.v_lines.len()
+    }
+
+    /// Split vertex → `v` line.
+    pub(crate) fn v_of_split(&self) -> &[usize] {
+        &self.v_of_split
+    }
+
+    /// The stored position of every `v` line, in file order.
+    pub(crate) fn stored_positions(&self) -> Vec<[f64; 3]> {
+        self.v_lines.iter().map(|v| v.stored).collect()
     }
 }
 
-/// Counts and names found by [`prescan`].
-#[derive(Debug, Default)]
-struct Prescan {
-    faces: usize,
-    triangles: usize,
-    /// First line holding an `l` polyline of 3+ vertices: tobj reads those as faces.
-    polyline_line: Option<usize>,
-    points: usize,
-    lines: usize,
-    mtllibs: Vec<String>,
-    materials: Vec<String>,
-}
-
-/// Element counts, to resolve and check face indices.
-#[derive(Default)]
+/// Element counts, to resolve relative (negative) and forward indices.
+#[derive(Clone, Copy, Default)]
 struct Counts {
     v: usize,
     vt: usize,
     vn: usize,
 }
 
-fn prescan(text: &str, limits: &Limits) -> Result<Prescan, MeshError> {
-    // Pass 1: totals, so positive indices may point forward (as tobj allows).
+fn parse_error(line_no: usize, what: &str) -> MeshError {
+    MeshError::parse(FORMAT, format!("line {}: {what}", line_no + 1))
+}
+
+/// The lines of `text` with the byte offset where each starts, without `\n` or `\r\n`.
+fn lines_with_offsets(text: &str) -> impl Iterator<Item = (usize, &str)> {
+    let mut at = 0;
+    text.split_inclusive('\n').map(move |raw| {
+        let start = at;
+        at += raw.len();
+        let line = raw.strip_suffix('\n').unwrap_or(raw);
+        (start, line.strip_suffix('\r').unwrap_or(line))
+    })
+}
+
+/// The whitespace-separated words of `line` with their byte offsets in it (the same words
+/// `split_whitespace` gives).
+fn words_with_offsets(line: &str) -> impl Iterator<Item = (usize, &str)> {
+    let base = line.as_ptr() as usize;
+    line.split_whitespace()
+        .map(move |w| (w.as_ptr() as usize - base, w))
+}
+
+/// Pass 1: element totals, so positive indices may point forward and limits are checked
+/// before anything is allocated per element. Line continuations are refused here: the
+/// writer copies lines byte for byte, and joining lines would make `v` numbers span two.
+fn count_elements(text: &str, limits: &Limits) -> Result<Counts, MeshError> {
     let mut total = Counts::default();
-    for line in text.lines() {
-        match line.split_whitespace().next() {
+    for (line_no, (_, line)) in lines_with_offsets(text).enumerate() {
+        let keyword = line.split_whitespace().next();
+        match keyword {
             Some("v") => total.v += 1,
             Some("vt") => total.vt += 1,
             Some("vn") => total.vn += 1,
             _ => {}
         }
+        let comment = keyword.is_some_and(|k| k.starts_with('#'));
+        if !comment && line.trim_end().ends_with('\\') {
+            return Err(MeshError::unsupported(format!(
+                "OBJ line {}: line continuations (a `\\` at the end of a line); join the line",
+                line_no + 1
+            )));
+        }
     }
     limits.check_vertices(total.v)?;
+    Ok(total)
+}
 
-    let mut scan = Prescan::default();
+/// The float `word`, or a parse error naming `what` and the line.
+fn number(word: Option<&str>, line_no: usize, what: &str) -> Result<f64, MeshError> {
+    let w = word.ok_or_else(|| parse_error(line_no, &format!("{what}: too few numbers")))?;
+    w.parse()
+        .map_err(|_| parse_error(line_no, &format!("{what}: bad number {w:?}")))
+}
+
+/// A `v` line: x y z, then nothing, a weight w, or a colour r g b.
+fn parse_v(line: &str, line_no: usize) -> Result<VLine, MeshError> {
+    let mut words = words_with_offsets(line).skip(1);
+    let mut xyz = [0.0; 3];
+    let mut span = 0..0;
+    for (k, x) in xyz.iter_mut().enumerate() {
+        let (at, w) = words
+            .next()
+            .ok_or_else(|| parse_error(line_no, "v: too few numbers"))?;
+        *x = number(Some(w), line_no, "v")?;
+        if k == 0 {
+            span.start = at;
+        }
+        span.end = at + w.len();
+    }
+    let extra: Vec<(usize, &str)> = words.collect();
+    match extra.as_slice() {
+        [] => {}
+        [(at, w)] => {
+            let weight = number(Some(w), line_no, "v weight")?;
+            if weight == 0.0 || !weight.is_finite() {
+                return Err(parse_error(line_no, "v: a weight w of zero or non-finite"));
+            }
+            if weight != 1.0 {
+                xyz = xyz.map(|x| x / weight);
+                span.end = at + w.len();
+            }
+        }
+        [_, _, _] => {
+            for (_, w) in &extra {
+                number(Some(w), line_no, "v colour")?;
+            }
+        }
+        _ => {
+            return Err(parse_error(
+                line_no,
+                "v: expected x y z, x y z w, or x y z r g b",
+            ))
+        }
+    }
+    Ok(VLine { stored: xyz, span })
+}
+
+/// One face corner `v`, `v/vt`, `v//vn` or `v/vt/vn` resolved to 0-based indices. An
+/// out-of-range `v` gives `Ok(None)` (the face is reported by number); an out-of-range `vt`
+/// or `vn`, or anything unparsable, is a parse error.
+type Corner = (usize, Option<usize>, Option<usize>);
+
+fn parse_corner(
+    word: &str,
+    so_far: Counts,
+    total: Counts,
+    line_no: usize,
+) -> Result<Option<Corner>, MeshError> {
+    let mut parts = word.split('/');
+    let mut resolved = [None; 3];
+    let slots = [
+        (so_far.v, total.v),
+        (so_far.vt, total.vt),
+        (so_far.vn, total.vn),
+    ];
+    let mut v_in_range = true;
+    for (slot, (sofar, tot)) in slots.into_iter().enumerate() {
+        match parts.next() {
+            None | Some("") => {
+                if slot == 0 {
+                    return Err(parse_error(line_no, "empty vertex index"));
+                }
+            }
+            Some(s) => {
+                let i: i64 = s
+                    .parse()
+                    .map_err(|_| parse_error(line_no, &format!("bad index {s:?}")))?;
+                // Positive indices are 1-based and may point forward; negative ones count
+                // back from the elements read so far.
+                let index = if i > 0 {
+                    usize::try_from(i - 1).ok().filter(|&k| k < tot)
+                } else if i < 0 {
+                    usize::try_from(i.unsigned_abs())
+                        .ok()
+                        .and_then(|back| sofar.checked_sub(back))
+                } else {
+                    None
+                };
+                match (index, slot) {
+                    (Some(k), _) => resolved[slot] = Some(k),
+                    (None, 0) => v_in_range = false,
+                    (None, _) => {
+                        return Err(parse_error(
+                            line_no,
+                            &format!("{} index {i} out of range", ["v", "vt", "vn"][slot]),
+                        ))
+                    }
+                }
+            }
+        }
+    }
+    if parts.next().is_some() {
+        return Err(parse_error(line_no, &format!("bad corner {word:?}")));
+    }
+    Ok(match (v_in_range, resolved[0]) {
+        (true, Some(v)) => Some((v, resolved[1], resolved[2])),
+        _ => None,
+    })
+}
+
+/// Numbers the split vertices (distinct `v/vt/vn` corners) in order of first use.
+#[derive(Default)]
+struct SplitVertices {
+    ids: HashMap<Corner, usize>,
+    corners: Vec<Corner>,
+}
+
+impl SplitVertices {
+    fn id(&mut self, c: Corner) -> usize {
+        *self.ids.entry(c).or_insert_with(|| {
+            self.corners.push(c);
+            self.corners.len() - 1
+        })
+    }
+}
+
+pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSource), MeshError> {
+    let text = std::str::from_utf8(bytes)
+        .map_err(|e| MeshError::parse(FORMAT, format!("not UTF-8 text: {e}")))?;
+    let total = count_elements(text, limits)?;
+
     let mut so_far = Counts::default();
+    let mut v_lines: Vec<VLine> = Vec::with_capacity(total.v);
+    let mut texcoords: Vec<[f64; 2]> = Vec::with_capacity(total.vt);
+    let mut vn_spans: Vec<Range<usize>> = Vec::with_capacity(total.vn);
+    let mut split = SplitVertices::default();
+    let mut triangles: Vec<[usize; 3]> = Vec::new();
+    let mut faces = 0usize;
     let mut bad_faces = super::super::error::Offenders::default();
-    for (line_no, line) in text.lines().enumerate() {
+    let (mut points, mut lines) = (0usize, 0usize);
+    // First line holding an `l` polyline of 3+ vertices: refused (it reads like a face).
+    let mut polyline_line = None;
+    let mut corners: Vec<Corner> = Vec::new();
+    for (line_no, (start, line)) in lines_with_offsets(text).enumerate() {
         let mut words = line.split_whitespace();
         let keyword = words.next();
         match keyword {
-            Some("v") => so_far.v += 1,
-            Some("vt") => so_far.vt += 1,
-            Some("vn") => so_far.vn += 1,
-            Some("mtllib") => {
-                let name = rest_of(line);
-                if !name.is_empty() && !scan.mtllibs.iter().any(|m| m == name) {
-                    scan.mtllibs.push(name.to_owned());
-                }
+            Some("v") => {
+                let mut v = parse_v(line, line_no)?;
+                v.span = start + v.span.start..start + v.span.end;
+                v_lines.push(v);
+                so_far.v += 1;
             }
-            Some("usemtl") => {
-                let name = rest_of(line);
-                if !name.is_empty() && !scan.materials.iter().any(|m| m == name) {
-                    scan.materials.push(name.to_owned());
+            Some("vt") => {
+                let u = number(words.next(), line_no, "vt")?;
+                // v is optional in the spec (default 0); a third number (w) is ignored.
+                let v = words
+                    .next()
+                    .map_or(Ok(0.0), |w| number(Some(w), line_no, "vt"))?;
+                texcoords.push([u, v]);
+                so_far.vt += 1;
+            }
+            Some("vn") => {
+                let mut at = words_with_offsets(line).skip(1);
+                let mut span = 0..0;
+                for k in 0..3 {
+                    let (off, w) = at
+                        .next()
+                        .ok_or_else(|| parse_error(line_no, "vn: too few numbers"))?;
+                    number(Some(w), line_no, "vn")?;
+                    if k == 0 {
+                        span.start = start + off;
+                    }
+                    span.end = start + off + w.len();
                 }
+                if at.next().is_some() {
+                    return Err(parse_error(line_no, "vn: more than three numbers"));
+                }
+                vn_spans.push(span);
+                so_far.vn += 1;
             }
             Some(kw @ ("f" | "l" | "p")) => {
-                let corners: Vec<&str> = words.collect();
+                corners.clear();
                 let mut in_range = true;
-                for c in &corners {
-                    let mut parts = c.split('/');
-                    let checks = [
-                        (so_far.v, total.v),
-                        (so_far.vt, total.vt),
-                        (so_far.vn, total.vn),
-                    ];
-                    for (slot, (sofar, tot)) in checks.into_iter().enumerate() {
-                        match parts.next() {
-                            None | Some("") => {
-                                if slot == 0 {
-                                    return Err(parse_error(line_no, "empty vertex index"));
-                                }
-                            }
-                            Some(s) => {
-                                let i: i64 = s.parse().map_err(|_| {
-                                    parse_error(line_no, &format!("bad index {s:?}"))
-                                })?;
-                                let ok = if i > 0 {
-                                    (i as u64) <= tot as u64
-                                } else {
-                                    i != 0 && i.unsigned_abs() <= sofar as u64
-                                };
-                                if !ok {
-                                    if slot == 0 {
-                                        in_range = false;
-                                    } else {
-                                        return Err(parse_error(
-                                            line_no,
-                                            &format!(
-                                                "{} index {i} out of range",
-                                                ["v", "vt", "vn"][slot]
-                                            ),
-                                        ));
-                                    }
-                                }
-                            }
-                        }
-                    }
-                    if parts.next().is_some() {
-                        return Err(parse_error(line_no, &format!("bad corner {c:?}")));
+                let mut n = 0;
+                for w in words {
+                    n += 1;
+                    match parse_corner(w, so_far, total, line_no)? {
+                        Some(c) => corners.push(c),
+                        None => in_range = false,
                     }
                 }
-                // tobj reads `f` and `l` the same way: by corner count.
-                let n = corners.len();
                 match (kw, n) {
-                    ("p", _) => scan.points += 1,
+                    ("p", _) | (_, 1) => points += 1,
                     (_, 0) => return Err(parse_error(line_no, "element without vertices")),
-                    (_, 1) => scan.points += 1,
-                    (_, 2) => scan.lines += 1,
+                    (_, 2) => lines += 1,
                     ("l", _) => {
-                        scan.lines += 1;
-                        scan.polyline_line.get_or_insert(line_no);
+                        lines += 1;
+                        polyline_line.get_or_insert(line_no);
                     }
                     _ => {
+                        limits.check_faces(triangles.len().saturating_add(n - 2))?;
                         if !in_range {
-                            bad_faces.push(scan.faces);
+                            bad_faces.push(faces);
+                        } else {
+                            // A fan from the first corner, as most readers triangulate.
+                            let ids: Vec<usize> = corners.iter().map(|&c| split.id(c)).collect();
+                            for k in 1..ids.len() - 1 {
+                                triangles.push([ids[0], ids[k], ids[k + 1]]);
+                            }
                         }
-                        scan.faces += 1;
-                        scan.triangles += n - 2;
-                        limits.check_faces(scan.triangles)?;
+                        faces += 1;
                     }
                 }
             }
-            _ => {}
+            _ => {} // comments, names, groups, materials, smoothing: kept as text
         }
     }
     if !bad_faces.is_empty() {
@@ -180,12 +346,9 @@ fn prescan(text: &str, limits: &Limits) -> Result<Prescan, MeshError> {
             vertex_count: total.v,
         });
     }
-    if scan.faces == 0 {
-        return Err(if scan.points + scan.lines > 0 {
-            MeshError::PointsOrLinesOnly {
-                points: scan.points,
-                lines: scan.lines,
-            }
+    if faces == 0 {
+        return Err(if points + lines > 0 {
+            MeshError::PointsOrLinesOnly { points, lines }
         } else {
             MeshError::Empty {
                 vertices: total.v,
@@ -193,141 +356,44 @@ fn prescan(text: &str, limits: &Limits) -> Result<Prescan, MeshError> {
             }
         });
     }
-    if let Some(line_no) = scan.polyline_line {
+    if let Some(line_no) = polyline_line {
         return Err(MeshError::unsupported(format!(
-            "line {}: polylines of 3 or more vertices next to faces (tobj would read them as faces)",
+            "OBJ line {}: polylines of 3 or more vertices next to faces",
             line_no + 1
         )));
     }
-    Ok(scan)
-}
-
-/// Everything after the keyword: names may contain spaces.
-fn rest_of(line: &str) -> &str {
-    let line = line.trim_start();
-    line.split_once(char::is_whitespace)
-        .map(|(_, r)| r.trim())
-        .unwrap_or("")
-}
-
-fn parse_error(line_no: usize, what: &str) -> MeshError {
-    MeshError::parse(FORMAT, format!("line {}: {what}", line_no + 1))
-}
-
-pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSource), MeshError> {
-    let text = std::str::from_utf8(bytes)
-        .map_err(|e| MeshError::parse(FORMAT, format!("not UTF-8 text: {e}")))?;
-    let scan = prescan(text, limits)?;
-
-    let options = tobj::LoadOptions {
-        single_index: false,
-        triangulate: true,
-        ignore_points: true,
-        ignore_lines: true,
-    };
-    // Material files are never opened: the loader answers every `mtllib` with a stand-in for
-    // each `usemtl` name, so tobj still splits models by material and reports their names.
-    let stand_ins: Vec<tobj::Material> = scan
-        .materials
-        .iter()
-        .map(|name| tobj::Material {
-            name: name.clone(),
-            ..Default::default()
-        })
-        .collect();
-    let loader = |_: &std::path::Path| -> tobj::MTLLoadResult {
-        let map = stand_ins
-            .iter()
-            .enumerate()
-            .map(|(i, m)| (m.name.clone(), i))
-            .collect();
-        Ok((stand_ins.clone(), map))
-    };
-    // tobj asks for materials only on an `mtllib` line; a file with `usemtl` but no `mtllib`
-    // gets a stand-in line first (read by nobody, never written out) so its names survive.
-    let prefix: &[u8] = if scan.mtllibs.is_empty() && !scan.materials.is_empty() {
-        b"mtllib willow-stand-in.mtl\n"
-    } else {
-        b""
-    };
-    let mut reader = std::io::Read::chain(prefix, bytes);
-    let mut reader = std::io::BufReader::new(&mut reader);
-    let (models, materials) = tobj::load_obj_buf(&mut reader, &options, loader)
-        .map_err(|e| MeshError::parse(FORMAT, e.to_string()))?;
-    let materials = materials.unwrap_or_default();
-
-    let mut local: Vec<[f64; 3]> = Vec::new();
-    let mut texcoords: Vec<[f64; 2]> = Vec::new();
-    let mut vt_of: Vec<Option<usize>> = Vec::new();
-    let mut vn_of: Vec<Option<usize>> = Vec::new();
-    let mut triangles: Vec<[usize; 3]> = Vec::new();
-    let mut groups = Vec::new();
-    let mut corner_ids: HashMap<CornerKey, usize> = HashMap::new();
-    let mut normal_base = 0usize;
-    let mut any_normals = false;
-    for model in &models {
-        let m = &model.mesh;
-        let tex_base = texcoords.len();
-        for uv in m.texcoords.chunks_exact(2) {
-            texcoords.push([uv[0], uv[1]]);
-        }
-        let corners = m.indices.len();
-        let has_vt = !m.texcoord_indices.is_empty() && m.texcoord_indices.len() == corners;
-        let has_vn = !m.normal_indices.is_empty() && m.normal_indices.len() == corners;
-        any_normals |= has_vn;
-        let first_face = triangles.len();
-        let mut tri = [0usize; 3];
-        for c in 0..corners - corners % 3 {
-            let pi = m.indices[c] as usize;
-            let p = match m.positions.get(3 * pi..3 * pi + 3) {
-                Some(p) => [p[0], p[1], p[2]],
-                None => return Err(MeshError::parse(FORMAT, "face index past the positions")),
-            };
-            let vt = has_vt.then(|| tex_base + m.texcoord_indices[c] as usize);
-            let vn = has_vn.then(|| normal_base + m.normal_indices[c] as usize);
-            let key = (p.map(|x| (x + 0.0).to_bits()), vt, vn);
-            let id = *corner_ids.entry(key).or_insert_with(|| {
-                local.push(p);
-                vt_of.push(vt);
-                vn_of.push(vn);
-                local.len() - 1
-            });
-            tri[c % 3] = id;
-            if c % 3 == 2 {
-                triangles.push(tri);
-            }
-        }
-        normal_base += m.normals.len() / 3;
-        if triangles.len() > first_face {
-            let name = (!model.name.is_empty() && model.name != "unnamed_object")
-                .then(|| model.name.clone());
-            let material = m
-                .material_id
-                .and_then(|i| materials.get(i))
-                .map(|mat| mat.name.clone());
-            groups.push(ObjGroup {
-                name,
-                material,
-                faces: first_face..triangles.len(),
-            });
+    // Every `v` line is checked, used or not: unused ones are streamed and written back too.
+    let mut non_finite = super::super::error::Offenders::default();
+    for (i, v) in v_lines.iter().enumerate() {
+        if !v.stored.iter().all(|x| x.is_finite()) {
+            non_finite.push(i);
         }
     }
-    limits.check_vertices(local.len())?;
-    limits.check_faces(triangles.len())?;
+    if !non_finite.is_empty() {
+        return Err(MeshError::NonFinite {
+            vertices: non_finite,
+        });
+    }
+    limits.check_vertices(split.corners.len())?;
 
-    let uvs = vt_of.iter().any(Option::is_some).then(|| {
-        vt_of
+    let corners = split.corners;
+    let local: Vec<[f64; 3]> = corners
+        .iter()
+        .map(|&(v, _, _)| v_lines.get(v).map_or([0.0; 3], |l| l.stored))
+        .collect();
+    let uvs = corners.iter().any(|c| c.1.is_some()).then(|| {
+        corners
             .iter()
-            .map(|vt| {
+            .map(|&(_, vt, _)| {
                 vt.and_then(|i| texcoords.get(i))
                     .map(|uv| [uv[0], 1.0 - uv[1]])
             })
             .collect()
     });
-    let normal_keys = any_normals.then(|| {
-        vn_of
+    let normal_keys = corners.iter().any(|c| c.2.is_some()).then(|| {
+        corners
             .iter()
-            .map(|vn| vn.map_or(u64::MAX, |i| i as u64))
+            .map(|&(_, _, vn)| vn.map_or(u64::MAX, |i| i as u64))
             .collect()
     });
     let n = local.len();
@@ -344,116 +410,202 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         normal_keys,
     };
     let src = ObjSource {
-        texcoords,
-        vt_of,
-        mtllibs: scan.mtllibs,
-        groups,
+        text: text.to_owned(),
+        v_lines,
+        vn_spans,
+        v_of_split: corners.iter().map(|c| c.0).collect(),
+        vn_of_split: corners.iter().map(|c| c.2).collect(),
     };
     Ok((file, src))
 }
 
-/// Writes OBJ text: `v` per welded vertex (so seams cannot open), `vt` from the source's list
-/// (or one per glTF vertex with a UV), `vn` per normal group recomputed from `positions`, and
-/// faces wound like the oriented surface with their original per-corner UV indices.
-pub(crate) fn write(asset: &Asset, positions: &[[f64; 3]], src: Option<&ObjSource>) -> Vec<u8> {
+/// A coordinate as text that parses back to exactly `x`: Rust's shortest round-trip digits,
+/// in exponent form only where plain digits would be long (|x| < 1e-5 or ≥ 1e16).
+fn coordinate(x: f64) -> String {
+    let a = x.abs();
+    if a == 0.0 || (1e-5..1e16).contains(&a) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
+fn triple(p: [f64; 3]) -> String {
+    format!(
+        "{} {} {}",
+        coordinate(p[0]),
+        coordinate(p[1]),
+        coordinate(p[2])
+    )
+}
+
+/// Per `vn` line some corner uses: the unit area-weighted sum of the normals of the faces at
+/// those corners, in the new positions (one `vn` per vertex gives smooth shading, one per face
+/// corner group gives creases: the file's own choice is kept). Unused `vn` lines get `None`.
+fn vn_normals(asset: &Asset, src: &ObjSource, positions: &[[f64; 3]]) -> Vec<Option<[f64; 3]>> {
+    let mut sums: Vec<Option<[f64; 3]>> = vec![None; src.vn_spans.len()];
+    for (ft, st) in asset
+        .oriented_split_triangles()
+        .iter()
+        .zip(&asset.surface.triangles)
+    {
+        let p = |v: usize| positions.get(v).copied().unwrap_or([0.0; 3]);
+        // |(b−a)×(c−a)| is twice the area: area weighting comes for free.
+        let n = super::cross(
+            super::sub(p(st[1]), p(st[0])),
+            super::sub(p(st[2]), p(st[0])),
+        );
+        for &sv in ft {
+            let vn = src.vn_of_split.get(sv).copied().flatten();
+            if let Some(sum) = vn.and_then(|k| sums.get_mut(k)) {
+                let s = sum.get_or_insert([0.0; 3]);
+                for k in 0..3 {
+                    s[k] += n[k];
+                }
+            }
+        }
+    }
+    sums.into_iter().map(|s| s.map(normalize_or_z)).collect()
+}
+
+/// Writes the user's own OBJ text back with new positions: each `v` line's coordinates are
+/// replaced (every `v` line, used or not; see [`Asset::file_positions`]), each used `vn`
+/// line's numbers are recomputed, and every other byte is copied.
+pub(crate) fn write_kept(asset: &Asset, src: &ObjSource, positions: &[[f64; 3]]) -> Vec<u8> {
+    let v_new = asset.file_positions_f64(positions);
+    let vn_new = vn_normals(asset, src, positions);
+    // Edits in file order: `v` and `vn` lines each come in file order, so merge the two.
+    let mut edits: Vec<(Range<usize>, String)> = Vec::with_capacity(v_new.len() + vn_new.len());
+    for (line, p) in src.v_lines.iter().zip(&v_new) {
+        edits.push((line.span.clone(), triple(*p)));
+    }
+    for (span, n) in src.vn_spans.iter().zip(&vn_new) {
+        if let Some(n) = n {
+            edits.push((span.clone(), triple(*n)));
+        }
+    }
+    edits.sort_by_key(|(span, _)| span.start);
+    let text = src.text.as_str();
+    let mut out = String::with_capacity(text.len() + text.len() / 4);
+    let mut at = 0;
+    for (span, new) in &edits {
+        out.push_str(text.get(at..span.start).unwrap_or(""));
+        out.push_str(new);
+        at = span.end;
+    }
+    out.push_str(text.get(at..).unwrap_or(""));
+    out.into_bytes()
+}
+
+/// Writes a new OBJ (for glTF input or meshes made in code, which have no OBJ text to keep):
+/// `v` per welded vertex (so seams cannot open), `vt` per file vertex with a UV, `vn` per
+/// normal group recomputed from `positions`, and faces wound like the oriented surface.
+pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Vec<u8> {
     let mut out = String::new();
     // `write!` into a String cannot fail; the results are ignored for that reason.
     let _ = writeln!(out, "# Written by Willow (conformal Willmore flow fairing)");
-    if let Some(src) = src {
-        for lib in &src.mtllibs {
-            let _ = writeln!(out, "mtllib {lib}");
-        }
-    }
     for p in positions {
-        let _ = writeln!(out, "v {} {} {}", p[0], p[1], p[2]);
+        let _ = writeln!(out, "v {}", triple(*p));
     }
-
-    // vt: the source list verbatim, or one per file vertex that has a UV.
-    let vt_of: Vec<Option<usize>> = match src {
-        Some(src) => {
-            for uv in &src.texcoords {
-                let _ = writeln!(out, "vt {} {}", uv[0], uv[1]);
-            }
-            src.vt_of.clone()
-        }
-        None => match &asset.file.uvs {
-            Some(uvs) => {
-                let mut next = 0;
-                uvs.iter()
-                    .map(|uv| {
-                        uv.map(|[u, v]| {
-                            let _ = writeln!(out, "vt {} {}", u, 1.0 - v);
-                            next += 1;
-                            next - 1
-                        })
-                    })
-                    .collect()
-            }
-            None => Vec::new(),
-        },
+    let mut next = 0;
+    let vt_of: Vec<Option<usize>> = match &asset.file.uvs {
+        Some(uvs) => uvs
+            .iter()
+            .map(|uv| {
+                uv.map(|[u, v]| {
+                    let _ = writeln!(out, "vt {} {}", coordinate(u), coordinate(1.0 - v));
+                    next += 1;
+                    next - 1
+                })
+            })
+            .collect(),
+        None => Vec::new(),
     };
-
     let normals = asset.group_normals(positions);
     if let Some(normals) = &normals {
         for n in normals {
-            let _ = writeln!(out, "vn {} {} {}", n[0], n[1], n[2]);
+            let _ = writeln!(out, "vn {}", triple(*n));
         }
     }
-    let group_of = |fv: usize| -> Option<usize> {
+    let group_of = |sv: usize| -> Option<usize> {
         let (groups, _) = asset.normal_groups.as_ref()?;
-        groups.get(fv).copied().filter(|&g| g != super::UNWELDED)
+        groups.get(sv).copied().filter(|&g| g != UNWELDED)
     };
-
-    let faces = asset.oriented_file_triangles();
-    let whole = [ObjGroup {
-        name: None,
-        material: None,
-        faces: 0..faces.len(),
-    }];
-    let groups: &[ObjGroup] = match src {
-        Some(src) if !src.groups.is_empty() => &src.groups,
-        _ => &whole,
-    };
-    for g in groups {
-        if let Some(name) = &g.name {
-            let _ = writeln!(out, "o {name}");
+    for (ft, st) in asset
+        .oriented_split_triangles()
+        .iter()
+        .zip(&asset.surface.triangles)
+    {
+        let vts = ft.map(|sv| vt_of.get(sv).copied().flatten());
+        let vns = ft.map(group_of);
+        let with_vt = vts.iter().all(Option::is_some);
+        let with_vn = normals.is_some() && vns.iter().all(Option::is_some);
+        out.push('f');
+        for k in 0..3 {
+            let _ = write!(out, " {}", st[k] + 1);
+            let (vt, vn) = (vts[k].unwrap_or(0) + 1, vns[k].unwrap_or(0) + 1);
+            let _ = match (with_vt, with_vn) {
+                (true, true) => write!(out, "/{vt}/{vn}"),
+                (true, false) => write!(out, "/{vt}"),
+                (false, true) => write!(out, "//{vn}"),
+                (false, false) => Ok(()),
+            };
         }
-        if let Some(m) = &g.material {
-            let _ = writeln!(out, "usemtl {m}");
-        }
-        for (ft, st) in faces
-            .get(g.faces.clone())
-            .unwrap_or(&[])
-            .iter()
-            .zip(asset.surface.triangles.get(g.faces.clone()).unwrap_or(&[]))
-        {
-            let vts = ft.map(|fv| vt_of.get(fv).copied().flatten());
-            let vns = ft.map(group_of);
-            let with_vt = vts.iter().all(Option::is_some);
-            let with_vn = normals.is_some() && vns.iter().all(Option::is_some);
-            out.push('f');
-            for k in 0..3 {
-                let _ = write!(out, " {}", st[k] + 1);
-                match (with_vt, with_vn) {
-                    (true, true) => {
-                        let _ = write!(
-                            out,
-                            "/{}/{}",
-                            vts[k].unwrap_or(0) + 1,
-                            vns[k].unwrap_or(0) + 1
-                        );
-                    }
-                    (true, false) => {
-                        let _ = write!(out, "/{}", vts[k].unwrap_or(0) + 1);
-                    }
-                    (false, true) => {
-                        let _ = write!(out, "//{}", vns[k].unwrap_or(0) + 1);
-                    }
-                    (false, false) => {}
-                }
-            }
-            out.push('\n');
-        }
+        out.push('\n');
     }
     out.into_bytes()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn coordinates_print_so_that_they_parse_back_exactly() {
+        for x in [
+            0.0,
+            -0.0,
+            1.0,
+            -0.1,
+            1.0 / 3.0,
+            1e-7,
+            -2.5e-300,
+            1e16,
+            f64::MAX,
+            f64::MIN_POSITIVE,
+            123456.789,
+        ] {
+            let s = coordinate(x);
+            assert_eq!(s.parse::<f64>().unwrap().to_bits(), x.to_bits(), "{s}");
+            assert!(s.len() <= 24, "{s} is short");
+        }
+    }
+
+    #[test]
+    fn lines_keep_offsets_and_drop_crlf() {
+        let text = "v 1 2 3\r\n\r\nf 1 2 3";
+        let lines: Vec<(usize, &str)> = lines_with_offsets(text).collect();
+        assert_eq!(lines, vec![(0, "v 1 2 3"), (9, ""), (11, "f 1 2 3")]);
+        let words: Vec<(usize, &str)> = words_with_offsets("  v\t1  -2").collect();
+        assert_eq!(words, vec![(2, "v"), (4, "1"), (7, "-2")]);
+    }
+
+    #[test]
+    fn v_lines_with_weight_or_colour() {
+        let v = parse_v("v 1 2 3 0.5 0.25 1", 0).unwrap();
+        assert_eq!((v.stored, v.span), ([1.0, 2.0, 3.0], 2..7));
+        let v = parse_v("v 1 2 3 2", 0).unwrap();
+        assert_eq!((v.stored, v.span), ([0.5, 1.0, 1.5], 2..9));
+        let v = parse_v("v 1 2 3 1.0", 0).unwrap();
+        assert_eq!((v.stored, v.span), ([1.0, 2.0, 3.0], 2..7));
+        for bad in [
+            "v 1 2",
+            "v 1 2 3 0",
+            "v 1 2 3 4 5",
+            "v 1 x 3",
+            "v 1 2 3 1 2 3 4",
+        ] {
+            assert_eq!(parse_v(bad, 0).unwrap_err().code(), "parse_error", "{bad}");
+        }
+    }
 }
