@@ -178,6 +178,7 @@ pub fn run(args: FairArgs) -> ExitCode {
             _ => None,
         },
         boundary,
+        safeguard: true,
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
