@@ -45,6 +45,13 @@ pub trait Retry: Flow {
     /// Puts the flow back on `positions`, the surface it had after `step` steps (every cached
     /// quantity is recomputed from them).
     fn restore(&mut self, positions: &[[f64; 3]], step: usize);
+    /// Whether every step should lower W and stay near integrable. Not when the flow first has
+    /// to meet boundary data that differs from the input's (prescribed vectors turned by an
+    /// angle, §6.3.1): bending the boundary raises W on purpose, and the turn is imposed
+    /// whatever τ is, so a smaller τ would not shrink it. Finiteness, folds and Q still count.
+    fn descends(&self) -> bool {
+        true
+    }
 }
 
 /// A flow whose steps are accepted or retried as the module docs describe.
@@ -99,7 +106,7 @@ impl<F: Retry> Safeguarded<F> {
             return Some("the surface is not finite".into());
         }
         let w0 = prev.willmore_energy;
-        if m.willmore_energy > w0 + W_RISE * w0.abs() {
+        if self.inner.descends() && m.willmore_energy > w0 + W_RISE * w0.abs() {
             return Some(format!(
                 "Willmore energy would rise from {w0:.6} to {:.6}",
                 m.willmore_energy
@@ -111,7 +118,7 @@ impl<F: Retry> Safeguarded<F> {
                 prev.q_max, m.q_max
             ));
         }
-        if m.closure_residual > CLOSURE_LIMIT {
+        if self.inner.descends() && m.closure_residual > CLOSURE_LIMIT {
             return Some(format!(
                 "closure residual {:.3} exceeds {CLOSURE_LIMIT}",
                 m.closure_residual

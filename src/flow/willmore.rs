@@ -67,6 +67,9 @@ pub struct ConformalFlow {
     fixed_positions: Vec<[f64; 3]>,
     /// Prescribed boundary vectors (§6.3.1, CMC with `V = B`); `None` otherwise.
     prescribed: Option<PrescribedSolver>,
+    /// Prescribed boundary vectors (not CMC) on a surface with boundary: W may rise while the
+    /// boundary turns to its targets, so the safeguard does not require descent.
+    turns_boundary: bool,
     /// The Dirichlet right-hand side of the λ solve, kept for its residual.
     solve_rhs: Vec<c64>,
     /// Boundary vertices (any boundary condition), and scratch for averaging onto them.
@@ -227,6 +230,8 @@ impl ConformalFlow {
                 Vec::new()
             },
             fixed,
+            turns_boundary: prescribed.is_some()
+                && matches!(params.boundary, Boundary::Prescribed(_)),
             prescribed,
             boundary_sums: if boundary_vertex.is_some() {
                 vec![0.0; 2 * n]
@@ -865,6 +870,10 @@ impl super::safeguard::Retry for ConformalFlow {
         self.positions.copy_from_slice(positions);
         self.geometry.refresh(&self.positions, &self.triangles);
         self.step = step;
+    }
+
+    fn descends(&self) -> bool {
+        !self.turns_boundary
     }
 }
 
