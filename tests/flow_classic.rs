@@ -14,6 +14,9 @@ fn params(method: Method, tau: f64) -> FlowParams {
     FlowParams {
         method,
         tau,
+        // The raw method (Figure 18, §6.4): these tests measure what the flow itself does at a
+        // fixed τ, so the safeguard (tests/flow_robust.rs) must not change the step.
+        safeguard: false,
         ..FlowParams::default()
     }
 }

@@ -53,6 +53,9 @@ fn bumpy_clifford_torus(u: usize, v: usize) -> Mesh {
 fn flow(mesh: &Mesh, tau: f64, steps: usize) -> Vec<[f64; 3]> {
     let params = FlowParams {
         tau,
+        // The raw method (Figure 18, §6.4): these tests measure what the flow itself does at a
+        // fixed τ, so the safeguard (tests/flow_robust.rs) must not change the step.
+        safeguard: false,
         ..FlowParams::default()
     };
     let mut flow = new_flow(mesh, &params).expect("flow");
@@ -122,10 +125,14 @@ fn fixed_time_distortion_is_first_order_in_the_step() {
         );
     }
     // The flow is conformal: every result is within a few percent of the input's angles, and
-    // approaches the time-converged run's floor from above.
+    // none is far below the time-converged run's floor. (With the discrete exactness of
+    // flow::exactness the 8-step run lands 1% below it: 7.22e-3 against 7.28e-3.)
     for &q in &against_input {
         assert!(q < 0.03, "mean Q − 1 against the input {against_input:?}");
-        assert!(q > floor, "Q − 1 {q} below the 64-step floor {floor}");
+        assert!(
+            q > 0.9 * floor,
+            "Q − 1 {q} far below the 64-step floor {floor}"
+        );
     }
     assert!(floor < 0.015, "spatial floor {floor}");
 }

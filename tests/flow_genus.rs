@@ -16,6 +16,9 @@ fn params(tau: f64) -> FlowParams {
     FlowParams {
         method: Method::Conformal,
         tau,
+        // The raw method (Figure 18, §6.4): these tests measure what the flow itself does at a
+        // fixed τ, so the safeguard (tests/flow_robust.rs) must not change the step.
+        safeguard: false,
         ..FlowParams::default()
     }
 }
