@@ -238,7 +238,8 @@ fn a_step_too_large_is_taken_smaller_and_says_so() {
             Ok(m) => {
                 assert_eq!(m.tau, 0.9);
                 assert_eq!(m.rejected, 0);
-                if !(m.willmore_energy <= lowest * (1.0 + MAX_RISE)) {
+                let within = m.willmore_energy <= lowest * (1.0 + MAX_RISE);
+                if !within {
                     went_wrong = true;
                     break;
                 }
