@@ -670,7 +670,7 @@ fn spec_field(core_field: &str) -> String {
             "params.boundary.prescribed.angles.per_loop.values".into()
         }
         "method" | "steps" | "tau" | "iterations" | "frame_interval" | "include_positions"
-        | "exactness" | "mobius_balancing" | "filter" | "boundary" => {
+        | "exactness" | "mobius_balancing" | "filter" | "boundary" | "safeguard" => {
             format!("params.{core_field}")
         }
         nested if nested.starts_with("filter.") || nested.starts_with("boundary.") => {
@@ -987,6 +987,9 @@ fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Status> {
     if let Some(boundary) = p.boundary {
         spec.boundary = boundary_from_pb(boundary);
     }
+    if let Some(safeguard) = p.safeguard {
+        spec.safeguard = safeguard;
+    }
     Ok(spec)
 }
 
@@ -1166,6 +1169,7 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
             k: f.k,
         }),
         boundary: Some(boundary_pb(&spec.boundary)),
+        safeguard: Some(spec.safeguard),
     }
 }
 

@@ -99,6 +99,9 @@ pub struct JobParams {
     pub filter: Option<FilterSpec>,
     /// `"free"` (default), `"fixed"`, `"cmc"` or `{"prescribed": {…}}`. Conformal flow only.
     pub boundary: Option<BoundarySpec>,
+    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
+    /// (default true). Every method.
+    pub safeguard: Option<bool>,
 }
 
 impl JobParams {
@@ -133,6 +136,9 @@ impl JobParams {
         spec.filter = self.filter;
         if let Some(v) = self.boundary {
             spec.boundary = v;
+        }
+        if let Some(v) = self.safeguard {
+            spec.safeguard = v;
         }
         Ok(spec)
     }
@@ -222,6 +228,9 @@ pub struct JobQuery {
     #[serde(rename = "boundary.prescribed.angles.per_loop")]
     #[param(rename = "boundary.prescribed.angles.per_loop")]
     pub angles_per_loop: Option<String>,
+    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
+    /// (default true). Every method.
+    pub safeguard: Option<bool>,
 }
 
 impl JobQuery {
@@ -328,6 +337,7 @@ impl JobQuery {
             mobius_balancing: self.mobius_balancing,
             filter,
             boundary,
+            safeguard: self.safeguard,
         })
     }
 }

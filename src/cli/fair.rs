@@ -46,6 +46,10 @@ pub struct FairArgs {
     /// Möbius balancing toward the input's area distribution (App. E).
     #[arg(long)]
     pub mobius: bool,
+    /// Take every step at --tau whatever it does. By default a step that raises the Willmore
+    /// energy or damages the mesh is retried at a smaller τ (willow::flow::safeguard).
+    #[arg(long)]
+    pub no_safeguard: bool,
     /// Spectral filter strength σ (§4, unitless: σ = (l(l+1))^−k puts the crossover at
     /// spherical degree l); needs --filter-k.
     #[arg(long, requires = "filter_k")]
@@ -178,6 +182,7 @@ pub fn run(args: FairArgs) -> ExitCode {
             _ => None,
         },
         boundary,
+        safeguard: !args.no_safeguard,
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,

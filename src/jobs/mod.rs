@@ -89,6 +89,9 @@ pub struct JobSpec {
     pub filter: Option<spec::FilterSpec>,
     /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
     pub boundary: spec::BoundarySpec,
+    /// Safeguarded steps (see [`crate::flow::safeguard`]): a step that raises W or damages the
+    /// mesh is retried at a smaller τ. Every method; default on.
+    pub safeguard: bool,
 }
 
 impl Default for JobSpec {
@@ -106,6 +109,7 @@ impl Default for JobSpec {
             mobius_balancing: flow.mobius_balancing,
             filter: None,
             boundary: spec::BoundarySpec::Free,
+            safeguard: flow.safeguard,
         }
     }
 }
@@ -223,7 +227,7 @@ impl JobSpec {
             mobius_balancing: self.mobius_balancing,
             filter: self.filter.map(spec::FilterSpec::to_flow),
             boundary: self.boundary.to_flow(),
-            safeguard: true,
+            safeguard: self.safeguard,
         }
     }
 

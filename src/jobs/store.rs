@@ -126,6 +126,8 @@ struct HashedSpec<'a> {
     filter: Option<super::spec::FilterSpec>,
     #[serde(skip_serializing_if = "is_free")]
     boundary: &'a super::spec::BoundarySpec,
+    #[serde(skip_serializing_if = "is_true")]
+    safeguard: bool,
 }
 
 fn is_true(b: &bool) -> bool {
@@ -155,6 +157,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             mobius_balancing,
             filter,
             boundary,
+            safeguard,
         } = s;
         HashedSpec {
             method: *method,
@@ -168,6 +171,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             mobius_balancing: *mobius_balancing,
             filter: *filter,
             boundary,
+            safeguard: *safeguard,
         }
     }
 }
@@ -874,6 +878,11 @@ mod tests {
             ..JobSpec::default()
         };
         assert_ne!(request_hash(b"mesh", Format::Obj, &cmc), old);
+        let unguarded = JobSpec {
+            safeguard: false,
+            ..JobSpec::default()
+        };
+        assert_ne!(request_hash(b"mesh", Format::Obj, &unguarded), old);
         // And an old stored spec (without the new fields) still loads, with their defaults.
         let stored: JobSpec =
             serde_json::from_slice(first_release).expect("a first-release spec loads");
