@@ -1230,6 +1230,8 @@ fn metrics_pb(m: &StepMetrics) -> v1::StepMetrics {
         eigen_residual: m.eigen_residual,
         area: m.area,
         step_ms: m.step_ms,
+        tau: m.tau,
+        rejected: m.rejected,
     }
 }
 
