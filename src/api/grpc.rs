@@ -1291,6 +1291,29 @@ fn job_failure(status: &JobStatus) -> Option<tonic_types::pb::Status> {
     })
 }
 
+/// Why a succeeded job stopped before its last step (Job.stopped_early): the core's note
+/// (code `no_progress`) as a `google.rpc.Status` with code OK and the code as
+/// `ErrorInfo.reason`.
+fn job_stopped_early(status: &JobStatus) -> Option<tonic_types::pb::Status> {
+    if status.state != JobState::Succeeded {
+        return None;
+    }
+    let reason = status.error_code.as_deref()?;
+    let info = tonic_types::pb::ErrorInfo {
+        reason: reason.to_ascii_uppercase(),
+        domain: ERROR_DOMAIN.to_string(),
+        metadata: HashMap::new(),
+    };
+    Some(tonic_types::pb::Status {
+        code: Code::Ok as i32,
+        message: status.error.clone().unwrap_or_default(),
+        details: vec![prost_types::Any {
+            type_url: ERROR_INFO_TYPE_URL.to_string(),
+            value: info.encode_to_vec(),
+        }],
+    })
+}
+
 fn job_pb(status: &JobStatus) -> v1::Job {
     v1::Job {
         name: format!("jobs/{}", status.id),
@@ -1307,6 +1330,7 @@ fn job_pb(status: &JobStatus) -> v1::Job {
         expire_time: status.expires_at.map(timestamp),
         vertex_count: status.vertex_count as u64,
         face_count: status.face_count as u64,
+        stopped_early: job_stopped_early(status),
     }
 }
 

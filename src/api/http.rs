@@ -387,8 +387,13 @@ pub struct JobView {
     pub state: String,
     pub progress: Progress,
     pub metrics: LatestMetrics,
+    /// Why the job failed or was cancelled; on a `succeeded` job, why it stopped before
+    /// `total_steps` (then `error_code` is `no_progress`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// `deadline_exceeded`, `cancelled`, `numerical`, … for a failed or cancelled job;
+    /// `no_progress` on a succeeded job the safeguard stopped early (no acceptable step even at
+    /// τ/1024): its result is the last accepted surface, the one after `progress.step`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error_code: Option<String>,
     /// The parameters the job runs with, defaults filled in.
