@@ -266,3 +266,106 @@ fn prescribed_and_cmc_boundaries_from_the_command_line() {
         assert!(err.contains(needle), "{extra:?}: {err}");
     }
 }
+
+/// `generate::bumpy_sphere(2, 0.4)` (162 vertices) as OBJ text: an easy mesh for the conformal
+/// flow at τ = 0.5, and one where implicit MCF at τ = 1000 can make no acceptable step 3.
+fn bumpy_obj() -> String {
+    let mesh = willow::mesh::generate::bumpy_sphere(2, 0.4);
+    let mut s = String::new();
+    for p in &mesh.positions {
+        s += &format!("v {} {} {}\n", p[0], p[1], p[2]);
+    }
+    for t in &mesh.triangles {
+        s += &format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1);
+    }
+    s
+}
+
+fn json_lines(out: &std::process::Output) -> Vec<serde_json::Value> {
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("each line is JSON"))
+        .collect()
+}
+
+/// Each JSON line reports the τ its step used and its rejected tries: the requested τ and 0
+/// on an easy mesh, with the safeguard on (the default) or off.
+#[test]
+fn json_lines_report_tau_and_rejected_tries_with_and_without_the_safeguard() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let input = dir.path().join("bumpy.obj");
+    std::fs::write(&input, bumpy_obj()).expect("write mesh");
+    for extra in [&[][..], &["--no-safeguard"][..]] {
+        let out = willow()
+            .arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(dir.path().join("o.obj"))
+            .args(["--steps", "3", "--tau", "0.5", "--json"])
+            .args(extra)
+            .output()
+            .expect("run willow");
+        assert!(
+            out.status.success(),
+            "{extra:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let lines = json_lines(&out);
+        assert_eq!(lines.len(), 3, "{extra:?}");
+        for line in &lines {
+            assert_eq!(line["tau"].as_f64(), Some(0.5), "{extra:?}: {line}");
+            assert_eq!(line["rejected"].as_u64(), Some(0), "{extra:?}: {line}");
+        }
+    }
+}
+
+/// Implicit MCF at τ = 1000 on the bumpy sphere: steps 1 and 2 are kept, and no τ down to
+/// 1000/1024 keeps W from rising at step 3 (the library's safeguard gives up with
+/// `NoProgress`). The CLI writes the surface after step 2 (the same bytes as frame 2), names
+/// the reason on stderr and exits with 3.
+#[test]
+fn no_progress_writes_the_last_good_mesh_and_exits_3() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let input = dir.path().join("bumpy.obj");
+    std::fs::write(&input, bumpy_obj()).expect("write mesh");
+    let output = dir.path().join("out.obj");
+    let frames = dir.path().join("frames");
+    let out = willow()
+        .arg("fair")
+        .arg(&input)
+        .arg("-o")
+        .arg(&output)
+        .args(["--steps", "6", "--method", "mcf", "--tau", "1000", "--json"])
+        .arg("--frames-dir")
+        .arg(&frames)
+        .output()
+        .expect("run willow");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "stderr: {stderr}");
+    assert!(
+        stderr.contains("no progress at step 3") && stderr.contains("Willmore energy would rise"),
+        "the reason is named: {stderr}"
+    );
+    let lines = json_lines(&out);
+    assert_eq!(lines.len(), 2, "steps 1 and 2 were kept");
+    for line in &lines {
+        assert_eq!(line["tau"].as_f64(), Some(1000.0), "{line}");
+        assert_eq!(line["rejected"].as_u64(), Some(0), "{line}");
+    }
+    let written = std::fs::read(&output).expect("the output is written");
+    let frame2 = std::fs::read(frames.join("frame_0002.obj")).expect("frame 2");
+    assert_eq!(written, frame2, "the output is the last accepted surface");
+    assert!(!frames.join("frame_0003.obj").exists());
+    let text = String::from_utf8_lossy(&written);
+    let coords: Vec<f64> = text
+        .lines()
+        .filter(|l| l.starts_with("v "))
+        .flat_map(|l| {
+            l.split_whitespace()
+                .skip(1)
+                .map(|c| c.parse().unwrap_or(f64::NAN))
+        })
+        .collect();
+    assert_eq!(coords.len(), 3 * 162);
+    assert!(coords.iter().all(|c| c.is_finite()));
+}

@@ -309,6 +309,7 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");
     let status = jobs.get(&job.id).await.expect("the old row loads");
     assert_eq!(status.spec, spec(1), "new fields take their defaults");
+    assert!(status.spec.safeguard, "an old row runs safeguarded");
     assert_eq!(status.state, JobState::Succeeded);
     let again = jobs
         .submit(obj(small_obj()), spec(1), Some("before-upgrade".into()))

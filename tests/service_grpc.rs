@@ -1710,3 +1710,151 @@ async fn fair_curve_rounds_a_noisy_curve_and_refuses_hostile_input() {
         status.message()
     );
 }
+
+// ---------------------------------------------------------------------------------------------
+// Issue 10: safeguarded steps.
+
+/// The frames StreamFrames sent, in order.
+fn frames_of(events: &[v1::stream_frames_response::Event]) -> Vec<v1::Frame> {
+    use v1::stream_frames_response::Event;
+    events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Frame(f) => Some(f.clone()),
+            Event::Job(_) => None,
+        })
+        .collect()
+}
+
+/// `safeguard` is reported back by CreateJob and GetJob; frames carry the τ each step used
+/// and its rejected tries; and a job whose flow can make no acceptable step (implicit MCF at
+/// τ = 1000 on `bumpy_sphere(2, 0.4)`: steps 1 and 2 are kept, step 3 raises W even at
+/// τ/1024) ends SUCCEEDED after step 2 with Job.stopped_early (reason NO_PROGRESS), and
+/// DownloadResult gives the surface of the last frame.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let bumpy = obj_text(&generate::bumpy_sphere(2, 0.4)).into_bytes();
+
+    for (safeguard, reported) in [(None, true), (Some(false), false), (Some(true), true)] {
+        let op = create(
+            &mut client,
+            inline(v1::MeshFormat::Obj, bumpy.clone()),
+            v1::JobParams {
+                tau: Some(0.5),
+                safeguard,
+                ..params(v1::Method::Conformal, 3)
+            },
+            "",
+        )
+        .await
+        .expect("CreateJob");
+        let created = job_from_any(op.metadata.as_ref().expect("metadata"));
+        assert_eq!(
+            created.params.as_ref().and_then(|p| p.safeguard),
+            Some(reported),
+            "{safeguard:?}"
+        );
+        let frames = frames_of(&stream_all(&mut client, &op.name, 0).await);
+        assert_eq!(frames.len(), 4, "{safeguard:?}");
+        let metrics: Vec<(f64, u32)> = frames
+            .iter()
+            .map(|f| {
+                let m = f.metrics.as_ref().expect("metrics");
+                (m.tau, m.rejected)
+            })
+            .collect();
+        assert_eq!(metrics, vec![(0.0, 0), (0.5, 0), (0.5, 0), (0.5, 0)]);
+        let done = get_job(&mut client, &op.name).await.expect("GetJob");
+        assert_eq!(state(&done), v1::job::State::Succeeded);
+        assert_eq!(done.params.and_then(|p| p.safeguard), Some(reported));
+        assert_eq!(done.latest.map(|m| m.tau), Some(0.5));
+        assert_eq!(done.stopped_early, None);
+    }
+
+    let op = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, bumpy.clone()),
+        v1::JobParams {
+            tau: Some(1000.0),
+            ..params(v1::Method::Mcf, 6)
+        },
+        "",
+    )
+    .await
+    .expect("CreateJob");
+    let frames = frames_of(&stream_all(&mut client, &op.name, 0).await);
+    assert_eq!(
+        frames.iter().map(|f| f.step).collect::<Vec<_>>(),
+        vec![0, 1, 2],
+        "steps 1 and 2 kept"
+    );
+    let last = frames.last().expect("a frame");
+    assert_eq!(last.metrics.as_ref().map(|m| m.tau), Some(1000.0));
+    let done = get_job(&mut client, &op.name).await.expect("GetJob");
+    assert_eq!(state(&done), v1::job::State::Succeeded, "{:?}", done.error);
+    assert_eq!(done.error, None, "not a failure");
+    assert_eq!((done.step, done.total_steps), (2, 6));
+    let note = done.stopped_early.expect("Job.stopped_early");
+    assert_eq!(note.code, Code::Ok as i32);
+    assert!(
+        note.message.contains("no progress at step 3")
+            && note.message.contains("Willmore energy would rise"),
+        "{}",
+        note.message
+    );
+    let info = note
+        .details
+        .iter()
+        .find(|d| d.type_url == "type.googleapis.com/google.rpc.ErrorInfo")
+        .map(|d| tonic_types::pb::ErrorInfo::decode(d.value.as_ref()).expect("ErrorInfo"))
+        .expect("ErrorInfo detail");
+    assert_eq!(info.reason, "NO_PROGRESS");
+
+    let mut download = client
+        .download_result(v1::DownloadResultRequest {
+            name: op.name.clone(),
+            format: v1::MeshFormat::Obj as i32,
+        })
+        .await
+        .expect("DownloadResult")
+        .into_inner();
+    let mut file = Vec::new();
+    while let Some(chunk) = download.message().await.expect("download stream") {
+        file.extend_from_slice(&chunk.data);
+    }
+    let text = String::from_utf8(file).expect("OBJ text");
+    let result: Vec<[f64; 3]> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .map(|t| t.parse().unwrap_or(f64::NAN))
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect();
+    let frame: Vec<[f32; 3]> = last
+        .positions
+        .as_ref()
+        .expect("the last frame carries positions")
+        .chunks_exact(12)
+        .map(|c| {
+            let f = |i: usize| f32::from_le_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
+            [f(0), f(4), f(8)]
+        })
+        .collect();
+    assert_eq!(result.len(), 162);
+    assert_eq!(frame.len(), result.len());
+    for (r, f) in result.iter().zip(&frame) {
+        for k in 0..3 {
+            assert!(r[k].is_finite());
+            assert!(
+                (r[k] - f64::from(f[k])).abs() <= 1e-6 * (1.0 + r[k].abs()),
+                "result {r:?} against the last frame {f:?}"
+            );
+        }
+    }
+}

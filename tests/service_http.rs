@@ -1224,6 +1224,7 @@ async fn every_flow_option_reaches_the_flow_and_is_reported_back() {
     assert_eq!(params["mobius_balancing"], false);
     assert_eq!(params["filter"], serde_json::Value::Null);
     assert_eq!(params["boundary"], "free");
+    assert_eq!(params["safeguard"], true);
     let prescribed = run_job(
         &srv,
         &cap,
@@ -1802,5 +1803,151 @@ async fn curve_slots_are_bounded_and_deadlines_end_long_requests() {
     assert!(p["step"].as_u64() < Some(1000), "{p}");
     let (status, out) = post_curve(&srv, "application/json", small, "").await;
     assert_eq!(status, 200, "{out}");
+    srv.stop().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Issue 10: safeguarded steps.
+
+/// Little-endian f32 xyz triples of a frame's `positions_b64`.
+fn frame_positions(frame: &serde_json::Value) -> Vec<[f32; 3]> {
+    use base64::Engine as _;
+    let raw = base64::engine::general_purpose::STANDARD
+        .decode(frame["positions_b64"].as_str().expect("positions_b64"))
+        .expect("valid base64");
+    raw.chunks_exact(12)
+        .map(|c| {
+            let f = |i: usize| f32::from_le_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
+            [f(0), f(4), f(8)]
+        })
+        .collect()
+}
+
+/// The `v` coordinates of an OBJ file, in file order.
+fn obj_vertices(text: &str) -> Vec<[f64; 3]> {
+    text.lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .map(|t| t.parse().unwrap_or(f64::NAN))
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect()
+}
+
+/// `safeguard` is reported back and reaches the flow; frames carry the τ each step used and
+/// its rejected tries; and a job whose flow can make no acceptable step (implicit MCF at
+/// τ = 1000 on `bumpy_sphere(2, 0.4)`: steps 1 and 2 are kept, step 3 raises W even at
+/// τ/1024) ends succeeded after step 2 with code `no_progress` and the reason, its result
+/// being the surface of the last frame.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
+    let srv = start(|_| {}).await;
+    let bumpy = obj_text(&willow::mesh::generate::bumpy_sphere(2, 0.4));
+
+    // On an easy mesh, every step is taken at the requested τ, guarded or not.
+    for (query, guarded) in [("steps=3", true), ("steps=3&safeguard=false", false)] {
+        let (status, _, job) = srv.submit_obj(&bumpy, query).await;
+        assert_eq!(status, 202, "{query}: {job}");
+        assert_eq!(job["params"]["safeguard"], guarded, "{query}");
+        let id = job["id"].as_str().expect("id").to_string();
+        let res = srv
+            .client
+            .get(srv.url(&format!("/v1/jobs/{id}/events")))
+            .send()
+            .await
+            .expect("GET events");
+        let events = read_sse(res, JOB_TIMEOUT).await;
+        let frames: Vec<_> = events.iter().filter(|e| e.event == "frame").collect();
+        assert_eq!(frames.len(), 4, "{query}");
+        assert_eq!(frames[0].data["metrics"]["tau"], 0.0, "step 0 is the input");
+        for f in &frames[1..] {
+            assert_eq!(
+                f.data["metrics"]["tau"], 0.5,
+                "{query}: {}",
+                f.data["metrics"]
+            );
+            assert_eq!(f.data["metrics"]["rejected"], 0, "{query}");
+        }
+        let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+        assert_eq!(done["state"], "succeeded", "{done}");
+        assert_eq!(done["params"]["safeguard"], guarded);
+        assert_eq!(done["metrics"]["latest"]["tau"], 0.5);
+        // The stored frames (replayed from the database) keep tau and rejected too.
+        let (_, listed) = srv.get_json(&format!("/v1/jobs/{id}/frames")).await;
+        let stored: Vec<_> = listed["frames"]
+            .as_array()
+            .expect("frames")
+            .iter()
+            .map(|m| (m["tau"].as_f64(), m["rejected"].as_u64()))
+            .collect();
+        assert_eq!(
+            stored,
+            vec![
+                (Some(0.0), Some(0)),
+                (Some(0.5), Some(0)),
+                (Some(0.5), Some(0)),
+                (Some(0.5), Some(0))
+            ]
+        );
+    }
+
+    // No progress: the job ends early with the last accepted surface as its result.
+    let (status, _, job) = srv.submit_obj(&bumpy, "steps=6&method=mcf&tau=1000").await;
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().expect("id").to_string();
+    let res = srv
+        .client
+        .get(srv.url(&format!("/v1/jobs/{id}/events")))
+        .send()
+        .await
+        .expect("GET events");
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    assert_eq!(frame_steps(&events), vec![0, 1, 2], "steps 1 and 2 kept");
+    let last = events
+        .iter()
+        .rfind(|e| e.event == "frame")
+        .expect("a frame");
+    assert_eq!(last.data["metrics"]["tau"], 1000.0);
+    let done = events.last().expect("done");
+    assert_eq!(done.event, "done");
+    for view in [
+        done.data.clone(),
+        srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await,
+    ] {
+        assert_eq!(view["state"], "succeeded", "{view}");
+        assert_eq!(view["error_code"], "no_progress", "{view}");
+        let reason = view["error"].as_str().unwrap_or_default();
+        assert!(
+            reason.contains("no progress at step 3")
+                && reason.contains("Willmore energy would rise"),
+            "{reason}"
+        );
+        assert_eq!(view["progress"]["step"], 2);
+        assert_eq!(view["progress"]["total_steps"], 6);
+    }
+    let res = srv
+        .client
+        .get(srv.url(&format!("/v1/jobs/{id}/result?format=obj")))
+        .send()
+        .await
+        .expect("GET result");
+    assert_eq!(res.status(), 200);
+    let text = res.text().await.expect("OBJ text");
+    let result = obj_vertices(&text);
+    let frame = frame_positions(&last.data);
+    assert_eq!(result.len(), 162);
+    assert_eq!(frame.len(), result.len());
+    for (r, f) in result.iter().zip(&frame) {
+        for k in 0..3 {
+            assert!(r[k].is_finite());
+            assert!(
+                (r[k] - f64::from(f[k])).abs() <= 1e-6 * (1.0 + r[k].abs()),
+                "result {r:?} against the last frame {f:?}"
+            );
+        }
+    }
     srv.stop().await;
 }

@@ -670,7 +670,7 @@ fn spec_field(core_field: &str) -> String {
             "params.boundary.prescribed.angles.per_loop.values".into()
         }
         "method" | "steps" | "tau" | "iterations" | "frame_interval" | "include_positions"
-        | "exactness" | "mobius_balancing" | "filter" | "boundary" => {
+        | "exactness" | "mobius_balancing" | "filter" | "boundary" | "safeguard" => {
             format!("params.{core_field}")
         }
         nested if nested.starts_with("filter.") || nested.starts_with("boundary.") => {
@@ -987,6 +987,9 @@ fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Status> {
     if let Some(boundary) = p.boundary {
         spec.boundary = boundary_from_pb(boundary);
     }
+    if let Some(safeguard) = p.safeguard {
+        spec.safeguard = safeguard;
+    }
     Ok(spec)
 }
 
@@ -1166,6 +1169,7 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
             k: f.k,
         }),
         boundary: Some(boundary_pb(&spec.boundary)),
+        safeguard: Some(spec.safeguard),
     }
 }
 
@@ -1226,6 +1230,8 @@ fn metrics_pb(m: &StepMetrics) -> v1::StepMetrics {
         eigen_residual: m.eigen_residual,
         area: m.area,
         step_ms: m.step_ms,
+        tau: m.tau,
+        rejected: m.rejected,
     }
 }
 
@@ -1285,6 +1291,29 @@ fn job_failure(status: &JobStatus) -> Option<tonic_types::pb::Status> {
     })
 }
 
+/// Why a succeeded job stopped before its last step (Job.stopped_early): the core's note
+/// (code `no_progress`) as a `google.rpc.Status` with code OK and the code as
+/// `ErrorInfo.reason`.
+fn job_stopped_early(status: &JobStatus) -> Option<tonic_types::pb::Status> {
+    if status.state != JobState::Succeeded {
+        return None;
+    }
+    let reason = status.error_code.as_deref()?;
+    let info = tonic_types::pb::ErrorInfo {
+        reason: reason.to_ascii_uppercase(),
+        domain: ERROR_DOMAIN.to_string(),
+        metadata: HashMap::new(),
+    };
+    Some(tonic_types::pb::Status {
+        code: Code::Ok as i32,
+        message: status.error.clone().unwrap_or_default(),
+        details: vec![prost_types::Any {
+            type_url: ERROR_INFO_TYPE_URL.to_string(),
+            value: info.encode_to_vec(),
+        }],
+    })
+}
+
 fn job_pb(status: &JobStatus) -> v1::Job {
     v1::Job {
         name: format!("jobs/{}", status.id),
@@ -1301,6 +1330,7 @@ fn job_pb(status: &JobStatus) -> v1::Job {
         expire_time: status.expires_at.map(timestamp),
         vertex_count: status.vertex_count as u64,
         face_count: status.face_count as u64,
+        stopped_early: job_stopped_early(status),
     }
 }
 

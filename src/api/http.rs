@@ -99,6 +99,9 @@ pub struct JobParams {
     pub filter: Option<FilterSpec>,
     /// `"free"` (default), `"fixed"`, `"cmc"` or `{"prescribed": {…}}`. Conformal flow only.
     pub boundary: Option<BoundarySpec>,
+    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
+    /// (default true). Every method.
+    pub safeguard: Option<bool>,
 }
 
 impl JobParams {
@@ -133,6 +136,9 @@ impl JobParams {
         spec.filter = self.filter;
         if let Some(v) = self.boundary {
             spec.boundary = v;
+        }
+        if let Some(v) = self.safeguard {
+            spec.safeguard = v;
         }
         Ok(spec)
     }
@@ -222,6 +228,9 @@ pub struct JobQuery {
     #[serde(rename = "boundary.prescribed.angles.per_loop")]
     #[param(rename = "boundary.prescribed.angles.per_loop")]
     pub angles_per_loop: Option<String>,
+    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
+    /// (default true). Every method.
+    pub safeguard: Option<bool>,
 }
 
 impl JobQuery {
@@ -328,6 +337,7 @@ impl JobQuery {
             mobius_balancing: self.mobius_balancing,
             filter,
             boundary,
+            safeguard: self.safeguard,
         })
     }
 }
@@ -377,8 +387,13 @@ pub struct JobView {
     pub state: String,
     pub progress: Progress,
     pub metrics: LatestMetrics,
+    /// Why the job failed or was cancelled; on a `succeeded` job, why it stopped before
+    /// `total_steps` (then `error_code` is `no_progress`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// `deadline_exceeded`, `cancelled`, `numerical`, … for a failed or cancelled job;
+    /// `no_progress` on a succeeded job the safeguard stopped early (no acceptable step even at
+    /// τ/1024): its result is the last accepted surface, the one after `progress.step`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error_code: Option<String>,
     /// The parameters the job runs with, defaults filled in.

@@ -1,7 +1,11 @@
 //! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
-//! [--frames-dir DIR] [--json]`: the contract other tools rely on.
+//! [--frames-dir DIR] [--json] [--no-safeguard]`: the contract other tools rely on.
+//!
+//! Exit codes: 0 done; 2 input refused; 1 failure while running (no output written); 3 the
+//! safeguard found no acceptable step (`FlowError::NoProgress`): the output holds the last
+//! accepted surface and stderr says why the flow stopped.
 
-use super::{fail, read_input, EXIT_BAD_INPUT, EXIT_FAILURE};
+use super::{fail, read_input, EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_NO_PROGRESS};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
@@ -9,7 +13,8 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use willow::flow::filter::SpectralFilter;
 use willow::flow::{
-    new_flow, Boundary, BoundaryAngles, FlowParams, Method, PrescribedVectors, RotationAxis,
+    new_flow, Boundary, BoundaryAngles, FlowError, FlowParams, Method, PrescribedVectors,
+    RotationAxis,
 };
 use willow::mesh::io::{Asset, Format, Limits};
 
@@ -46,6 +51,10 @@ pub struct FairArgs {
     /// Möbius balancing toward the input's area distribution (App. E).
     #[arg(long)]
     pub mobius: bool,
+    /// Take every step at --tau whatever it does. By default a step that raises the Willmore
+    /// energy or damages the mesh is retried at a smaller τ (willow::flow::safeguard).
+    #[arg(long)]
+    pub no_safeguard: bool,
     /// Spectral filter strength σ (§4, unitless: σ = (l(l+1))^−k puts the crossover at
     /// spherical degree l); needs --filter-k.
     #[arg(long, requires = "filter_k")]
@@ -178,7 +187,7 @@ pub fn run(args: FairArgs) -> ExitCode {
             _ => None,
         },
         boundary,
-        safeguard: true,
+        safeguard: !args.no_safeguard,
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
@@ -204,9 +213,15 @@ pub fn run(args: FairArgs) -> ExitCode {
         None
     };
     let stdout = std::io::stdout();
+    let mut stopped_early = None;
     for _ in 0..args.steps {
         let metrics = match flow.step() {
             Ok(m) => m,
+            // The flow is still on the last accepted surface: write it below, then say why.
+            Err(e @ FlowError::NoProgress { .. }) => {
+                stopped_early = Some(e);
+                break;
+            }
             Err(e) => return fail(EXIT_FAILURE, e),
         };
         if args.json {
@@ -222,8 +237,15 @@ pub fn run(args: FairArgs) -> ExitCode {
         }
         if let Some(bar) = &progress {
             bar.set_message(format!(
-                "W {:.4}  Q mean {:.4}  {:.0} ms",
-                metrics.willmore_energy, metrics.q_mean, metrics.step_ms
+                "W {:.4}  Q mean {:.4}  τ {}{}  {:.0} ms",
+                metrics.willmore_energy,
+                metrics.q_mean,
+                metrics.tau,
+                match metrics.rejected {
+                    0 => String::new(),
+                    n => format!(" ({n} rejected)"),
+                },
+                metrics.step_ms
             ));
             bar.inc(1);
         }
@@ -241,9 +263,18 @@ pub fn run(args: FairArgs) -> ExitCode {
     if let Some(bar) = progress {
         bar.finish();
     }
-    match write_mesh(&asset, flow.positions(), output_format, &args.output) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => fail(EXIT_FAILURE, e),
+    if let Err(e) = write_mesh(&asset, flow.positions(), output_format, &args.output) {
+        return fail(EXIT_FAILURE, e);
+    }
+    match stopped_early {
+        None => ExitCode::SUCCESS,
+        Some(e) => fail(
+            EXIT_NO_PROGRESS,
+            format!(
+                "{e}; {} holds the last accepted surface",
+                args.output.display()
+            ),
+        ),
     }
 }
 

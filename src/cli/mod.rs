@@ -11,6 +11,10 @@ use std::process::ExitCode;
 pub const EXIT_BAD_INPUT: u8 = 2;
 /// Exit code for a failure while running (numerical failure, unwritable output).
 pub const EXIT_FAILURE: u8 = 1;
+/// Exit code for a flow the safeguard stopped early (`FlowError::NoProgress`): the output file
+/// holds the last accepted surface, so it is usable, but it is not the requested number of
+/// steps. Distinct from 0 so scripts notice, and from 1 so they can keep the file.
+pub const EXIT_NO_PROGRESS: u8 = 3;
 
 pub fn fail(code: u8, message: impl std::fmt::Display) -> ExitCode {
     eprintln!("error: {message}");

@@ -89,6 +89,9 @@ pub struct JobSpec {
     pub filter: Option<spec::FilterSpec>,
     /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
     pub boundary: spec::BoundarySpec,
+    /// Safeguarded steps (see [`crate::flow::safeguard`]): a step that raises W or damages the
+    /// mesh is retried at a smaller τ. Every method; default on.
+    pub safeguard: bool,
 }
 
 impl Default for JobSpec {
@@ -106,6 +109,7 @@ impl Default for JobSpec {
             mobius_balancing: flow.mobius_balancing,
             filter: None,
             boundary: spec::BoundarySpec::Free,
+            safeguard: flow.safeguard,
         }
     }
 }
@@ -223,7 +227,7 @@ impl JobSpec {
             mobius_balancing: self.mobius_balancing,
             filter: self.filter.map(spec::FilterSpec::to_flow),
             boundary: self.boundary.to_flow(),
-            safeguard: true,
+            safeguard: self.safeguard,
         }
     }
 
@@ -303,10 +307,13 @@ pub struct JobStatus {
     pub face_count: usize,
     /// Metrics of the latest completed step (step 0 = the input) once the job has started.
     pub latest: Option<StepMetrics>,
-    /// Why the job failed or was cancelled, for people.
+    /// Why the job failed or was cancelled, for people; on a succeeded job, why it stopped
+    /// before `total_steps` (code `no_progress`).
     pub error: Option<String>,
     /// The same, for programs: `deadline_exceeded`, `cancelled`, `numerical`, `invalid_mesh`,
-    /// `unsupported`, `invalid_parameter`, `internal`.
+    /// `unsupported`, `invalid_parameter`, `internal`; and `no_progress` on a **succeeded** job
+    /// the safeguard stopped early (no acceptable step, even at τ/1024): its result is the
+    /// last accepted surface, the one after step `step`.
     pub error_code: Option<String>,
     pub created_at: u64,
     pub started_at: Option<u64>,

@@ -126,6 +126,8 @@ struct HashedSpec<'a> {
     filter: Option<super::spec::FilterSpec>,
     #[serde(skip_serializing_if = "is_free")]
     boundary: &'a super::spec::BoundarySpec,
+    #[serde(skip_serializing_if = "is_true")]
+    safeguard: bool,
 }
 
 fn is_true(b: &bool) -> bool {
@@ -155,6 +157,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             mobius_balancing,
             filter,
             boundary,
+            safeguard,
         } = s;
         HashedSpec {
             method: *method,
@@ -168,14 +171,22 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             mobius_balancing: *mobius_balancing,
             filter: *filter,
             boundary,
+            safeguard: *safeguard,
         }
     }
 }
 
-/// The fixed binary form of [`StepMetrics`] (step as u64, then nine f64, all LE). Binary and
-/// not JSON because a metric may legitimately be NaN or infinite, which JSON cannot carry.
+/// Bytes of a metrics row as the first release wrote it: step as u64, then nine f64
+/// (`willmore_energy` … `step_ms`), all little-endian.
+const METRICS_V1_BYTES: usize = 80;
+/// Bytes of a metrics row now: the first release's 80, then `tau` (f64) and `rejected` (u32),
+/// little-endian. Rows are only ever appended to, so an old row is a prefix of a new one.
+const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
+
+/// The binary form of [`StepMetrics`] ([`METRICS_BYTES`]). Binary and not JSON because a
+/// metric may legitimately be NaN or infinite, which JSON cannot carry.
 fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
-    let mut out = Vec::with_capacity(80);
+    let mut out = Vec::with_capacity(METRICS_BYTES);
     out.extend_from_slice(&(m.step as u64).to_le_bytes());
     for v in [
         m.willmore_energy,
@@ -187,16 +198,21 @@ fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
         m.eigen_residual,
         m.area,
         m.step_ms,
+        m.tau,
     ] {
         out.extend_from_slice(&v.to_le_bytes());
     }
+    out.extend_from_slice(&m.rejected.to_le_bytes());
     out
 }
 
+/// Reads a row of either length: one written before the safeguard existed
+/// ([`METRICS_V1_BYTES`]) has `tau = 0` and `rejected = 0`, as [`StepMetrics`] documents.
 fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
-    if b.len() != 80 {
+    if b.len() != METRICS_BYTES && b.len() != METRICS_V1_BYTES {
         return Err(JobError::Internal(format!(
-            "stored metrics have {} bytes, expected 80",
+            "stored metrics have {} bytes, expected {METRICS_BYTES} (or {METRICS_V1_BYTES} for \
+             rows written before the safeguard)",
             b.len()
         )));
     }
@@ -206,6 +222,13 @@ fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         a
     };
     let f = |i: usize| f64::from_le_bytes(u(i));
+    let (tau, rejected) = if b.len() == METRICS_BYTES {
+        let mut r = [0u8; 4];
+        r.copy_from_slice(&b[METRICS_V1_BYTES + 8..]);
+        (f(10), u32::from_le_bytes(r))
+    } else {
+        (0.0, 0)
+    };
     Ok(StepMetrics {
         step: u64::from_le_bytes(u(0)) as usize,
         willmore_energy: f(1),
@@ -217,8 +240,8 @@ fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         eigen_residual: f(7),
         area: f(8),
         step_ms: f(9),
-        tau: 0.0,
-        rejected: 0,
+        tau,
+        rejected,
     })
 }
 
@@ -874,6 +897,11 @@ mod tests {
             ..JobSpec::default()
         };
         assert_ne!(request_hash(b"mesh", Format::Obj, &cmc), old);
+        let unguarded = JobSpec {
+            safeguard: false,
+            ..JobSpec::default()
+        };
+        assert_ne!(request_hash(b"mesh", Format::Obj, &unguarded), old);
         // And an old stored spec (without the new fields) still loads, with their defaults.
         let stored: JobSpec =
             serde_json::from_slice(first_release).expect("a first-release spec loads");
@@ -893,15 +921,46 @@ mod tests {
             eigen_residual: 0.0,
             area: 4.0,
             step_ms: 3.25,
-            tau: 0.0,
-            rejected: 0,
+            tau: 0.125,
+            rejected: 3,
         };
-        let back = decode_metrics(&encode_metrics(&m)).expect("80 bytes decode");
+        let blob = encode_metrics(&m);
+        assert_eq!(blob.len(), METRICS_BYTES);
+        let back = decode_metrics(&blob).expect("a new row decodes");
         assert_eq!(back.step, 7);
         assert_eq!(back.willmore_energy, 12.5);
         assert!(back.q_p95.is_nan());
         assert_eq!(back.q_max, f64::INFINITY);
         assert_eq!(back.step_ms, 3.25);
+        assert_eq!(back.tau, 0.125);
+        assert_eq!(back.rejected, 3);
+    }
+
+    /// A row as the first release stored it (80 bytes, built here by hand, not by
+    /// `encode_metrics`) still decodes, with `tau = 0` and `rejected = 0`.
+    #[test]
+    fn metrics_stored_before_the_safeguard_decode_with_tau_zero() {
+        let mut old = Vec::new();
+        old.extend_from_slice(&5u64.to_le_bytes());
+        for v in [14.0, 1.1, 1.05, 1.2, 1.5, 1e-8, 1e-10, 12.0, 4.5] {
+            old.extend_from_slice(&f64::to_le_bytes(v));
+        }
+        assert_eq!(old.len(), 80);
+        let m = decode_metrics(&old).expect("an old row decodes");
+        assert_eq!(m.step, 5);
+        assert_eq!(m.willmore_energy, 14.0);
+        assert_eq!(m.area, 12.0);
+        assert_eq!(m.step_ms, 4.5);
+        assert_eq!(m.tau, 0.0);
+        assert_eq!(m.rejected, 0);
+        // The new form is the old one with tau and rejected appended.
+        assert_eq!(encode_metrics(&m)[..80], old[..]);
+        for bad in [79, 81, 91, 93] {
+            assert!(
+                decode_metrics(&vec![0; bad]).is_err(),
+                "{bad} bytes accepted"
+            );
+        }
     }
 
     #[test]

@@ -183,6 +183,9 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
     };
 
     emit(0, flow.initial_metrics(), flow.positions())?;
+    // Set when the safeguard finds no acceptable step: the job then ends early, succeeded,
+    // with this (code, reason) as its note (see `JobStatus::error_code`).
+    let mut stopped_early = None;
     for step in 1..=spec.steps {
         if let Some(stop) = check(step - 1) {
             return stopped(inner, id, stop, &running);
@@ -190,6 +193,14 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
         let t = Instant::now();
         let metrics = match flow.step() {
             Ok(m) => m,
+            // The safeguard put the flow back on the last accepted surface (step − 1), whose
+            // frame is already stored: that surface is the result. Succeeded rather than failed,
+            // so "succeeded ⇔ has a result" stays true for the store and for every client.
+            Err(e @ FlowError::NoProgress { .. }) => {
+                tracing::info!(step, reason = %e, "flow stopped early");
+                stopped_early = Some((flow_error_code(&e), e.to_string()));
+                break;
+            }
             Err(e) => {
                 tracing::warn!(step, error = %e, "flow failed");
                 finish(
@@ -205,8 +216,23 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
             .telemetry
             .step_seconds
             .observe(t.elapsed().as_secs_f64());
+        // Accepted safeguarded steps are finite by construction; with the safeguard off a
+        // diverging flow may not be, and nothing non-finite is streamed or stored.
+        if let Some(bad) = first_non_finite(flow.positions()) {
+            finish(
+                inner,
+                id,
+                JobState::Failed,
+                Some((
+                    "numerical",
+                    format!("numerical failure at step {step}: vertex {bad} is not finite"),
+                )),
+            )?;
+            return Ok(());
+        }
         emit(step, metrics, flow.positions())?;
     }
+    debug_assert!(first_non_finite(flow.positions()).is_none());
     inner.store.write_result(id, flow.positions())?;
     let elapsed = started.elapsed();
     // Moving average with weight 1/4 for the newest job: reacts within a few jobs.
@@ -215,9 +241,16 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
     inner
         .avg_job_ms
         .store((prev * 3 + ms) / 4, Ordering::Relaxed);
-    finish(inner, id, JobState::Succeeded, None)?;
+    finish(inner, id, JobState::Succeeded, stopped_early)?;
     tracing::info!(elapsed_ms = ms, "job succeeded");
     Ok(())
+}
+
+/// The first vertex with a non-finite coordinate, if any.
+fn first_non_finite(positions: &[[f64; 3]]) -> Option<usize> {
+    positions
+        .iter()
+        .position(|p| !p.iter().all(|c| c.is_finite()))
 }
 
 fn stopped(inner: &Arc<Inner>, id: &str, stop: Stop, status: &JobStatus) -> Result<(), JobError> {
