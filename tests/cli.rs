@@ -149,6 +149,12 @@ fn bench_prints_figures_and_ratio() {
         line["ratio"].as_f64().unwrap_or(0.0),
     );
     assert!(c > 0.0 && m > 0.0 && (r - c / m).abs() < 1e-9 * r.max(1.0));
+    // The safeguard's cost, measured against the same flow unguarded in the same run.
+    assert!(line["unguarded_median_step_ms"].as_f64().unwrap_or(0.0) > 0.0);
+    assert!(line["safeguard_overhead_percent"]
+        .as_f64()
+        .is_some_and(f64::is_finite));
+    assert!(line["rejected_tries"].as_u64().is_some());
 }
 
 #[test]

@@ -1,6 +1,8 @@
 //! `willow bench [MESH...]`: per mesh, the median per-step time of the conformal flow and of
-//! implicit MCF measured in the same run (their steps interleaved), their ratio, and the
-//! conformal flow's peak memory. Figures, not
+//! implicit MCF measured in the same run (their steps interleaved), their ratio, the cost of
+//! the safeguard (the same conformal flow with `safeguard` off, interleaved too: where no try
+//! is rejected both take identical steps, so the time ratio is the safeguard's overhead), and
+//! the conformal flow's peak memory. Figures, not
 //! pass/fail: performance targets are checked by reading these, never by timed tests. The
 //! table ends with a line giving the median step of the closed curve flow (§5) at 2,000
 //! vertices.
@@ -46,6 +48,12 @@ struct Figures {
     conformal_median_step_ms: f64,
     mcf_median_step_ms: f64,
     ratio: f64,
+    /// Median conformal step with the safeguard off, and the overhead in %: the median of the
+    /// guarded steps taken at their first try over it, minus 1.
+    unguarded_median_step_ms: f64,
+    safeguard_overhead_percent: f64,
+    /// Tries the safeguard rejected over the guarded run (the overhead is meaningful at 0).
+    rejected_tries: u32,
     conformal_peak_rss_mb: Option<f64>,
     final_willmore_energy: f64,
     final_q_mean: f64,
@@ -61,8 +69,17 @@ pub fn run(args: BenchArgs) -> ExitCode {
     };
     if !args.json {
         println!(
-            "{:<28} {:>8} {:>8} {:>10} {:>14} {:>12} {:>7} {:>12}",
-            "mesh", "V", "F", "setup ms", "conformal ms", "MCF ms", "ratio", "peak RSS MB"
+            "{:<28} {:>8} {:>8} {:>10} {:>14} {:>12} {:>7} {:>14} {:>9} {:>12}",
+            "mesh",
+            "V",
+            "F",
+            "setup ms",
+            "conformal ms",
+            "MCF ms",
+            "ratio",
+            "guard % (rej)",
+            "",
+            "peak RSS MB"
         );
     }
     for (name, mesh) in inputs {
@@ -75,7 +92,7 @@ pub fn run(args: BenchArgs) -> ExitCode {
                     }
                 } else {
                     println!(
-                        "{:<28} {:>8} {:>8} {:>10.1} {:>14.1} {:>12.2} {:>7.2} {:>12}",
+                        "{:<28} {:>8} {:>8} {:>10.1} {:>14.1} {:>12.2} {:>7.2} {:>14.1} {:>9} {:>12}",
                         f.mesh,
                         f.vertices,
                         f.faces,
@@ -83,6 +100,8 @@ pub fn run(args: BenchArgs) -> ExitCode {
                         f.conformal_median_step_ms,
                         f.mcf_median_step_ms,
                         f.ratio,
+                        f.safeguard_overhead_percent,
+                        format!("({})", f.rejected_tries),
                         f.conformal_peak_rss_mb
                             .map(|m| format!("{m:.0}"))
                             .unwrap_or_else(|| "n/a".into())
@@ -211,13 +230,32 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
     // A small MCF step: its cost does not depend on τ, and mean curvature flow pinches thin
     // features (cheburashka's ears) within a few larger steps, after which M + hL stops being
     // positive definite. If it still breaks down, the steps it did take are timed.
+    // The yardstick runs unguarded: implicit MCF folds a face of cheburashka even at τ/1024
+    // (cotan weights go negative on obtuse triangles), so the safeguard would stop it at step
+    // 1, and the ratio is about the cost of one step, not about its quality.
     let mcf = FlowParams {
         method: Method::Mcf,
         tau: 0.01,
         iterations: 1,
+        safeguard: false,
         ..FlowParams::default()
     };
     let mut mcf_flow = new_flow(mesh, &mcf).map_err(|e| e.to_string())?;
+    let unguarded = FlowParams {
+        safeguard: false,
+        ..conformal.clone()
+    };
+    let mut unguarded_flow = new_flow(mesh, &unguarded).map_err(|e| e.to_string())?;
+    let mut unguarded_times = Vec::with_capacity(args.steps);
+    let mut unguarded_running = true;
+    let mut rejected = last.rejected;
+    // Guarded steps taken at their first try: the overhead is measured on those alone (a
+    // rejected try costs a whole step, which is the point, not overhead).
+    let mut clean_times: Vec<f64> = times
+        .iter()
+        .copied()
+        .filter(|_| last.rejected == 0)
+        .collect();
     let mut mcf_times = Vec::with_capacity(args.steps);
     let mut mcf_running = true;
     // The two flows take turns, step by step: this VM's speed drifts by up to 1.5x over
@@ -234,9 +272,23 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         if k + 1 < args.steps {
             last = flow.step().map_err(|e| e.to_string())?;
             times.push(last.step_ms);
+            rejected += last.rejected;
+            if last.rejected == 0 {
+                clean_times.push(last.step_ms);
+            }
+        }
+        if unguarded_running {
+            // Timed from outside, like the guarded step's step_ms (which spans its tries).
+            let t = std::time::Instant::now();
+            match unguarded_flow.step() {
+                Ok(_) => unguarded_times.push(t.elapsed().as_secs_f64() * 1e3),
+                Err(_) => unguarded_running = false,
+            }
         }
     }
-    drop((flow, mcf_flow));
+    drop((flow, mcf_flow, unguarded_flow));
+    let u = median(&mut unguarded_times);
+    let clean = median(&mut clean_times);
     let (c, m) = (median(&mut times), median(&mut mcf_times));
     Ok(Figures {
         mesh: name.to_string(),
@@ -246,6 +298,13 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         conformal_median_step_ms: c,
         mcf_median_step_ms: m,
         ratio: if m > 0.0 { c / m } else { f64::NAN },
+        unguarded_median_step_ms: u,
+        safeguard_overhead_percent: if u > 0.0 {
+            (clean / u - 1.0) * 100.0
+        } else {
+            f64::NAN
+        },
+        rejected_tries: rejected,
         conformal_peak_rss_mb: peak,
         final_willmore_energy: last.willmore_energy,
         final_q_mean: last.q_mean,

@@ -5,9 +5,14 @@
 //! overshoot, and a classic flow (implicit MCF) pinches. [`Safeguarded`] wraps any [`Flow`]:
 //!
 //! - a try is **accepted** when every position and metric is finite, the Willmore energy did
-//!   not rise by more than [`W_RISE`] (relative), no face turned over (its normal reversed
-//!   against the last accepted surface), Q max did not more than double in one step and stays
-//!   below [`Q_MAX_LIMIT`], and the closure residual stays below [`CLOSURE_LIMIT`];
+//!   not rise by more than [`W_RISE`] (relative), no face folded over in the step (its normal
+//!   at more than [`FOLD_ANGLE_COS`]'s angle from the summed normals of its edge neighbours,
+//!   where on the last accepted surface it still leaned with them; measured against the
+//!   neighbours, not against the face's own earlier normal, because a large step may turn
+//!   whole regions by more than 90°, and with that gap between the two thresholds so a face
+//!   on a sharp crease flickering about 90° is not a fold), Q max stays below [`Q_MAX_LIMIT`] (and, for the
+//!   conformal flow, grew less than [`Q_JUMP`]-fold in one step), and the closure residual stays
+//!   below [`CLOSURE_LIMIT`];
 //! - otherwise the flow is put back on the last accepted surface and the step is **retried at
 //!   τ/2**, down to τ/2^[`MAX_HALVINGS`]; after [`GROW_AFTER`] steps accepted at their first
 //!   try τ doubles again, up to the requested value (doubling after every step would retry
@@ -31,6 +36,14 @@ pub const Q_MAX_LIMIT: f64 = 1e3;
 /// Largest closure residual an accepted step may have: 10% of the new edges' length missing
 /// from the integrated surface means the step is far outside the regime it was derived for.
 pub const CLOSURE_LIMIT: f64 = 0.1;
+/// Largest factor by which Q max (against the input) may grow in one step of a conformal flow.
+/// Measured on cheburashka: steps that triple Q max (3.6 → 11 at τ = 0.125) are followed by
+/// folded faces a step later at any τ, while steps held to doubling keep it foldless (W 337 →
+/// 100 in 10 steps, Q max 37); spot's steps at τ = 0.5 raise it by 1.5× at most.
+pub const Q_JUMP: f64 = 2.0;
+/// A face has folded when the cosine between its normal and the summed normals of its edge
+/// neighbours drops below this (120°) in one step from non-negative.
+pub const FOLD_ANGLE_COS: f64 = -0.5;
 /// How many times τ is halved before the step gives up (τ/1024).
 pub const MAX_HALVINGS: u32 = 10;
 /// Steps accepted at their first try before τ doubles back toward the requested value.
@@ -52,6 +65,13 @@ pub trait Retry: Flow {
     fn descends(&self) -> bool {
         true
     }
+    /// Whether the flow is conformal, so that Q (against the input) only creeps: a jump of Q
+    /// max in one step then means a breakdown. A position-based flow changes angles at will
+    /// (implicit MCF moves a sliver of cheburashka from Q 1 to 18 at τ/1024), so only
+    /// [`Q_MAX_LIMIT`] applies to it.
+    fn conformal(&self) -> bool {
+        false
+    }
 }
 
 /// A flow whose steps are accepted or retried as the module docs describe.
@@ -64,6 +84,13 @@ pub struct Safeguarded<F: Retry> {
     /// Steps accepted at their first try since τ last changed.
     clean_steps: u32,
     triangles: Vec<[usize; 3]>,
+    /// Per face, the faces across its three edges (`usize::MAX` across a boundary edge).
+    neighbours: Vec<[usize; 3]>,
+    /// Scratch face normals, and each face's cosine to its neighbours on the accepted surface
+    /// and on the current try ([`neighbour_cosines_into`]).
+    normals: Vec<[f64; 3]>,
+    cosines: Vec<f64>,
+    cosines_try: Vec<f64>,
     /// The last accepted surface and its metrics.
     accepted: Vec<[f64; 3]>,
     accepted_metrics: StepMetrics,
@@ -72,7 +99,21 @@ pub struct Safeguarded<F: Retry> {
 impl<F: Retry> Safeguarded<F> {
     pub fn new(inner: F, triangles: &[[usize; 3]], enabled: bool) -> Self {
         let requested_tau = inner.tau();
+        let neighbours = face_neighbours(triangles);
+        let mut normals = vec![[0.0; 3]; triangles.len()];
+        let mut cosines = vec![0.0; triangles.len()];
+        neighbour_cosines_into(
+            inner.positions(),
+            triangles,
+            &neighbours,
+            &mut normals,
+            &mut cosines,
+        );
         Safeguarded {
+            cosines_try: cosines.clone(),
+            cosines,
+            normals,
+            neighbours,
             accepted: inner.positions().to_vec(),
             accepted_metrics: inner.initial_metrics(),
             inner,
@@ -85,7 +126,7 @@ impl<F: Retry> Safeguarded<F> {
     }
 
     /// Why the surface after a try may not be kept, or `None` if it may.
-    fn rejection(&self, m: &StepMetrics) -> Option<String> {
+    fn rejection(&mut self, m: &StepMetrics) -> Option<String> {
         let prev = &self.accepted_metrics;
         let finite = [
             m.willmore_energy,
@@ -112,7 +153,7 @@ impl<F: Retry> Safeguarded<F> {
                 m.willmore_energy
             ));
         }
-        if m.q_max > Q_MAX_LIMIT || m.q_max > 2.0 * prev.q_max {
+        if m.q_max > Q_MAX_LIMIT || (self.inner.conformal() && m.q_max > Q_JUMP * prev.q_max) {
             return Some(format!(
                 "Q max would jump from {:.3} to {:.3}",
                 prev.q_max, m.q_max
@@ -124,9 +165,21 @@ impl<F: Retry> Safeguarded<F> {
                 m.closure_residual
             ));
         }
-        let flipped = flipped_faces(&self.accepted, self.inner.positions(), &self.triangles);
-        if flipped > 0 {
-            return Some(format!("{flipped} faces would turn over"));
+        neighbour_cosines_into(
+            self.inner.positions(),
+            &self.triangles,
+            &self.neighbours,
+            &mut self.normals,
+            &mut self.cosines_try,
+        );
+        let folded = self
+            .cosines_try
+            .iter()
+            .zip(&self.cosines)
+            .filter(|&(&now, &before)| now < FOLD_ANGLE_COS && before >= 0.0)
+            .count();
+        if folded > 0 {
+            return Some(format!("{folded} faces would fold over"));
         }
         None
     }
@@ -152,6 +205,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
                         m.rejected = rejected;
                         m.step_ms = started.elapsed().as_secs_f64() * 1e3;
                         self.accepted.copy_from_slice(self.inner.positions());
+                        std::mem::swap(&mut self.cosines, &mut self.cosines_try);
                         self.accepted_metrics = m;
                         self.clean_steps = if rejected == 0 {
                             self.clean_steps + 1
@@ -193,47 +247,129 @@ impl<F: Retry> Flow for Safeguarded<F> {
     }
 }
 
-/// Faces whose normal points against their normal on `before` (a fold): `(b − a) × (c − a)`
-/// before and after have a non-positive dot product, where the face had a proper normal.
-pub fn flipped_faces(before: &[[f64; 3]], after: &[[f64; 3]], triangles: &[[usize; 3]]) -> usize {
-    let normal = |p: &[[f64; 3]], t: &[usize; 3]| {
-        let (a, b, c) = (p[t[0]], p[t[1]], p[t[2]]);
+/// Per face, the faces across its edges `(t[1], t[2])`, `(t[2], t[0])`, `(t[0], t[1])`, or
+/// `usize::MAX` where the edge is on the boundary (or non-manifold, refused by validation).
+pub fn face_neighbours(triangles: &[[usize; 3]]) -> Vec<[usize; 3]> {
+    let mut by_edge: std::collections::HashMap<(usize, usize), [usize; 2]> =
+        std::collections::HashMap::with_capacity(3 * triangles.len() / 2);
+    for (f, t) in triangles.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b) = (t[(k + 1) % 3], t[(k + 2) % 3]);
+            let slot = by_edge
+                .entry((a.min(b), a.max(b)))
+                .or_insert([usize::MAX; 2]);
+            if slot[0] == usize::MAX {
+                slot[0] = f;
+            } else {
+                slot[1] = f;
+            }
+        }
+    }
+    triangles
+        .iter()
+        .enumerate()
+        .map(|(f, t)| {
+            let mut out = [usize::MAX; 3];
+            for (k, o) in out.iter_mut().enumerate() {
+                let (a, b) = (t[(k + 1) % 3], t[(k + 2) % 3]);
+                if let Some(&[g, h]) = by_edge.get(&(a.min(b), a.max(b))) {
+                    *o = if g == f { h } else { g };
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+/// `out[f]`: cosine of the angle between face f's normal and the sum of its edge neighbours'
+/// normals (area-weighted: the cross products are not normalized); −1 for a degenerate face
+/// (zero normal), 1 for a face without neighbours. `normals` is scratch, one per face.
+pub fn neighbour_cosines_into(
+    positions: &[[f64; 3]],
+    triangles: &[[usize; 3]],
+    neighbours: &[[usize; 3]],
+    normals: &mut [[f64; 3]],
+    out: &mut [f64],
+) {
+    for (n, t) in normals.iter_mut().zip(triangles) {
+        let (a, b, c) = (positions[t[0]], positions[t[1]], positions[t[2]]);
         let (u, v) = (
             [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
             [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
         );
-        [
+        *n = [
             u[1] * v[2] - u[2] * v[1],
             u[2] * v[0] - u[0] * v[2],
             u[0] * v[1] - u[1] * v[0],
-        ]
-    };
-    triangles
-        .iter()
-        .filter(|t| {
-            let (n0, n1) = (normal(before, t), normal(after, t));
-            let had_normal = n0.iter().any(|&x| x != 0.0);
-            had_normal && n0[0] * n1[0] + n0[1] * n1[1] + n0[2] * n1[2] <= 0.0
-        })
-        .count()
+        ];
+    }
+    let length = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    for ((o, nb), &n) in out.iter_mut().zip(neighbours).zip(normals.iter()) {
+        let mut sum = [0.0; 3];
+        for &g in nb.iter().filter(|&&g| g != usize::MAX) {
+            for k in 0..3 {
+                sum[k] += normals[g][k];
+            }
+        }
+        let (ln, ls) = (length(n), length(sum));
+        *o = if !(ln > 0.0) {
+            -1.0
+        } else if !(ls > 0.0) {
+            1.0
+        } else {
+            (n[0] * sum[0] + n[1] * sum[1] + n[2] * sum[2]) / (ln * ls)
+        };
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// A fan of four faces around the origin, as a square pyramid's flat base, z up.
+    fn fan() -> (Vec<[f64; 3]>, Vec<[usize; 3]>) {
+        let p = vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [-1.0, 0.0, 0.0],
+            [0.0, -1.0, 0.0],
+        ];
+        let t = vec![[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1]];
+        (p, t)
+    }
+
+    fn inverted(p: &[[f64; 3]], t: &[[usize; 3]]) -> Vec<bool> {
+        let nb = face_neighbours(t);
+        let mut normals = vec![[0.0; 3]; t.len()];
+        let mut out = vec![0.0; t.len()];
+        neighbour_cosines_into(p, t, &nb, &mut normals, &mut out);
+        out.iter().map(|&c| c < FOLD_ANGLE_COS).collect()
+    }
+
     #[test]
-    fn a_face_turned_over_is_counted_and_a_rotated_one_is_not() {
-        let before = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
-        let tri = [[0, 1, 2]];
-        // Rotated a quarter turn about z: same orientation.
-        let rotated = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]];
-        assert_eq!(flipped_faces(&before, &rotated, &tri), 0);
-        // Mirrored through the x axis: turned over.
-        let mirrored = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]];
-        assert_eq!(flipped_faces(&before, &mirrored, &tri), 1);
-        // Collapsed to a segment: no normal any more, counted as turned over.
-        let collapsed = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]];
-        assert_eq!(flipped_faces(&before, &collapsed, &tri), 1);
+    fn neighbours_are_found_across_each_edge() {
+        let (_, t) = fan();
+        let nb = face_neighbours(&t);
+        // Face 0 = (0, 1, 2): across (1, 2) nothing, across (2, 0) face 1, across (0, 1) face 3.
+        assert_eq!(nb[0], [usize::MAX, 1, 3]);
+    }
+
+    #[test]
+    fn a_folded_face_is_inverted_and_a_turned_surface_is_not() {
+        let (p, t) = fan();
+        assert_eq!(inverted(&p, &t), vec![false; 4]);
+        // The whole fan turned upside down (a rotation by π about x): nothing folded.
+        let turned: Vec<[f64; 3]> = p.iter().map(|q| [q[0], -q[1], -q[2]]).collect();
+        assert_eq!(inverted(&turned, &t), vec![false; 4]);
+        // Vertex 2 pushed across the edge (0, 1): face 0 folds over its neighbours.
+        let mut folded = p.clone();
+        folded[2] = [0.5, -0.3, 0.0];
+        let inv = inverted(&folded, &t);
+        assert!(inv[0], "{inv:?}");
+        // A collapsed face counts as inverted.
+        let mut collapsed = p;
+        collapsed[2] = [0.5, 0.0, 0.0];
+        assert!(inverted(&collapsed, &t)[0]);
     }
 }

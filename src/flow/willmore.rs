@@ -875,6 +875,10 @@ impl super::safeguard::Retry for ConformalFlow {
     fn descends(&self) -> bool {
         !self.turns_boundary
     }
+
+    fn conformal(&self) -> bool {
+        true
+    }
 }
 
 impl Flow for ConformalFlow {
