@@ -312,9 +312,11 @@ pub fn neighbour_cosines_into(
             }
         }
         let (ln, ls) = (length(n), length(sum));
-        *o = if !(ln > 0.0) {
+        // Lengths are finite on accepted surfaces; a NaN (non-finite try) reads as degenerate.
+        let (degenerate, alone) = (ln.partial_cmp(&0.0), ls.partial_cmp(&0.0));
+        *o = if degenerate != Some(std::cmp::Ordering::Greater) {
             -1.0
-        } else if !(ls > 0.0) {
+        } else if alone != Some(std::cmp::Ordering::Greater) {
             1.0
         } else {
             (n[0] * sum[0] + n[1] * sum[1] + n[2] * sum[2]) / (ln * ls)
