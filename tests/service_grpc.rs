@@ -1825,36 +1825,10 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
         file.extend_from_slice(&chunk.data);
     }
     let text = String::from_utf8(file).expect("OBJ text");
-    let result: Vec<[f64; 3]> = text
-        .lines()
-        .filter_map(|l| l.strip_prefix("v "))
-        .map(|l| {
-            let c: Vec<f64> = l
-                .split_whitespace()
-                .map(|t| t.parse().unwrap_or(f64::NAN))
-                .collect();
-            [c[0], c[1], c[2]]
-        })
-        .collect();
-    let frame: Vec<[f32; 3]> = last
-        .positions
-        .as_ref()
-        .expect("the last frame carries positions")
-        .chunks_exact(12)
-        .map(|c| {
-            let f = |i: usize| f32::from_le_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
-            [f(0), f(4), f(8)]
-        })
-        .collect();
-    assert_eq!(result.len(), 162);
-    assert_eq!(frame.len(), result.len());
-    for (r, f) in result.iter().zip(&frame) {
-        for k in 0..3 {
-            assert!(r[k].is_finite());
-            assert!(
-                (r[k] - f64::from(f[k])).abs() <= 1e-6 * (1.0 + r[k].abs()),
-                "result {r:?} against the last frame {f:?}"
-            );
-        }
-    }
+    let frame = service_http_support::f32_triples(
+        last.positions
+            .as_ref()
+            .expect("the last frame carries positions"),
+    );
+    service_http_support::assert_obj_result_is_frame(&text, &frame, 162);
 }

@@ -1815,26 +1815,7 @@ fn frame_positions(frame: &serde_json::Value) -> Vec<[f32; 3]> {
     let raw = base64::engine::general_purpose::STANDARD
         .decode(frame["positions_b64"].as_str().expect("positions_b64"))
         .expect("valid base64");
-    raw.chunks_exact(12)
-        .map(|c| {
-            let f = |i: usize| f32::from_le_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
-            [f(0), f(4), f(8)]
-        })
-        .collect()
-}
-
-/// The `v` coordinates of an OBJ file, in file order.
-fn obj_vertices(text: &str) -> Vec<[f64; 3]> {
-    text.lines()
-        .filter_map(|l| l.strip_prefix("v "))
-        .map(|l| {
-            let c: Vec<f64> = l
-                .split_whitespace()
-                .map(|t| t.parse().unwrap_or(f64::NAN))
-                .collect();
-            [c[0], c[1], c[2]]
-        })
-        .collect()
+    f32_triples(&raw)
 }
 
 /// `safeguard` is reported back and reaches the flow; frames carry the τ each step used and
@@ -1936,18 +1917,6 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
         .expect("GET result");
     assert_eq!(res.status(), 200);
     let text = res.text().await.expect("OBJ text");
-    let result = obj_vertices(&text);
-    let frame = frame_positions(&last.data);
-    assert_eq!(result.len(), 162);
-    assert_eq!(frame.len(), result.len());
-    for (r, f) in result.iter().zip(&frame) {
-        for k in 0..3 {
-            assert!(r[k].is_finite());
-            assert!(
-                (r[k] - f64::from(f[k])).abs() <= 1e-6 * (1.0 + r[k].abs()),
-                "result {r:?} against the last frame {f:?}"
-            );
-        }
-    }
+    assert_obj_result_is_frame(&text, &frame_positions(&last.data), 162);
     srv.stop().await;
 }

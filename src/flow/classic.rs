@@ -53,20 +53,6 @@ impl ImplicitMeanCurvatureFlow {
     }
 }
 
-impl Retry for ImplicitMeanCurvatureFlow {
-    fn tau(&self) -> f64 {
-        self.tau
-    }
-
-    fn set_tau(&mut self, tau: f64) {
-        self.tau = tau;
-    }
-
-    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
-        self.surface.restore(positions, step);
-    }
-}
-
 impl Flow for ImplicitMeanCurvatureFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let start = Instant::now();
@@ -102,6 +88,31 @@ impl Flow for ImplicitMeanCurvatureFlow {
         self.surface.initial
     }
 }
+
+/// [`Retry`] for the implicit flows: τ is a field, and the state is the shared surface.
+macro_rules! retry_on_surface {
+    ($($flow:ty),*) => {$(
+        impl Retry for $flow {
+            fn tau(&self) -> f64 {
+                self.tau
+            }
+
+            fn set_tau(&mut self, tau: f64) {
+                self.tau = tau;
+            }
+
+            fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+                self.surface.restore(positions, step);
+            }
+        }
+    )*};
+}
+
+retry_on_surface!(
+    ImplicitMeanCurvatureFlow,
+    ConformalizedMeanCurvatureFlow,
+    ImplicitBilaplacianFlow
+);
 
 /// What the classic flows below share: the moving surface, its cached geometry, the scale
 /// policy and the per-step metrics, so every method reports exactly the same quantities.
@@ -278,20 +289,6 @@ impl ConformalizedMeanCurvatureFlow {
     }
 }
 
-impl Retry for ConformalizedMeanCurvatureFlow {
-    fn tau(&self) -> f64 {
-        self.tau
-    }
-
-    fn set_tau(&mut self, tau: f64) {
-        self.tau = tau;
-    }
-
-    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
-        self.surface.restore(positions, step);
-    }
-}
-
 impl Flow for ConformalizedMeanCurvatureFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let start = Instant::now();
@@ -445,20 +442,6 @@ impl ImplicitBilaplacianFlow {
         for (&d, &area) in self.diagonal.iter().zip(&s.geometry.vertex_areas) {
             self.system[d] += area;
         }
-    }
-}
-
-impl Retry for ImplicitBilaplacianFlow {
-    fn tau(&self) -> f64 {
-        self.tau
-    }
-
-    fn set_tau(&mut self, tau: f64) {
-        self.tau = tau;
-    }
-
-    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
-        self.surface.restore(positions, step);
     }
 }
 

@@ -88,6 +88,36 @@ pub fn f32_triples(bytes: &[u8]) -> Vec<[f32; 3]> {
 /// file it uploaded. Checks that this gives the downloaded OBJ `result`: every `v` line at the
 /// frame's position (to f32 precision) with its other words (colours) unchanged, and every
 /// other line byte for byte.
+/// The `v` coordinates of an OBJ file, in file order.
+pub fn obj_vertices(text: &str) -> Vec<[f64; 3]> {
+    text.lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .map(|t| t.parse().unwrap_or(f64::NAN))
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect()
+}
+
+/// An OBJ result holds `count` vertices, all finite and equal to the frame's (f32) positions.
+pub fn assert_obj_result_is_frame(result: &str, frame: &[[f32; 3]], count: usize) {
+    let result = obj_vertices(result);
+    assert_eq!(result.len(), count);
+    assert_eq!(frame.len(), result.len());
+    for (r, f) in result.iter().zip(frame) {
+        for k in 0..3 {
+            assert!(r[k].is_finite());
+            assert!(
+                (r[k] - f64::from(f[k])).abs() <= 1e-6 * (1.0 + r[k].abs()),
+                "result {r:?} against the last frame {f:?}"
+            );
+        }
+    }
+}
+
 pub fn assert_frame_applies_to_upload(upload: &str, frame: &[[f32; 3]], result: &str) {
     let (up, res): (Vec<&str>, Vec<&str>) = (
         upload.split_inclusive('\n').collect(),
