@@ -167,6 +167,23 @@ async fn create(
         .map(|r| r.into_inner())
 }
 
+/// The job's result as OBJ text, through the DownloadResult stream.
+async fn download_obj(client: &mut FairingClient<Channel>, name: &str) -> String {
+    let mut download = client
+        .download_result(v1::DownloadResultRequest {
+            name: name.to_string(),
+            format: v1::MeshFormat::Obj as i32,
+        })
+        .await
+        .expect("DownloadResult")
+        .into_inner();
+    let mut file = Vec::new();
+    while let Some(chunk) = download.message().await.expect("download stream") {
+        file.extend_from_slice(&chunk.data);
+    }
+    String::from_utf8(file).expect("OBJ text")
+}
+
 async fn get_job(client: &mut FairingClient<Channel>, name: &str) -> Result<v1::Job, Status> {
     client
         .get_job(v1::GetJobRequest {
@@ -447,19 +464,7 @@ async fn streamed_positions_applied_to_the_upload_give_the_obj_result() {
         .expect("a frame with positions");
     let frame = service_http_support::f32_triples(&last);
 
-    let mut download = client
-        .download_result(v1::DownloadResultRequest {
-            name: op.name.clone(),
-            format: v1::MeshFormat::Obj as i32,
-        })
-        .await
-        .expect("DownloadResult")
-        .into_inner();
-    let mut file = Vec::new();
-    while let Some(chunk) = download.message().await.expect("download stream") {
-        file.extend_from_slice(&chunk.data);
-    }
-    let result = String::from_utf8(file).expect("OBJ text");
+    let result = download_obj(&mut client, &op.name).await;
     service_http_support::assert_frame_applies_to_upload(&upload, &frame, &result);
     assert_ne!(result, upload, "the result is faired, not the upload");
 }
@@ -1812,19 +1817,7 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
         .expect("ErrorInfo detail");
     assert_eq!(info.reason, "NO_PROGRESS");
 
-    let mut download = client
-        .download_result(v1::DownloadResultRequest {
-            name: op.name.clone(),
-            format: v1::MeshFormat::Obj as i32,
-        })
-        .await
-        .expect("DownloadResult")
-        .into_inner();
-    let mut file = Vec::new();
-    while let Some(chunk) = download.message().await.expect("download stream") {
-        file.extend_from_slice(&chunk.data);
-    }
-    let text = String::from_utf8(file).expect("OBJ text");
+    let text = download_obj(&mut client, &op.name).await;
     let frame = service_http_support::f32_triples(
         last.positions
             .as_ref()
