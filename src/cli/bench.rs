@@ -12,7 +12,7 @@ use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use willow::flow::curve::{Curve, CurveFlow, CurveParams};
-use willow::flow::{new_flow, FlowParams, Method};
+use willow::flow::{new_flow, FlowParams, Method, Precision};
 use willow::mesh::generate::bumpy_sphere;
 use willow::mesh::io::{Asset, Format, Limits};
 use willow::mesh::Mesh;
@@ -37,6 +37,56 @@ pub struct BenchArgs {
     /// size (issue 4); MESH defaults to botijo_genus5_irregular from ../shared/meshes.
     #[arg(long, conflicts_with = "json")]
     pub genus: bool,
+    /// Generated meshes to measure as well, built in code so anyone can reproduce a figure
+    /// without a file: `icosphere:N` is the bumpy sphere on an N-times subdivided icosahedron
+    /// (20·4^N triangles: 8 gives 1.3M).
+    #[arg(long, value_name = "icosphere:N")]
+    pub generate: Vec<String>,
+    /// Skip the safeguard-overhead column (the unguarded flow run beside the guarded one):
+    /// at a million triangles it doubles the run time.
+    #[arg(long)]
+    pub no_overhead: bool,
+    /// Threads for the factorizations of every flow measured (the conformal flow and the MCF
+    /// yardstick alike, so the ratio compares equals).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+    /// The conformal flow's Dirac factor: auto (single precision with conjugate gradients
+    /// from 20k vertices), double or mixed.
+    #[arg(long, value_enum, default_value_t = PrecisionArg::Auto)]
+    pub precision: PrecisionArg,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum PrecisionArg {
+    Auto,
+    Double,
+    Mixed,
+}
+
+impl From<PrecisionArg> for Precision {
+    fn from(p: PrecisionArg) -> Self {
+        match p {
+            PrecisionArg::Auto => Precision::Auto,
+            PrecisionArg::Double => Precision::Double,
+            PrecisionArg::Mixed => Precision::Mixed,
+        }
+    }
+}
+
+/// The most subdivisions `--generate` builds: 9 is 5.2M triangles, beyond this machine.
+const MAX_SUBDIVISIONS: usize = 8;
+
+fn generate(spec: &str) -> Result<(String, Mesh), String> {
+    let n = spec
+        .strip_prefix("icosphere:")
+        .and_then(|n| n.parse::<usize>().ok())
+        .ok_or_else(|| format!("--generate {spec}: expected icosphere:N"))?;
+    if n > MAX_SUBDIVISIONS {
+        return Err(format!(
+            "--generate {spec}: at most {MAX_SUBDIVISIONS} subdivisions"
+        ));
+    }
+    Ok((format!("bumpy icosphere:{n}"), bumpy_sphere(n, 0.15)))
 }
 
 #[derive(serde::Serialize)]
@@ -57,13 +107,17 @@ struct Figures {
     conformal_peak_rss_mb: Option<f64>,
     final_willmore_energy: f64,
     final_q_mean: f64,
+    /// Where the conformal flow's last step went: (phase, ms), in the order they ran.
+    profile: Vec<(String, f64)>,
+    /// Where its setup went (the safeguard's own setup is the rest of `setup_ms`).
+    setup_profile: Vec<(String, f64)>,
 }
 
 pub fn run(args: BenchArgs) -> ExitCode {
     if args.genus {
         return super::bench_genus::run(args.meshes.first().map(PathBuf::as_path), args.steps);
     }
-    let inputs = match load_inputs(&args.meshes) {
+    let inputs = match load_inputs(&args.meshes, &args.generate) {
         Ok(i) => i,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
@@ -106,6 +160,18 @@ pub fn run(args: BenchArgs) -> ExitCode {
                             .map(|m| format!("{m:.0}"))
                             .unwrap_or_else(|| "n/a".into())
                     );
+                    let phases: Vec<String> = f
+                        .profile
+                        .iter()
+                        .map(|(name, value)| format!("{name} {value:.1}"))
+                        .collect();
+                    println!("    last conformal step: {}", phases.join(", "));
+                    let setup: Vec<String> = f
+                        .setup_profile
+                        .iter()
+                        .map(|(name, value)| format!("{name} {value:.1}"))
+                        .collect();
+                    println!("    conformal setup: {}", setup.join(", "));
                 }
             }
             Err(e) => return fail(EXIT_FAILURE, format!("{name}: {e}")),
@@ -172,9 +238,9 @@ fn measure_curve() -> Result<CurveFigures, String> {
     })
 }
 
-fn load_inputs(paths: &[PathBuf]) -> Result<Vec<(String, Mesh)>, String> {
+fn load_inputs(paths: &[PathBuf], generated: &[String]) -> Result<Vec<(String, Mesh)>, String> {
     let mut inputs = Vec::new();
-    if paths.is_empty() {
+    if paths.is_empty() && generated.is_empty() {
         let shared = PathBuf::from("../shared/meshes");
         for name in ["cheburashka.obj", "nefertiti.obj"] {
             let path = shared.join(name);
@@ -193,6 +259,9 @@ fn load_inputs(paths: &[PathBuf]) -> Result<Vec<(String, Mesh)>, String> {
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| path.display().to_string());
         inputs.push((name, read(path)?));
+    }
+    for spec in generated {
+        inputs.push(generate(spec)?);
     }
     Ok(inputs)
 }
@@ -213,6 +282,8 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         method: Method::Conformal,
         tau: args.tau,
         iterations: 1,
+        threads: args.threads,
+        precision: args.precision.into(),
         ..FlowParams::default()
     };
     let mut flow = new_flow(mesh, &conformal).map_err(|e| e.to_string())?;
@@ -238,6 +309,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         tau: 0.01,
         iterations: 1,
         safeguard: false,
+        threads: args.threads,
         ..FlowParams::default()
     };
     let mut mcf_flow = new_flow(mesh, &mcf).map_err(|e| e.to_string())?;
@@ -245,9 +317,13 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         safeguard: false,
         ..conformal.clone()
     };
-    let mut unguarded_flow = new_flow(mesh, &unguarded).map_err(|e| e.to_string())?;
+    let mut unguarded_flow = if args.no_overhead {
+        None
+    } else {
+        Some(new_flow(mesh, &unguarded).map_err(|e| e.to_string())?)
+    };
     let mut unguarded_times = Vec::with_capacity(args.steps);
-    let mut unguarded_running = true;
+    let mut unguarded_running = unguarded_flow.is_some();
     let mut rejected = last.rejected;
     // Guarded steps taken at their first try: the overhead is measured on those alone (a
     // rejected try costs a whole step, which is the point, not overhead).
@@ -277,7 +353,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
                 clean_times.push(last.step_ms);
             }
         }
-        if unguarded_running {
+        if let (true, Some(unguarded_flow)) = (unguarded_running, unguarded_flow.as_mut()) {
             // Timed from outside, like the guarded step's step_ms (which spans its tries).
             let t = std::time::Instant::now();
             match unguarded_flow.step() {
@@ -286,6 +362,23 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
             }
         }
     }
+    let profile = flow
+        .profile()
+        .map(|p| {
+            let phases = p.phases().iter().map(|&(n, ms)| (format!("{n} ms"), ms));
+            let counts = p.counts().iter().map(|&(n, c)| (n.to_string(), c));
+            phases.chain(counts).collect()
+        })
+        .unwrap_or_default();
+    let setup_profile = flow
+        .setup_profile()
+        .map(|p| {
+            p.phases()
+                .iter()
+                .map(|&(n, ms)| (format!("{n} ms"), ms))
+                .collect()
+        })
+        .unwrap_or_default();
     drop((flow, mcf_flow, unguarded_flow));
     let u = median(&mut unguarded_times);
     let clean = median(&mut clean_times);
@@ -308,6 +401,8 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         conformal_peak_rss_mb: peak,
         final_willmore_energy: last.willmore_energy,
         final_q_mean: last.q_mean,
+        profile,
+        setup_profile,
     })
 }
 

@@ -55,6 +55,10 @@ pub struct FairArgs {
     /// energy or damages the mesh is retried at a smaller τ (willow::flow::safeguard).
     #[arg(long)]
     pub no_safeguard: bool,
+    /// Threads for the factorizations (0: every core). One CLI run is one flow, so it may
+    /// use the machine; the result is bitwise the same for any count.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
     /// Spectral filter strength σ (§4, unitless: σ = (l(l+1))^−k puts the crossover at
     /// spherical degree l); needs --filter-k.
     #[arg(long, requires = "filter_k")]
@@ -188,6 +192,11 @@ pub fn run(args: FairArgs) -> ExitCode {
         },
         boundary,
         safeguard: !args.no_safeguard,
+        threads: match args.threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        },
+        precision: willow::flow::Precision::Auto,
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,

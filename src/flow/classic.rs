@@ -38,10 +38,12 @@ impl ImplicitMeanCurvatureFlow {
         check_params(params)?;
         let topology = Topology::new(mesh);
         let pattern = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 1);
-        let cholesky = Cholesky::<f64>::analyze(&pattern, 3).map_err(|e| FlowError::Numerical {
-            step: 0,
-            reason: e.to_string(),
-        })?;
+        let mut cholesky =
+            Cholesky::<f64>::analyze(&pattern, 3).map_err(|e| FlowError::Numerical {
+                step: 0,
+                reason: e.to_string(),
+            })?;
+        cholesky.set_threads(params.threads);
         Ok(ImplicitMeanCurvatureFlow {
             surface: ClassicSurface::new(mesh, &topology, true),
             tau: params.tau,
@@ -265,10 +267,12 @@ impl ConformalizedMeanCurvatureFlow {
         let n = mesh.vertex_count();
         let surface = ClassicSurface::new(mesh, &topology, true);
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
-        let cholesky = Cholesky::<f64>::analyze(&pattern, 3).map_err(|e| FlowError::Numerical {
-            step: 0,
-            reason: e.to_string(),
-        })?;
+        let mut cholesky =
+            Cholesky::<f64>::analyze(&pattern, 3).map_err(|e| FlowError::Numerical {
+                step: 0,
+                reason: e.to_string(),
+            })?;
+        cholesky.set_threads(params.threads);
         let mut initial_laplacian = vec![0.0; pattern.nnz()];
         assemble_cotan_laplacian_into(
             &pattern,

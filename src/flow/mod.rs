@@ -12,6 +12,7 @@ pub mod dirichlet;
 pub mod exactness;
 pub mod filter;
 pub mod mobius;
+pub mod ordering;
 pub mod prescribed;
 pub mod safeguard;
 pub mod scale;
@@ -132,6 +133,30 @@ pub struct FlowParams {
     /// Safeguarded steps ([`safeguard`]): a step that raises W or damages the mesh is retried
     /// at a smaller τ. On by default; off, every step is taken at τ whatever it does.
     pub safeguard: bool,
+    /// Threads a factorization may use: independent subtrees of its elimination tree run
+    /// concurrently, and the result is bitwise the same for any count. 1 (the default) keeps
+    /// the flow on the calling thread, so that many small flows share the cores; the service
+    /// gives a large job more when workers are idle (`jobs::worker`).
+    pub threads: usize,
+    /// How the conformal flow factors the Dirac matrix X (see [`Precision`]).
+    pub precision: Precision,
+}
+
+/// The arithmetic of the Dirac matrix's factor in the conformal flow.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    /// [`Precision::Mixed`] from [`willmore::MIXED_MIN_VERTICES`] vertices on (closed
+    /// surfaces without exactness constraints), [`Precision::Double`] below.
+    #[default]
+    Auto,
+    /// A double-precision Cholesky factor, refactored every step: exact solves.
+    Double,
+    /// A single-precision factor, kept across steps while it preconditions well, and
+    /// conjugate gradients to double-precision accuracy (`solver::Mixed`): half the memory,
+    /// a fraction of the time per step on large meshes. Falls back to `Double` by itself
+    /// where single precision cannot factor X.
+    Mixed,
 }
 
 impl Default for FlowParams {
@@ -145,6 +170,8 @@ impl Default for FlowParams {
             filter: None,
             boundary: Boundary::Free,
             safeguard: true,
+            threads: 1,
+            precision: Precision::Auto,
         }
     }
 }
@@ -178,6 +205,62 @@ pub trait Flow: Send {
     fn positions(&self) -> &[[f64; 3]];
     /// The metrics of the input surface (step 0).
     fn initial_metrics(&self) -> StepMetrics;
+    /// Where the last try of the last step spent its time, phase by phase, when the flow
+    /// keeps such a profile (the conformal flow does; `willow bench` prints it).
+    fn profile(&self) -> Option<&StepProfile> {
+        None
+    }
+    /// Where building the flow spent its time, when the flow kept such a profile.
+    fn setup_profile(&self) -> Option<&StepProfile> {
+        None
+    }
+}
+
+/// Milliseconds per phase of one step, in the order the phases ran. Refilled in place each
+/// step: no allocation in the step loop once the first step has run.
+#[derive(Debug, Clone, Default)]
+pub struct StepProfile {
+    phases: Vec<(&'static str, f64)>,
+    counts: Vec<(&'static str, f64)>,
+    mark: Option<std::time::Instant>,
+}
+
+impl StepProfile {
+    /// Forget the last step's phases and start timing the next one.
+    pub fn start(&mut self) {
+        self.phases.clear();
+        self.counts.clear();
+        self.mark = Some(std::time::Instant::now());
+    }
+
+    /// Close the phase `name`: the time since the last mark is added to it.
+    pub fn lap(&mut self, name: &'static str) {
+        let now = std::time::Instant::now();
+        let Some(mark) = self.mark.replace(now) else {
+            return;
+        };
+        let ms = (now - mark).as_secs_f64() * 1e3;
+        match self.phases.iter_mut().find(|(n, _)| *n == name) {
+            Some((_, total)) => *total += ms,
+            None => self.phases.push((name, ms)),
+        }
+    }
+
+    pub fn phases(&self) -> &[(&'static str, f64)] {
+        &self.phases
+    }
+
+    /// Add `value` to the count `name` (e.g. solver iterations) of this step.
+    pub fn count(&mut self, name: &'static str, value: f64) {
+        match self.counts.iter_mut().find(|(n, _)| *n == name) {
+            Some((_, total)) => *total += value,
+            None => self.counts.push((name, value)),
+        }
+    }
+
+    pub fn counts(&self) -> &[(&'static str, f64)] {
+        &self.counts
+    }
 }
 
 /// Build the flow `params.method` names on `mesh` (validated: see [`Mesh::new`]), with its

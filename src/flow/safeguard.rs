@@ -245,6 +245,14 @@ impl<F: Retry> Flow for Safeguarded<F> {
     fn initial_metrics(&self) -> StepMetrics {
         self.inner.initial_metrics()
     }
+
+    fn profile(&self) -> Option<&super::StepProfile> {
+        self.inner.profile()
+    }
+
+    fn setup_profile(&self) -> Option<&super::StepProfile> {
+        self.inner.setup_profile()
+    }
 }
 
 /// Per face, the faces across its edges `(t[1], t[2])`, `(t[2], t[0])`, `(t[0], t[1])`, or

@@ -5,6 +5,7 @@
 //! into the fixed pattern and refactors numerically in place (SOLVER.md: building from
 //! triplets costs more than the factorization itself).
 
+use super::ordering::{self, Ordering, OrderingError};
 use super::supernodal::{NotPositive, Scalar, SupernodalLlt};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltError;
@@ -14,7 +15,7 @@ use faer::sparse::linalg::cholesky::{
 };
 use faer::sparse::linalg::{amd, SupernodalThreshold};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
-use faer::{c64, Conj, MatMut, Par, Side};
+use faer::{c32, c64, Conj, MatMut, Par, Side};
 
 /// The full (both triangles) sparsity pattern of a symmetric matrix over the vertex graph of a
 /// triangle mesh, with every vertex-pair entry expanded to a dense `block × block` block
@@ -141,29 +142,27 @@ impl BlockPattern {
         self.symbolic.nrows()
     }
 
-    /// A fill-reducing ordering: AMD on the vertex graph, expanded to blocks. Same fill as AMD
-    /// on the expanded pattern at half the symbolic cost (SOLVER.md).
-    fn block_amd(&self) -> Result<(Vec<usize>, Vec<usize>), faer::sparse::FaerError> {
+    /// A fill-reducing ordering of the vertex graph (AMD or nested dissection, see
+    /// [`Ordering::for_vertices`]), expanded to blocks. Same fill as ordering the expanded
+    /// pattern at a fraction of the symbolic cost (SOLVER.md).
+    fn block_order(&self, ordering: Ordering) -> Result<(Vec<usize>, Vec<usize>), OrderingError> {
+        let (fwd, _) = self.vertex_order(ordering)?;
+        Ok(self.expand_order(&fwd))
+    }
+
+    /// A fill-reducing ordering `(fwd, inv)` of the vertex graph alone: every pattern of the
+    /// same mesh shares it ([`Cholesky::analyze_with_vertex_order`]), so a flow that factors
+    /// several matrices orders its graph once.
+    pub fn vertex_order(
+        &self,
+        ordering: Ordering,
+    ) -> Result<(Vec<usize>, Vec<usize>), OrderingError> {
+        ordering::order(ordering, &self.vertex_col_ptr, &self.vertex_row_idx)
+    }
+
+    /// A vertex ordering expanded to this pattern's blocks.
+    fn expand_order(&self, fwd: &[usize]) -> (Vec<usize>, Vec<usize>) {
         let nv = self.vertex_col_ptr.len() - 1;
-        let vertex_graph = faer::sparse::SymbolicSparseColMatRef::new_checked(
-            nv,
-            nv,
-            &self.vertex_col_ptr,
-            None,
-            &self.vertex_row_idx,
-        );
-        let mut fwd = vec![0usize; nv];
-        let mut inv = vec![0usize; nv];
-        let mut mem =
-            MemBuffer::try_new(amd::order_scratch::<usize>(nv, self.vertex_row_idx.len()))
-                .map_err(|_| faer::sparse::FaerError::OutOfMemory)?;
-        amd::order(
-            &mut fwd,
-            &mut inv,
-            vertex_graph,
-            amd::Control::default(),
-            MemStack::new(&mut mem),
-        )?;
         let b = self.block;
         let mut fwd_b = vec![0usize; b * nv];
         let mut inv_b = vec![0usize; b * nv];
@@ -173,7 +172,7 @@ impl BlockPattern {
                 inv_b[b * fwd[k] + r] = b * k + r;
             }
         }
-        Ok((fwd_b, inv_b))
+        (fwd_b, inv_b)
     }
 }
 
@@ -251,15 +250,43 @@ pub struct Cholesky<T> {
     /// Our numeric kernel for supernodal factorizations (`None`: faer's, see
     /// [`SupernodalLlt`]).
     supernodal: Option<SupernodalLlt>,
+    /// Threads the numeric factorization may use (independent subtrees run concurrently).
+    threads: usize,
 }
 
 impl<T: Scalar> Cholesky<T> {
-    /// Symbolic analysis of `pattern` for up to `nrhs` right-hand sides per solve, ordered by
-    /// AMD on its vertex graph.
+    /// Symbolic analysis of `pattern` for up to `nrhs` right-hand sides per solve, its vertex
+    /// graph ordered by the ordering that measured best at its size.
     pub fn analyze(pattern: &BlockPattern, nrhs: usize) -> Result<Self, SolverError> {
+        let ordering = Ordering::for_vertices(pattern.vertex_col_ptr.len() - 1);
+        Self::analyze_with(pattern, nrhs, ordering)
+    }
+
+    /// [`Cholesky::analyze`] with a vertex ordering computed beforehand
+    /// ([`BlockPattern::vertex_order`], `fwd[new] = old`) for a pattern of the same mesh.
+    pub fn analyze_with_vertex_order(
+        pattern: &BlockPattern,
+        nrhs: usize,
+        vertex_fwd: &[usize],
+    ) -> Result<Self, SolverError> {
+        if vertex_fwd.len() != pattern.vertex_col_ptr.len() - 1 {
+            return Err(SolverError::Symbolic(
+                "the vertex ordering is for another mesh".into(),
+            ));
+        }
+        let (fwd, inv) = pattern.expand_order(vertex_fwd);
+        Self::with_ordering(pattern.symbolic.as_ref(), fwd, inv, nrhs)
+    }
+
+    /// [`Cholesky::analyze`] with the vertex graph ordered by `ordering`.
+    pub fn analyze_with(
+        pattern: &BlockPattern,
+        nrhs: usize,
+        ordering: Ordering,
+    ) -> Result<Self, SolverError> {
         let (fwd, inv) = pattern
-            .block_amd()
-            .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
+            .block_order(ordering)
+            .map_err(|e| SolverError::Symbolic(e.to_string()))?;
         Self::with_ordering(pattern.symbolic.as_ref(), fwd, inv, nrhs)
     }
 
@@ -337,6 +364,7 @@ impl<T: Scalar> Cholesky<T> {
         };
         Ok(Cholesky {
             supernodal,
+            threads: 1,
             factor: zeros(symbolic.len_val())?,
             triangle_values: zeros(gather.len())?,
             permuted_rhs: zeros(n * nrhs)?,
@@ -350,6 +378,13 @@ impl<T: Scalar> Cholesky<T> {
             triangle,
             gather,
         })
+    }
+
+    /// Let numeric factorizations use up to `threads` threads (1: the calling thread only).
+    /// The factor is bitwise the same for any count: only independent subtrees of the
+    /// elimination tree run concurrently.
+    pub fn set_threads(&mut self, threads: usize) {
+        self.threads = threads.max(1);
     }
 
     /// Numeric refactorization in place with new `values` on the fixed pattern.
@@ -405,6 +440,18 @@ impl<T: Scalar> Cholesky<T> {
         self.factor.len()
     }
 
+    /// The factor's values (faer's storage), for comparing factorizations.
+    pub fn factor_values(&self) -> &[T] {
+        &self.factor
+    }
+
+    /// Subtrees the last factorization ran concurrently (1: it ran on one thread).
+    pub fn last_parallel_pieces(&self) -> usize {
+        self.supernodal
+            .as_ref()
+            .map_or(1, SupernodalLlt::last_pieces)
+    }
+
     /// Where each entry of the full-storage values lands in the triangle the numeric
     /// factorization reads: `Some((index, conjugated))` for the entries it gathers (the lower
     /// triangle in the caller's order), `None` for the others, whose transposed partner
@@ -451,7 +498,12 @@ impl<T: Scalar> Cholesky<T> {
             (&mut self.supernodal, self.symbolic.raw())
         {
             return kernel
-                .factorize(symbolic, &mut self.factor, &self.triangle_values)
+                .factorize(
+                    symbolic,
+                    &mut self.factor,
+                    &self.triangle_values,
+                    self.threads,
+                )
                 .map_err(|NotPositive(column)| not_positive(column));
         }
         self.symbolic
@@ -480,24 +532,329 @@ impl Cholesky<c64> {
     /// `y = A x` with the Hermitian matrix whose triangle was last factored (its values are
     /// kept), in the caller's order.
     pub fn hermitian_matvec(&self, x: &[c64], y: &mut [c64]) {
-        y.fill(c64::new(0.0, 0.0));
-        let col_ptr = self.triangle.col_ptr();
-        let row_idx = self.triangle.row_idx();
-        for (col, &old_col) in self.fwd.iter().enumerate() {
-            let x_col = x[old_col];
-            let mut y_col = c64::new(0.0, 0.0);
+        triangle_matvec(&self.triangle, &self.fwd, &self.triangle_values, x, y);
+    }
+}
+
+/// `y = A x` for the Hermitian `A` whose permuted triangle (either side: each stored entry
+/// `(row, col)` also stands for its conjugate at `(col, row)`) holds `values`, with `fwd`
+/// taking permuted indices back to the caller's.
+fn triangle_matvec(
+    triangle: &SymbolicSparseColMat<usize>,
+    fwd: &[usize],
+    values: &[c64],
+    x: &[c64],
+    y: &mut [c64],
+) {
+    y.fill(c64::new(0.0, 0.0));
+    let col_ptr = triangle.col_ptr();
+    let row_idx = triangle.row_idx();
+    for (col, &old_col) in fwd.iter().enumerate() {
+        let x_col = x[old_col];
+        let mut y_col = c64::new(0.0, 0.0);
+        for (&row, v) in row_idx[col_ptr[col]..col_ptr[col + 1]]
+            .iter()
+            .zip(&values[col_ptr[col]..col_ptr[col + 1]])
+        {
+            let old_row = fwd[row];
+            y[old_row] += v * x_col;
+            if row != col {
+                y_col += v.conj() * x[old_row];
+            }
+        }
+        y[old_col] += y_col;
+    }
+}
+
+/// Conjugate-gradient iterations [`Mixed::solve_in_place`] allows before it gives up on the
+/// single-precision factor (measured: 2–4 reach [`MIXED_TOLERANCE`] on the flows' X).
+pub const MIXED_MAX_ITERATIONS: usize = 12;
+
+/// Normwise backward error `‖b − Ax‖ / (‖A‖‖x‖ + ‖b‖)` at which [`Mixed`] stops: within a
+/// small multiple of what the double-precision direct solve leaves.
+pub const MIXED_TOLERANCE: f64 = 1e-13;
+
+/// Why a [`Mixed`] solve gave up.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("conjugate gradients on the single-precision factor stalled at backward error {backward_error:.1e} after {iterations} iterations")]
+pub struct NotConverged {
+    pub iterations: usize,
+    pub backward_error: f64,
+}
+
+/// A Hermitian positive definite system held in double precision and factored in single
+/// precision (issue 14): the factor takes half the memory and about half the time of the
+/// double one, and conjugate gradients preconditioned with it (the factor is an exact
+/// inverse up to single-precision rounding, so a few iterations suffice) return the solution
+/// to double precision. The caller assembles into [`Mixed::triangle_values_mut`], in the
+/// layout of [`Mixed::triangle_slots`], exactly as for [`Cholesky`].
+pub struct Mixed {
+    single: Cholesky<c32>,
+    /// The matrix, double precision, in the factor's triangle layout.
+    values: Vec<c64>,
+    /// `‖A‖_∞` of the last factorization (for the backward error).
+    norm: f64,
+    x: Vec<c64>,
+    r: Vec<c64>,
+    z: Vec<c64>,
+    p: Vec<c64>,
+    ap: Vec<c64>,
+    single_rhs: Vec<c32>,
+    /// Iterations and backward error of the last solve.
+    pub last_iterations: usize,
+    pub last_backward_error: f64,
+    /// Whether the factor is of a matrix that was (`factored`), whether it is of an earlier
+    /// matrix than the values (`reused`), and how many refreshes have kept it (`age`).
+    factored: bool,
+    reused: bool,
+    age: usize,
+}
+
+/// A kept factor is replaced once the solve it preconditions needs more iterations than
+/// this: about where the iterations cost as much as the factorization they avoid on a large
+/// mesh (one iteration is a solve, roughly a tenth of a factorization at a million faces).
+pub const REUSE_MAX_ITERATIONS: usize = 6;
+
+/// Refreshes a factor may be kept for before it is replaced anyway.
+pub const REUSE_MAX_AGE: usize = 8;
+
+impl Mixed {
+    pub fn analyze(pattern: &BlockPattern, vertex_fwd: &[usize]) -> Result<Self, SolverError> {
+        let single = Cholesky::<c32>::analyze_with_vertex_order(pattern, 1, vertex_fwd)?;
+        let n = pattern.dim();
+        let zeros = |len: usize| -> Result<Vec<c64>, SolverError> {
+            let mut v = Vec::new();
+            v.try_reserve_exact(len)
+                .map_err(|_| SolverError::OutOfMemory)?;
+            v.resize(len, c64::new(0.0, 0.0));
+            Ok(v)
+        };
+        let mut single_rhs = Vec::new();
+        single_rhs
+            .try_reserve_exact(n)
+            .map_err(|_| SolverError::OutOfMemory)?;
+        single_rhs.resize(n, c32::new(0.0, 0.0));
+        Ok(Mixed {
+            values: zeros(single.gather.len())?,
+            single,
+            norm: 0.0,
+            x: zeros(n)?,
+            r: zeros(n)?,
+            z: zeros(n)?,
+            p: zeros(n)?,
+            ap: zeros(n)?,
+            single_rhs,
+            last_iterations: 0,
+            last_backward_error: 0.0,
+            factored: false,
+            reused: false,
+            age: 0,
+        })
+    }
+
+    /// See [`Cholesky::triangle_slots`].
+    pub fn triangle_slots(&self, nnz: usize) -> Vec<Option<(usize, bool)>> {
+        self.single.triangle_slots(nnz)
+    }
+
+    /// The matrix (double precision) in the layout of [`Mixed::triangle_slots`].
+    pub fn triangle_values_mut(&mut self) -> &mut [c64] {
+        &mut self.values
+    }
+
+    /// Take the matrix now in [`Mixed::triangle_values_mut`]: factor it, or, when
+    /// `may_reuse` and the factor of an earlier matrix still preconditioned the last solve in
+    /// at most [`REUSE_MAX_ITERATIONS`] iterations, keep that factor (issue 14: the flow's X
+    /// changes little from step to step, and a few more iterations cost far less than a
+    /// factorization). Fails where rounding to single precision leaves a pivot that is not
+    /// positive (a matrix too close to singular for it).
+    pub fn refresh(&mut self, may_reuse: bool) -> Result<(), SolverError> {
+        self.update_norm();
+        if may_reuse
+            && self.factored
+            && self.age < REUSE_MAX_AGE
+            && self.last_iterations <= REUSE_MAX_ITERATIONS
+        {
+            self.age += 1;
+            self.reused = true;
+            return Ok(());
+        }
+        self.factorize()
+    }
+
+    /// Whether the last [`Mixed::refresh`] kept an earlier factor.
+    pub fn reused(&self) -> bool {
+        self.reused
+    }
+
+    /// Factor the matrix now in [`Mixed::triangle_values_mut`] in single precision.
+    pub fn factorize(&mut self) -> Result<(), SolverError> {
+        self.factored = false;
+        self.reused = false;
+        self.age = 0;
+        for (s, d) in self.single.triangle_values.iter_mut().zip(&self.values) {
+            *s = c32::new(d.re as f32, d.im as f32);
+        }
+        self.single.factorize_triangle()?;
+        self.factored = true;
+        Ok(())
+    }
+
+    /// `‖A‖_∞` of the matrix now in the values (for the backward error).
+    fn update_norm(&mut self) {
+        let n = self.x.len();
+        // ‖A‖_∞ from the triangle: every off-diagonal entry counts in its row and column.
+        let row_sums = &mut self.x;
+        row_sums.fill(c64::new(0.0, 0.0));
+        let col_ptr = self.single.triangle.col_ptr();
+        let row_idx = self.single.triangle.row_idx();
+        for col in 0..n {
             for (&row, v) in row_idx[col_ptr[col]..col_ptr[col + 1]]
                 .iter()
-                .zip(&self.triangle_values[col_ptr[col]..col_ptr[col + 1]])
+                .zip(&self.values[col_ptr[col]..col_ptr[col + 1]])
             {
-                let old_row = self.fwd[row];
-                y[old_row] += v * x_col;
+                let m = v.norm();
+                row_sums[row].re += m;
                 if row != col {
-                    y_col += v.conj() * x[old_row];
+                    row_sums[col].re += m;
                 }
             }
-            y[old_col] += y_col;
         }
+        self.norm = row_sums.iter().map(|s| s.re).fold(0.0, f64::max);
+    }
+
+    /// `x = P⁻¹ v` through the single-precision factor, in double precision.
+    fn precondition(single: &mut Cholesky<c32>, buffer: &mut [c32], v: &[c64], x: &mut [c64]) {
+        for (b, v) in buffer.iter_mut().zip(v) {
+            *b = c32::new(v.re as f32, v.im as f32);
+        }
+        single.solve_in_place(buffer, 1);
+        for (x, b) in x.iter_mut().zip(buffer.iter()) {
+            *x = c64::new(f64::from(b.re), f64::from(b.im));
+        }
+    }
+
+    /// Solve `A x = rhs` in place, to [`MIXED_TOLERANCE`], by conjugate gradients
+    /// preconditioned with the single-precision factor. A kept factor that no longer does
+    /// (see [`Mixed::refresh`]) is replaced by the factor of `A` and the solve run again.
+    pub fn solve_in_place(&mut self, rhs: &mut [c64]) -> Result<(), NotConverged> {
+        // A stalled solve leaves `rhs` as it was.
+        match self.conjugate_gradients(rhs) {
+            Err(stalled) if self.reused => {
+                self.factorize().map_err(|_| stalled)?;
+                self.conjugate_gradients(rhs)
+            }
+            other => other,
+        }
+    }
+
+    fn conjugate_gradients(&mut self, rhs: &mut [c64]) -> Result<(), NotConverged> {
+        if !self.factored {
+            return Err(NotConverged {
+                iterations: 0,
+                backward_error: f64::INFINITY,
+            });
+        }
+        let Mixed {
+            single,
+            values,
+            norm,
+            x,
+            r,
+            z,
+            p,
+            ap,
+            single_rhs,
+            ..
+        } = self;
+        let dot = |a: &[c64], b: &[c64]| -> f64 {
+            a.iter()
+                .zip(b)
+                .map(|(a, b)| a.re * b.re + a.im * b.im)
+                .sum()
+        };
+        let b_norm = dot(rhs, rhs).sqrt();
+        let backward_error = |r: &[c64], x: &[c64]| {
+            let denominator = *norm * dot(x, x).sqrt() + b_norm;
+            if denominator > 0.0 {
+                dot(r, r).sqrt() / denominator
+            } else {
+                0.0
+            }
+        };
+        Self::precondition(single, single_rhs, rhs, x);
+        let residual = |x: &[c64], r: &mut [c64], ap: &mut [c64]| {
+            triangle_matvec(&single.triangle, &single.fwd, values, x, ap);
+            for ((r, b), a) in r.iter_mut().zip(rhs.iter()).zip(ap.iter()) {
+                *r = b - a;
+            }
+        };
+        residual(x, r, ap);
+        let mut error = backward_error(r, x);
+        let mut iterations = 0;
+        if error > MIXED_TOLERANCE {
+            Self::precondition(single, single_rhs, r, z);
+            p.copy_from_slice(z);
+            let mut rz = dot(r, z);
+            while iterations < MIXED_MAX_ITERATIONS {
+                iterations += 1;
+                triangle_matvec(&single.triangle, &single.fwd, values, p, ap);
+                let pap = dot(p, ap);
+                if !(pap > 0.0 && rz.is_finite()) {
+                    break;
+                }
+                let alpha = rz / pap;
+                for ((x, r), (p, ap)) in x.iter_mut().zip(r.iter_mut()).zip(p.iter().zip(ap.iter()))
+                {
+                    *x += p * alpha;
+                    *r -= ap * alpha;
+                }
+                error = backward_error(r, x);
+                if error <= MIXED_TOLERANCE {
+                    break;
+                }
+                Self::precondition(single, single_rhs, r, z);
+                let rz_next = dot(r, z);
+                let beta = rz_next / rz;
+                rz = rz_next;
+                for (p, z) in p.iter_mut().zip(z.iter()) {
+                    *p = z + *p * beta;
+                }
+            }
+        }
+        self.last_iterations = iterations;
+        self.last_backward_error = error;
+        if error <= MIXED_TOLERANCE {
+            rhs.copy_from_slice(&self.x);
+            Ok(())
+        } else {
+            Err(NotConverged {
+                iterations,
+                backward_error: error,
+            })
+        }
+    }
+
+    /// `y = A x` with the double-precision matrix.
+    pub fn hermitian_matvec(&self, x: &[c64], y: &mut [c64]) {
+        triangle_matvec(&self.single.triangle, &self.single.fwd, &self.values, x, y);
+    }
+
+    /// Free the factor and the matrix (before a double-precision factor takes their place).
+    pub fn release(&mut self) {
+        self.single.factor = Vec::new();
+        self.single.triangle_values = Vec::new();
+        self.values = Vec::new();
+    }
+
+    /// See [`Cholesky::set_threads`].
+    pub fn set_threads(&mut self, threads: usize) {
+        self.single.set_threads(threads);
+    }
+
+    /// Entries of the (single-precision) factor.
+    pub fn factor_len(&self) -> usize {
+        self.single.factor_len()
     }
 }
 
@@ -664,6 +1021,103 @@ pub(crate) mod tests {
         values
     }
 
+    /// Copies full-storage `values` into a [`Mixed`]'s triangle (as the Dirac assembly does).
+    fn fill_mixed(mixed: &mut Mixed, values: &[faer::c64]) {
+        let slots = mixed.triangle_slots(values.len());
+        let triangle = mixed.triangle_values_mut();
+        for (v, slot) in values.iter().zip(slots) {
+            if let Some((t, conj)) = slot {
+                triangle[t] = if conj { v.conj() } else { *v };
+            }
+        }
+    }
+
+    /// The single-precision factor with conjugate gradients solves to the double-precision
+    /// factor's answer (to 1e-11, far below single precision's 1e-7), both freshly factored
+    /// and with the factor of a neighbouring matrix kept (the flow's reuse across steps).
+    #[test]
+    fn mixed_precision_solves_to_double_precision() {
+        use faer::c64;
+        let mesh = icosphere(4);
+        let p = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 2);
+        let first = hermitian_block_values(&p, &mesh.triangles);
+        // A neighbouring matrix on the same pattern: 3% off, still Hermitian and definite.
+        let second: Vec<c64> = first.iter().map(|v| v * 1.03).collect();
+        let n = p.dim();
+        let b: Vec<c64> = (0..n)
+            .map(|i| c64::new((i as f64 * 0.37).sin(), (i as f64 * 0.11).cos()))
+            .collect();
+        let (order, _) = p.vertex_order(Ordering::Amd).expect("order");
+        let mut mixed = Mixed::analyze(&p, &order).expect("analyze");
+        for (values, may_reuse) in [(&first, true), (&second, true)] {
+            let mut double = Cholesky::<c64>::analyze(&p, 1).expect("analyze");
+            double.factorize(&p, values).expect("factorize");
+            let mut exact = b.clone();
+            double.solve_in_place(&mut exact, 1);
+
+            fill_mixed(&mut mixed, values);
+            mixed.refresh(may_reuse).expect("factorize");
+            let mut x = b.clone();
+            mixed.solve_in_place(&mut x).expect("converges");
+            let scale = exact.iter().map(|v| v.norm()).fold(0.0, f64::max);
+            let error = x
+                .iter()
+                .zip(&exact)
+                .map(|(x, e)| (x - e).norm())
+                .fold(0.0, f64::max);
+            assert!(error < 1e-11 * scale, "off by {error:e} (scale {scale:e})");
+            assert!(mixed.last_backward_error <= MIXED_TOLERANCE);
+        }
+        // The second matrix was solved with the first one's factor (the first solve took
+        // few iterations, so the factor was kept), which needed iterations to correct.
+        assert!(mixed.reused(), "the factor was not kept");
+        assert!(mixed.last_iterations >= 1);
+    }
+
+    /// A factor kept for a matrix it no longer preconditions is replaced within the solve,
+    /// which then still converges.
+    #[test]
+    fn mixed_precision_refactors_when_the_kept_factor_fails() {
+        use faer::c64;
+        let mesh = icosphere(3);
+        let p = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 2);
+        let first = hermitian_block_values(&p, &mesh.triangles);
+        // A diagonal that varies by a factor of 10⁴ from vertex to vertex: the first factor
+        // leaves P⁻¹A with a spectrum far too spread for a few iterations.
+        let mut second = first.clone();
+        for v in 0..mesh.vertex_count() {
+            for r in 0..2 {
+                let boost = 100.0 * 10f64.powi((v % 5) as i32);
+                second[p.entry(p.diagonal_slot(v), v, r, r)] += c64::new(boost, 0.0);
+            }
+        }
+        let (order, _) = p.vertex_order(Ordering::Amd).expect("order");
+        let mut mixed = Mixed::analyze(&p, &order).expect("analyze");
+        fill_mixed(&mut mixed, &first);
+        mixed.refresh(true).expect("factorize");
+        let b: Vec<c64> = (0..p.dim())
+            .map(|i| c64::new(1.0, i as f64 * 1e-3))
+            .collect();
+        let mut x = b.clone();
+        mixed.solve_in_place(&mut x).expect("converges");
+        fill_mixed(&mut mixed, &second);
+        mixed.refresh(true).expect("kept");
+        assert!(mixed.reused());
+        let mut x = b.clone();
+        mixed
+            .solve_in_place(&mut x)
+            .expect("converges after refactoring");
+        assert!(!mixed.reused(), "the stale factor was not replaced");
+        let mut y = vec![c64::new(0.0, 0.0); p.dim()];
+        mixed.hermitian_matvec(&x, &mut y);
+        let residual = y
+            .iter()
+            .zip(&b)
+            .map(|(y, b)| (y - b).norm())
+            .fold(0.0, f64::max);
+        assert!(residual < 1e-9, "residual {residual:e}");
+    }
+
     #[test]
     fn solves_a_hermitian_block_system_with_several_right_hand_sides() {
         assert_solves_hermitian_system(2, |_| {});
@@ -715,7 +1169,7 @@ pub(crate) mod tests {
     ) {
         let mut chol = Cholesky::<T>::analyze(p, 1).expect("analyze");
         chol.factorize(p, values).expect("factorize");
-        let (fwd, inv) = p.block_amd().expect("amd");
+        let (fwd, inv) = p.block_order(Ordering::Amd).expect("amd");
         let perm = faer::perm::PermRef::new_checked(&fwd, &inv, p.dim());
         let symbolic = factorize_symbolic_cholesky(
             p.symbolic.as_ref(),

@@ -29,7 +29,7 @@ use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_s
 use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 use faer::sparse::SymbolicSparseColMatRef;
 use faer::traits::ComplexField;
-use faer::{c64, MatMut, Par};
+use faer::{c32, c64, MatMut, Par};
 
 /// The scalars the flows factor: real Laplacians and the complex form of the Dirac matrix.
 pub trait Scalar: ComplexField + Copy + Sub<Output = Self> {
@@ -87,6 +87,29 @@ impl Scalar for c64 {
     }
 }
 
+/// Single-precision complex: the Dirac factor of large meshes, a preconditioner that
+/// conjugate gradients in double precision turn back into exact solves (`solver::Mixed`).
+impl Scalar for c32 {
+    #[cfg(target_arch = "x86_64")]
+    const GEMM_TYPE: private_gemm_x86::DType = private_gemm_x86::DType::C32;
+    fn diagonal(self) -> f64 {
+        f64::from(self.re)
+    }
+    fn modulus(self) -> f64 {
+        f64::from(self.norm())
+    }
+    const COMPLEX: bool = true;
+    fn re(self) -> f64 {
+        f64::from(self.re)
+    }
+    fn im(self) -> f64 {
+        f64::from(self.im)
+    }
+    fn from_parts(re: f64, im: f64) -> Self {
+        c32::new(re as f32, im as f32)
+    }
+}
+
 const UNMAPPED: usize = usize::MAX;
 
 /// Everything the numeric factorization needs besides faer's symbolic structure, computed once.
@@ -102,14 +125,79 @@ pub struct SupernodalLlt {
     /// supernode's block of factor values.
     a_ptr: Vec<usize>,
     a_position: Vec<usize>,
-    /// Scratch: local row of a global row in the current supernode, and the gathered
-    /// row/column indices of one update.
+    /// The supernodal elimination tree: `children[child_ptr[s]..child_ptr[s + 1]]`, ascending,
+    /// and the first supernode of each subtree. The supernodes are in postorder (checked),
+    /// so the subtree of `s` is the range `first[s]..=s`, and the subtrees of its children
+    /// follow each other in that range.
+    child_ptr: Vec<usize>,
+    children: Vec<usize>,
+    first: Vec<usize>,
+    /// Flops of each subtree's factorization, `Σ_columns (rows below the diagonal)²` (the
+    /// count that balances the threads).
+    subtree_cost: Vec<f64>,
+    roots: Vec<usize>,
+    postordered: bool,
+    /// Scratch, one per thread that factors a subtree.
+    workspaces: Vec<Workspace>,
+    max_pattern: usize,
+    max_width: usize,
+    /// Subtrees the last factorization ran concurrently (1: sequential).
+    last_pieces: usize,
+}
+
+/// The scratch of one thread of the numeric factorization.
+struct Workspace {
+    /// Local row of a global row in the current supernode, and the gathered row/column
+    /// indices of one update.
     global_to_local: Vec<usize>,
     update_rows: Vec<usize>,
     update_cols: Vec<usize>,
     dense_mem: MemBuffer,
     /// Scratch of the off-diagonal solve (see [`solve_right_lower_adjoint`]).
     narrow: NarrowScratch,
+}
+
+impl Workspace {
+    fn new<T: Scalar>(n: usize, max_pattern: usize, max_width: usize) -> Option<Self> {
+        Some(Workspace {
+            global_to_local: vec![UNMAPPED; n],
+            update_rows: vec![0; max_pattern],
+            update_cols: vec![0; max_pattern],
+            dense_mem: MemBuffer::try_new(cholesky_in_place_scratch::<T>(
+                max_width,
+                Par::Seq,
+                Default::default(),
+            ))
+            .ok()?,
+            narrow: NarrowScratch::new(),
+        })
+    }
+}
+
+/// Below this many flops a subtree is not worth a thread of its own (a thread costs tens of
+/// microseconds to start; this is a few milliseconds of work).
+const PARALLEL_MIN_FLOPS: f64 = 2e7;
+
+/// What one factorization call needs besides its own slice of the factor: the symbolic
+/// structure and the matrix.
+struct Job<'a, T> {
+    kernel: &'a Shared<'a>,
+    symbolic: &'a SymbolicSupernodalCholesky<usize>,
+    a: &'a [T],
+}
+
+/// The read-only part of [`SupernodalLlt`], shared by the threads.
+struct Shared<'a> {
+    #[cfg(target_arch = "x86_64")]
+    instructions: private_gemm_x86::InstrSet,
+    descendant_ptr: &'a [usize],
+    descendants: &'a [usize],
+    a_ptr: &'a [usize],
+    a_position: &'a [usize],
+    child_ptr: &'a [usize],
+    children: &'a [usize],
+    first: &'a [usize],
+    subtree_cost: &'a [f64],
 }
 
 /// A pivot that was not positive, by column of the permuted matrix.
@@ -211,12 +299,59 @@ impl SupernodalLlt {
             .map(|&column| col_ptr[column])
             .chain([col_ptr[n]])
             .collect();
-        let dense_mem = MemBuffer::try_new(cholesky_in_place_scratch::<T>(
-            max_width,
-            Par::Seq,
-            Default::default(),
-        ))
-        .ok()?;
+        drop(global_to_local);
+
+        // The supernodal elimination tree: the parent of `s` holds the first row below it.
+        let parent: Vec<usize> = (0..n_supernodes)
+            .map(|s| {
+                pattern(s)
+                    .first()
+                    .map_or(UNMAPPED, |&row| supernode_of[row])
+            })
+            .collect();
+        let mut child_ptr = vec![0usize; n_supernodes + 1];
+        for &p in &parent {
+            if p != UNMAPPED {
+                child_ptr[p + 1] += 1;
+            }
+        }
+        for s in 0..n_supernodes {
+            child_ptr[s + 1] += child_ptr[s];
+        }
+        let mut next = child_ptr.clone();
+        let mut children = vec![0usize; child_ptr[n_supernodes]];
+        for (s, &p) in parent.iter().enumerate() {
+            if p != UNMAPPED {
+                children[next[p]] = s;
+                next[p] += 1;
+            }
+        }
+        // Children come before their parent, so one ascending pass sees whole subtrees.
+        let mut first: Vec<usize> = (0..n_supernodes).collect();
+        let mut size = vec![1usize; n_supernodes];
+        let mut subtree_cost = vec![0f64; n_supernodes];
+        let mut postordered = true;
+        for s in 0..n_supernodes {
+            let height = (end[s] - begin[s]) + pattern(s).len();
+            subtree_cost[s] += (0..end[s] - begin[s])
+                .map(|k| ((height - k - 1) as f64).powi(2))
+                .sum::<f64>();
+            if parent[s] != UNMAPPED {
+                if parent[s] <= s {
+                    postordered = false;
+                    continue;
+                }
+                let p = parent[s];
+                first[p] = first[p].min(first[s]);
+                size[p] += size[s];
+                subtree_cost[p] += subtree_cost[s];
+            }
+        }
+        postordered &= (0..n_supernodes).all(|s| s + 1 - first[s] == size[s]);
+        let roots = (0..n_supernodes)
+            .filter(|&s| parent[s] == UNMAPPED)
+            .collect();
+        let workspaces = vec![Workspace::new::<T>(n, max_pattern, max_width)?];
         Some(SupernodalLlt {
             #[cfg(target_arch = "x86_64")]
             instructions,
@@ -224,63 +359,231 @@ impl SupernodalLlt {
             descendants,
             a_ptr,
             a_position,
-            global_to_local,
-            update_rows: vec![0; max_pattern],
-            update_cols: vec![0; max_pattern],
-            dense_mem,
-            narrow: NarrowScratch::new(),
+            child_ptr,
+            children,
+            first,
+            subtree_cost,
+            roots,
+            postordered,
+            workspaces,
+            max_pattern,
+            max_width,
+            last_pieces: 1,
         })
     }
 
+    /// Whether the factorization can run subtrees on threads of their own (the supernodes
+    /// are in postorder, so every subtree is a contiguous range of the factor).
+    pub fn parallel(&self) -> bool {
+        self.postordered
+    }
+
+    /// Subtrees the last factorization ran concurrently (1: it ran on one thread).
+    pub fn last_pieces(&self) -> usize {
+        self.last_pieces
+    }
+
     /// Factors the matrix whose lower triangle has `a` as values (in the order of the
-    /// pattern given to [`SupernodalLlt::new`]) into `l` (faer's supernodal storage).
+    /// pattern given to [`SupernodalLlt::new`]) into `l` (faer's supernodal storage), on up to
+    /// `threads` threads: independent subtrees of the elimination tree (nested dissection's
+    /// two halves, then theirs) factor concurrently, each supernode still left-looking and
+    /// sequential, so the factor is bitwise the same for any thread count.
     pub fn factorize<T: Scalar>(
         &mut self,
         symbolic: &SymbolicSupernodalCholesky<usize>,
         l: &mut [T],
         a: &[T],
+        threads: usize,
     ) -> Result<(), NotPositive> {
+        let n_supernodes = symbolic.n_supernodes();
+        let threads = if self.postordered { threads.max(1) } else { 1 };
+        while self.workspaces.len() < threads {
+            let ws = Workspace::new::<T>(symbolic.nrows(), self.max_pattern, self.max_width)
+                .ok_or(NotPositive(UNMAPPED))?;
+            self.workspaces.push(ws);
+        }
+        let shared = Shared {
+            #[cfg(target_arch = "x86_64")]
+            instructions: self.instructions,
+            descendant_ptr: &self.descendant_ptr,
+            descendants: &self.descendants,
+            a_ptr: &self.a_ptr,
+            a_position: &self.a_position,
+            child_ptr: &self.child_ptr,
+            children: &self.children,
+            first: &self.first,
+            subtree_cost: &self.subtree_cost,
+        };
+        let job = Job {
+            kernel: &shared,
+            symbolic,
+            a,
+        };
+        let workspaces = &mut self.workspaces[..threads];
+        let total: f64 = self.roots.iter().map(|&r| self.subtree_cost[r]).sum();
+        if threads == 1 || total < PARALLEL_MIN_FLOPS {
+            self.last_pieces = 1;
+            return job.factor_range(0..n_supernodes, l, 0, &mut workspaces[0]);
+        }
+        let (pieces, top) = subtree_mapping(&shared, &self.roots, threads);
+        self.last_pieces = pieces.len();
+        let val_ptr = symbolic.col_ptr_for_val();
+        // Each piece's subtree owns a contiguous run of the factor; cut `l` into those runs.
+        let mut runs: Vec<(usize, std::ops::Range<usize>, usize, &mut [T])> = Vec::new();
+        let mut rest: &mut [T] = l;
+        let mut offset = 0;
+        let mut by_position = pieces.clone();
+        by_position.sort_unstable_by_key(|&(root, _)| shared.first[root]);
+        for (root, thread) in by_position {
+            let (start, end) = (val_ptr[shared.first[root]], val_ptr[root + 1]);
+            let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - offset);
+            let (run, tail) = tail.split_at_mut(end - start);
+            rest = tail;
+            offset = end;
+            runs.push((thread, shared.first[root]..root + 1, start, run));
+        }
+        let mut per_thread: Vec<Vec<Run<'_, T>>> = (0..threads).map(|_| Vec::new()).collect();
+        for (thread, range, base, run) in runs {
+            per_thread[thread].push((range, base, run));
+        }
+        let job = &job;
+        std::thread::scope(|scope| {
+            let mut handles = Vec::new();
+            let mut lists = per_thread.into_iter();
+            let mut spaces = workspaces.iter_mut();
+            let own = (lists.next(), spaces.next());
+            for (list, ws) in lists.zip(spaces) {
+                handles.push(scope.spawn(move || {
+                    list.into_iter()
+                        .try_for_each(|(range, base, run)| job.factor_range(range, run, base, ws))
+                }));
+            }
+            let mut result = Ok(());
+            if let (Some(list), Some(ws)) = own {
+                result = list
+                    .into_iter()
+                    .try_for_each(|(range, base, run)| job.factor_range(range, run, base, ws));
+            }
+            for h in handles {
+                let r = h.join().unwrap_or(Err(NotPositive(UNMAPPED)));
+                result = result.and(r);
+            }
+            result
+        })?;
+        // The separators above the pieces, in order (descendants first), on this thread.
+        for s in top {
+            job.factor_range(s..s + 1, l, 0, &mut workspaces[0])?;
+        }
+        Ok(())
+    }
+}
+
+/// A subtree's supernodes, the first factor value it owns, and those values.
+type Run<'a, T> = (std::ops::Range<usize>, usize, &'a mut [T]);
+
+/// Geist and Ng's subtree-to-thread mapping: starting from the roots, the heaviest subtree
+/// is replaced by its children (its root joins the sequential top) until the subtrees, dealt
+/// longest first to the least loaded thread, keep every thread within 10% of an even share.
+/// Returns each subtree's root with its thread, and the top supernodes, ascending.
+fn subtree_mapping(
+    shared: &Shared<'_>,
+    roots: &[usize],
+    threads: usize,
+) -> (Vec<(usize, usize)>, Vec<usize>) {
+    let cost = |r: usize| shared.subtree_cost[r];
+    let mut pieces: Vec<usize> = roots.to_vec();
+    let mut top = Vec::new();
+    // A separator splits into a few children at most; this bounds the loop on any tree.
+    for _ in 0..4096 {
+        pieces.sort_unstable_by(|&a, &b| cost(b).total_cmp(&cost(a)));
+        let total: f64 = pieces.iter().map(|&r| cost(r)).sum();
+        let mut loads = vec![0f64; threads];
+        for &r in &pieces {
+            let least = (0..threads)
+                .min_by(|&a, &b| loads[a].total_cmp(&loads[b]))
+                .unwrap_or(0);
+            loads[least] += cost(r);
+        }
+        let makespan = loads.iter().copied().fold(0.0, f64::max);
+        let Some(&heaviest) = pieces.first() else {
+            break;
+        };
+        let kids = &shared.children[shared.child_ptr[heaviest]..shared.child_ptr[heaviest + 1]];
+        if makespan <= 1.1 * total / threads as f64 || kids.is_empty() {
+            break;
+        }
+        pieces.remove(0);
+        top.push(heaviest);
+        pieces.extend_from_slice(kids);
+    }
+    pieces.sort_unstable_by(|&a, &b| cost(b).total_cmp(&cost(a)));
+    let mut loads = vec![0f64; threads];
+    let mut mapping = Vec::with_capacity(pieces.len());
+    for r in pieces {
+        let least = (0..threads)
+            .min_by(|&a, &b| loads[a].total_cmp(&loads[b]))
+            .unwrap_or(0);
+        loads[least] += cost(r);
+        mapping.push((r, least));
+    }
+    top.sort_unstable();
+    (mapping, top)
+}
+
+impl<T: Scalar> Job<'_, T> {
+    /// Factors the supernodes `range` in order, sequentially; `l` holds their values and
+    /// their descendants' (factor value `base` onwards).
+    fn factor_range(
+        &self,
+        range: std::ops::Range<usize>,
+        l: &mut [T],
+        base: usize,
+        ws: &mut Workspace,
+    ) -> Result<(), NotPositive> {
+        let k = self.kernel;
+        let symbolic = self.symbolic;
         let begin = symbolic.supernode_begin();
         let end = symbolic.supernode_end();
         let row_ptr = symbolic.col_ptr_for_row_idx();
         let val_ptr = symbolic.col_ptr_for_val();
         let row_idx = symbolic.row_idx();
         let pattern = |s: usize| &row_idx[row_ptr[s]..row_ptr[s + 1]];
-        for s in 0..symbolic.n_supernodes() {
+        for s in range {
             let (s_start, s_end) = (begin[s], end[s]);
             let s_pattern = pattern(s);
             let s_ncols = s_end - s_start;
             let s_nrows = s_ncols + s_pattern.len();
             for (i, &row) in s_pattern.iter().enumerate() {
-                self.global_to_local[row] = s_ncols + i;
+                ws.global_to_local[row] = s_ncols + i;
             }
-            let (head, tail) = l.split_at_mut(val_ptr[s]);
+            let (head, tail) = l.split_at_mut(val_ptr[s] - base);
             let block = &mut tail[..val_ptr[s + 1] - val_ptr[s]];
             block.fill(T::zero_impl());
-            for (&position, &value) in self.a_position[self.a_ptr[s]..self.a_ptr[s + 1]]
+            for (&position, &value) in k.a_position[k.a_ptr[s]..k.a_ptr[s + 1]]
                 .iter()
-                .zip(&a[self.a_ptr[s]..self.a_ptr[s + 1]])
+                .zip(&self.a[k.a_ptr[s]..k.a_ptr[s + 1]])
             {
                 block[position] = value;
             }
 
-            for &d in &self.descendants[self.descendant_ptr[s]..self.descendant_ptr[s + 1]] {
+            for &d in &k.descendants[k.descendant_ptr[s]..k.descendant_ptr[s + 1]] {
                 let d_pattern = pattern(d);
                 let d_ncols = end[d] - begin[d];
                 let d_nrows = d_ncols + d_pattern.len();
-                let ld = &head[val_ptr[d]..val_ptr[d + 1]];
+                // d is in s's subtree, so its values lie in this call's slice.
+                let ld = &head[val_ptr[d] - base..val_ptr[d + 1] - base];
                 let first = d_pattern.partition_point(|&r| r < s_start);
                 let below = &d_pattern[first..];
                 let mid = below.partition_point(|&r| r < s_end);
-                let rows = &mut self.update_rows[..below.len()];
+                let rows = &mut ws.update_rows[..below.len()];
                 for (i, (local, &row)) in rows.iter_mut().zip(below).enumerate() {
                     *local = if i < mid {
                         row - s_start
                     } else {
-                        self.global_to_local[row]
+                        ws.global_to_local[row]
                     };
                 }
-                let cols = &mut self.update_cols[..mid];
+                let cols = &mut ws.update_cols[..mid];
                 for (local, &row) in cols.iter_mut().zip(below) {
                     *local = row - s_start;
                 }
@@ -291,7 +594,7 @@ impl SupernodalLlt {
                 let ld_below = &ld[d_ncols + first..];
                 #[cfg(target_arch = "x86_64")]
                 gemm(
-                    self.instructions,
+                    k.instructions,
                     block,
                     s_nrows,
                     s_nrows,
@@ -327,7 +630,7 @@ impl SupernodalLlt {
                 top,
                 Default::default(),
                 Par::Seq,
-                MemStack::new(&mut self.dense_mem),
+                MemStack::new(&mut ws.dense_mem),
                 Default::default(),
             )
             .map_err(|e| match e {
@@ -336,9 +639,9 @@ impl SupernodalLlt {
                 }
             })?;
             #[cfg(target_arch = "x86_64")]
-            solve_right_lower_adjoint(self.instructions, block, s_nrows, s_ncols, &mut self.narrow);
+            solve_right_lower_adjoint(k.instructions, block, s_nrows, s_ncols, &mut ws.narrow);
             for &row in s_pattern {
-                self.global_to_local[row] = UNMAPPED;
+                ws.global_to_local[row] = UNMAPPED;
             }
         }
         Ok(())
@@ -739,6 +1042,26 @@ mod tests {
                 "no multi-panel supernode to test"
             );
         });
+    }
+
+    /// The factor is bitwise the same on two threads as on one: only independent subtrees
+    /// run concurrently, each supernode in the same order. Nested dissection (postordered)
+    /// gives the threads separate subtrees; the test checks that they were used.
+    #[test]
+    fn threads_give_the_same_factor_bit_for_bit() {
+        use crate::flow::ordering::Ordering;
+        let (_, pattern, values) = hermitian_system(5);
+        for ordering in [Ordering::NestedDissection, Ordering::Amd] {
+            let mut one = Cholesky::<c64>::analyze_with(&pattern, 1, ordering).expect("analyze");
+            let mut two = Cholesky::<c64>::analyze_with(&pattern, 1, ordering).expect("analyze");
+            two.set_threads(2);
+            one.factorize(&pattern, &values).expect("factorize");
+            two.factorize(&pattern, &values).expect("factorize");
+            assert!(one.factor_values() == two.factor_values(), "{ordering:?}");
+            if ordering == Ordering::NestedDissection && kernel_available() {
+                assert!(two.last_parallel_pieces() > 1, "no subtree ran on a thread");
+            }
+        }
     }
 
     /// An indefinite matrix is refused with the column of the failed pivot, not factored.

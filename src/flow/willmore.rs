@@ -21,10 +21,14 @@ use super::dirichlet;
 use super::exactness::Exactness;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
+use super::ordering::Ordering;
 use super::prescribed::{PrescribedError, PrescribedSolver, SurfaceState};
 use super::scale::ScalePolicy;
-use super::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
-use super::{Boundary, Flow, FlowError, FlowParams, PrescribedVectors};
+use super::solver::{
+    add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky, Mixed, NotConverged,
+    SolverError,
+};
+use super::{Boundary, Flow, FlowError, FlowParams, Precision, PrescribedVectors, StepProfile};
 use crate::geometry::cache::GeometryCache;
 use crate::geometry::vec3::{norm2, sub};
 use crate::geometry::Quaternion;
@@ -33,6 +37,87 @@ use crate::mesh::Mesh;
 use crate::metrics::{StepMetrics, StepReporter};
 use faer::c64;
 use std::time::Instant;
+
+/// The factor of the Dirac matrix X: double precision, or single precision solved to double
+/// precision by preconditioned conjugate gradients ([`Mixed`]) on large closed surfaces.
+enum DiracFactor {
+    Double(Box<Cholesky<c64>>),
+    Mixed(Box<Mixed>),
+}
+
+impl DiracFactor {
+    fn set_threads(&mut self, threads: usize) {
+        match self {
+            DiracFactor::Double(d) => d.set_threads(threads),
+            DiracFactor::Mixed(m) => m.set_threads(threads),
+        }
+    }
+
+    fn triangle_values_mut(&mut self) -> &mut [c64] {
+        match self {
+            DiracFactor::Double(d) => d.triangle_values_mut(),
+            DiracFactor::Mixed(m) => m.triangle_values_mut(),
+        }
+    }
+
+    fn triangle_slots(&self, nnz: usize) -> Vec<Option<(usize, bool)>> {
+        match self {
+            DiracFactor::Double(d) => d.triangle_slots(nnz),
+            DiracFactor::Mixed(m) => m.triangle_slots(nnz),
+        }
+    }
+
+    fn factorize_triangle(&mut self) -> Result<(), SolverError> {
+        match self {
+            DiracFactor::Double(d) => d.factorize_triangle(),
+            // X changes little from step to step: its last factor may precondition this one.
+            DiracFactor::Mixed(m) => m.refresh(true),
+        }
+    }
+
+    /// One right-hand side.
+    fn solve_in_place(&mut self, rhs: &mut [c64]) -> Result<(), NotConverged> {
+        match self {
+            DiracFactor::Double(d) => {
+                d.solve_in_place(rhs, 1);
+                Ok(())
+            }
+            DiracFactor::Mixed(m) => m.solve_in_place(rhs),
+        }
+    }
+
+    #[cfg(test)]
+    fn hermitian_matvec(&self, x: &[c64], y: &mut [c64]) {
+        match self {
+            DiracFactor::Double(d) => d.hermitian_matvec(x, y),
+            DiracFactor::Mixed(m) => m.hermitian_matvec(x, y),
+        }
+    }
+
+    /// The double-precision factor, which the exactness constraints and the fixed boundary
+    /// need (they are never given the mixed one).
+    fn double_mut(&mut self) -> Option<&mut Cholesky<c64>> {
+        match self {
+            DiracFactor::Double(d) => Some(&mut **d),
+            DiracFactor::Mixed(_) => None,
+        }
+    }
+}
+
+/// Whether X is factored in single precision ([`Mixed`]) on a surface of `n` vertices.
+fn mixed_precision_for(n: usize, precision: Precision) -> bool {
+    match precision {
+        Precision::Auto => n >= MIXED_MIN_VERTICES,
+        Precision::Double => false,
+        Precision::Mixed => true,
+    }
+}
+
+/// From this many vertices on, X is factored in single precision ([`Mixed`]) by default.
+/// Measured with `willow bench` (issue 14): at nefertiti's 50k vertices the kept single factor
+/// makes a step about 1.9× faster than refactoring in double precision; below some 20k
+/// vertices a factorization costs a few solves, and refactoring exactly is as fast.
+pub const MIXED_MIN_VERTICES: usize = 20_000;
 
 /// Diagonal shift of X relative to its mean diagonal, scaled per vertex by relative area:
 /// large enough that LLᴴ never meets a non-positive pivot on the constant-quaternion kernel at
@@ -87,7 +172,7 @@ pub struct ConformalFlow {
     /// solve assembles X straight into the factor's triangle through `dirac_assembly`.
     dirac_values: Vec<c64>,
     dirac_assembly: TriangleAssembly,
-    dirac: Cholesky<c64>,
+    dirac: DiracFactor,
     laplace_pattern: BlockPattern,
     laplace_values: Vec<f64>,
     /// L without its shift, assembled once per step for the filter and the Poisson solve.
@@ -104,12 +189,21 @@ pub struct ConformalFlow {
     divergence: Vec<f64>,
     component_norms: Vec<f64>,
     component_areas: Vec<f64>,
+    profile: StepProfile,
+    /// Where the construction spent its time.
+    setup: StepProfile,
+    /// The fill-reducing ordering of the vertex graph every factor here uses.
+    vertex_fwd: Vec<usize>,
+    threads: usize,
 }
 
 impl ConformalFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
         check_params(params)?;
+        let mut setup = StepProfile::default();
+        setup.start();
         let topology = Topology::new(mesh);
+        setup.lap("topology");
         let n = mesh.vertex_count();
         let nf = mesh.face_count();
         let n_components = topology.components.len();
@@ -122,6 +216,7 @@ impl ConformalFlow {
         } else {
             None
         };
+        setup.lap("exactness");
         let form_count = exactness.as_ref().map_or(0, |h| h.form_count());
         let closed_vertex: Vec<bool> = vertex_component
             .iter()
@@ -133,6 +228,7 @@ impl ConformalFlow {
             (!topology.boundary_loops.is_empty()).then(|| topology.boundary_vertex_mask(n));
 
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
+        setup.lap("geometry");
         let prescribed = match (&params.boundary, topology.boundary_loops.is_empty()) {
             (_, true) | (Boundary::Free | Boundary::Fixed, _) => None,
             (Boundary::Prescribed(spec), false) => Some(spec.clone()),
@@ -165,13 +261,44 @@ impl ConformalFlow {
             &mesh.positions,
             &geometry.vertex_areas,
         );
+        setup.lap("reporter, scale");
         let dirac_pattern = BlockPattern::new(n, &mesh.triangles, 2);
-        let dirac = Cholesky::<c64>::analyze(&dirac_pattern, form_count.max(1)).map_err(|e| {
-            FlowError::Numerical {
+        setup.lap("X pattern");
+        // One ordering of the vertex graph for X and L (and the fallback's double X).
+        let (vertex_fwd, _) = dirac_pattern
+            .vertex_order(Ordering::for_vertices(n))
+            .map_err(|e| FlowError::Numerical {
                 step: 0,
                 reason: e.to_string(),
-            }
-        })?;
+            })?;
+        setup.lap("vertex ordering");
+        let numerical = |e: SolverError| FlowError::Numerical {
+            step: 0,
+            reason: e.to_string(),
+        };
+        // Single precision only where X is the one matrix factored: the exactness constraints
+        // solve with X₀ (singular up to the shift) and a fixed boundary factors a modified X.
+        let dirac = if exactness.is_none()
+            && fixed.is_none()
+            && prescribed.is_none()
+            && mixed_precision_for(n, params.precision)
+        {
+            DiracFactor::Mixed(Box::new(
+                Mixed::analyze(&dirac_pattern, &vertex_fwd).map_err(numerical)?,
+            ))
+        } else {
+            DiracFactor::Double(Box::new(
+                Cholesky::<c64>::analyze_with_vertex_order(
+                    &dirac_pattern,
+                    form_count.max(1),
+                    &vertex_fwd,
+                )
+                .map_err(numerical)?,
+            ))
+        };
+        let mut dirac = dirac;
+        dirac.set_threads(params.threads);
+        setup.lap("X analysis");
         let dirac_assembly = TriangleAssembly::new(
             &dirac_pattern,
             &mesh.triangles,
@@ -186,12 +313,17 @@ impl ConformalFlow {
         } else {
             Vec::new()
         };
+        setup.lap("X assembly plan");
         let laplace_pattern = BlockPattern::new(n, &mesh.triangles, 1);
-        let laplace =
-            Cholesky::<f64>::analyze(&laplace_pattern, 3).map_err(|e| FlowError::Numerical {
-                step: 0,
-                reason: e.to_string(),
-            })?;
+        let mut laplace =
+            Cholesky::<f64>::analyze_with_vertex_order(&laplace_pattern, 3, &vertex_fwd).map_err(
+                |e| FlowError::Numerical {
+                    step: 0,
+                    reason: e.to_string(),
+                },
+            )?;
+        laplace.set_threads(params.threads);
+        setup.lap("L pattern, analysis");
         let filter = match params.filter {
             Some(f) => Some(FilterSolver::new(&laplace_pattern, f).map_err(|e| {
                 FlowError::InvalidParameter {
@@ -206,6 +338,7 @@ impl ConformalFlow {
             triangles: mesh.triangles.clone(),
             positions: mesh.positions.clone(),
             tau: params.tau,
+            threads: params.threads,
             iterations: params.iterations,
             step: 0,
             constraints: ConstraintBasis::new(
@@ -262,6 +395,9 @@ impl ConformalFlow {
             divergence: vec![0.0; 3 * n],
             component_norms: vec![0.0; n_components],
             component_areas: vec![0.0; n_components],
+            profile: StepProfile::default(),
+            setup,
+            vertex_fwd,
         })
     }
 
@@ -392,7 +528,13 @@ impl ConformalFlow {
                     &self.topology,
                     &g.face_areas,
                     &g.vertex_areas,
-                    &mut self.dirac,
+                    self.dirac
+                        .double_mut()
+                        .ok_or_else(|| FlowError::Numerical {
+                            step,
+                            reason: "the exactness constraints need the double-precision factor"
+                                .into(),
+                        })?,
                     &mut self.constraints,
                 )
                 .map_err(|e| FlowError::Numerical {
@@ -446,6 +588,7 @@ impl ConformalFlow {
                 mean_diagonal
             }
         };
+        self.profile.lap("X assembly");
         // X is dimensionless (|e|²/A and Aρ² are scale-free), so the shift is relative to its
         // mean diagonal; weighting by relative vertex area makes it a multiple of the mass M.
         // A failed factorization adds more shift on the diagonal, without reassembling.
@@ -473,14 +616,26 @@ impl ConformalFlow {
                 }
                 *s = target;
             }
-            let factored = match fixed {
-                None => self.dirac.factorize_triangle(),
-                Some(_) => self
-                    .dirac
-                    .factorize(&self.dirac_pattern, &self.dirac_values),
+            let factored = match (fixed, self.dirac.double_mut()) {
+                (None, _) => self.dirac.factorize_triangle(),
+                (Some(_), Some(double)) => {
+                    double.factorize(&self.dirac_pattern, &self.dirac_values)
+                }
+                (Some(_), None) => Err(SolverError::Symbolic(
+                    "a fixed boundary needs the double-precision factor".into(),
+                )),
             };
             match factored {
-                Ok(()) => return Ok(()),
+                Ok(()) => {
+                    self.profile.lap("X factor");
+                    return Ok(());
+                }
+                // Rounded to single precision, X may lose a pivot that double precision keeps:
+                // the double factor decides, before any extra shift changes the problem.
+                Err(_) if matches!(self.dirac, DiracFactor::Mixed(_)) => {
+                    self.fall_back_to_double()?;
+                    return self.factor_dirac(dirichlet);
+                }
                 Err(e) if attempt >= SHIFT_RETRIES => {
                     return Err(FlowError::Numerical {
                         step: self.step + 1,
@@ -490,6 +645,32 @@ impl ConformalFlow {
                 Err(_) => attempt += 1,
             }
         }
+    }
+
+    /// Replace the mixed-precision factor of X by the double-precision one for the rest of the
+    /// flow (same ordering and triangle layout, so the assembly is rebuilt identically).
+    fn fall_back_to_double(&mut self) -> Result<(), FlowError> {
+        let numerical = |e: SolverError| FlowError::Numerical {
+            step: self.step + 1,
+            reason: e.to_string(),
+        };
+        if let DiracFactor::Mixed(m) = &mut self.dirac {
+            m.release();
+        }
+        let threads = self.threads;
+        self.dirac = DiracFactor::Double(Box::new(
+            Cholesky::<c64>::analyze_with_vertex_order(&self.dirac_pattern, 1, &self.vertex_fwd)
+                .map_err(numerical)?,
+        ));
+        self.dirac.set_threads(threads);
+        self.dirac_assembly = TriangleAssembly::new(
+            &self.dirac_pattern,
+            &self.triangles,
+            &self.dirac.triangle_slots(self.dirac_pattern.nnz()),
+        )
+        .map_err(numerical)?;
+        self.profile.count("fell back to double", 1.0);
+        Ok(())
     }
 
     /// Table 1 step VI: λ by inverse iteration on `X(ρ)`; returns the eigen-residual.
@@ -522,9 +703,9 @@ impl ConformalFlow {
                 });
         }
         self.factor_dirac(false)?;
-        let g = &self.geometry;
         self.lambda.fill(Quaternion::ONE);
         for _ in 0..self.iterations.max(1) {
+            let g = &self.geometry;
             // Generalized inverse iteration X λ' = M λ: X integrates over faces, so the mass
             // matrix M (barycentric areas) is the matching right-hand side.
             for (i, (l, &a)) in self.lambda.iter().zip(&g.vertex_areas).enumerate() {
@@ -534,13 +715,31 @@ impl ConformalFlow {
             }
             // M λ, kept: it gives X λ' for the residual below without a product with X.
             self.product.copy_from_slice(&self.rhs);
-            self.dirac.solve_in_place(&mut self.rhs, 1);
+            if self.dirac.solve_in_place(&mut self.rhs).is_err() {
+                // The single-precision factor is too far from X for CG: solve this step and
+                // the rest of the flow with the double one.
+                self.fall_back_to_double()?;
+                self.factor_dirac(false)?;
+                self.rhs.copy_from_slice(&self.product);
+                self.dirac
+                    .solve_in_place(&mut self.rhs)
+                    .map_err(|e| FlowError::Numerical {
+                        step: self.step + 1,
+                        reason: e.to_string(),
+                    })?;
+            }
+            if let DiracFactor::Mixed(m) = &self.dirac {
+                self.profile
+                    .count("CG iterations", m.last_iterations as f64);
+                self.profile
+                    .count("X factor kept", f64::from(u8::from(m.reused())));
+            }
             for (i, l) in self.lambda.iter_mut().enumerate() {
                 *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
             }
             normalize_per_component(
                 &mut self.lambda,
-                &g.vertex_areas,
+                &self.geometry.vertex_areas,
                 &self.vertex_component,
                 &mut self.component_norms,
                 &mut self.component_areas,
@@ -553,9 +752,11 @@ impl ConformalFlow {
             });
         }
         let residual = self.eigen_residual();
+        self.profile.lap("λ solve");
         if let Some(exactness) = self.exactness.as_mut() {
             // App. C's constraint holds to first order only: cancel the rest of the periods.
             exactness.project_periods(&self.triangles, &self.geometry.face_areas, &mut self.lambda);
+            self.profile.lap("period projection");
         }
         Ok(residual)
     }
@@ -603,7 +804,12 @@ impl ConformalFlow {
     fn solve_lambda_dirichlet(&mut self) -> Result<f64, FlowError> {
         self.factor_dirac(true)?;
         self.rhs.copy_from_slice(&self.solve_rhs);
-        self.dirac.solve_in_place(&mut self.rhs, 1);
+        self.dirac
+            .solve_in_place(&mut self.rhs)
+            .map_err(|e| FlowError::Numerical {
+                step: self.step + 1,
+                reason: e.to_string(),
+            })?;
         for (i, l) in self.lambda.iter_mut().enumerate() {
             *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
         }
@@ -693,6 +899,7 @@ impl ConformalFlow {
             }
         }
 
+        self.profile.lap("new edges");
         // L f̃ = ω with the current L, shifted by εM so the constant kernel is harmless
         // (ω sums to zero per component by construction).
         let mean_area = g.total_area() / n as f64;
@@ -732,7 +939,9 @@ impl ConformalFlow {
                 Err(_) => attempt += 1,
             }
         }
+        self.profile.lap("L factor");
         self.laplace.solve_in_place(&mut self.divergence, 3);
+        self.profile.lap("L solve");
         for (i, p) in self.positions.iter_mut().enumerate() {
             *p = [
                 self.divergence[i],
@@ -884,9 +1093,12 @@ impl super::safeguard::Retry for ConformalFlow {
 impl Flow for ConformalFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let start = Instant::now();
+        self.profile.start();
         self.curvature_change()?;
+        self.profile.lap("curvature");
         let eigen_residual = self.solve_lambda()?;
         let closure_residual = self.integrate()?;
+        self.profile.lap("closure");
         // New geometry, then the scale policy on it, then the geometry again for the metrics
         // and the next step (the rescale changes areas and H).
         self.geometry.refresh(&self.positions, &self.triangles);
@@ -899,7 +1111,8 @@ impl Flow for ConformalFlow {
                 .rescale(&self.triangles, &self.vertex_component, scales);
         }
         self.step += 1;
-        Ok(self.reporter.report(
+        self.profile.lap("geometry");
+        let metrics = self.reporter.report(
             self.step,
             &self.positions,
             &self.triangles,
@@ -907,11 +1120,21 @@ impl Flow for ConformalFlow {
             closure_residual,
             eigen_residual,
             start,
-        ))
+        );
+        self.profile.lap("metrics");
+        Ok(metrics)
     }
 
     fn positions(&self) -> &[[f64; 3]] {
         &self.positions
+    }
+
+    fn profile(&self) -> Option<&StepProfile> {
+        Some(&self.profile)
+    }
+
+    fn setup_profile(&self) -> Option<&StepProfile> {
+        Some(&self.setup)
     }
 
     fn initial_metrics(&self) -> StepMetrics {
@@ -923,6 +1146,38 @@ impl Flow for ConformalFlow {
 mod tests {
     use super::*;
     use crate::mesh::generate::bumpy_sphere;
+
+    /// The switch from the single-precision factor to the double one (taken where single
+    /// precision cannot factor or precondition X) continues the same flow: after it, steps
+    /// match a flow that was double all along.
+    #[test]
+    fn falling_back_to_double_precision_continues_the_same_flow() {
+        use crate::mesh::generate::{bumpy_sphere, with_noise};
+        let mesh = with_noise(bumpy_sphere(4, 0.15), 0.1, 3);
+        let params = |precision| FlowParams {
+            tau: 0.2,
+            precision,
+            ..FlowParams::default()
+        };
+        let mut double = ConformalFlow::new(&mesh, &params(Precision::Double)).expect("flow");
+        let mut mixed = ConformalFlow::new(&mesh, &params(Precision::Mixed)).expect("flow");
+        assert!(matches!(mixed.dirac, DiracFactor::Mixed(_)));
+        for step in 0..3 {
+            if step == 1 {
+                mixed.fall_back_to_double().expect("fall back");
+                assert!(matches!(mixed.dirac, DiracFactor::Double(_)));
+            }
+            let d = double.step().expect("step");
+            let m = mixed.step().expect("step");
+            let rel = (d.willmore_energy - m.willmore_energy).abs() / d.willmore_energy;
+            assert!(
+                rel < 1e-8,
+                "step {step}: W {} vs {}",
+                d.willmore_energy,
+                m.willmore_energy
+            );
+        }
+    }
 
     #[test]
     fn eigen_residual_without_a_product_matches_the_product() {

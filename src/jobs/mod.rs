@@ -228,6 +228,9 @@ impl JobSpec {
             filter: self.filter.map(spec::FilterSpec::to_flow),
             boundary: self.boundary.to_flow(),
             safeguard: self.safeguard,
+            // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
+            threads: 1,
+            precision: crate::flow::Precision::Auto,
         }
     }
 

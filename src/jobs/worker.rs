@@ -76,6 +76,30 @@ pub(crate) async fn worker_loop(jobs: Jobs, n: usize, stop: CancellationToken) {
     }
 }
 
+/// From this many vertices on, a job may use the cores idle workers leave: its factorization
+/// has subtrees worth a thread each (below, a step takes milliseconds and threads only add
+/// their start-up cost).
+pub const PARALLEL_JOB_VERTICES: usize = 100_000;
+
+/// Threads for a job of `vertices` vertices: 1 for small jobs, so many of them share the
+/// cores; for a large one, the cores of the workers that are idle (`running` counts this job)
+/// when nothing waits in the queue. A job keeps its budget to the end, so a burst that
+/// arrives after it starts shares the machine with it for its duration (the workers bound the
+/// count of flows, not of threads).
+pub fn thread_budget(
+    vertices: usize,
+    workers: usize,
+    running: usize,
+    queued: usize,
+    cores: usize,
+) -> usize {
+    if vertices < PARALLEL_JOB_VERTICES || queued > 0 {
+        return 1;
+    }
+    let idle = workers.saturating_sub(running.max(1));
+    (1 + idle).min(cores).max(1)
+}
+
 /// What ended a run early.
 enum Stop {
     Cancelled(usize),
@@ -145,7 +169,15 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
         Err(e) => return Err(e),
     };
     let spec = &running.spec;
-    let mut flow = match new_flow(asset.surface(), &spec.flow_params()) {
+    let mut params = spec.flow_params();
+    params.threads = thread_budget(
+        asset.surface().vertex_count(),
+        inner.config.workers,
+        inner.running.load(Ordering::SeqCst),
+        inner.queue.len(),
+        std::thread::available_parallelism().map_or(1, |n| n.get()),
+    );
+    let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
         Err(e) => {
             finish(
@@ -335,4 +367,26 @@ pub(crate) fn finish(
         tracing::warn!(job_id = %id, error = status.error.as_deref().unwrap_or(""), "job failed");
     }
     Ok(status)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn small_jobs_run_on_one_thread_whatever_is_idle() {
+        assert_eq!(thread_budget(PARALLEL_JOB_VERTICES - 1, 8, 1, 0, 16), 1);
+    }
+
+    #[test]
+    fn a_large_job_takes_the_cores_of_idle_workers() {
+        // Alone on 4 workers: itself and the three idle ones, within the cores.
+        assert_eq!(thread_budget(PARALLEL_JOB_VERTICES, 4, 1, 0, 16), 4);
+        assert_eq!(thread_budget(PARALLEL_JOB_VERTICES, 4, 1, 0, 2), 2);
+        // Three of four workers busy: one idle worker's core.
+        assert_eq!(thread_budget(PARALLEL_JOB_VERTICES, 4, 3, 0, 16), 2);
+        // Every worker busy, or jobs waiting for one: no extra threads.
+        assert_eq!(thread_budget(PARALLEL_JOB_VERTICES, 4, 4, 0, 16), 1);
+        assert_eq!(thread_budget(PARALLEL_JOB_VERTICES, 4, 1, 2, 16), 1);
+    }
 }
