@@ -12,8 +12,10 @@ const stats = {
   lastApplyMs: 0, maxApplyMs: 0, applyMsTotal: 0, lastDecodeMs: 0,
   lastRenderMs: 0, maxRenderMs: 0, renderMsTotal: 0, renderCount: 0,
   plotPoints: 0, vertexCount: 0, triangleCount: 0, reconnects: 0,
-  // The timing script sets this to make each render wait for the GPU (gl.finish()).
-  finishGl: false,
+  // The last 1000 per-frame times, for percentiles.
+  applyMs: [], renderMs: [],
+  // The timing script sets this to make each render wait until the frame is drawn.
+  syncGpu: false,
 };
 window.willowStats = stats;
 
@@ -21,6 +23,8 @@ const $ = (id) => document.getElementById(id);
 const form = $('params');
 const view = new View($('canvas'), stats);
 const plots = new Plots();
+/** For the timing script and debugging in the console. */
+window.willow = { view, plots };
 
 /** Positions of kept frames held in memory for the scrub slider, up to this many bytes. */
 const FRAME_CACHE_BYTES = 256 << 20;
@@ -59,6 +63,31 @@ async function loadConfig() {
   for (const p of params) {
     const el = form.elements.namedItem(p.name);
     if (el && p.description && el.closest) el.closest('label').title = p.description;
+  }
+  updateFormVisibility();
+}
+
+/** Show a job's parameters (its `params`, every field reported) in the form. */
+function fillForm(p) {
+  const e = form.elements;
+  for (const name of ['method', 'steps', 'tau', 'iterations', 'frame_interval']) e[name].value = p[name];
+  e.deadline_secs.value = p.deadline_secs ?? '';
+  for (const name of ['include_positions', 'safeguard', 'exactness', 'mobius_balancing']) e[name].checked = p[name];
+  e.filter.checked = !!p.filter;
+  if (p.filter) { e['filter.sigma'].value = p.filter.sigma; e['filter.k'].value = p.filter.k; }
+  if (typeof p.boundary === 'string') {
+    e.boundary.value = p.boundary;
+  } else if (p.boundary?.prescribed) {
+    const b = p.boundary.prescribed;
+    e.boundary.value = 'prescribed';
+    e['boundary.prescribed.frame_angle'].value = b.frame_angle;
+    const fixed = b.axis && b.axis.fixed;
+    e['boundary.prescribed.axis'].value = fixed ? 'fixed' : 'tangent';
+    e['boundary.prescribed.axis.fixed'].value = fixed ? fixed.join(',') : '';
+    const perLoop = b.angles && b.angles.per_loop;
+    e['boundary.prescribed.angles'].value = perLoop ? 'per_loop' : 'uniform';
+    e['boundary.prescribed.angles.per_loop'].value = perLoop ? perLoop.join(',') : '';
+    e['boundary.prescribed.angles.uniform'].value = perLoop ? 0 : b.angles?.uniform ?? 0;
   }
   updateFormVisibility();
 }
@@ -182,7 +211,7 @@ async function takeFiles(files) {
     view.setColour($('colour').value);
     const m = upload.model;
     $('file-info').textContent = `${upload.file.name}: ${m.fileVertexCount} vertices, ${stats.triangleCount} triangles` +
-      (textured ? `, texture ${upload.texture ? upload.texture.name : '(embedded)'}` : m.format === 'obj' ? '' : '');
+      (textured ? `, texture ${upload.texture ? upload.texture.name : '(embedded)'}` : '');
     $('submit').disabled = false;
   } catch (e) {
     $('form-error').textContent = `cannot read the file: ${e.message}`;
@@ -215,6 +244,7 @@ async function submitJob(ev) {
   try {
     const job = await json('/v1/jobs', { method: 'POST', body });
     if (upload.texture && upload.model.uvFlipY) rememberTexture(job.id, upload.texture);
+    upload.jobId = job.id;
     location.hash = `job=${job.id}`; // hashchange starts watching it (with the model we have)
   } catch (e) {
     showProblem(e instanceof ApiError ? e.problem : { detail: e.message });
@@ -289,14 +319,13 @@ async function startWatch(id) {
   if (w.closed) return;
   w.format = job.input_format;
   updateJob(job);
-  const fresh = upload && upload.jobId === undefined && upload.model.fileVertexCount === job.vertex_count && location.hash.endsWith(id) && upload.submitted !== true;
+  const fresh = !!upload && upload.jobId === id;
   if (fresh) {
     // Just submitted from this page: the model on screen is the job's input.
-    upload.submitted = true;
-    upload.jobId = id;
     w.modelReady = true;
   } else {
     upload = null;
+    fillForm(job.params);
     $('submit').disabled = true;
     $('file-info').textContent = 'No mesh chosen.';
     loadModel(w); // async: frames wait in `pending` until it is ready
@@ -422,10 +451,16 @@ function schedule(w) {
     stats.lastApplyMs = ms;
     stats.maxApplyMs = Math.max(stats.maxApplyMs, ms);
     stats.applyMsTotal += ms;
+    record(stats.applyMs, ms);
     stats.framesApplied++;
     w.shownStep = step;
     updateCounter();
   });
+}
+
+function record(list, ms) {
+  list.push(ms);
+  if (list.length > 1000) list.shift();
 }
 
 function updateCounter() {
@@ -442,7 +477,7 @@ function updateJob(job) {
   watch.job = job;
   stats.state = job.state;
   const badge = $('state');
-  badge.textContent = job.state + (job.error_code ? `: ${job.error_code}` : '');
+  badge.textContent = job.state + (job.error_code && job.error_code !== job.state ? `: ${job.error_code}` : '');
   badge.title = job.error || '';
   badge.className = `badge s-${job.state}`;
   $('cancel').disabled = isTerminal(job);
@@ -536,7 +571,7 @@ function renderJobs(jobs) {
     const ran = j.started_time ? duration(j.started_time, j.finished_time) : '';
     const cells = [
       `<a href="#job=${j.id}"><code>${j.id.slice(0, 8)}</code></a>`,
-      `<span class="badge s-${j.state}" title="${escapeHtml(j.error || '')}">${j.state}${j.error_code ? ': ' + j.error_code : ''}</span>`,
+      `<span class="badge s-${j.state}" title="${escapeHtml(j.error || '')}">${j.state}${j.error_code && j.error_code !== j.state ? ': ' + j.error_code : ''}</span>`,
       `<progress max="${j.progress.total_steps}" value="${j.progress.step}"></progress> ${j.progress.step}/${j.progress.total_steps}`,
       m ? m.willmore_energy.toPrecision(5) : '',
       m ? m.q_mean.toFixed(4) : '',
@@ -601,6 +636,8 @@ function wire() {
 }
 
 wire();
-loadConfig().catch((e) => { $('form-error').textContent = `cannot load the parameters: ${e.message}`; });
 refreshJobs();
-onHash();
+// A job in the URL is watched once the form exists: it shows that job's parameters.
+loadConfig()
+  .catch((e) => { $('form-error').textContent = `cannot load the parameters: ${e.message}`; })
+  .then(onHash);
