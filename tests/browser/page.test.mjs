@@ -6,7 +6,7 @@ import { existsSync, readFileSync } from 'node:fs';
 import { createRequire } from 'node:module';
 import { dirname, join, resolve } from 'node:path';
 import { fileURLToPath } from 'node:url';
-import { ARTIFACTS, URL_BASE, launch, sharedMesh, stats, waitStats, watchedPage } from './support.mjs';
+import { ARTIFACTS, URL_BASE, launch, sharedMesh, startProxy, stats, waitStats, watchedPage } from './support.mjs';
 
 const here = dirname(fileURLToPath(import.meta.url));
 const spot = sharedMesh('spot_triangulated.obj');
@@ -18,14 +18,20 @@ let browser;
 let page;
 let problems;
 let firstJob;
+// The page is loaded through a proxy, so a test can drop its connections.
+let proxy;
+let BASE;
 
 before(async () => {
+  proxy = await startProxy(URL_BASE);
+  BASE = proxy.url;
   browser = await launch();
-  ({ page, problems } = await watchedPage(browser.context));
+  ({ page, problems } = await watchedPage(browser.context, BASE));
 });
 
 after(async () => {
   await browser?.close();
+  await proxy?.close();
 });
 
 /** Nothing forbidden happened so far (checked at the end of every test). */
@@ -38,7 +44,7 @@ const canvasPixels = () => page.locator('#canvas').screenshot();
 const counter = async () => Number(await page.locator('#frame-counter').getAttribute('data-frames-applied'));
 
 async function uploadSpot(params = {}) {
-  await page.goto(URL_BASE + '/');
+  await page.goto(BASE + '/');
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
   // The parameters' defaults come from the server before the form is used.
@@ -135,14 +141,32 @@ test('the API\'s error is shown, its field highlighted', { skip }, async () => {
   assertClean();
 });
 
-test('reload mid-run resumes the stream; cancel the job; the dashboard shows the states', { skip }, async () => {
+test('a dropped connection and a reload mid-run resume the stream; cancel the job; the dashboard shows the states', { skip }, async () => {
   // Long enough to reload and cancel while it runs: small steps.
-  await uploadSpot({ steps: 400, tau: 0.02 });
+  await uploadSpot({ steps: 2000, tau: 0.02 });
   await page.click('#submit');
   await page.waitForFunction(() => /^#job=/.test(location.hash));
   const id = await page.evaluate(() => location.hash.slice(5));
   assert.notEqual(id, firstJob);
-  const s1 = await waitStats(page, () => window.willowStats.framesApplied >= 3 && window.willowStats.state === 'running');
+  const s0 = await waitStats(page, () => window.willowStats.framesApplied >= 3 && window.willowStats.state === 'running');
+
+  // A dropped connection: the browser reconnects by itself and resumes after Last-Event-ID.
+  const resumes = [];
+  const onResume = async (r) => {
+    if (!r.url().includes(`/v1/jobs/${id}/events`)) return;
+    const h = await r.allHeaders();
+    if (h['last-event-id'] !== undefined) resumes.push(Number(h['last-event-id']));
+  };
+  page.on('request', onResume);
+  proxy.dropAll();
+  const dropped = await waitStats(page, () => window.willowStats.reconnects > 0, null, 10_000);
+  await page.waitForFunction(() => document.getElementById('state').textContent === 'running', null, { timeout: 30_000 });
+  page.off('request', onResume);
+  assert.equal(resumes.length, 1, 'one reconnection, with Last-Event-ID');
+  assert.ok(resumes[0] >= s0.lastStep, `resumed after step ${resumes[0]}, the last seen before the drop`);
+  const s1 = await waitStats(page, (step) => window.willowStats.lastStep > step + 2, dropped.lastStep);
+  // Requests cut by the drop (a dashboard poll) are the browser's console errors, not the page's.
+  problems.splice(0, problems.length, ...problems.filter((p) => !/ERR_INCOMPLETE_CHUNKED_ENCODING|ERR_EMPTY_RESPONSE|ERR_CONNECTION|Failed to fetch|network/.test(p)));
 
   const streams = [];
   const onRequest = (r) => { if (r.url().includes(`/v1/jobs/${id}/events`)) streams.push(r.url()); };
@@ -156,7 +180,7 @@ test('reload mid-run resumes the stream; cancel the job; the dashboard shows the
   assert.ok(s2.plotPoints > s1.lastStep, 'the plots were refilled from the job\'s history');
   assert.equal(s2.triangleCount, 5856, 'the input was fetched back (frame 0) after the reload');
   assert.equal(await page.locator('#colour').inputValue(), 'texture', 'the OBJ\'s texture is kept for this tab');
-  assert.equal(await page.locator('[name=steps]').inputValue(), '400', 'the form shows the job\'s parameters');
+  assert.equal(await page.locator('[name=steps]').inputValue(), '2000', 'the form shows the job\'s parameters');
   await shot('07-reloaded-running');
 
   // Dashboard: this job running, the first one succeeded.
@@ -173,6 +197,10 @@ test('reload mid-run resumes the stream; cancel the job; the dashboard shows the
     throw new Error(`${e.message}\nthe API says: ${job}`);
   }
   await page.locator(`#jobs-table tr[data-job-id="${id}"][data-state="cancelled"]`).waitFor({ timeout: 10_000 });
+  // Scrub to step 0, which came before the reload: fetched from the frames endpoint.
+  await page.waitForFunction(() => !document.getElementById('scrub').disabled);
+  await page.locator('#scrub').evaluate((el) => { el.value = '0'; el.dispatchEvent(new Event('input')); });
+  await page.waitForFunction(() => /step 0\//.test(document.getElementById('frame-counter').textContent));
   // Filtered by state: only cancelled jobs.
   await page.selectOption('#jobs-state', 'cancelled');
   await page.waitForFunction((first) => !document.querySelector(`#jobs-table tr[data-job-id="${first}"]`), firstJob);
@@ -183,14 +211,20 @@ test('reload mid-run resumes the stream; cancel the job; the dashboard shows the
   assertClean();
 });
 
-test('a textured GLB shows its embedded texture', { skip: !duck && 'Duck.glb is not on this machine' }, async () => {
-  await page.goto(URL_BASE + '/');
+test('a textured GLB shows its embedded texture and flows', { skip: !duck && 'Duck.glb is not on this machine' }, async () => {
+  await page.goto(BASE + '/');
   await page.setInputFiles('#files', [duck]);
   await page.waitForFunction(() => /texture \(embedded\)/.test(document.getElementById('file-info').textContent));
   const s = await stats(page);
   assert.equal(s.triangleCount, 4212);
   assert.equal(await page.locator('#colour').inputValue(), 'texture');
+  // Its frames (glTF accessor vertices, in accessor-local space) land on the same buffers.
+  await page.fill('[name="steps"]', '4');
+  await page.click('#submit');
+  const done = await waitStats(page, () => window.willowStats.state === 'succeeded' && window.willowStats.framesApplied >= 2);
+  assert.equal(await page.locator('#view-error').textContent(), '');
+  assert.equal(done.triangleCount, 4212);
   await page.waitForTimeout(300);
-  await shot('09-duck-glb');
+  await shot('09-duck-glb-faired');
   assertClean();
 });

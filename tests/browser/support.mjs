@@ -1,6 +1,7 @@
 // Shared by the browser tests and the timing script: launching Debian's chromium, a page that
 // records console errors and requests to other hosts, and where the shared meshes are.
 import { chromium } from 'playwright-core';
+import { createServer, connect } from 'node:net';
 import { existsSync, mkdtempSync, rmSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { dirname, join, resolve } from 'node:path';
@@ -46,10 +47,10 @@ export async function launch() {
 
 /** A page that records what the tests forbid: console errors, uncaught exceptions and any
  * request to a host other than the server. */
-export async function watchedPage(context) {
+export async function watchedPage(context, base = URL_BASE) {
   const page = context.pages()[0] || (await context.newPage());
   const problems = [];
-  const origin = new URL(URL_BASE).origin;
+  const origin = new URL(base).origin;
   page.on('console', (m) => { if (m.type() === 'error') problems.push(`console error: ${m.text()}`); });
   page.on('pageerror', (e) => problems.push(`uncaught: ${e.message}`));
   page.on('request', (r) => {
@@ -70,4 +71,26 @@ export async function waitStats(page, predicate, arg, timeout = 120_000) {
     throw new Error(`${e.message}\nwaiting for ${predicate}\nwillowStats: ${JSON.stringify({ ...s, applyMs: undefined, renderMs: undefined })}`);
   }
   return stats(page);
+}
+
+/** A TCP proxy on a free loopback port in front of the server, so a test can drop every open
+ * connection (`dropAll`) as a network would. */
+export async function startProxy(target = URL_BASE) {
+  const { hostname, port } = new URL(target);
+  const sockets = new Set();
+  const server = createServer((client) => {
+    const upstream = connect(Number(port), hostname);
+    for (const [a, b] of [[client, upstream], [upstream, client]]) {
+      sockets.add(a);
+      a.on('error', () => b.destroy());
+      a.on('close', () => { sockets.delete(a); b.destroy(); });
+      a.pipe(b);
+    }
+  });
+  await new Promise((r) => server.listen(0, '127.0.0.1', r));
+  return {
+    url: `http://127.0.0.1:${server.address().port}`,
+    dropAll: () => { for (const s of sockets) s.destroy(); },
+    close: () => new Promise((r) => { for (const s of sockets) s.destroy(); server.close(r); }),
+  };
 }
