@@ -118,12 +118,12 @@ class FieldError extends Error {
 /** The `params` JSON part, in the shape of the API's JobParams. */
 function readParams() {
   const e = form.elements;
-  const num = (name, integer) => {
+  // Numbers go as typed: the API says what is wrong with them (a fraction for `steps`, …).
+  const num = (name) => {
     const el = e[name];
     if (el.validity.badInput) throw new FieldError(name, `invalid parameter \`${name}\`: not a number`);
     if (el.value.trim() === '') return undefined;
-    const v = Number(el.value);
-    return integer && Number.isInteger(v) ? v : v;
+    return Number(el.value);
   };
   const list = (name) => e[name].value.split(',').filter((t) => t.trim() !== '').map((t) => {
     const v = Number(t.trim());
@@ -132,17 +132,17 @@ function readParams() {
   });
   const p = {
     method: e.method.value,
-    steps: num('steps', true),
+    steps: num('steps'),
     tau: num('tau'),
-    iterations: num('iterations', true),
-    frame_interval: num('frame_interval', true),
+    iterations: num('iterations'),
+    frame_interval: num('frame_interval'),
     include_positions: e.include_positions.checked,
     deadline_secs: num('deadline_secs'),
     safeguard: e.safeguard.checked,
     exactness: e.exactness.checked,
     mobius_balancing: e.mobius_balancing.checked,
   };
-  if (e.filter.checked) p.filter = { sigma: num('filter.sigma'), k: num('filter.k', true) };
+  if (e.filter.checked) p.filter = { sigma: num('filter.sigma'), k: num('filter.k') };
   const b = e.boundary.value;
   if (b === 'prescribed') {
     const axis = e['boundary.prescribed.axis'].value === 'fixed' ? { fixed: list('boundary.prescribed.axis.fixed') } : 'tangent';
@@ -328,7 +328,10 @@ async function startWatch(id) {
     fillForm(job.params);
     $('submit').disabled = true;
     $('file-info').textContent = 'No mesh chosen.';
-    loadModel(w); // async: frames wait in `pending` until it is ready
+    // Frame 0 exists once the job has started: a queued job's model is fetched at its first
+    // frame. Frames wait in `pending` until the model is ready.
+    if (job.state === 'queued') w.modelDeferred = true;
+    else loadModel(w);
   }
   // History first (cheap metrics), then the stream from the last kept frame at or before it.
   let from = 0;
@@ -369,7 +372,7 @@ async function loadModel(w) {
       schedule(w);
       return;
     } catch (e) {
-      // A queued job has no frame 0 yet: try again shortly.
+      // Frame 0 not stored yet (the job was re-queued meanwhile): try again shortly.
       if (!(e instanceof ApiError && e.status === 404) || w.closed) {
         if (!w.closed) $('view-error').textContent = `cannot load the input: ${e.message}`;
         return;
@@ -406,6 +409,10 @@ function openStream(w, from) {
 function onFrame(w, f) {
   if (w.closed) return;
   stats.framesReceived++;
+  if (w.modelDeferred) {
+    w.modelDeferred = false;
+    loadModel(w);
+  }
   w.lastStep = Math.max(w.lastStep, f.step);
   stats.lastStep = w.lastStep;
   plots.add(f.metrics);
