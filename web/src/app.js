@@ -582,7 +582,7 @@ function renderJobs(jobs) {
       `<progress max="${j.progress.total_steps}" value="${j.progress.step}"></progress> ${j.progress.step}/${j.progress.total_steps}`,
       m ? m.willmore_energy.toPrecision(5) : '',
       m ? m.q_mean.toFixed(4) : '',
-      `${j.input_format} · ${j.face_count} tris · ${j.params.method}`,
+      escapeHtml(`${j.input_format} · ${j.face_count} tris · ${j.params.method}`),
       new Date(j.created_time).toLocaleTimeString(),
       ran,
       isTerminal(j) ? '' : `<button type="button" data-cancel="${j.id}">cancel</button>`,
