@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # The whole test suite, on a fresh machine: installs what the tests need (the Khronos glTF
-# validator from npm, a Python venv with grpcio for the interop test), then runs every test.
-# Extra arguments go to `cargo test` (e.g. `scripts/test.sh flow_conformal`).
+# validator from npm, a Python venv with grpcio for the interop test), then runs every test,
+# and the web page's browser tests (scripts/browser-test.sh: Debian's chromium, installed when
+# missing, and playwright-core from npm).
+# Extra arguments go to `cargo test` (e.g. `scripts/test.sh flow_conformal`) and then skip the
+# browser tests, as does WILLOW_SKIP_BROWSER_TESTS=1.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -21,3 +24,8 @@ fi
 # `cargo bench`; they are not tests, so they stay out of this run.
 cargo test --lib --bins --tests "$@"
 cargo test --doc "$@"
+
+# The web page in a real browser, against the real server (a few seconds once installed).
+if [[ $# -eq 0 && "${WILLOW_SKIP_BROWSER_TESTS:-0}" != 1 ]]; then
+    scripts/browser-test.sh
+fi

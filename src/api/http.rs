@@ -47,7 +47,7 @@ pub struct AppState {
     pub streams_stop: CancellationToken,
 }
 
-/// The HTTP routes (the REST API, probes, metrics, docs), state applied.
+/// The HTTP routes (the REST API, probes, metrics, docs, the web page), state applied.
 pub fn routes(state: AppState) -> Router {
     Router::new()
         .route("/v1/jobs", post(create_job).get(list_jobs))
@@ -64,6 +64,7 @@ pub fn routes(state: AppState) -> Router {
         .route("/metrics", get(metrics))
         .route("/openapi.json", get(openapi_json))
         .route("/docs", get(docs))
+        .merge(super::web::routes())
         .with_state(state)
 }
 

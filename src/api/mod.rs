@@ -4,6 +4,7 @@
 //! - [`problem`]: RFC 9457 problem details; the one place job errors become HTTP statuses.
 //! - [`server`]: the single router serving HTTP/1.1, h2c and gRPC on one port, and
 //!   `willow serve`.
+//! - [`web`]: the web page at `/` (issue 13), its files embedded at build time.
 //! - [`grpc`]: the tonic services (package `willow.v1`, longrunning Operations, health,
 //!   reflection), merged into the same router by [`server::app`].
 
@@ -11,3 +12,4 @@ pub mod grpc;
 pub mod http;
 pub mod problem;
 pub mod server;
+pub mod web;

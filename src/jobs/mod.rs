@@ -250,7 +250,7 @@ pub fn method_name(method: Method) -> String {
 }
 
 /// More inverse iterations than this buy nothing (§6.4.2 uses one) and only burn CPU.
-const MAX_ITERATIONS: usize = 50;
+pub const MAX_ITERATIONS: usize = 50;
 
 /// Where a job is in its life. Terminal states: succeeded, failed, cancelled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

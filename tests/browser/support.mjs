@@ -1,0 +1,96 @@
+// Shared by the browser tests and the timing script: launching Debian's chromium, a page that
+// records console errors and requests to other hosts, and where the shared meshes are.
+import { chromium } from 'playwright-core';
+import { createServer, connect } from 'node:net';
+import { existsSync, mkdtempSync, rmSync } from 'node:fs';
+import { tmpdir } from 'node:os';
+import { dirname, join, resolve } from 'node:path';
+import { fileURLToPath } from 'node:url';
+
+const here = dirname(fileURLToPath(import.meta.url));
+
+export const URL_BASE = process.env.WILLOW_URL || 'http://127.0.0.1:8080';
+export const ARTIFACTS = process.env.WILLOW_ARTIFACTS || resolve(here, '../../target/browser-artifacts');
+
+/** `$WILLOW_SHARED_MESHES`, else ../shared/meshes beside the checkout, else /work/shared/meshes
+ * (as tests/mesh_support does); null when none has `name`. */
+export function sharedMesh(name) {
+  const dirs = process.env.WILLOW_SHARED_MESHES
+    ? [process.env.WILLOW_SHARED_MESHES]
+    : [resolve(here, '../../../shared/meshes'), '/work/shared/meshes'];
+  for (const d of dirs) if (existsSync(join(d, name))) return join(d, name);
+  console.log(`note: ${name} not found in ${dirs.join(', ')}`);
+  return null;
+}
+
+/** Headless chromium from Debian with a fresh profile: software WebGL (SwiftShader), no
+ * network of its own (no component updates, sync or background requests). */
+export async function launch() {
+  const profile = mkdtempSync(join(tmpdir(), 'willow-chromium-'));
+  const context = await chromium.launchPersistentContext(profile, {
+    executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
+    headless: true,
+    acceptDownloads: true,
+    viewport: { width: 1400, height: 1000 },
+    args: [
+      '--headless', '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
+      '--disable-background-networking', '--disable-component-update', '--disable-sync',
+      '--enable-unsafe-swiftshader',
+    ],
+  });
+  const close = async () => {
+    await context.close();
+    rmSync(profile, { recursive: true, force: true });
+  };
+  return { context, close };
+}
+
+/** A page that records what the tests forbid: console errors, uncaught exceptions and any
+ * request to a host other than the server. */
+export async function watchedPage(context, base = URL_BASE) {
+  const page = context.pages()[0] || (await context.newPage());
+  const problems = [];
+  const origin = new URL(base).origin;
+  page.on('console', (m) => { if (m.type() === 'error') problems.push(`console error: ${m.text()}`); });
+  page.on('pageerror', (e) => problems.push(`uncaught: ${e.message}`));
+  page.on('request', (r) => {
+    const u = r.url();
+    if (u.startsWith('data:') || u.startsWith('blob:')) return;
+    if (new URL(u).origin !== origin) problems.push(`request to another host: ${u}`);
+  });
+  return { page, problems };
+}
+
+export const stats = (page) => page.evaluate(() => ({ ...window.willowStats }));
+
+export async function waitStats(page, predicate, arg, timeout = 120_000) {
+  try {
+    await page.waitForFunction(predicate, arg, { timeout, polling: 100 });
+  } catch (e) {
+    const s = await stats(page).catch(() => null);
+    throw new Error(`${e.message}\nwaiting for ${predicate}\nwillowStats: ${JSON.stringify({ ...s, applyMs: undefined, renderMs: undefined })}`);
+  }
+  return stats(page);
+}
+
+/** A TCP proxy on a free loopback port in front of the server, so a test can drop every open
+ * connection (`dropAll`) as a network would. */
+export async function startProxy(target = URL_BASE) {
+  const { hostname, port } = new URL(target);
+  const sockets = new Set();
+  const server = createServer((client) => {
+    const upstream = connect(Number(port), hostname);
+    for (const [a, b] of [[client, upstream], [upstream, client]]) {
+      sockets.add(a);
+      a.on('error', () => b.destroy());
+      a.on('close', () => { sockets.delete(a); b.destroy(); });
+      a.pipe(b);
+    }
+  });
+  await new Promise((r) => server.listen(0, '127.0.0.1', r));
+  return {
+    url: `http://127.0.0.1:${server.address().port}`,
+    dropAll: () => { for (const s of sockets) s.destroy(); },
+    close: () => new Promise((r) => { for (const s of sockets) s.destroy(); server.close(r); }),
+  };
+}

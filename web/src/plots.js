@@ -1,0 +1,75 @@
+// Metric plots (uPlot), one point per step, growing live. Points are appended to plain arrays
+// and the charts redrawn at most once per animation frame, however fast frames arrive.
+import uPlot from 'uplot';
+
+const SERIES = [
+  { el: 'plot-w', title: 'Willmore energy W', log: false,
+    series: [{ label: 'W', key: 'willmore_energy', stroke: '#2f6fd6' }] },
+  { el: 'plot-q', title: 'quasi-conformal error Q', log: true,
+    series: [
+      { label: 'mean', key: 'q_mean', stroke: '#2e7d32' },
+      { label: 'p95', key: 'q_p95', stroke: '#ef6c00' },
+      { label: 'max', key: 'q_max', stroke: '#c62828' },
+    ] },
+  { el: 'plot-closure', title: 'closure residual', log: true,
+    series: [{ label: 'closure', key: 'closure_residual', stroke: '#6a1b9a' }] },
+  { el: 'plot-tau', title: 'τ used per step', log: false,
+    series: [{ label: 'τ', key: 'tau', stroke: '#00838f', points: { show: true, size: 5 } }] },
+];
+
+export class Plots {
+  constructor() {
+    this.charts = SERIES.map((spec) => {
+      const el = document.getElementById(spec.el);
+      const data = [[], ...spec.series.map(() => [])];
+      const opts = {
+        title: spec.title,
+        width: Math.max(200, el.clientWidth),
+        height: 170,
+        scales: { x: { time: false }, y: spec.log ? { distr: 3 } : {} },
+        axes: [{ label: 'step', size: 36 }, { size: 56 }],
+        legend: { live: false },
+        cursor: { drag: { x: false, y: false } },
+        series: [{ label: 'step' }, ...spec.series.map((s) => ({ label: s.label, stroke: s.stroke, width: 1.5, points: s.points }))],
+      };
+      const chart = new uPlot(opts, data, el);
+      return { spec, el, data, chart };
+    });
+    this.pending = false;
+    this.points = 0;
+    new ResizeObserver(() => {
+      for (const c of this.charts) c.chart.setSize({ width: Math.max(200, c.el.clientWidth), height: 170 });
+    }).observe(document.getElementById('plots'));
+  }
+
+  clear() {
+    for (const c of this.charts) for (const a of c.data) a.length = 0;
+    this.points = 0;
+    this.redraw();
+  }
+
+  /** Add one step's metrics (steps arriving again after a reconnect are ignored). */
+  add(m) {
+    const steps = this.charts[0].data[0];
+    if (steps.length && m.step <= steps[steps.length - 1]) return;
+    for (const c of this.charts) {
+      c.data[0].push(m.step);
+      c.spec.series.forEach((s, i) => {
+        let v = m[s.key];
+        // Log scales cannot show 0 (step 0's residual, a flow without closure); τ is 0 at step 0.
+        if (!(Number.isFinite(v)) || ((c.spec.log || s.key === 'tau') && v <= 0)) v = null;
+        c.data[i + 1].push(v);
+      });
+    }
+    this.points++;
+    if (!this.pending) {
+      this.pending = true;
+      requestAnimationFrame(() => this.redraw());
+    }
+  }
+
+  redraw() {
+    this.pending = false;
+    for (const c of this.charts) c.chart.setData(c.data);
+  }
+}
