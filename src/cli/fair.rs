@@ -59,6 +59,10 @@ pub struct FairArgs {
     /// use the machine; the result is bitwise the same for any count.
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// The conformal flow's Dirac factor: auto (single precision kept across steps, with
+    /// conjugate gradients, from 20k vertices), double (refactored exactly every step) or mixed.
+    #[arg(long, value_enum, default_value_t = super::bench::PrecisionArg::Auto)]
+    pub precision: super::bench::PrecisionArg,
     /// Spectral filter strength σ (§4, unitless: σ = (l(l+1))^−k puts the crossover at
     /// spherical degree l); needs --filter-k.
     #[arg(long, requires = "filter_k")]
@@ -196,7 +200,7 @@ pub fn run(args: FairArgs) -> ExitCode {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
             n => n,
         },
-        precision: willow::flow::Precision::Auto,
+        precision: args.precision.into(),
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,

@@ -145,6 +145,43 @@ pub fn postorder(
     (new_fwd, new_inv)
 }
 
+/// An ordering computed on a thread of its own while the caller does other setup work (or
+/// at once, on the caller's thread, when it has no thread to spare).
+pub enum Pending {
+    Running(std::thread::JoinHandle<OrderResult>),
+    Done(OrderResult),
+}
+
+/// A permutation `(fwd, inv)`, or why there is none.
+pub type OrderResult = Result<(Vec<usize>, Vec<usize>), OrderingError>;
+
+impl Pending {
+    /// Start ordering the graph `col_ptr`/`row_idx` (owned: the thread outlives no borrow).
+    pub fn start(
+        ordering: Ordering,
+        col_ptr: Vec<usize>,
+        row_idx: Vec<usize>,
+        spawn: bool,
+    ) -> Self {
+        if !spawn {
+            return Pending::Done(order(ordering, &col_ptr, &row_idx));
+        }
+        Pending::Running(std::thread::spawn(move || {
+            order(ordering, &col_ptr, &row_idx)
+        }))
+    }
+
+    /// The ordering (waits for the thread).
+    pub fn finish(self) -> OrderResult {
+        match self {
+            Pending::Done(result) => result,
+            Pending::Running(handle) => handle
+                .join()
+                .unwrap_or_else(|_| Err(OrderingError::Amd("the ordering thread panicked".into()))),
+        }
+    }
+}
+
 /// faer's approximate minimum degree.
 pub fn minimum_degree(
     col_ptr: &[usize],

@@ -114,6 +114,24 @@ impl BlockPattern {
         self.block * self.block * start + self.block * k
     }
 
+    /// The vertex graph (CSC, sorted, diagonal included): column pointers and rows.
+    pub fn vertex_graph(&self) -> (&[usize], &[usize]) {
+        (&self.vertex_col_ptr, &self.vertex_row_idx)
+    }
+
+    /// Vertex pairs (neighbours and diagonal) in the pattern: the range of
+    /// [`BlockPattern::pair_index`].
+    pub fn vertex_nnz(&self) -> usize {
+        self.vertex_row_idx.len()
+    }
+
+    /// The position of the vertex pair whose block has base index `slot` in column vertex `j`
+    /// among all vertex pairs: a dense index for per-pair tables.
+    pub fn pair_index(&self, slot: usize, j: usize) -> usize {
+        let start = self.vertex_col_ptr[j];
+        start + (slot - self.block * self.block * start) / self.block
+    }
+
     /// Base index of the diagonal block of vertex `v`.
     #[inline]
     pub fn diagonal_slot(&self, v: usize) -> usize {
@@ -458,10 +476,13 @@ impl<T: Scalar> Cholesky<T> {
     /// carries their value. Lets a caller assemble straight into
     /// [`Cholesky::triangle_values_mut`] and skip the full storage (see
     /// `dirac::TriangleAssembly`).
-    pub fn triangle_slots(&self, nnz: usize) -> Vec<Option<(usize, bool)>> {
+    /// Triangle indices are 32-bit (8 bytes an entry: the table spans the whole pattern, 18M
+    /// entries for X at 1.3M triangles); a triangle too large for them leaves its entries
+    /// `None`, which the assembly refuses.
+    pub fn triangle_slots(&self, nnz: usize) -> Vec<Option<(u32, bool)>> {
         let mut slots = vec![None; nnz];
         for (t, &k) in self.gather.iter().enumerate() {
-            slots[k & !CONJ] = Some((t, k & CONJ != 0));
+            slots[k & !CONJ] = u32::try_from(t).ok().map(|t| (t, k & CONJ != 0));
         }
         slots
     }
@@ -608,6 +629,8 @@ pub struct Mixed {
     factored: bool,
     reused: bool,
     age: usize,
+    /// Whether `x` holds the last solution (the next solve starts from it).
+    has_solution: bool,
 }
 
 /// A kept factor is replaced once the solve it preconditions needs more iterations than
@@ -649,11 +672,12 @@ impl Mixed {
             factored: false,
             reused: false,
             age: 0,
+            has_solution: false,
         })
     }
 
     /// See [`Cholesky::triangle_slots`].
-    pub fn triangle_slots(&self, nnz: usize) -> Vec<Option<(usize, bool)>> {
+    pub fn triangle_slots(&self, nnz: usize) -> Vec<Option<(u32, bool)>> {
         self.single.triangle_slots(nnz)
     }
 
@@ -704,7 +728,7 @@ impl Mixed {
     fn update_norm(&mut self) {
         let n = self.x.len();
         // ‖A‖_∞ from the triangle: every off-diagonal entry counts in its row and column.
-        let row_sums = &mut self.x;
+        let row_sums = &mut self.z;
         row_sums.fill(c64::new(0.0, 0.0));
         let col_ptr = self.single.triangle.col_ptr();
         let row_idx = self.single.triangle.row_idx();
@@ -765,6 +789,7 @@ impl Mixed {
             p,
             ap,
             single_rhs,
+            has_solution,
             ..
         } = self;
         let dot = |a: &[c64], b: &[c64]| -> f64 {
@@ -782,14 +807,33 @@ impl Mixed {
                 0.0
             }
         };
-        Self::precondition(single, single_rhs, rhs, x);
-        let residual = |x: &[c64], r: &mut [c64], ap: &mut [c64]| {
+        // The start: the last solution, scaled to fit this system best in the energy norm
+        // (α = ⟨x, b⟩ / ⟨x, Ax⟩), where there is one: the flow solves nearly the same system
+        // every step, and the start costs a product where P⁻¹b costs a solve.
+        let warm = *has_solution && {
+            triangle_matvec(&single.triangle, &single.fwd, values, x, ap);
+            let (xb, xax) = (dot(x, rhs), dot(x, ap));
+            let alpha = xb / xax;
+            let usable = xax > 0.0 && alpha.is_finite();
+            if usable {
+                for ((x, a), (r, b)) in x
+                    .iter_mut()
+                    .zip(ap.iter())
+                    .zip(r.iter_mut().zip(rhs.iter()))
+                {
+                    *x *= alpha;
+                    *r = b - a * alpha;
+                }
+            }
+            usable
+        };
+        if !warm {
+            Self::precondition(single, single_rhs, rhs, x);
             triangle_matvec(&single.triangle, &single.fwd, values, x, ap);
             for ((r, b), a) in r.iter_mut().zip(rhs.iter()).zip(ap.iter()) {
                 *r = b - a;
             }
-        };
-        residual(x, r, ap);
+        }
         let mut error = backward_error(r, x);
         let mut iterations = 0;
         if error > MIXED_TOLERANCE {
@@ -824,6 +868,7 @@ impl Mixed {
         }
         self.last_iterations = iterations;
         self.last_backward_error = error;
+        self.has_solution = error <= MIXED_TOLERANCE;
         if error <= MIXED_TOLERANCE {
             rhs.copy_from_slice(&self.x);
             Ok(())
@@ -1027,7 +1072,7 @@ pub(crate) mod tests {
         let triangle = mixed.triangle_values_mut();
         for (v, slot) in values.iter().zip(slots) {
             if let Some((t, conj)) = slot {
-                triangle[t] = if conj { v.conj() } else { *v };
+                triangle[t as usize] = if conj { v.conj() } else { *v };
             }
         }
     }
@@ -1041,8 +1086,15 @@ pub(crate) mod tests {
         let mesh = icosphere(4);
         let p = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 2);
         let first = hermitian_block_values(&p, &mesh.triangles);
-        // A neighbouring matrix on the same pattern: 3% off, still Hermitian and definite.
-        let second: Vec<c64> = first.iter().map(|v| v * 1.03).collect();
+        // A neighbouring matrix on the same pattern: diagonal entries up to 5% off, vertex by
+        // vertex (not a multiple of the first, which the warm start would fit exactly).
+        let mut second = first.clone();
+        for v in 0..mesh.vertex_count() {
+            for r in 0..2 {
+                second[p.entry(p.diagonal_slot(v), v, r, r)] *=
+                    1.0 + 0.05 * ((v * 7 + r) % 11) as f64 / 10.0;
+            }
+        }
         let n = p.dim();
         let b: Vec<c64> = (0..n)
             .map(|i| c64::new((i as f64 * 0.37).sin(), (i as f64 * 0.11).cos()))

@@ -21,7 +21,7 @@ use super::dirichlet;
 use super::exactness::Exactness;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
-use super::ordering::Ordering;
+use super::ordering::{self, Ordering};
 use super::prescribed::{PrescribedError, PrescribedSolver, SurfaceState};
 use super::scale::ScalePolicy;
 use super::solver::{
@@ -60,7 +60,7 @@ impl DiracFactor {
         }
     }
 
-    fn triangle_slots(&self, nnz: usize) -> Vec<Option<(usize, bool)>> {
+    fn triangle_slots(&self, nnz: usize) -> Vec<Option<(u32, bool)>> {
         match self {
             DiracFactor::Double(d) => d.triangle_slots(nnz),
             DiracFactor::Mixed(m) => m.triangle_slots(nnz),
@@ -102,6 +102,26 @@ impl DiracFactor {
             DiracFactor::Mixed(_) => None,
         }
     }
+}
+
+/// `(a(), b())`, on two threads when `parallel` (a panic in either is re-raised here, as it
+/// would be sequentially).
+fn join<A: Send, B: Send>(
+    parallel: bool,
+    a: impl FnOnce() -> A + Send,
+    b: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    if !parallel {
+        return (a(), b());
+    }
+    std::thread::scope(|scope| {
+        let first = scope.spawn(a);
+        let second = b();
+        match first.join() {
+            Ok(first) => (first, second),
+            Err(panic) => std::panic::resume_unwind(panic),
+        }
+    })
 }
 
 /// Whether X is factored in single precision ([`Mixed`]) on a surface of `n` vertices.
@@ -202,9 +222,22 @@ impl ConformalFlow {
         check_params(params)?;
         let mut setup = StepProfile::default();
         setup.start();
+        let parallel = params.threads > 1;
+        let n = mesh.vertex_count();
+        // One ordering of the vertex graph for X and L (and the fallback's double X). It is
+        // the longest part of the setup on large meshes, and needs only the graph: with
+        // threads to spare it runs while the rest is built.
+        let laplace_pattern = BlockPattern::new(n, &mesh.triangles, 1);
+        let (graph_ptr, graph_rows) = laplace_pattern.vertex_graph();
+        let pending_order = ordering::Pending::start(
+            Ordering::for_vertices(n),
+            graph_ptr.to_vec(),
+            graph_rows.to_vec(),
+            parallel,
+        );
+        setup.lap("L pattern, ordering started");
         let topology = Topology::new(mesh);
         setup.lap("topology");
-        let n = mesh.vertex_count();
         let nf = mesh.face_count();
         let n_components = topology.components.len();
         let vertex_component = topology.vertex_component.clone();
@@ -262,68 +295,58 @@ impl ConformalFlow {
             &geometry.vertex_areas,
         );
         setup.lap("reporter, scale");
-        let dirac_pattern = BlockPattern::new(n, &mesh.triangles, 2);
-        setup.lap("X pattern");
-        // One ordering of the vertex graph for X and L (and the fallback's double X).
-        let (vertex_fwd, _) = dirac_pattern
-            .vertex_order(Ordering::for_vertices(n))
-            .map_err(|e| FlowError::Numerical {
-                step: 0,
-                reason: e.to_string(),
-            })?;
-        setup.lap("vertex ordering");
         let numerical = |e: SolverError| FlowError::Numerical {
             step: 0,
             reason: e.to_string(),
         };
-        // Single precision only where X is the one matrix factored: the exactness constraints
-        // solve with X₀ (singular up to the shift) and a fixed boundary factors a modified X.
-        let dirac = if exactness.is_none()
-            && fixed.is_none()
-            && prescribed.is_none()
-            && mixed_precision_for(n, params.precision)
-        {
-            DiracFactor::Mixed(Box::new(
-                Mixed::analyze(&dirac_pattern, &vertex_fwd).map_err(numerical)?,
-            ))
-        } else {
-            DiracFactor::Double(Box::new(
-                Cholesky::<c64>::analyze_with_vertex_order(
-                    &dirac_pattern,
-                    form_count.max(1),
-                    &vertex_fwd,
-                )
-                .map_err(numerical)?,
-            ))
-        };
-        let mut dirac = dirac;
-        dirac.set_threads(params.threads);
-        setup.lap("X analysis");
-        let dirac_assembly = TriangleAssembly::new(
-            &dirac_pattern,
-            &mesh.triangles,
-            &dirac.triangle_slots(dirac_pattern.nnz()),
-        )
-        .map_err(|e| FlowError::Numerical {
+        let dirac_pattern = BlockPattern::new(n, &mesh.triangles, 2);
+        setup.lap("X pattern");
+        let (vertex_fwd, _) = pending_order.finish().map_err(|e| FlowError::Numerical {
             step: 0,
             reason: e.to_string(),
         })?;
+        setup.lap("vertex ordering (rest)");
+        // The two analyses are independent once the vertex graph is ordered: with threads to
+        // spare they run side by side (at 1.3M triangles the setup is mostly these; issue 14).
+        // Single precision only where X is the one matrix factored: the exactness constraints
+        // solve with X₀ (singular up to the shift) and a fixed boundary factors a modified X.
+        let mixed = exactness.is_none()
+            && fixed.is_none()
+            && prescribed.is_none()
+            && mixed_precision_for(n, params.precision);
+        let analyze_dirac = || -> Result<(DiracFactor, TriangleAssembly), SolverError> {
+            let mut dirac = if mixed {
+                DiracFactor::Mixed(Box::new(Mixed::analyze(&dirac_pattern, &vertex_fwd)?))
+            } else {
+                DiracFactor::Double(Box::new(Cholesky::<c64>::analyze_with_vertex_order(
+                    &dirac_pattern,
+                    form_count.max(1),
+                    &vertex_fwd,
+                )?))
+            };
+            dirac.set_threads(params.threads);
+            let assembly = TriangleAssembly::new(
+                &dirac_pattern,
+                &mesh.triangles,
+                &dirac.triangle_slots(dirac_pattern.nnz()),
+            )?;
+            Ok((dirac, assembly))
+        };
+        let analyze_laplace = || -> Result<Cholesky<f64>, SolverError> {
+            let mut laplace =
+                Cholesky::<f64>::analyze_with_vertex_order(&laplace_pattern, 3, &vertex_fwd)?;
+            laplace.set_threads(params.threads);
+            Ok(laplace)
+        };
+        let (dirac_parts, laplace) = join(parallel, analyze_dirac, analyze_laplace);
+        let (dirac, dirac_assembly) = dirac_parts.map_err(numerical)?;
+        let laplace = laplace.map_err(numerical)?;
         let dirac_values = if fixed.is_some() {
             vec![c64::new(0.0, 0.0); dirac_pattern.nnz()]
         } else {
             Vec::new()
         };
-        setup.lap("X assembly plan");
-        let laplace_pattern = BlockPattern::new(n, &mesh.triangles, 1);
-        let mut laplace =
-            Cholesky::<f64>::analyze_with_vertex_order(&laplace_pattern, 3, &vertex_fwd).map_err(
-                |e| FlowError::Numerical {
-                    step: 0,
-                    reason: e.to_string(),
-                },
-            )?;
-        laplace.set_threads(params.threads);
-        setup.lap("L pattern, analysis");
+        setup.lap("X and L analysis");
         let filter = match params.filter {
             Some(f) => Some(FilterSolver::new(&laplace_pattern, f).map_err(|e| {
                 FlowError::InvalidParameter {
