@@ -35,13 +35,13 @@ fn mixed_precision_flow_matches_the_double_precision_flow() {
     let mesh = with_noise(bumpy_sphere(5, 0.15), 0.1, 7);
     let params = |precision| FlowParams {
         method: Method::Conformal,
-        tau: 0.2,
+        tau: 0.05,
         safeguard: false,
         precision,
         ..FlowParams::default()
     };
-    let (double, _, kept_double) = run(&mesh, &params(Precision::Double), 4);
-    let (mixed, _, kept_mixed) = run(&mesh, &params(Precision::Mixed), 4);
+    let (double, _, kept_double) = run(&mesh, &params(Precision::Double), 6);
+    let (mixed, _, kept_mixed) = run(&mesh, &params(Precision::Mixed), 6);
     assert_eq!(kept_double, 0.0);
     assert!(
         kept_mixed >= 1.0,
@@ -70,7 +70,7 @@ fn mixed_precision_flow_matches_the_double_precision_flow() {
     }
     // The flow moved: the comparison is not between two unchanged surfaces.
     let w0 = double[0].willmore_energy;
-    assert!(double[3].willmore_energy < 0.9 * w0);
+    assert!(double[5].willmore_energy < 0.9 * w0);
 }
 
 /// Threads change when subtrees are factored, never what: on a mesh large enough for nested

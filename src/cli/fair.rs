@@ -60,7 +60,7 @@ pub struct FairArgs {
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
     /// The conformal flow's Dirac factor: auto (single precision kept across steps, with
-    /// conjugate gradients, from 20k vertices), double (refactored exactly every step) or mixed.
+    /// conjugate gradients, from 100k vertices), double (refactored exactly every step) or mixed.
     #[arg(long, value_enum, default_value_t = super::bench::PrecisionArg::Auto)]
     pub precision: super::bench::PrecisionArg,
     /// Spectral filter strength σ (§4, unitless: σ = (l(l+1))^−k puts the crossover at

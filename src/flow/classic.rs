@@ -33,17 +33,26 @@ pub struct ImplicitMeanCurvatureFlow {
     rhs: Vec<f64>,
 }
 
+/// The symbolic analysis of a Laplacian-like matrix on `pattern`, for 3 right-hand sides (the
+/// coordinates), with the thread budget of `params`.
+fn laplacian_solver(
+    pattern: &BlockPattern,
+    params: &FlowParams,
+) -> Result<Cholesky<f64>, FlowError> {
+    let mut cholesky = Cholesky::<f64>::analyze(pattern, 3).map_err(|e| FlowError::Numerical {
+        step: 0,
+        reason: e.to_string(),
+    })?;
+    cholesky.set_threads(params.threads);
+    Ok(cholesky)
+}
+
 impl ImplicitMeanCurvatureFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
         check_params(params)?;
         let topology = Topology::new(mesh);
         let pattern = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 1);
-        let mut cholesky =
-            Cholesky::<f64>::analyze(&pattern, 3).map_err(|e| FlowError::Numerical {
-                step: 0,
-                reason: e.to_string(),
-            })?;
-        cholesky.set_threads(params.threads);
+        let cholesky = laplacian_solver(&pattern, params)?;
         Ok(ImplicitMeanCurvatureFlow {
             surface: ClassicSurface::new(mesh, &topology, true),
             tau: params.tau,
@@ -267,12 +276,7 @@ impl ConformalizedMeanCurvatureFlow {
         let n = mesh.vertex_count();
         let surface = ClassicSurface::new(mesh, &topology, true);
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
-        let mut cholesky =
-            Cholesky::<f64>::analyze(&pattern, 3).map_err(|e| FlowError::Numerical {
-                step: 0,
-                reason: e.to_string(),
-            })?;
-        cholesky.set_threads(params.threads);
+        let cholesky = laplacian_solver(&pattern, params)?;
         let mut initial_laplacian = vec![0.0; pattern.nnz()];
         assemble_cotan_laplacian_into(
             &pattern,

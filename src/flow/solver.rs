@@ -631,12 +631,22 @@ pub struct Mixed {
     age: usize,
     /// Whether `x` holds the last solution (the next solve starts from it).
     has_solution: bool,
+    /// Refreshes left before a factor may be kept again, and the next such pause.
+    blocked: usize,
+    backoff: usize,
 }
+
+/// The longest pause in keeping factors after kept factors failed in a row.
+pub const REUSE_MAX_BACKOFF: usize = 16;
 
 /// A kept factor is replaced once the solve it preconditions needs more iterations than
 /// this: about where the iterations cost as much as the factorization they avoid on a large
 /// mesh (one iteration is a solve, roughly a tenth of a factorization at a million faces).
 pub const REUSE_MAX_ITERATIONS: usize = 6;
+
+/// Iterations after which a solve gives up on a kept factor and refactors (a fresh factor gets
+/// [`MIXED_MAX_ITERATIONS`]).
+pub const REUSE_GIVE_UP_ITERATIONS: usize = 6;
 
 /// Refreshes a factor may be kept for before it is replaced anyway.
 pub const REUSE_MAX_AGE: usize = 8;
@@ -673,6 +683,8 @@ impl Mixed {
             reused: false,
             age: 0,
             has_solution: false,
+            blocked: 0,
+            backoff: 1,
         })
     }
 
@@ -694,8 +706,11 @@ impl Mixed {
     /// positive (a matrix too close to singular for it).
     pub fn refresh(&mut self, may_reuse: bool) -> Result<(), SolverError> {
         self.update_norm();
+        let paused = self.blocked > 0;
+        self.blocked = self.blocked.saturating_sub(1);
         if may_reuse
             && self.factored
+            && !paused
             && self.age < REUSE_MAX_AGE
             && self.last_iterations <= REUSE_MAX_ITERATIONS
         {
@@ -765,8 +780,16 @@ impl Mixed {
         // A stalled solve leaves `rhs` as it was.
         match self.conjugate_gradients(rhs) {
             Err(stalled) if self.reused => {
+                // Where X moves too fast for a kept factor (large steps, retried steps), the
+                // tries cost more than they save: skip the next 1, 2, 4, … refreshes.
+                self.blocked = self.backoff;
+                self.backoff = (2 * self.backoff).min(REUSE_MAX_BACKOFF);
                 self.factorize().map_err(|_| stalled)?;
                 self.conjugate_gradients(rhs)
+            }
+            Ok(()) if self.reused => {
+                self.backoff = 1;
+                Ok(())
             }
             other => other,
         }
@@ -790,6 +813,7 @@ impl Mixed {
             ap,
             single_rhs,
             has_solution,
+            reused,
             ..
         } = self;
         let dot = |a: &[c64], b: &[c64]| -> f64 {
@@ -840,7 +864,14 @@ impl Mixed {
             Self::precondition(single, single_rhs, r, z);
             p.copy_from_slice(z);
             let mut rz = dot(r, z);
-            while iterations < MIXED_MAX_ITERATIONS {
+            // A kept factor that needs more than this is replaced at once: the iterations it
+            // would still take cost more than a factorization.
+            let limit = if *reused {
+                REUSE_GIVE_UP_ITERATIONS
+            } else {
+                MIXED_MAX_ITERATIONS
+            };
+            while iterations < limit {
                 iterations += 1;
                 triangle_matvec(&single.triangle, &single.fwd, values, p, ap);
                 let pap = dot(p, ap);
@@ -1168,6 +1199,13 @@ pub(crate) mod tests {
             .map(|(y, b)| (y - b).norm())
             .fold(0.0, f64::max);
         assert!(residual < 1e-9, "residual {residual:e}");
+        // After a kept factor failed, the next refresh factors afresh (a pause of 1, then 2,
+        // 4, … after further failures in a row); the one after may keep again.
+        mixed.refresh(true).expect("factorize");
+        assert!(!mixed.reused(), "kept right after a failure");
+        mixed.solve_in_place(&mut x.clone()).expect("converges");
+        mixed.refresh(true).expect("kept");
+        assert!(mixed.reused(), "the pause did not end");
     }
 
     #[test]

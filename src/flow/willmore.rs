@@ -134,10 +134,11 @@ fn mixed_precision_for(n: usize, precision: Precision) -> bool {
 }
 
 /// From this many vertices on, X is factored in single precision ([`Mixed`]) by default.
-/// Measured with `willow bench` (issue 14): at nefertiti's 50k vertices the kept single factor
-/// makes a step about 1.9× faster than refactoring in double precision; below some 20k
-/// vertices a factorization costs a few solves, and refactoring exactly is as fast.
-pub const MIXED_MIN_VERTICES: usize = 20_000;
+/// Measured with `willow bench` (issue 14), per try of a step at τ = 0.5: nefertiti (50k
+/// vertices, 5 of 9 steps retried) 273 ms mixed against 240 ms double (retried steps move X
+/// too far for a kept factor, and a double factor costs only about 4 solves there); the bumpy
+/// icosphere of 164k vertices 0.82 s against 2.6 s, of 655k 3.2 s against 20 s.
+pub const MIXED_MIN_VERTICES: usize = 100_000;
 
 /// Diagonal shift of X relative to its mean diagonal, scaled per vertex by relative area:
 /// large enough that LLᴴ never meets a non-positive pivot on the constant-quaternion kernel at
@@ -744,12 +745,7 @@ impl ConformalFlow {
                 self.fall_back_to_double()?;
                 self.factor_dirac(false)?;
                 self.rhs.copy_from_slice(&self.product);
-                self.dirac
-                    .solve_in_place(&mut self.rhs)
-                    .map_err(|e| FlowError::Numerical {
-                        step: self.step + 1,
-                        reason: e.to_string(),
-                    })?;
+                self.solve_rhs_with_dirac()?;
             }
             if let DiracFactor::Mixed(m) = &self.dirac {
                 self.profile
@@ -822,17 +818,22 @@ impl ConformalFlow {
         relative_eigen_residual(&self.rhs, &self.product, &self.geometry.vertex_areas)
     }
 
-    /// §6.3.2: minimize `|(D − ρ)λ|²` with λ fixed on the boundary, a linear least-squares
-    /// problem `X_II λ_I = −X_IB λ_B` rather than an eigenproblem. Returns its relative residual.
-    fn solve_lambda_dirichlet(&mut self) -> Result<f64, FlowError> {
-        self.factor_dirac(true)?;
-        self.rhs.copy_from_slice(&self.solve_rhs);
+    /// `rhs ← X⁻¹ rhs` with the factor as it is.
+    fn solve_rhs_with_dirac(&mut self) -> Result<(), FlowError> {
         self.dirac
             .solve_in_place(&mut self.rhs)
             .map_err(|e| FlowError::Numerical {
                 step: self.step + 1,
                 reason: e.to_string(),
-            })?;
+            })
+    }
+
+    /// §6.3.2: minimize `|(D − ρ)λ|²` with λ fixed on the boundary, a linear least-squares
+    /// problem `X_II λ_I = −X_IB λ_B` rather than an eigenproblem. Returns its relative residual.
+    fn solve_lambda_dirichlet(&mut self) -> Result<f64, FlowError> {
+        self.factor_dirac(true)?;
+        self.rhs.copy_from_slice(&self.solve_rhs);
+        self.solve_rhs_with_dirac()?;
         for (i, l) in self.lambda.iter_mut().enumerate() {
             *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
         }
@@ -1177,6 +1178,7 @@ mod tests {
     fn falling_back_to_double_precision_continues_the_same_flow() {
         use crate::mesh::generate::{bumpy_sphere, with_noise};
         let mesh = with_noise(bumpy_sphere(4, 0.15), 0.1, 3);
+        assert!(mesh.vertex_count() < MIXED_MIN_VERTICES);
         let params = |precision| FlowParams {
             tau: 0.2,
             precision,
