@@ -155,7 +155,8 @@ pub enum Precision {
     /// A single-precision factor, kept across steps while it preconditions well, and
     /// conjugate gradients to double-precision accuracy (`solver::Mixed`): half the memory,
     /// a fraction of the time per step on large meshes. Falls back to `Double` by itself
-    /// where single precision cannot factor X.
+    /// where single precision cannot factor X; flows that need X's exact factor (exactness
+    /// constraints on genus > 0, fixed or prescribed boundaries) always use `Double`.
     Mixed,
 }
 

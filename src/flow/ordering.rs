@@ -177,7 +177,7 @@ impl Pending {
             Pending::Done(result) => result,
             Pending::Running(handle) => handle
                 .join()
-                .unwrap_or_else(|_| Err(OrderingError::Amd("the ordering thread panicked".into()))),
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
         }
     }
 }

@@ -397,11 +397,14 @@ impl SupernodalLlt {
     ) -> Result<(), NotPositive> {
         let n_supernodes = symbolic.n_supernodes();
         let threads = if self.postordered { threads.max(1) } else { 1 };
+        // A thread's scratch that cannot be allocated leaves the work to fewer threads.
         while self.workspaces.len() < threads {
-            let ws = Workspace::new::<T>(symbolic.nrows(), self.max_pattern, self.max_width)
-                .ok_or(NotPositive(UNMAPPED))?;
-            self.workspaces.push(ws);
+            match Workspace::new::<T>(symbolic.nrows(), self.max_pattern, self.max_width) {
+                Some(ws) => self.workspaces.push(ws),
+                None => break,
+            }
         }
+        let threads = threads.min(self.workspaces.len());
         let shared = Shared {
             #[cfg(target_arch = "x86_64")]
             instructions: self.instructions,
@@ -465,7 +468,10 @@ impl SupernodalLlt {
                     .try_for_each(|(range, base, run)| job.factor_range(range, run, base, ws));
             }
             for h in handles {
-                let r = h.join().unwrap_or(Err(NotPositive(UNMAPPED)));
+                // A panic in a thread is this call's panic, as it would be on one thread.
+                let r = h
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
                 result = result.and(r);
             }
             result
