@@ -78,7 +78,8 @@ else
     # One file at a time: the tests share the one server and its two workers.
     if ! node --test --test-concurrency=1 tests/browser/; then
         echo "browser-test.sh: FAILED; the server's log (last 40 lines):" >&2
-        tail -n 40 "$data_dir/server.err" >&2
+        tail -n 40 "$server_out" "$data_dir/server.err" >&2
+        if [[ -n "${WILLOW_KEEP_LOG:-}" ]]; then cp "$server_out" "$WILLOW_KEEP_LOG"; fi
         exit 1
     fi
 fi

@@ -481,6 +481,9 @@ const isTerminal = (job) => !!job && ['succeeded', 'failed', 'cancelled'].includ
 
 function updateJob(job) {
   if (!watch || job.id !== watch.id) return;
+  // A terminal state is final: a response that left the server before it (the cancel call's
+  // own "running", answered just before the stream's `done`) must not undo it.
+  if (isTerminal(watch.job) && !isTerminal(job)) return;
   watch.job = job;
   stats.state = job.state;
   const badge = $('state');

@@ -17,6 +17,15 @@ const SERIES = [
     series: [{ label: 'τ', key: 'tau', stroke: '#00838f', points: { show: true, size: 5 } }] },
 ];
 
+/** Tick labels of a log axis: plain numbers from 0.01 up, powers of ten below (uPlot's default
+ *  rounds 1e-4 to "0"). */
+function logTicks(u, splits) {
+  return splits.map((v) => {
+    if (v == null) return '';
+    return v >= 0.01 && v < 1e5 ? String(+v.toPrecision(3)) : v.toExponential(0);
+  });
+}
+
 export class Plots {
   constructor() {
     this.charts = SERIES.map((spec) => {
@@ -27,7 +36,7 @@ export class Plots {
         width: Math.max(200, el.clientWidth),
         height: 170,
         scales: { x: { time: false }, y: spec.log ? { distr: 3 } : {} },
-        axes: [{ label: 'step', size: 36 }, { size: 56 }],
+        axes: [{ label: 'step', size: 36 }, spec.log ? { size: 56, values: logTicks } : { size: 56 }],
         legend: { live: false },
         cursor: { drag: { x: false, y: false } },
         series: [{ label: 'step' }, ...spec.series.map((s) => ({ label: s.label, stroke: s.stroke, width: 1.5, points: s.points }))],
