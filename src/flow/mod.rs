@@ -215,6 +215,34 @@ pub trait Flow: Send {
     fn setup_profile(&self) -> Option<&StepProfile> {
         None
     }
+    /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics and
+    /// the step-size control. `None` for a flow that cannot be resumed.
+    fn checkpoint(&self) -> Option<FlowState> {
+        None
+    }
+    /// Put a flow freshly built on the same input and parameters back where
+    /// [`Flow::checkpoint`] left another one. Every quantity a step reads is recomputed from
+    /// the surface (the inverse iteration starts from λ = 1 each step, App. G), so the steps
+    /// that follow are those the first flow would have taken.
+    fn resume(&mut self, state: &FlowState) -> Result<(), FlowError> {
+        let _ = state;
+        Err(FlowError::Unsupported(
+            "this flow cannot resume from a checkpoint".into(),
+        ))
+    }
+}
+
+/// A flow's resumable state after some step (see [`Flow::checkpoint`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FlowState {
+    /// The metrics of the surface after `metrics.step` steps (the step the state is at).
+    pub metrics: StepMetrics,
+    /// The surface after that step, in the flow's (welded) vertex order.
+    pub positions: Vec<[f64; 3]>,
+    /// τ of the next step's first try (the safeguard's control, [`safeguard`]).
+    pub next_tau: f64,
+    /// Steps accepted at their first try since τ last changed.
+    pub clean_steps: u32,
 }
 
 /// Milliseconds per phase of one step, in the order the phases ran. Refilled in place each

@@ -190,6 +190,8 @@ impl<F: Retry> Flow for Safeguarded<F> {
         if !self.enabled {
             let mut m = self.inner.step()?;
             m.tau = self.requested_tau;
+            // Kept for `checkpoint` (the accepted surface itself is not copied unguarded).
+            self.accepted_metrics = m;
             return Ok(m);
         }
         let step = self.accepted_metrics.step;
@@ -252,6 +254,46 @@ impl<F: Retry> Flow for Safeguarded<F> {
 
     fn setup_profile(&self) -> Option<&super::StepProfile> {
         self.inner.setup_profile()
+    }
+
+    fn checkpoint(&self) -> Option<super::FlowState> {
+        Some(super::FlowState {
+            metrics: self.accepted_metrics,
+            positions: self.inner.positions().to_vec(),
+            next_tau: self.next_tau,
+            clean_steps: self.clean_steps,
+        })
+    }
+
+    fn resume(&mut self, state: &super::FlowState) -> Result<(), FlowError> {
+        let n = self.accepted.len();
+        if state.positions.len() != n {
+            return Err(FlowError::InvalidParameter {
+                name: "checkpoint",
+                reason: format!("holds {} vertices, the flow has {n}", state.positions.len()),
+            });
+        }
+        if !(state.next_tau.is_finite() && state.next_tau > 0.0)
+            || state.positions.iter().flatten().any(|x| !x.is_finite())
+        {
+            return Err(FlowError::InvalidParameter {
+                name: "checkpoint",
+                reason: "holds a non-finite surface or time step".into(),
+            });
+        }
+        self.inner.restore(&state.positions, state.metrics.step);
+        self.accepted.copy_from_slice(&state.positions);
+        self.accepted_metrics = state.metrics;
+        neighbour_cosines_into(
+            &state.positions,
+            &self.triangles,
+            &self.neighbours,
+            &mut self.normals,
+            &mut self.cosines,
+        );
+        self.next_tau = state.next_tau.min(self.requested_tau);
+        self.clean_steps = state.clean_steps;
+        Ok(())
     }
 }
 
