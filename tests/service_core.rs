@@ -127,7 +127,7 @@ async fn deadline_fails_a_job_between_steps() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn graceful_shutdown_requeues_running_jobs_and_restart_runs_them() {
+async fn graceful_shutdown_checkpoints_running_jobs_and_restart_resumes_them() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
     let running = jobs
@@ -146,12 +146,12 @@ async fn graceful_shutdown_requeues_running_jobs_and_restart_runs_them() {
         }
     }
     drop(events);
-    // Zero grace: the running job is stopped at its next step and re-queued.
+    // Zero grace: the running job is stopped at its next step, checkpointed and re-queued.
     core.shutdown(Duration::ZERO).await;
     assert!(!jobs.is_ready());
     let s = jobs.get(&running.id).await.expect("get");
     assert_eq!(s.state, JobState::Queued, "re-queued, not lost: {s:?}");
-    assert_eq!(s.step, 0, "restarts from step 0");
+    assert!(s.step >= 1, "keeps its progress: {s:?}");
     let err = jobs.submit(obj(small_obj()), spec(1), None).await;
     assert!(matches!(err, Err(willow::jobs::JobError::ShuttingDown)));
     drop(jobs);
@@ -167,6 +167,24 @@ async fn graceful_shutdown_requeues_running_jobs_and_restart_runs_them() {
         q.state,
         JobState::Succeeded,
         "the re-queued long job runs first"
+    );
+    // It resumes where it stopped: every step once, in order, from 0 for a new watcher, and
+    // the first step run after the restart follows the checkpoint.
+    let mut events = Box::pin(jobs.watch(&running.id, 0).await.expect("watch"));
+    let mut next = 0;
+    while let Some(ev) = events.next().await {
+        if let JobEvent::Frame(f) = ev {
+            assert_eq!(f.step, next, "steps complete and ordered");
+            next += 1;
+            if f.step > s.step + 2 {
+                break;
+            }
+        }
+    }
+    drop(events);
+    assert!(
+        jobs.metrics_text().contains("willow_jobs_resumed_total 1"),
+        "resumed from its checkpoint, not restarted"
     );
     jobs.cancel(&running.id).await.expect("cancel the long one");
     let r = jobs

@@ -1,5 +1,6 @@
 //! Crash recovery with the real binary: `willow serve` is SIGKILLed while a job runs, started
-//! again on the same data dir, and every accepted job is found completed or re-run.
+//! again on the same data dir, and every accepted job is found completed, or resumed from its
+//! last checkpoint.
 
 mod service_http_support;
 
@@ -21,6 +22,8 @@ fn spawn_server(data_dir: &std::path::Path) -> (Child, String) {
             "1",
             "--queue-capacity",
             "8",
+            "--checkpoint-steps",
+            "3",
         ])
         .arg("--data-dir")
         .arg(data_dir)
@@ -73,24 +76,40 @@ async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
         submit(&client, &base, &small_obj(), "steps=3").await,
         submit(&client, &base, &small_obj(), "steps=4").await,
     ];
-    poll_until(&client, &base, &running, JOB_TIMEOUT, |v| {
-        v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 1
+    // Past its first checkpoints (every 3 steps) when the process dies.
+    let before = poll_until(&client, &base, &running, JOB_TIMEOUT, |v| {
+        v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 7
     })
     .await;
 
     server.kill().expect("SIGKILL"); // Child::kill is SIGKILL on Unix
     let _ = server.wait();
-    let killed_at = willow::jobs::rfc3339(willow::jobs::now_ms());
 
     let (mut server, base) = spawn_server(dir.path());
-    let v = poll_until(&client, &base, &running, JOB_TIMEOUT, is_terminal).await;
-    assert_eq!(v["state"], "succeeded", "the interrupted job re-ran: {v}");
-    // RFC 3339 UTC strings of one format compare in time order.
+    // Right after the restart the job is queued or running again, at its checkpoint or
+    // later: never back at step 0.
+    let after = poll_until(&client, &base, &running, JOB_TIMEOUT, |_| true).await;
     assert!(
-        v["started_time"]
-            .as_str()
-            .is_some_and(|t| t > killed_at.as_str()),
-        "it was running at the kill and started again after the restart: {v}"
+        after["progress"]["step"].as_u64().unwrap_or(0) >= 6,
+        "resumes from its checkpoint: before the kill {before}, after {after}"
+    );
+    let v = poll_until(&client, &base, &running, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(v["state"], "succeeded", "the interrupted job went on: {v}");
+    assert_eq!(
+        v["started_time"], before["started_time"],
+        "it has been running since its first start"
+    );
+    let metrics = client
+        .get(format!("{base}/metrics"))
+        .send()
+        .await
+        .expect("metrics")
+        .text()
+        .await
+        .expect("text");
+    assert!(
+        metrics.contains("willow_jobs_resumed_total 1"),
+        "one job resumed from a checkpoint:\n{metrics}"
     );
     for id in &queued {
         let v = poll_until(&client, &base, id, JOB_TIMEOUT, is_terminal).await;
@@ -105,7 +124,7 @@ async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
         .expect("result");
     assert_eq!(res.status(), 200, "results survive the crash");
 
-    // The re-run job's frames are complete and in order (it restarted from step 0).
+    // The resumed job's frames are complete and in order.
     let res = client
         .get(format!("{base}/v1/jobs/{running}/frames"))
         .send()

@@ -906,7 +906,7 @@ fn sse_event(ev: JobEvent) -> Event {
                 metrics: f.metrics,
                 positions_b64: f.positions.map(|p| {
                     base64::engine::general_purpose::STANDARD
-                        .encode(crate::jobs::store::f32s_to_bytes(&p))
+                        .encode(crate::jobs::codec::f32s_to_bytes(&p))
                 }),
             };
             return Event::default()

@@ -62,6 +62,13 @@ pub struct ServeArgs {
     /// Log format: `json` (one object per line) or `text`.
     #[arg(long, default_value = "json")]
     pub log_format: String,
+    /// A running job checkpoints after this many steps (or `--checkpoint-secs`, whichever
+    /// comes first); after a crash it resumes from there.
+    #[arg(long, default_value_t = 10)]
+    pub checkpoint_steps: usize,
+    /// Seconds between a running job's checkpoints at most.
+    #[arg(long, default_value_t = 30.0)]
+    pub checkpoint_secs: f64,
 }
 
 impl ServeArgs {
@@ -80,6 +87,14 @@ impl ServeArgs {
             return Err("--result-ttl-hours must be a positive number".into());
         }
         c.result_ttl = Duration::from_secs_f64(self.result_ttl_hours * 3600.0);
+        if self.checkpoint_steps == 0 {
+            return Err("--checkpoint-steps must be at least 1".into());
+        }
+        c.checkpoint_steps = self.checkpoint_steps;
+        if !(self.checkpoint_secs.is_finite() && self.checkpoint_secs > 0.0) {
+            return Err("--checkpoint-secs must be a positive number".into());
+        }
+        c.checkpoint_interval = Duration::from_secs_f64(self.checkpoint_secs);
         Ok(c)
     }
 }

@@ -7,13 +7,15 @@
 //! which each transport maps once to its own status codes.
 //!
 //! The pieces, one file each:
-//! - [`queue`]: the admission queue (a trait, so a distributed backend can replace it; the
-//!   embedded implementation is a bounded in-memory deque).
-//! - [`store`]: SQLite (WAL) for jobs, per-step metrics and idempotency keys; mesh blobs as
-//!   files written atomically.
-//! - [`events`]: per-job fan-out of frames to any number of watchers, with replay from the store.
+//! - [`ports`]: the five seams to a backend (`JobStore`, `BlobStore`, `WorkQueue`, `EventBus`,
+//!   `CancelBus`); admission (here), [`worker`] and [`watch`] are written once over them.
+//! - [`embedded`]: the default backend (SQLite, files, in-process queue and broadcast).
+//! - [`nats`]: the NATS JetStream backend, for many API and worker nodes.
+//! - [`codec`]: the byte forms the backends share (metrics, positions, checkpoints, hashes).
+//! - [`watch`]: state, replayed and live frames for any number of watchers on any node.
 //! - [`worker`]: the bounded pool that runs flows step by step on blocking threads, checking
-//!   cancellation, deadline and shutdown between steps.
+//!   cancellation, deadline and shutdown between steps, heartbeating its lease and
+//!   checkpointing.
 //! - [`telemetry`]: the Prometheus metrics of the core (queue depth, running, outcomes, durations).
 //! - [`spec`]: the filter and boundary options of a [`JobSpec`], as the network may send them.
 //! - [`curve`]: synchronous curve fairing ([`Jobs::fair_curve`]) on its own bounded slots.
@@ -23,15 +25,17 @@
 //!
 //! Restart semantics: every accepted job is in the store before `submit` returns. On start,
 //! finished jobs keep their results, queued jobs are queued again in their original order, and
-//! jobs that were running are re-queued and **restart from step 0** (their stored frames are
-//! discarded), because a flow carries solver state that is not checkpointed.
+//! jobs that were running are re-queued and **resume from their last checkpoint** (step 0 if
+//! they had none): the frames after it are taken again, and watchers see each step once.
 
+pub mod codec;
 pub mod curve;
-pub mod events;
-pub mod queue;
+pub mod embedded;
+pub mod nats;
+pub mod ports;
 pub mod spec;
-pub mod store;
 pub mod telemetry;
+pub mod watch;
 pub mod worker;
 
 use crate::flow::curve::CurveError;
@@ -43,13 +47,11 @@ use futures::Stream;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tokio_util::sync::CancellationToken;
 
-use events::EventHub;
-use queue::{EmbeddedQueue, JobQueue};
-use store::Store;
+use ports::{Backend, BlobKey, Inserted, NewJob};
 
 /// A job's identifier: a UUID v4 in its hyphenated lower-case text form.
 pub type JobId = String;
@@ -59,7 +61,7 @@ pub type JobId = String;
 ///
 /// Stored as JSON with the job: a field added later must have a default (`#[serde(default)]`
 /// fills it in for rows written before it existed) and is appended at the end (see
-/// `store::request_hash`). Every field of [`FlowParams`] has one here.
+/// `codec::request_hash`). Every field of [`FlowParams`] has one here.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct JobSpec {
@@ -294,7 +296,7 @@ impl JobState {
 }
 
 /// A snapshot of one job, as every transport reports it. Times are unix milliseconds.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobStatus {
     pub id: JobId,
     pub state: JobState,
@@ -302,7 +304,10 @@ pub struct JobStatus {
     pub step: usize,
     pub total_steps: usize,
     pub spec: JobSpec,
-    #[serde(serialize_with = "serialize_format")]
+    #[serde(
+        serialize_with = "serialize_format",
+        deserialize_with = "deserialize_format"
+    )]
     pub input_format: Format,
     /// Vertices in the uploaded file's order: a frame's positions are this many xyz triples.
     pub vertex_count: usize,
@@ -327,6 +332,12 @@ pub struct JobStatus {
 
 fn serialize_format<S: serde::Serializer>(f: &Format, s: S) -> Result<S::Ok, S::Error> {
     s.serialize_str(format_name(*f))
+}
+
+fn deserialize_format<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Format, D::Error> {
+    let name = String::deserialize(d)?;
+    parse_format(&name)
+        .ok_or_else(|| serde::de::Error::custom(format!("unknown mesh format `{name}`")))
 }
 
 /// One step of a running job, as watchers receive it.
@@ -530,6 +541,47 @@ pub struct Config {
     /// Largest time budget a curve request may ask for: the answer is synchronous, and common
     /// proxies cut idle requests after 60 s.
     pub curve_max_deadline: Duration,
+    /// What this node does: take requests, run jobs, or both.
+    pub role: Role,
+    /// A running job checkpoints after this many steps…
+    pub checkpoint_steps: usize,
+    /// …or this long after its last checkpoint, whichever comes first.
+    pub checkpoint_interval: Duration,
+    /// How often a running job's lease is renewed (well inside the queue's `ack_wait`).
+    pub heartbeat_interval: Duration,
+    /// A job delivered more often than this (its workers kept dying on it) fails with code
+    /// `redelivered` instead of taking down one more worker.
+    pub max_deliveries: u32,
+}
+
+/// What a node of the service does. One process of the embedded backend is both; with NATS,
+/// API nodes and worker nodes scale separately.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    /// Admission, status, streams, results: no worker loops.
+    Api,
+    /// Worker loops only (the transports then serve probes and metrics).
+    Worker,
+    All,
+}
+
+impl Role {
+    pub fn parse(s: &str) -> Option<Role> {
+        Some(match s {
+            "api" => Role::Api,
+            "worker" => Role::Worker,
+            "all" => Role::All,
+            _ => return None,
+        })
+    }
+
+    pub fn runs_workers(self) -> bool {
+        self != Role::Api
+    }
+
+    pub fn serves_api(self) -> bool {
+        self != Role::Worker
+    }
 }
 
 impl Config {
@@ -551,6 +603,14 @@ impl Config {
                 .unwrap_or(1),
             curve_default_deadline: Duration::from_secs(10),
             curve_max_deadline: Duration::from_secs(60),
+            role: Role::All,
+            // A checkpoint is one blob of 24 bytes per vertex: ~1 ms for a 100k-triangle mesh
+            // whose step takes ~0.5 s, so ten steps or half a minute lose little on a crash
+            // and cost well under 1% (`cargo bench --bench service_load` measures it).
+            checkpoint_steps: 10,
+            checkpoint_interval: Duration::from_secs(30),
+            heartbeat_interval: Duration::from_secs(5),
+            max_deliveries: 3,
         }
     }
 }
@@ -614,27 +674,19 @@ pub fn format_media_type(f: Format) -> &'static str {
     }
 }
 
-/// Per-job in-memory state: its cancellation token and its fan-out channel. Present from
-/// acceptance until the job is terminal.
-pub(crate) struct Active {
-    pub cancel: CancellationToken,
-}
-
 /// Shared state behind the [`Jobs`] handle.
 pub(crate) struct Inner {
     pub config: Config,
-    pub store: Store,
-    pub queue: Arc<dyn JobQueue>,
-    pub hub: EventHub,
-    pub active: Mutex<std::collections::HashMap<JobId, Active>>,
-    /// Serialises the admission decision (idempotency lookup, capacity, insert, enqueue) so two
-    /// concurrent submissions cannot both take the last slot or both claim one key.
+    pub backend: Backend,
+    /// Serialises this node's admission decisions (idempotency lookup, capacity, insert,
+    /// enqueue) so two of its submissions cannot both take the last slot. Across nodes the
+    /// backend's own atomic operations decide (see [`ports::JobStore::insert`]).
     pub admission: tokio::sync::Mutex<()>,
     pub draining: AtomicBool,
     /// Cancelled when draining begins, for transports that must react (gRPC health).
     pub drain_signal: CancellationToken,
-    /// Cancelled on shutdown after the grace period: running jobs stop at the next step and
-    /// are re-queued in the store.
+    /// Cancelled on shutdown after the grace period: running jobs stop at the next step,
+    /// checkpoint and are re-queued.
     pub shutdown: CancellationToken,
     pub telemetry: telemetry::Telemetry,
     /// Unix ms of the latest worker progress (a finished step or an idle poll).
@@ -662,64 +714,51 @@ pub struct Shutdown {
 }
 
 impl Jobs {
-    /// Open the store under `config.data_dir`, recover jobs left by a previous process, and
-    /// spawn the workers and the expiry sweeper. Must be called inside a tokio runtime.
+    /// The embedded backend under `config.data_dir`: see [`Jobs::start_with`].
     pub async fn start(config: Config) -> Result<(Jobs, Shutdown), JobError> {
-        if config.workers == 0 {
-            return Err(JobError::InvalidSpec {
-                field: "workers",
-                reason: "must be at least 1".into(),
-            });
-        }
-        if config.queue_capacity == 0 {
-            return Err(JobError::InvalidSpec {
-                field: "queue_capacity",
-                reason: "must be at least 1".into(),
-            });
-        }
-        if config.curve_slots == 0 {
-            return Err(JobError::InvalidSpec {
-                field: "curve_slots",
-                reason: "must be at least 1".into(),
-            });
-        }
-        let cfg = config.clone();
-        let (store, recovered) = tokio::task::spawn_blocking(move || {
-            let store = Store::open(&cfg.data_dir)?;
-            let recovered = store.recover()?;
-            Ok::<_, JobError>((store, recovered))
-        })
-        .await
-        .map_err(|e| JobError::Internal(format!("store open task: {e}")))??;
+        let (dir, capacity) = (config.data_dir.clone(), config.queue_capacity);
+        let backend = tokio::task::spawn_blocking(move || embedded::open(&dir, capacity))
+            .await
+            .map_err(join_err)??;
+        Jobs::start_with(config, backend).await
+    }
 
-        let queue: Arc<dyn JobQueue> = Arc::new(EmbeddedQueue::new(config.queue_capacity));
-        let hub = EventHub::default();
-        let telemetry = telemetry::Telemetry::new();
-        let mut active = std::collections::HashMap::new();
+    /// Recover jobs the backend's queue does not hold (the embedded backend after a restart),
+    /// then spawn the workers (if `config.role` runs any) and the expiry sweeper (if it serves
+    /// the API). Must be called inside a tokio runtime.
+    pub async fn start_with(
+        config: Config,
+        backend: Backend,
+    ) -> Result<(Jobs, Shutdown), JobError> {
+        let positive = [
+            ("workers", config.workers),
+            ("queue_capacity", config.queue_capacity),
+            ("curve_slots", config.curve_slots),
+            ("checkpoint_steps", config.checkpoint_steps),
+            ("max_deliveries", config.max_deliveries as usize),
+        ];
+        if let Some((field, _)) = positive.iter().find(|(_, v)| *v == 0) {
+            return Err(JobError::InvalidSpec {
+                field,
+                reason: "must be at least 1".into(),
+            });
+        }
+        let recovered = backend.store.recover().await?;
         for id in &recovered {
             // Recovered jobs bypass the capacity check: they were admitted before.
-            queue.push_recovered(id.clone());
-            active.insert(
-                id.clone(),
-                Active {
-                    cancel: CancellationToken::new(),
-                },
-            );
+            backend.queue.push_recovered(id).await?;
         }
         if !recovered.is_empty() {
             tracing::info!(count = recovered.len(), "re-queued jobs from the store");
         }
         let inner = Arc::new(Inner {
             config: config.clone(),
-            store,
-            queue,
-            hub,
-            active: Mutex::new(active),
+            backend,
             admission: tokio::sync::Mutex::new(()),
             draining: AtomicBool::new(false),
             drain_signal: CancellationToken::new(),
             shutdown: CancellationToken::new(),
-            telemetry,
+            telemetry: telemetry::Telemetry::new(),
             last_progress_ms: AtomicU64::new(now_ms()),
             running: AtomicUsize::new(0),
             workers_alive: AtomicUsize::new(0),
@@ -730,16 +769,20 @@ impl Jobs {
         jobs.inner
             .telemetry
             .queue_depth
-            .set(jobs.inner.queue.len() as i64);
+            .set(jobs.inner.backend.queue.depth() as i64);
 
         let tracker = tokio_util::task::TaskTracker::new();
         let stop_polling = CancellationToken::new();
-        for n in 0..config.workers {
-            tracker.spawn(worker::worker_loop(jobs.clone(), n, stop_polling.clone()));
+        if config.role.runs_workers() {
+            for n in 0..config.workers {
+                tracker.spawn(worker::worker_loop(jobs.clone(), n, stop_polling.clone()));
+            }
         }
-        let sweeper = jobs.clone();
-        let stop = stop_polling.clone();
-        tokio::spawn(async move { sweeper.sweep_loop(stop).await });
+        if config.role.serves_api() {
+            let sweeper = jobs.clone();
+            let stop = stop_polling.clone();
+            tokio::spawn(async move { sweeper.sweep_loop(stop).await });
+        }
         tracker.close();
         Ok((
             jobs.clone(),
@@ -755,11 +798,16 @@ impl Jobs {
         &self.inner.config
     }
 
+    /// `embedded` or the NATS URL: for logs and probes.
+    pub fn backend_name(&self) -> &str {
+        &self.inner.backend.name
+    }
+
     /// Parse and validate the mesh (on a blocking thread), then store and enqueue the job.
     ///
     /// With an idempotency key, a repeat of the same request returns the job it created (even
-    /// when the queue has since filled up); the same key with a different mesh or spec is
-    /// [`JobError::IdempotencyMismatch`].
+    /// when the queue has since filled up, and on any node); the same key with a different
+    /// mesh or spec is [`JobError::IdempotencyMismatch`].
     pub async fn submit(
         &self,
         upload: UploadRef,
@@ -770,13 +818,21 @@ impl Jobs {
             return Err(JobError::ShuttingDown);
         }
         spec.validate(&self.inner.config)?;
+        let backend = &self.inner.backend;
         let (data, format) = match upload {
             UploadRef::Bytes { data, format } => (data, format),
             UploadRef::Stored { upload_id } => {
-                let inner = self.inner.clone();
-                tokio::task::spawn_blocking(move || inner.store.read_upload(&upload_id))
-                    .await
-                    .map_err(join_err)??
+                let format = backend.store.upload(&upload_id).await?;
+                let key = BlobKey::Upload {
+                    id: upload_id.clone(),
+                    format,
+                };
+                let data = backend
+                    .blobs
+                    .get(key)
+                    .await?
+                    .ok_or(JobError::UploadNotFound(upload_id))?;
+                (data, format)
             }
         };
         let limit = self.inner.config.limits.max_upload_bytes;
@@ -797,9 +853,9 @@ impl Jobs {
         };
         let request_hash = key
             .as_ref()
-            .map(|_| store::request_hash(&data, format, &spec));
+            .map(|_| codec::request_hash(&data, format, &spec));
         if let (Some(k), Some(h)) = (&key, &request_hash) {
-            if let Some(status) = self.lookup_idempotent(k, h).await? {
+            if let Some(status) = backend.store.idempotent(k, h).await? {
                 return Ok(status);
             }
         }
@@ -834,88 +890,18 @@ impl Jobs {
         let id: JobId = uuid::Uuid::new_v4().to_string();
         // Write the blob before taking the admission lock: fsync is slow and need not be
         // serialised. A refused job's blob is removed again below.
-        {
-            let inner = self.inner.clone();
-            let (id, data) = (id.clone(), data.clone());
-            tokio::task::spawn_blocking(move || inner.store.write_input(&id, format, &data))
-                .await
-                .map_err(join_err)??;
-        }
-        let admitted = self
-            .admit(
-                &id,
-                &spec,
-                format,
-                vertex_count,
-                face_count,
-                key,
-                request_hash,
+        backend
+            .blobs
+            .put(
+                BlobKey::Input {
+                    id: id.clone(),
+                    format,
+                },
+                data,
             )
-            .await;
-        match admitted {
-            Ok(Admitted::New(status)) => {
-                tracing::info!(job_id = %status.id, vertex_count, face_count, steps = spec.steps, "job accepted");
-                Ok(status)
-            }
-            Ok(Admitted::Existing(status)) => {
-                self.discard_files(&id).await;
-                Ok(status)
-            }
-            Err(e) => {
-                self.discard_files(&id).await;
-                Err(e)
-            }
-        }
-    }
-
-    async fn discard_files(&self, id: &str) {
-        let inner = self.inner.clone();
-        let id = id.to_string();
-        let _ = tokio::task::spawn_blocking(move || inner.store.remove_job_files(&id)).await;
-    }
-
-    async fn lookup_idempotent(
-        &self,
-        key: &str,
-        hash: &str,
-    ) -> Result<Option<JobStatus>, JobError> {
-        let inner = self.inner.clone();
-        let (key, hash) = (key.to_string(), hash.to_string());
-        tokio::task::spawn_blocking(move || inner.store.idempotent_job(&key, &hash))
-            .await
-            .map_err(join_err)?
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    async fn admit(
-        &self,
-        id: &str,
-        spec: &JobSpec,
-        format: Format,
-        vertex_count: usize,
-        face_count: usize,
-        key: Option<String>,
-        request_hash: Option<String>,
-    ) -> Result<Admitted, JobError> {
-        let _guard = self.inner.admission.lock().await;
-        if self.inner.draining.load(Ordering::SeqCst) {
-            return Err(JobError::ShuttingDown);
-        }
-        if let (Some(k), Some(h)) = (&key, &request_hash) {
-            if let Some(status) = self.lookup_idempotent(k, h).await? {
-                return Ok(Admitted::Existing(status));
-            }
-        }
-        if self.inner.queue.len() >= self.inner.queue.capacity() {
-            self.inner.telemetry.rejected.inc();
-            return Err(JobError::QueueFull {
-                retry_after_secs: self.retry_after_secs(),
-                capacity: self.inner.queue.capacity(),
-            });
-        }
-        let inner = self.inner.clone();
-        let row = store::NewJob {
-            id: id.to_string(),
+            .await?;
+        let job = NewJob {
+            id: id.clone(),
             spec: spec.clone(),
             format,
             vertex_count,
@@ -923,26 +909,66 @@ impl Jobs {
             created_at: now_ms(),
             idempotency: key.zip(request_hash),
         };
-        let status = tokio::task::spawn_blocking(move || inner.store.insert_job(&row))
-            .await
-            .map_err(join_err)??;
-        self.inner.active.lock().map_err(poisoned)?.insert(
-            id.to_string(),
-            Active {
-                cancel: CancellationToken::new(),
-            },
-        );
-        if !self.inner.queue.try_push(id.to_string()) {
-            // Cannot happen while we hold the admission lock (only we push), but never leave
-            // an accepted row without a queue entry.
-            return Err(JobError::Internal("queue refused an admitted job".into()));
+        match self.admit(job).await {
+            Ok(Inserted::New(status)) => {
+                tracing::info!(job_id = %status.id, vertex_count, face_count, steps = spec.steps, "job accepted");
+                Ok(status)
+            }
+            Ok(Inserted::Existing(status)) => {
+                let _ = backend.blobs.delete_job(&id).await;
+                Ok(status)
+            }
+            Err(e) => {
+                let _ = backend.blobs.delete_job(&id).await;
+                Err(e)
+            }
+        }
+    }
+
+    async fn admit(&self, job: NewJob) -> Result<Inserted, JobError> {
+        let backend = &self.inner.backend;
+        let _guard = self.inner.admission.lock().await;
+        if self.inner.draining.load(Ordering::SeqCst) {
+            return Err(JobError::ShuttingDown);
+        }
+        // A quick local refusal; the queue's own `push` is the cluster-wide decision.
+        if backend.queue.depth() >= backend.queue.capacity() {
+            return Err(self.queue_full());
+        }
+        let id = job.id.clone();
+        let inserted = backend.store.insert(job).await?;
+        if let Inserted::Existing(_) = inserted {
+            return Ok(inserted);
+        }
+        if let Err(e) = backend.queue.push(&id).await {
+            // Lost the race for the last slot to another node (or the queue is away): the
+            // record goes again, key and all, so a retry can succeed.
+            let now = now_ms();
+            let withdrawn = Some(("queue_full".to_string(), e.to_string()));
+            let _ = backend
+                .store
+                .finish(&id, JobState::Failed, withdrawn, now, now)
+                .await;
+            let _ = backend.store.delete(&id).await;
+            return Err(match e {
+                JobError::QueueFull { .. } => self.queue_full(),
+                other => other,
+            });
         }
         self.inner.telemetry.submitted.inc();
         self.inner
             .telemetry
             .queue_depth
-            .set(self.inner.queue.len() as i64);
-        Ok(Admitted::New(status))
+            .set(backend.queue.depth() as i64);
+        Ok(inserted)
+    }
+
+    fn queue_full(&self) -> JobError {
+        self.inner.telemetry.rejected.inc();
+        JobError::QueueFull {
+            retry_after_secs: self.retry_after_secs(),
+            capacity: self.inner.backend.queue.capacity(),
+        }
     }
 
     /// `Retry-After` estimate: the time for the workers to drain the queue once, from the
@@ -950,7 +976,7 @@ impl Jobs {
     fn retry_after_secs(&self) -> u64 {
         let avg_ms = self.inner.avg_job_ms.load(Ordering::Relaxed);
         let workers = self.inner.config.workers.max(1) as u64;
-        let depth = self.inner.queue.len().max(1) as u64;
+        let depth = self.inner.backend.queue.depth().max(1) as u64;
         (avg_ms * depth / workers / 1000).clamp(1, 300)
     }
 
@@ -971,26 +997,28 @@ impl Jobs {
                 limit,
             });
         }
-        let inner = self.inner.clone();
-        tokio::task::spawn_blocking(move || {
-            let limits = &inner.config.limits;
-            Asset::read(&data, format, &limits.mesh_limits()).map_err(mesh_error)?;
-            let id = uuid::Uuid::new_v4().to_string();
-            let expires = now_ms() + inner.config.result_ttl.as_millis() as u64;
-            inner.store.write_upload(&id, format, &data, expires)?;
-            Ok(id)
-        })
-        .await
-        .map_err(join_err)?
+        let limits = self.inner.config.limits.mesh_limits();
+        let check = data.clone();
+        tokio::task::spawn_blocking(move || Asset::read(&check, format, &limits).map(|_| ()))
+            .await
+            .map_err(join_err)?
+            .map_err(mesh_error)?;
+        let id = uuid::Uuid::new_v4().to_string();
+        let expires = now_ms() + self.inner.config.result_ttl.as_millis() as u64;
+        let size = data.len() as u64;
+        let backend = &self.inner.backend;
+        let key = BlobKey::Upload {
+            id: id.clone(),
+            format,
+        };
+        backend.blobs.put(key, data).await?;
+        backend.store.put_upload(&id, format, size, expires).await?;
+        Ok(id)
     }
 
     /// The job's current status; `Gone` once it expired.
     pub async fn get(&self, id: &str) -> Result<JobStatus, JobError> {
-        let inner = self.inner.clone();
-        let id = id.to_string();
-        tokio::task::spawn_blocking(move || inner.store.status(&id))
-            .await
-            .map_err(join_err)?
+        self.inner.backend.store.status(id).await
     }
 
     /// Jobs newest first, optionally of one state. `page_token` is the opaque
@@ -1001,19 +1029,16 @@ impl Jobs {
         page_size: usize,
         page_token: Option<String>,
     ) -> Result<(Vec<JobStatus>, Option<String>), JobError> {
-        let inner = self.inner.clone();
         let size = match page_size {
             0 => 50,
             n => n.min(1000),
         };
-        tokio::task::spawn_blocking(move || inner.store.list(state, size, page_token.as_deref()))
-            .await
-            .map_err(join_err)?
+        self.inner.backend.store.list(state, size, page_token).await
     }
 
-    /// Cancel a job. Queued: removed from the queue and cancelled now. Running: it stops at the
-    /// next step boundary (the returned status may still say `running`; watch or poll for
-    /// `cancelled`). Terminal: [`JobError::Conflict`].
+    /// Cancel a job. Queued: removed from the queue and cancelled now. Running (on any node):
+    /// it stops at the next step boundary (the returned status may still say `running`; watch
+    /// or poll for `cancelled`). Terminal: [`JobError::Conflict`].
     pub async fn cancel(&self, id: &str) -> Result<JobStatus, JobError> {
         let status = self.get(id).await?;
         if status.state.is_terminal() {
@@ -1022,41 +1047,32 @@ impl Jobs {
                 status.state.as_str()
             )));
         }
-        // Either we take the job out of the queue (then no worker will see it), or a worker
-        // already has it (then its token tells it to stop). Both can't happen.
-        if self.inner.queue.remove(id) {
+        let backend = &self.inner.backend;
+        // Either we take the job out of the queue (then no worker will run it: `start` refuses
+        // a terminal job), or a worker has it (then the cancel bus tells it to stop).
+        if status.state == JobState::Queued && backend.queue.withdraw(id).await? {
             self.inner
                 .telemetry
                 .queue_depth
-                .set(self.inner.queue.len() as i64);
-            let inner = self.inner.clone();
-            let id2 = id.to_string();
-            let status = tokio::task::spawn_blocking(move || {
-                worker::finish(
-                    &inner,
-                    &id2,
-                    JobState::Cancelled,
-                    Some(("cancelled", "cancelled while queued".to_string())),
-                )
-            })
-            .await
-            .map_err(join_err)??;
-            return Ok(status);
+                .set(backend.queue.depth() as i64);
+            return worker::finish(
+                &self.inner,
+                id,
+                JobState::Cancelled,
+                Some(("cancelled", "cancelled while queued".to_string())),
+            )
+            .await;
         }
-        if let Some(a) = self.inner.active.lock().map_err(poisoned)?.get(id) {
-            a.cancel.cancel();
-        }
+        backend.cancels.cancel(id).await?;
         tracing::info!(job_id = %id, "cancellation requested");
         self.get(id).await
     }
 
     /// Remove a terminal job, its frames and its files. Queued or running: `Conflict`.
     pub async fn delete(&self, id: &str) -> Result<(), JobError> {
-        let inner = self.inner.clone();
-        let id = id.to_string();
-        tokio::task::spawn_blocking(move || inner.store.delete(&id))
-            .await
-            .map_err(join_err)?
+        let backend = &self.inner.backend;
+        backend.store.delete(id).await?;
+        backend.blobs.delete_job(id).await
     }
 
     /// Events of a job from `from_step` on: its current state, the stored frames (replay),
@@ -1068,7 +1084,7 @@ impl Jobs {
         id: &str,
         from_step: usize,
     ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
-        events::watch(self.clone(), id.to_string(), from_step).await
+        watch::watch(self.clone(), id.to_string(), from_step).await
     }
 
     /// Metrics of steps `from_step..` (at most `page_size`, 0 = 100, max 10 000) and the step
@@ -1079,18 +1095,21 @@ impl Jobs {
         from_step: usize,
         page_size: usize,
     ) -> Result<(Vec<StepMetrics>, Option<usize>), JobError> {
-        let inner = self.inner.clone();
-        let id = id.to_string();
         let size = match page_size {
             0 => 100,
             n => n.min(10_000),
         };
-        tokio::task::spawn_blocking(move || {
-            inner.store.status(&id)?;
-            inner.store.frame_metrics(&id, from_step, size)
-        })
-        .await
-        .map_err(join_err)?
+        let store = &self.inner.backend.store;
+        store.status(id).await?;
+        let rows = store.frame_rows(id, from_step, size + 1).await?;
+        let mut metrics: Vec<StepMetrics> = rows.into_iter().map(|(m, _)| m).collect();
+        let next = if metrics.len() > size {
+            metrics.truncate(size);
+            metrics.last().map(|m| m.step + 1)
+        } else {
+            None
+        };
+        Ok((metrics, next))
     }
 
     /// The mesh after `step` in `format`, for steps that kept positions.
@@ -1100,55 +1119,89 @@ impl Jobs {
         step: usize,
         format: Format,
     ) -> Result<Vec<u8>, JobError> {
-        let inner = self.inner.clone();
-        let id = id.to_string();
-        tokio::task::spawn_blocking(move || {
-            let status = inner.store.status(&id)?;
-            let positions = inner.store.read_frame_welded(&id, step).map_err(|_| {
-                let detail = if step > status.step
-                    || (step == status.step
-                        && !status.state.is_terminal()
-                        && status.latest.is_none())
-                {
-                    format!(
-                        "the job has completed {} of {} steps",
-                        status.step, status.total_steps
-                    )
-                } else if !status.spec.include_positions {
-                    "the job was submitted with include_positions=false".to_string()
-                } else {
-                    format!(
-                        "positions are kept at step 0, every {} steps and the last step",
-                        status.spec.frame_interval
-                    )
-                };
-                JobError::FrameNotFound {
-                    id: id.clone(),
-                    step,
-                    detail,
-                }
-            })?;
-            inner.render(&id, &positions, format)
-        })
-        .await
-        .map_err(join_err)?
+        let status = self.get(id).await?;
+        let kept = if step <= status.step {
+            let rows = self.inner.backend.store.frame_rows(id, step, 1).await?;
+            rows.first().is_some_and(|(m, p)| m.step == step && *p)
+        } else {
+            false
+        };
+        let key = BlobKey::Frame {
+            id: id.to_string(),
+            step,
+            welded: true,
+        };
+        let bytes = if kept {
+            self.inner.backend.blobs.get(key).await?
+        } else {
+            None
+        };
+        let Some(bytes) = bytes else {
+            let detail = if step > status.step
+                || (step == status.step && !status.state.is_terminal() && status.latest.is_none())
+            {
+                format!(
+                    "the job has completed {} of {} steps",
+                    status.step, status.total_steps
+                )
+            } else if !status.spec.include_positions {
+                "the job was submitted with include_positions=false".to_string()
+            } else {
+                format!(
+                    "positions are kept at step 0, every {} steps and the last step",
+                    status.spec.frame_interval
+                )
+            };
+            return Err(JobError::FrameNotFound {
+                id: id.to_string(),
+                step,
+                detail,
+            });
+        };
+        self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
+            .await
     }
 
     /// The faired mesh in `format` (input UVs, materials and textures kept). `Conflict` until
     /// the job succeeded.
     pub async fn result(&self, id: &str, format: Format) -> Result<Vec<u8>, JobError> {
-        let inner = self.inner.clone();
-        let id = id.to_string();
+        let status = self.get(id).await?;
+        if status.state != JobState::Succeeded {
+            return Err(JobError::Conflict(format!(
+                "job `{id}` is {}: only a succeeded job has a result",
+                status.state.as_str()
+            )));
+        }
+        let key = BlobKey::Result { id: id.to_string() };
+        let bytes =
+            self.inner.backend.blobs.get(key).await?.ok_or_else(|| {
+                JobError::Internal(format!("the result of job `{id}` is missing"))
+            })?;
+        self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
+            .await
+    }
+
+    /// Write `positions` (welded, f64) over the job's input asset in `format`.
+    async fn render(
+        &self,
+        status: &JobStatus,
+        positions: Vec<[f64; 3]>,
+        format: Format,
+    ) -> Result<Vec<u8>, JobError> {
+        let key = BlobKey::Input {
+            id: status.id.clone(),
+            format: status.input_format,
+        };
+        let input = self.inner.backend.blobs.get(key).await?.ok_or_else(|| {
+            JobError::Internal(format!("the input of job `{}` is missing", status.id))
+        })?;
+        let (input_format, limits) = (status.input_format, self.inner.config.limits.mesh_limits());
         tokio::task::spawn_blocking(move || {
-            let status = inner.store.status(&id)?;
-            if status.state != JobState::Succeeded {
-                return Err(JobError::Conflict(format!(
-                    "job `{id}` is {}: only a succeeded job has a result",
-                    status.state.as_str()
-                )));
-            }
-            let positions = inner.store.read_result(&id)?;
-            inner.render(&id, &positions, format)
+            let asset =
+                Asset::read(&input, input_format, &limits).map_err(JobError::InvalidMesh)?;
+            asset
+                .write(&positions, format)
+                .map_err(|e| JobError::Internal(format!("writing {}: {e}", format_name(format))))
         })
         .await
         .map_err(join_err)?
@@ -1200,14 +1253,19 @@ impl Jobs {
         self.inner.draining.load(Ordering::SeqCst)
     }
 
-    /// Ready to take traffic: not draining, every worker loop alive, and, when a job is
-    /// running, a step finished within `stall_after`.
+    /// Ready to take traffic: not draining, the backend reachable, every worker loop alive,
+    /// and, when a job is running, a step finished within `stall_after`.
     pub fn is_ready(&self) -> bool {
         let inner = &self.inner;
-        if inner.draining.load(Ordering::SeqCst) {
+        if inner.draining.load(Ordering::SeqCst) || !inner.backend.queue.connected() {
             return false;
         }
-        if inner.workers_alive.load(Ordering::SeqCst) < inner.config.workers {
+        let workers = if inner.config.role.runs_workers() {
+            inner.config.workers
+        } else {
+            0
+        };
+        if inner.workers_alive.load(Ordering::SeqCst) < workers {
             return false;
         }
         let idle = inner.running.load(Ordering::SeqCst) == 0;
@@ -1215,12 +1273,12 @@ impl Jobs {
         idle || since <= inner.config.stall_after.as_millis() as u64
     }
 
-    /// Jobs waiting in the queue now.
+    /// Jobs waiting in the queue now (a cluster's count may lag by a moment).
     pub fn queue_depth(&self) -> usize {
-        self.inner.queue.len()
+        self.inner.backend.queue.depth()
     }
 
-    /// Jobs running now.
+    /// Jobs running now on this node.
     pub fn running(&self) -> usize {
         self.inner.running.load(Ordering::SeqCst)
     }
@@ -1230,7 +1288,7 @@ impl Jobs {
         self.inner
             .telemetry
             .queue_depth
-            .set(self.inner.queue.len() as i64);
+            .set(self.inner.backend.queue.depth() as i64);
         self.inner
             .telemetry
             .running
@@ -1245,42 +1303,31 @@ impl Jobs {
                 _ = stop.cancelled() => return,
                 _ = tokio::time::sleep(period) => {}
             }
-            let inner = self.inner.clone();
-            match tokio::task::spawn_blocking(move || inner.store.sweep_expired(now_ms())).await {
-                Ok(Ok(n)) if n > 0 => tracing::info!(count = n, "expired jobs swept"),
-                Ok(Err(e)) => tracing::warn!(error = %e, "expiry sweep failed"),
+            match self.sweep().await {
+                Ok(n) if n > 0 => tracing::info!(count = n, "expired jobs swept"),
+                Err(e) => tracing::warn!(error = %e, "expiry sweep failed"),
                 _ => {}
             }
         }
     }
-}
 
-enum Admitted {
-    New(JobStatus),
-    Existing(JobStatus),
-}
-
-impl Inner {
-    /// Write `positions` (welded, f64) over the job's input asset in `format`.
-    fn render(
-        &self,
-        id: &str,
-        positions: &[[f64; 3]],
-        format: Format,
-    ) -> Result<Vec<u8>, JobError> {
-        let asset = self
-            .store
-            .read_asset(id, &self.config.limits.mesh_limits())?;
-        asset
-            .write(positions, format)
-            .map_err(|e| JobError::Internal(format!("writing {}: {e}", format_name(format))))
+    async fn sweep(&self) -> Result<usize, JobError> {
+        let backend = &self.inner.backend;
+        let swept = backend.store.sweep_expired(now_ms()).await?;
+        for id in &swept.jobs {
+            backend.blobs.delete_job(id).await?;
+        }
+        for (id, format) in swept.uploads {
+            backend.blobs.delete(BlobKey::Upload { id, format }).await?;
+        }
+        Ok(swept.jobs.len())
     }
 }
 
 impl Shutdown {
     /// Graceful shutdown: stop admitting, let running jobs finish for up to `grace`, then stop
-    /// them at their next step and re-queue them in the store (they restart from step 0 on the
-    /// next start). Queued jobs simply stay queued in the store.
+    /// them at their next step, checkpoint them and re-queue them (they resume on the next
+    /// start, or on another worker). Queued jobs simply stay queued in the store.
     pub async fn shutdown(self, grace: Duration) {
         self.jobs.begin_drain();
         // Workers take no new job from now on; the ones running keep going.
@@ -1315,7 +1362,7 @@ impl Drop for Shutdown {
 }
 
 /// A mesh refused for its size is a `TooLarge` (HTTP 413), any other refusal an `InvalidMesh`.
-fn mesh_error(e: MeshError) -> JobError {
+pub(crate) fn mesh_error(e: MeshError) -> JobError {
     match e {
         MeshError::TooLarge { what, limit, .. } => JobError::TooLarge {
             what,

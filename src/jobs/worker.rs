@@ -1,17 +1,32 @@
-//! The bounded worker pool: `workers` async loops, each taking one job at a time from the
-//! queue and running its flow on a blocking thread.
+//! The bounded worker pool: `workers` async loops, each leasing one job at a time from the
+//! [`WorkQueue`] and running its flow on a blocking thread.
 //!
 //! The pool size bounds CPU use, not the tokio blocking pool (which allows 512 threads): at most
-//! `workers` flows run at once, each single-threaded. Between steps a flow checks, in order,
-//! its cancellation token (→ cancelled), the shutdown token (→ re-queued) and its deadline
-//! (→ failed, `deadline_exceeded`); a step itself is never interrupted, so cancellation latency
-//! is one step.
+//! `workers` flows run at once. Between steps a flow checks, in order, its cancellation token
+//! (→ cancelled), the shutdown token (→ checkpointed and re-queued) and its deadline (→ failed,
+//! `deadline_exceeded`); a step itself is never interrupted, so cancellation latency is one
+//! step. While a job runs, a task heartbeats its lease, so a long step does not look like a
+//! dead worker.
+//!
+//! Checkpoints: every [`Config::checkpoint_steps`] steps or [`Config::checkpoint_interval`],
+//! whichever comes first, the flow's state ([`crate::flow::FlowState`]) goes to the blob store.
+//! A job delivered again after its worker died (or after a restart, or a shutdown) resumes from
+//! there instead of step 0: the store forgets the frames after the checkpoint, and the steps
+//! after it are taken again (watchers skip the step numbers they have seen).
+//!
+//! [`WorkQueue`]: super::ports::WorkQueue
+//! [`Config::checkpoint_steps`]: super::Config::checkpoint_steps
+//! [`Config::checkpoint_interval`]: super::Config::checkpoint_interval
 
-use super::{join_err, now_ms, Frame, Inner, JobError, JobEvent, JobState, JobStatus, Jobs};
-use crate::flow::{new_flow, FlowError};
+use super::codec::{decode_checkpoint, encode_checkpoint, f32s_to_bytes, f64s_to_bytes};
+use super::ports::{BlobKey, Lease};
+use super::{mesh_error, now_ms, Frame, Inner, JobError, JobEvent, JobState, JobStatus, Jobs};
+use crate::flow::{new_flow, Flow, FlowError};
+use crate::mesh::io::Asset;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use tokio::runtime::Handle;
 use tokio_util::sync::CancellationToken;
 
 /// Decrements the live-worker count however the loop ends (return or panic), so readiness
@@ -24,54 +39,127 @@ impl Drop for AliveGuard<'_> {
     }
 }
 
-/// One worker: take a job, run it to the end on a blocking thread, repeat until `stop`.
+/// How a run ended, for the lease.
+enum Outcome {
+    /// Terminal (or found terminal): ack.
+    Done,
+    /// Stopped for shutdown, checkpointed and re-queued: give the lease back.
+    Released,
+}
+
+/// One worker: lease a job, run it to the end on a blocking thread, repeat until `stop`.
 pub(crate) async fn worker_loop(jobs: Jobs, n: usize, stop: CancellationToken) {
     let inner = jobs.inner.clone();
     inner.workers_alive.fetch_add(1, Ordering::SeqCst);
     let _alive = AliveGuard(&inner);
+    let backend = inner.backend.clone();
     loop {
-        let id = tokio::select! {
+        let lease = tokio::select! {
             biased;
             _ = stop.cancelled() => break,
-            id = inner.queue.pop() => id,
+            lease = backend.queue.lease() => lease,
         };
-        inner.telemetry.queue_depth.set(inner.queue.len() as i64);
-        let token = inner
-            .active
-            .lock()
-            .ok()
-            .and_then(|a| a.get(&id).map(|a| a.cancel.clone()))
-            .unwrap_or_default();
-        let span = tracing::info_span!("job", job_id = %id, worker = n);
-        inner.running.fetch_add(1, Ordering::SeqCst);
+        let lease = match lease {
+            Ok(l) => l,
+            Err(e) => {
+                // The queue's server is away (NATS restarting): wait, then ask again.
+                tracing::warn!(worker = n, error = %e, "could not lease a job");
+                tokio::select! {
+                    _ = stop.cancelled() => break,
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => continue,
+                }
+            }
+        };
         inner
             .telemetry
-            .running
-            .set(inner.running.load(Ordering::SeqCst) as i64);
-        let run_inner = inner.clone();
-        let run_id = id.clone();
-        let outcome = tokio::task::spawn_blocking(move || {
-            span.in_scope(|| run_job(&run_inner, &run_id, &token))
-        })
-        .await
-        .map_err(join_err)
-        .and_then(|r| r);
-        inner.running.fetch_sub(1, Ordering::SeqCst);
-        inner
-            .telemetry
-            .running
-            .set(inner.running.load(Ordering::SeqCst) as i64);
-        inner.last_progress_ms.store(now_ms(), Ordering::SeqCst);
-        if let Err(e) = outcome {
+            .queue_depth
+            .set(backend.queue.depth() as i64);
+        run_leased(&inner, n, lease).await;
+    }
+}
+
+/// Run one leased job and settle its lease.
+async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
+    let backend = &inner.backend;
+    let id = lease.id.clone();
+    if lease.attempt > inner.config.max_deliveries {
+        let reason = format!(
+            "the job was delivered {} times and no worker finished it (each stopped without \
+             a word: killed, out of memory, or its node lost); it is not tried again",
+            lease.attempt - 1
+        );
+        tracing::error!(job_id = %id, attempt = lease.attempt, "giving up on a job");
+        if let Err(e) = finish(inner, &id, JobState::Failed, Some(("redelivered", reason))).await {
+            tracing::error!(job_id = %id, error = %e, "could not fail the job");
+        }
+        let _ = lease.control.ack().await;
+        return;
+    }
+    let token = backend.cancels.watch(&id).await;
+    let beat = CancellationToken::new();
+    let heartbeat = tokio::spawn(heartbeat_loop(
+        lease.control.clone(),
+        inner.config.heartbeat_interval,
+        beat.clone(),
+    ));
+    inner.running.fetch_add(1, Ordering::SeqCst);
+    inner
+        .telemetry
+        .running
+        .set(inner.running.load(Ordering::SeqCst) as i64);
+    let span = tracing::info_span!("job", job_id = %id, worker = n, attempt = lease.attempt);
+    let (run_inner, run_id, rt) = (inner.clone(), id.clone(), Handle::current());
+    let outcome = tokio::task::spawn_blocking(move || {
+        span.in_scope(|| run_job(&run_inner, &rt, &run_id, &token))
+    })
+    .await
+    .map_err(super::join_err)
+    .and_then(|r| r);
+    inner.running.fetch_sub(1, Ordering::SeqCst);
+    inner
+        .telemetry
+        .running
+        .set(inner.running.load(Ordering::SeqCst) as i64);
+    inner.last_progress_ms.store(now_ms(), Ordering::SeqCst);
+    beat.cancel();
+    let _ = heartbeat.await;
+    backend.cancels.forget(&id).await;
+    let settled = match outcome {
+        Ok(Outcome::Done) => lease.control.ack().await,
+        Ok(Outcome::Released) => lease.control.release().await,
+        Err(e) => {
             // The job could not even be recorded as failed (store error or a panic in the
             // flow): try once more to fail it alone, and keep the worker going.
             tracing::error!(job_id = %id, error = %e, "job aborted");
             let _ = finish(
-                &inner,
+                inner,
                 &id,
                 JobState::Failed,
                 Some(("internal", e.to_string())),
-            );
+            )
+            .await;
+            lease.control.ack().await
+        }
+    };
+    if let Err(e) = settled {
+        // The queue delivers it again; the store says it is terminal, and `start` refuses it.
+        tracing::warn!(job_id = %id, error = %e, "could not settle the lease");
+    }
+}
+
+/// Keep the lease while the job runs: a step may take longer than the queue's `ack_wait`.
+async fn heartbeat_loop(
+    control: Arc<dyn super::ports::LeaseControl>,
+    every: Duration,
+    stop: CancellationToken,
+) {
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => return,
+            _ = tokio::time::sleep(every) => {}
+        }
+        if let Err(e) = control.heartbeat().await {
+            tracing::warn!(error = %e, "lease heartbeat failed");
         }
     }
 }
@@ -107,23 +195,20 @@ enum Stop {
     Deadline(usize),
 }
 
-/// Run one job to a terminal state (or back to the queue on shutdown).
-fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<(), JobError> {
-    let queued = inner.store.status(id)?;
-    if queued.state != JobState::Queued {
-        return Ok(()); // cancelled (or deleted) while waiting
-    }
-    if token.is_cancelled() {
-        finish(
-            inner,
-            id,
-            JobState::Cancelled,
-            Some(("cancelled", "cancelled while queued".into())),
-        )?;
-        return Ok(());
-    }
-    let deadline_ms = queued.created_at
-        + queued
+/// Run one job to a terminal state (or back to the queue on shutdown). Runs on a blocking
+/// thread; the ports are async, and `rt` runs their calls.
+fn run_job(
+    inner: &Arc<Inner>,
+    rt: &Handle,
+    id: &str,
+    token: &CancellationToken,
+) -> Result<Outcome, JobError> {
+    let backend = &inner.backend;
+    let Some(running) = rt.block_on(backend.store.start(id, now_ms()))? else {
+        return Ok(Outcome::Done); // cancelled, deleted or expired while waiting
+    };
+    let deadline_ms = running.created_at
+        + running
             .spec
             .deadline_secs
             .map(Duration::from_secs_f64)
@@ -141,30 +226,21 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
         }
     };
     if let Some(stop) = check(0) {
-        return stopped(inner, id, stop, &queued);
+        return stopped(inner, rt, id, stop, &running, None);
     }
-    // Open the live channel before the first event (watchers may have opened it already).
-    inner.hub.open(id);
-    let Some(running) = inner.store.set_running(id, now_ms())? else {
-        return Ok(());
-    };
-    inner.hub.send(id, JobEvent::State(running.clone()));
-    tracing::info!(steps = running.total_steps, "job started");
+    rt.block_on(backend.events.publish(id, JobEvent::State(running.clone())))?;
     let started = Instant::now();
 
-    let asset = match inner
-        .store
-        .read_asset(id, &inner.config.limits.mesh_limits())
-    {
+    let asset = match read_asset(inner, rt, &running) {
         Ok(a) => a,
         Err(JobError::InvalidMesh(e)) => {
-            finish(
+            rt.block_on(finish(
                 inner,
                 id,
                 JobState::Failed,
                 Some(("invalid_mesh", e.to_string())),
-            )?;
-            return Ok(());
+            ))?;
+            return Ok(Outcome::Done);
         }
         Err(e) => return Err(e),
     };
@@ -174,19 +250,19 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
         asset.surface().vertex_count(),
         inner.config.workers,
         inner.running.load(Ordering::SeqCst),
-        inner.queue.len(),
+        backend.queue.depth(),
         std::thread::available_parallelism().map_or(1, |n| n.get()),
     );
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
         Err(e) => {
-            finish(
+            rt.block_on(finish(
                 inner,
                 id,
                 JobState::Failed,
                 Some((flow_error_code(&e), e.to_string())),
-            )?;
-            return Ok(());
+            ))?;
+            return Ok(Outcome::Done);
         }
     };
 
@@ -194,33 +270,63 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
         metrics.step = step;
         let payload = if spec.keeps_positions(step) {
             let file_order = asset.file_positions(positions);
-            inner
-                .store
-                .write_frame_positions(id, step, &file_order, positions)?;
+            let (key, welded) = frame_keys(id, step);
+            rt.block_on(async {
+                backend
+                    .blobs
+                    .put(key, f32s_to_bytes(&file_order).into())
+                    .await?;
+                backend
+                    .blobs
+                    .put(welded, f64s_to_bytes(positions).into())
+                    .await
+            })?;
             Some(Arc::new(file_order))
         } else {
             None
         };
-        inner.store.record_frame(id, &metrics, payload.is_some())?;
-        inner.last_progress_ms.store(now_ms(), Ordering::SeqCst);
-        inner.hub.send(
-            id,
-            JobEvent::Frame(Frame {
-                step,
-                metrics,
-                positions: payload,
-            }),
-        );
-        Ok::<_, JobError>(())
+        rt.block_on(async {
+            backend
+                .store
+                .record_frame(id, metrics, payload.is_some())
+                .await?;
+            inner.last_progress_ms.store(now_ms(), Ordering::SeqCst);
+            backend
+                .events
+                .publish(
+                    id,
+                    JobEvent::Frame(Frame {
+                        step,
+                        metrics,
+                        positions: payload,
+                    }),
+                )
+                .await
+        })
     };
 
-    emit(0, flow.initial_metrics(), flow.positions())?;
+    let resumed_at = resume(inner, rt, id, flow.as_mut());
+    let first = match resumed_at {
+        Some(step) => {
+            rt.block_on(backend.store.rewind(id, step))?;
+            inner.telemetry.resumed.inc();
+            tracing::info!(step, "resumed from the checkpoint");
+            step + 1
+        }
+        None => {
+            rt.block_on(backend.store.rewind(id, 0))?;
+            emit(0, flow.initial_metrics(), flow.positions())?;
+            tracing::info!(steps = running.total_steps, "job started");
+            1
+        }
+    };
+    let mut last_checkpoint = (first - 1, Instant::now());
     // Set when the safeguard finds no acceptable step: the job then ends early, succeeded,
     // with this (code, reason) as its note (see `JobStatus::error_code`).
     let mut stopped_early = None;
-    for step in 1..=spec.steps {
+    for step in first..=spec.steps {
         if let Some(stop) = check(step - 1) {
-            return stopped(inner, id, stop, &running);
+            return stopped(inner, rt, id, stop, &running, Some(flow.as_ref()));
         }
         let t = Instant::now();
         let metrics = match flow.step() {
@@ -235,13 +341,13 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
             }
             Err(e) => {
                 tracing::warn!(step, error = %e, "flow failed");
-                finish(
+                rt.block_on(finish(
                     inner,
                     id,
                     JobState::Failed,
                     Some((flow_error_code(&e), e.to_string())),
-                )?;
-                return Ok(());
+                ))?;
+                return Ok(Outcome::Done);
             }
         };
         inner
@@ -251,7 +357,7 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
         // Accepted safeguarded steps are finite by construction; with the safeguard off a
         // diverging flow may not be, and nothing non-finite is streamed or stored.
         if let Some(bad) = first_non_finite(flow.positions()) {
-            finish(
+            rt.block_on(finish(
                 inner,
                 id,
                 JobState::Failed,
@@ -259,13 +365,22 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
                     "numerical",
                     format!("numerical failure at step {step}: vertex {bad} is not finite"),
                 )),
-            )?;
-            return Ok(());
+            ))?;
+            return Ok(Outcome::Done);
         }
         emit(step, metrics, flow.positions())?;
+        let due = step - last_checkpoint.0 >= inner.config.checkpoint_steps
+            || last_checkpoint.1.elapsed() >= inner.config.checkpoint_interval;
+        if due && step < spec.steps {
+            checkpoint(inner, rt, id, flow.as_ref())?;
+            last_checkpoint = (step, Instant::now());
+        }
     }
     debug_assert!(first_non_finite(flow.positions()).is_none());
-    inner.store.write_result(id, flow.positions())?;
+    rt.block_on(backend.blobs.put(
+        BlobKey::Result { id: id.to_string() },
+        f64s_to_bytes(flow.positions()).into(),
+    ))?;
     let elapsed = started.elapsed();
     // Moving average with weight 1/4 for the newest job: reacts within a few jobs.
     let prev = inner.avg_job_ms.load(Ordering::Relaxed);
@@ -273,8 +388,88 @@ fn run_job(inner: &Arc<Inner>, id: &str, token: &CancellationToken) -> Result<()
     inner
         .avg_job_ms
         .store((prev * 3 + ms) / 4, Ordering::Relaxed);
-    finish(inner, id, JobState::Succeeded, stopped_early)?;
+    rt.block_on(finish(inner, id, JobState::Succeeded, stopped_early))?;
+    // The checkpoint has served: a finished job is never resumed.
+    let _ = rt.block_on(
+        backend
+            .blobs
+            .delete(BlobKey::Checkpoint { id: id.to_string() }),
+    );
     tracing::info!(elapsed_ms = ms, "job succeeded");
+    Ok(Outcome::Done)
+}
+
+/// The blob keys of a frame's positions: file order (f32) and welded (f64).
+fn frame_keys(id: &str, step: usize) -> (BlobKey, BlobKey) {
+    let key = |welded| BlobKey::Frame {
+        id: id.to_string(),
+        step,
+        welded,
+    };
+    (key(false), key(true))
+}
+
+/// The job's uploaded file, parsed.
+fn read_asset(inner: &Inner, rt: &Handle, status: &JobStatus) -> Result<Asset, JobError> {
+    let key = BlobKey::Input {
+        id: status.id.clone(),
+        format: status.input_format,
+    };
+    let bytes = rt.block_on(inner.backend.blobs.get(key))?.ok_or_else(|| {
+        JobError::Internal(format!("the input of job `{}` is missing", status.id))
+    })?;
+    Asset::read(
+        &bytes,
+        status.input_format,
+        &inner.config.limits.mesh_limits(),
+    )
+    .map_err(mesh_error)
+}
+
+/// Put `flow` on the job's checkpoint, if it has a usable one; the step it is at.
+fn resume(inner: &Inner, rt: &Handle, id: &str, flow: &mut dyn Flow) -> Option<usize> {
+    let key = BlobKey::Checkpoint { id: id.to_string() };
+    let bytes = match rt.block_on(inner.backend.blobs.get(key)) {
+        Ok(Some(b)) => b,
+        Ok(None) => return None,
+        Err(e) => {
+            tracing::warn!(error = %e, "checkpoint unreadable: the job starts from step 0");
+            return None;
+        }
+    };
+    let state = match decode_checkpoint(&bytes) {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::warn!(error = %e, "checkpoint refused: the job starts from step 0");
+            return None;
+        }
+    };
+    match flow.resume(&state) {
+        Ok(()) => Some(state.metrics.step),
+        Err(e) => {
+            tracing::warn!(error = %e, "checkpoint does not fit the flow: the job starts from step 0");
+            None
+        }
+    }
+}
+
+/// Write the flow's state as the job's checkpoint.
+fn checkpoint(inner: &Inner, rt: &Handle, id: &str, flow: &dyn Flow) -> Result<(), JobError> {
+    let Some(state) = flow.checkpoint() else {
+        return Ok(());
+    };
+    let t = Instant::now();
+    let key = BlobKey::Checkpoint { id: id.to_string() };
+    rt.block_on(
+        inner
+            .backend
+            .blobs
+            .put(key, encode_checkpoint(&state).into()),
+    )?;
+    inner
+        .telemetry
+        .checkpoint_seconds
+        .observe(t.elapsed().as_secs_f64());
     Ok(())
 }
 
@@ -285,10 +480,17 @@ fn first_non_finite(positions: &[[f64; 3]]) -> Option<usize> {
         .position(|p| !p.iter().all(|c| c.is_finite()))
 }
 
-fn stopped(inner: &Arc<Inner>, id: &str, stop: Stop, status: &JobStatus) -> Result<(), JobError> {
+fn stopped(
+    inner: &Arc<Inner>,
+    rt: &Handle,
+    id: &str,
+    stop: Stop,
+    status: &JobStatus,
+    flow: Option<&dyn Flow>,
+) -> Result<Outcome, JobError> {
     match stop {
         Stop::Cancelled(step) => {
-            finish(
+            rt.block_on(finish(
                 inner,
                 id,
                 JobState::Cancelled,
@@ -296,14 +498,14 @@ fn stopped(inner: &Arc<Inner>, id: &str, stop: Stop, status: &JobStatus) -> Resu
                     "cancelled",
                     format!("cancelled after step {step} of {}", status.total_steps),
                 )),
-            )?;
+            ))?;
         }
         Stop::Deadline(step) => {
             let secs = status
                 .spec
                 .deadline_secs
                 .unwrap_or(inner.config.default_deadline.as_secs_f64());
-            finish(
+            rt.block_on(finish(
                 inner,
                 id,
                 JobState::Failed,
@@ -314,19 +516,23 @@ fn stopped(inner: &Arc<Inner>, id: &str, stop: Stop, status: &JobStatus) -> Resu
                         status.total_steps
                     ),
                 )),
-            )?;
+            ))?;
         }
         Stop::Shutdown => {
-            inner.store.requeue(id)?;
-            if let Ok(s) = inner.store.status(id) {
-                inner.hub.send(id, JobEvent::State(s));
+            // Keep every step taken: the next worker resumes right here.
+            if let Some(flow) = flow {
+                checkpoint(inner, rt, id, flow)?;
             }
-            tracing::info!(
-                "shutting down: job re-queued, it restarts from step 0 on the next start"
-            );
+            let backend = &inner.backend;
+            rt.block_on(backend.store.requeue(id))?;
+            if let Ok(s) = rt.block_on(backend.store.status(id)) {
+                let _ = rt.block_on(backend.events.publish(id, JobEvent::State(s)));
+            }
+            tracing::info!("shutting down: job checkpointed and re-queued");
+            return Ok(Outcome::Released);
         }
     }
-    Ok(())
+    Ok(Outcome::Done)
 }
 
 fn flow_error_code(e: &FlowError) -> &'static str {
@@ -340,24 +546,25 @@ fn flow_error_code(e: &FlowError) -> &'static str {
 
 /// Move a job to a terminal state, tell its watchers and close its channel. Idempotent: a job
 /// that is already terminal is returned as it is.
-pub(crate) fn finish(
+pub(crate) async fn finish(
     inner: &Inner,
     id: &str,
     state: JobState,
     error: Option<(&str, String)>,
 ) -> Result<JobStatus, JobError> {
+    let backend = &inner.backend;
     let now = now_ms();
     let expires = now + inner.config.result_ttl.as_millis() as u64;
     let code = error.as_ref().map(|(c, _)| c.to_string());
-    let done = inner.store.finish(id, state, error, now, expires)?;
-    let Some(status) = done else {
-        return inner.store.status(id);
+    let error = error.map(|(c, m)| (c.to_string(), m));
+    let Some(status) = backend.store.finish(id, state, error, now, expires).await? else {
+        return backend.store.status(id).await;
     };
-    if let Ok(mut a) = inner.active.lock() {
-        a.remove(id);
-    }
-    inner.hub.send(id, JobEvent::Done(status.clone()));
-    inner.hub.close(id);
+    backend
+        .events
+        .publish(id, JobEvent::Done(status.clone()))
+        .await?;
+    backend.events.close(id).await;
     inner.telemetry.record_outcome(
         state,
         code.as_deref(),

@@ -1,0 +1,393 @@
+//! The byte forms the backends share: request hashes for idempotency keys, step metrics,
+//! position blobs and flow checkpoints. A record written by one node is read by another, and
+//! after an upgrade by a newer binary: each form says how it stays readable.
+
+use super::{format_name, JobError, JobSpec};
+use crate::flow::FlowState;
+use crate::mesh::io::Format;
+use crate::metrics::StepMetrics;
+use sha2::{Digest, Sha256};
+
+/// The hash an idempotency key is bound to: format, spec and mesh bytes.
+pub fn request_hash(data: &[u8], format: Format, spec: &JobSpec) -> String {
+    let mut h = Sha256::new();
+    h.update(format_name(format).as_bytes());
+    h.update([0]);
+    h.update(serde_json::to_vec(&HashedSpec::from(spec)).unwrap_or_default());
+    h.update([0]);
+    h.update(data);
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The spec as [`request_hash`] sees it: the fields of the first release in their order, then
+/// each later field only when it differs from its default. Keys are stored with their hash, so
+/// a request sent again after an upgrade must hash as before, or its retry would be refused
+/// as a different request. New [`JobSpec`] fields go at the end here too, skipped at default.
+#[derive(serde::Serialize)]
+struct HashedSpec<'a> {
+    method: crate::flow::Method,
+    steps: usize,
+    tau: f64,
+    iterations: usize,
+    frame_interval: usize,
+    include_positions: bool,
+    deadline_secs: Option<f64>,
+    #[serde(skip_serializing_if = "is_true")]
+    exactness: bool,
+    #[serde(skip_serializing_if = "is_false")]
+    mobius_balancing: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    filter: Option<super::spec::FilterSpec>,
+    #[serde(skip_serializing_if = "is_free")]
+    boundary: &'a super::spec::BoundarySpec,
+    #[serde(skip_serializing_if = "is_true")]
+    safeguard: bool,
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
+}
+
+fn is_free(b: &&super::spec::BoundarySpec) -> bool {
+    b.is_free()
+}
+
+impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
+    fn from(s: &'a JobSpec) -> Self {
+        // Destructured, so a field added to JobSpec fails to compile until it is hashed.
+        let JobSpec {
+            method,
+            steps,
+            tau,
+            iterations,
+            frame_interval,
+            include_positions,
+            deadline_secs,
+            exactness,
+            mobius_balancing,
+            filter,
+            boundary,
+            safeguard,
+        } = s;
+        HashedSpec {
+            method: *method,
+            steps: *steps,
+            tau: *tau,
+            iterations: *iterations,
+            frame_interval: *frame_interval,
+            include_positions: *include_positions,
+            deadline_secs: *deadline_secs,
+            exactness: *exactness,
+            mobius_balancing: *mobius_balancing,
+            filter: *filter,
+            boundary,
+            safeguard: *safeguard,
+        }
+    }
+}
+
+/// Bytes of a metrics row as the first release wrote it: step as u64, then nine f64
+/// (`willmore_energy` … `step_ms`), all little-endian.
+const METRICS_V1_BYTES: usize = 80;
+/// Bytes of a metrics row now: the first release's 80, then `tau` (f64) and `rejected` (u32),
+/// little-endian. Rows are only ever appended to, so an old row is a prefix of a new one.
+const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
+
+/// The binary form of [`StepMetrics`] ([`METRICS_BYTES`]). Binary and not JSON because a
+/// metric may legitimately be NaN or infinite, which JSON cannot carry.
+pub fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
+    let mut out = Vec::with_capacity(METRICS_BYTES);
+    out.extend_from_slice(&(m.step as u64).to_le_bytes());
+    for v in [
+        m.willmore_energy,
+        m.q_mean,
+        m.q_area_mean,
+        m.q_p95,
+        m.q_max,
+        m.closure_residual,
+        m.eigen_residual,
+        m.area,
+        m.step_ms,
+        m.tau,
+    ] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.extend_from_slice(&m.rejected.to_le_bytes());
+    out
+}
+
+/// Reads a row of either length: one written before the safeguard existed
+/// ([`METRICS_V1_BYTES`]) has `tau = 0` and `rejected = 0`, as [`StepMetrics`] documents.
+pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
+    if b.len() != METRICS_BYTES && b.len() != METRICS_V1_BYTES {
+        return Err(JobError::Internal(format!(
+            "stored metrics have {} bytes, expected {METRICS_BYTES} (or {METRICS_V1_BYTES} for \
+             rows written before the safeguard)",
+            b.len()
+        )));
+    }
+    let u = |i: usize| {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(&b[i * 8..i * 8 + 8]);
+        a
+    };
+    let f = |i: usize| f64::from_le_bytes(u(i));
+    let (tau, rejected) = if b.len() == METRICS_BYTES {
+        let mut r = [0u8; 4];
+        r.copy_from_slice(&b[METRICS_V1_BYTES + 8..]);
+        (f(10), u32::from_le_bytes(r))
+    } else {
+        (0.0, 0)
+    };
+    Ok(StepMetrics {
+        step: u64::from_le_bytes(u(0)) as usize,
+        willmore_energy: f(1),
+        q_mean: f(2),
+        q_area_mean: f(3),
+        q_p95: f(4),
+        q_max: f(5),
+        closure_residual: f(6),
+        eigen_residual: f(7),
+        area: f(8),
+        step_ms: f(9),
+        tau,
+        rejected,
+    })
+}
+
+pub fn f64s_to_bytes(p: &[[f64; 3]]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(p.len() * 24);
+    for v in p {
+        for c in v {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    out
+}
+
+pub fn bytes_to_f64s(b: &[u8]) -> Result<Vec<[f64; 3]>, JobError> {
+    if !b.len().is_multiple_of(24) {
+        return Err(JobError::Internal("truncated f64 position blob".into()));
+    }
+    Ok(b.chunks_exact(24)
+        .map(|c| {
+            let g = |i: usize| {
+                let mut a = [0u8; 8];
+                a.copy_from_slice(&c[i * 8..i * 8 + 8]);
+                f64::from_le_bytes(a)
+            };
+            [g(0), g(1), g(2)]
+        })
+        .collect())
+}
+
+/// Little-endian f32 xyz, the frame payload format.
+pub fn f32s_to_bytes(p: &[[f32; 3]]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(p.len() * 12);
+    for v in p {
+        for c in v {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    out
+}
+
+pub fn bytes_to_f32s(b: &[u8]) -> Result<Vec<[f32; 3]>, JobError> {
+    if !b.len().is_multiple_of(12) {
+        return Err(JobError::Internal("truncated f32 position blob".into()));
+    }
+    Ok(b.chunks_exact(12)
+        .map(|c| {
+            let g =
+                |i: usize| f32::from_le_bytes([c[i * 4], c[i * 4 + 1], c[i * 4 + 2], c[i * 4 + 3]]);
+            [g(0), g(1), g(2)]
+        })
+        .collect())
+}
+
+/// First bytes of a checkpoint blob, with its version: a checkpoint some other version wrote
+/// is not trusted (the job then restarts from step 0, which is always correct).
+const CHECKPOINT_MAGIC: &[u8; 8] = b"WLWCKP01";
+
+/// A flow's state as a blob: magic, the step's metrics ([`encode_metrics`]), `next_tau` (f64),
+/// `clean_steps` (u32), the vertex count (u64), then the welded positions as f64 xyz, all
+/// little-endian.
+pub fn encode_checkpoint(state: &FlowState) -> Vec<u8> {
+    let metrics = encode_metrics(&state.metrics);
+    let mut out = Vec::with_capacity(8 + metrics.len() + 20 + state.positions.len() * 24);
+    out.extend_from_slice(CHECKPOINT_MAGIC);
+    out.extend_from_slice(&metrics);
+    out.extend_from_slice(&state.next_tau.to_le_bytes());
+    out.extend_from_slice(&state.clean_steps.to_le_bytes());
+    out.extend_from_slice(&(state.positions.len() as u64).to_le_bytes());
+    out.extend_from_slice(&f64s_to_bytes(&state.positions));
+    out
+}
+
+/// The inverse of [`encode_checkpoint`]; an error for anything else (truncated, another
+/// version), never a panic.
+pub fn decode_checkpoint(b: &[u8]) -> Result<FlowState, JobError> {
+    let bad = |why: &str| JobError::Internal(format!("checkpoint: {why}"));
+    let rest = b
+        .strip_prefix(CHECKPOINT_MAGIC.as_slice())
+        .ok_or_else(|| bad("not a checkpoint of this version"))?;
+    if rest.len() < METRICS_BYTES + 20 {
+        return Err(bad("truncated header"));
+    }
+    let metrics = decode_metrics(&rest[..METRICS_BYTES])?;
+    let rest = &rest[METRICS_BYTES..];
+    let mut f = [0u8; 8];
+    f.copy_from_slice(&rest[..8]);
+    let next_tau = f64::from_le_bytes(f);
+    let mut c = [0u8; 4];
+    c.copy_from_slice(&rest[8..12]);
+    let clean_steps = u32::from_le_bytes(c);
+    f.copy_from_slice(&rest[12..20]);
+    let n = u64::from_le_bytes(f);
+    let positions = bytes_to_f64s(&rest[20..])?;
+    if positions.len() as u64 != n {
+        return Err(bad("truncated positions"));
+    }
+    Ok(FlowState {
+        metrics,
+        positions,
+        next_tau,
+        clean_steps,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A spec with the later fields at their defaults hashes exactly as the first release
+    /// hashed it (its JSON then), so stored idempotency keys survive the upgrade; a spec that
+    /// sets one hashes differently.
+    #[test]
+    fn request_hash_is_stable_across_new_spec_fields() {
+        let first_release = br#"{"method":"conformal","steps":20,"tau":0.5,"iterations":1,"frame_interval":1,"include_positions":true,"deadline_secs":null}"#;
+        let mut h = Sha256::new();
+        h.update(b"obj");
+        h.update([0]);
+        h.update(first_release);
+        h.update([0]);
+        h.update(b"mesh");
+        let old: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+        let spec = JobSpec::default();
+        assert_eq!(request_hash(b"mesh", Format::Obj, &spec), old);
+        let cmc = JobSpec {
+            boundary: crate::jobs::spec::BoundarySpec::Cmc,
+            ..JobSpec::default()
+        };
+        assert_ne!(request_hash(b"mesh", Format::Obj, &cmc), old);
+        let unguarded = JobSpec {
+            safeguard: false,
+            ..JobSpec::default()
+        };
+        assert_ne!(request_hash(b"mesh", Format::Obj, &unguarded), old);
+        // And an old stored spec (without the new fields) still loads, with their defaults.
+        let stored: JobSpec =
+            serde_json::from_slice(first_release).expect("a first-release spec loads");
+        assert_eq!(stored, spec);
+    }
+
+    #[test]
+    fn metrics_round_trip_including_nan() {
+        let m = StepMetrics {
+            step: 7,
+            willmore_energy: 12.5,
+            q_mean: 1.0,
+            q_area_mean: 1.01,
+            q_p95: f64::NAN,
+            q_max: f64::INFINITY,
+            closure_residual: 1e-9,
+            eigen_residual: 0.0,
+            area: 4.0,
+            step_ms: 3.25,
+            tau: 0.125,
+            rejected: 3,
+        };
+        let blob = encode_metrics(&m);
+        assert_eq!(blob.len(), METRICS_BYTES);
+        let back = decode_metrics(&blob).expect("a new row decodes");
+        assert_eq!(back.step, 7);
+        assert_eq!(back.willmore_energy, 12.5);
+        assert!(back.q_p95.is_nan());
+        assert_eq!(back.q_max, f64::INFINITY);
+        assert_eq!(back.step_ms, 3.25);
+        assert_eq!(back.tau, 0.125);
+        assert_eq!(back.rejected, 3);
+    }
+
+    /// A row as the first release stored it (80 bytes, built here by hand, not by
+    /// `encode_metrics`) still decodes, with `tau = 0` and `rejected = 0`.
+    #[test]
+    fn metrics_stored_before_the_safeguard_decode_with_tau_zero() {
+        let mut old = Vec::new();
+        old.extend_from_slice(&5u64.to_le_bytes());
+        for v in [14.0, 1.1, 1.05, 1.2, 1.5, 1e-8, 1e-10, 12.0, 4.5] {
+            old.extend_from_slice(&f64::to_le_bytes(v));
+        }
+        assert_eq!(old.len(), 80);
+        let m = decode_metrics(&old).expect("an old row decodes");
+        assert_eq!(m.step, 5);
+        assert_eq!(m.willmore_energy, 14.0);
+        assert_eq!(m.area, 12.0);
+        assert_eq!(m.step_ms, 4.5);
+        assert_eq!(m.tau, 0.0);
+        assert_eq!(m.rejected, 0);
+        // The new form is the old one with tau and rejected appended.
+        assert_eq!(encode_metrics(&m)[..80], old[..]);
+        for bad in [79, 81, 91, 93] {
+            assert!(
+                decode_metrics(&vec![0; bad]).is_err(),
+                "{bad} bytes accepted"
+            );
+        }
+    }
+
+    #[test]
+    fn rfc3339_known_instants() {
+        assert_eq!(super::super::rfc3339(0), "1970-01-01T00:00:00.000Z");
+        // 2000-02-29T12:34:56.789Z (a leap day)
+        assert_eq!(
+            super::super::rfc3339(951_827_696_789),
+            "2000-02-29T12:34:56.789Z"
+        );
+    }
+
+    #[test]
+    fn checkpoints_round_trip_and_damaged_ones_are_refused() {
+        let state = FlowState {
+            metrics: StepMetrics {
+                step: 12,
+                willmore_energy: 13.0,
+                q_mean: 1.0,
+                q_area_mean: 1.0,
+                q_p95: 1.1,
+                q_max: 1.2,
+                closure_residual: 1e-9,
+                eigen_residual: 1e-12,
+                area: 4.0,
+                step_ms: 2.0,
+                tau: 0.25,
+                rejected: 1,
+            },
+            positions: vec![[1.0, -2.0, 3.5], [0.1, 0.2, f64::MIN_POSITIVE]],
+            next_tau: 0.25,
+            clean_steps: 2,
+        };
+        let blob = encode_checkpoint(&state);
+        assert_eq!(decode_checkpoint(&blob).expect("decodes"), state);
+        for cut in [0, 7, 8, 50, blob.len() - 1] {
+            assert!(decode_checkpoint(&blob[..cut]).is_err(), "cut at {cut}");
+        }
+        let mut other = blob.clone();
+        other[7] = b'9';
+        assert!(decode_checkpoint(&other).is_err(), "another version");
+    }
+}

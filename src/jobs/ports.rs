@@ -1,0 +1,274 @@
+//! The seams of the job core: five ports, and nothing else the core needs from a backend.
+//!
+//! Admission, the worker and the watchers ([`super::Jobs`], [`super::worker`],
+//! [`super::watch`]) are written once against these traits. Two backends implement them:
+//! - [`super::embedded`] (the default): SQLite for records, files for blobs, an in-process
+//!   queue and broadcast channels, one process;
+//! - [`super::nats`]: a JetStream work queue, KV records, the Object Store and per-job frame
+//!   subjects, for many API and worker nodes on one NATS.
+//!
+//! The traits are async and object-safe (`async_trait`), so a backend is chosen at start-up and
+//! the core holds `Arc<dyn …>`. A backend that blocks (SQLite, files) does so on tokio's
+//! blocking pool inside its own methods; callers never need to know.
+//!
+//! What each port promises is written on it. The ones the core relies on for correctness:
+//! - every frame is in the [`JobStore`] (and its positions in the [`BlobStore`]) before it is
+//!   published on the [`EventBus`], so a watcher that subscribes first and then replays misses
+//!   nothing;
+//! - [`JobStore::start`] refuses a terminal job, so a job cancelled while its queue entry was
+//!   in flight is not run;
+//! - a [`Lease`] that is neither acked nor heartbeaten is delivered again (NATS: after
+//!   `ack_wait`; embedded: on the next start of the process).
+
+use super::{JobError, JobEvent, JobId, JobSpec, JobState, JobStatus};
+use crate::mesh::io::Format;
+use crate::metrics::StepMetrics;
+use async_trait::async_trait;
+use futures::stream::BoxStream;
+use tokio_util::sync::CancellationToken;
+
+/// A job about to be admitted.
+#[derive(Clone, Debug)]
+pub struct NewJob {
+    pub id: JobId,
+    pub spec: JobSpec,
+    pub format: Format,
+    pub vertex_count: usize,
+    pub face_count: usize,
+    pub created_at: u64,
+    /// (key, request hash): see [`super::model::request_hash`].
+    pub idempotency: Option<(String, String)>,
+}
+
+/// What [`JobStore::insert`] did.
+#[derive(Debug)]
+pub enum Inserted {
+    /// The job is stored, queued.
+    New(JobStatus),
+    /// Its idempotency key already named this job (the same request sent again): nothing was
+    /// stored, the caller answers with the existing job.
+    Existing(JobStatus),
+}
+
+/// Jobs and uploads that [`JobStore::sweep_expired`] retired: their blobs are the caller's to
+/// delete.
+#[derive(Debug, Default)]
+pub struct Swept {
+    pub jobs: Vec<JobId>,
+    pub uploads: Vec<(String, Format)>,
+}
+
+/// Job records: state, spec, progress, per-step metrics, idempotency keys and upload records.
+#[async_trait]
+pub trait JobStore: Send + Sync + 'static {
+    /// Store an admitted job, queued, with its idempotency key, atomically: of two requests
+    /// with one key (on any node), one inserts and the other gets [`Inserted::Existing`], or
+    /// [`JobError::IdempotencyMismatch`] when its hash differs.
+    async fn insert(&self, job: NewJob) -> Result<Inserted, JobError>;
+    /// The job a key created, when the key is known and bound to `hash`.
+    async fn idempotent(&self, key: &str, hash: &str) -> Result<Option<JobStatus>, JobError>;
+    /// `NotFound` if unknown, `Gone` once expired.
+    async fn status(&self, id: &str) -> Result<JobStatus, JobError>;
+    /// Newest first; `token` is the opaque `next_page_token` of the previous page.
+    async fn list(
+        &self,
+        state: Option<JobState>,
+        size: usize,
+        token: Option<String>,
+    ) -> Result<(Vec<JobStatus>, Option<String>), JobError>;
+    /// A worker takes the job: queued → running, or running → running when it is delivered
+    /// again after its worker died. `None` when the job is terminal, deleted or unknown.
+    async fn start(&self, id: &str, at: u64) -> Result<Option<JobStatus>, JobError>;
+    /// A step's metrics; advances the job's progress to `metrics.step`.
+    async fn record_frame(
+        &self,
+        id: &str,
+        metrics: StepMetrics,
+        has_positions: bool,
+    ) -> Result<(), JobError>;
+    /// Forget the frames after `step` and set the progress back to it (a job resumed from its
+    /// checkpoint at `step` takes the later steps again).
+    async fn rewind(&self, id: &str, step: usize) -> Result<(), JobError>;
+    /// Stored frames of steps `from..` in step order (at most `limit`), with whether each kept
+    /// positions.
+    async fn frame_rows(
+        &self,
+        id: &str,
+        from: usize,
+        limit: usize,
+    ) -> Result<Vec<(StepMetrics, bool)>, JobError>;
+    /// Move a queued or running job to a terminal state; `None` if it already was terminal.
+    async fn finish(
+        &self,
+        id: &str,
+        state: JobState,
+        error: Option<(String, String)>,
+        at: u64,
+        expires_at: u64,
+    ) -> Result<Option<JobStatus>, JobError>;
+    /// A running job goes back to queued (shutdown); its frames and checkpoint stay.
+    async fn requeue(&self, id: &str) -> Result<(), JobError>;
+    /// Remove a terminal (or expired) job's record and frames; `Conflict` if it is live.
+    /// Its blobs are the caller's to delete.
+    async fn delete(&self, id: &str) -> Result<(), JobError>;
+    /// Retire jobs and uploads past their expiry (jobs keep a tombstone, so they answer
+    /// `Gone`).
+    async fn sweep_expired(&self, now: u64) -> Result<Swept, JobError>;
+    /// After a restart: the jobs a durable queue does not hold, in queue order, for the core
+    /// to queue again (the embedded backend: queued and running jobs; NATS: none).
+    async fn recover(&self) -> Result<Vec<JobId>, JobError>;
+    /// Record an upload stored ahead of its job (chunked gRPC).
+    async fn put_upload(
+        &self,
+        id: &str,
+        format: Format,
+        size: u64,
+        expires_at: u64,
+    ) -> Result<(), JobError>;
+    /// An upload's format; `UploadNotFound` if unknown or expired.
+    async fn upload(&self, id: &str) -> Result<Format, JobError>;
+}
+
+/// What a blob holds; the backend names it (file path, object name).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum BlobKey {
+    /// The uploaded file as received.
+    Input { id: JobId, format: Format },
+    /// A step's positions: in the file's vertex order as f32 (`welded: false`, what watchers
+    /// get), or welded as f64 (`welded: true`, to write the frame's mesh).
+    Frame {
+        id: JobId,
+        step: usize,
+        welded: bool,
+    },
+    /// The final welded positions, f64.
+    Result { id: JobId },
+    /// The flow's latest checkpoint ([`super::model::encode_checkpoint`]).
+    Checkpoint { id: JobId },
+    /// An upload stored ahead of its job.
+    Upload { id: String, format: Format },
+}
+
+impl BlobKey {
+    /// Whether losing the blob in a power cut would lose accepted work (inputs, results,
+    /// checkpoints, uploads), as opposed to what a resumed job writes again (frames).
+    pub fn durable(&self) -> bool {
+        !matches!(self, BlobKey::Frame { .. })
+    }
+
+    /// The job the blob belongs to, if any.
+    pub fn job(&self) -> Option<&str> {
+        match self {
+            BlobKey::Input { id, .. }
+            | BlobKey::Frame { id, .. }
+            | BlobKey::Result { id }
+            | BlobKey::Checkpoint { id } => Some(id),
+            BlobKey::Upload { .. } => None,
+        }
+    }
+}
+
+/// Mesh files, frame positions, results and checkpoints.
+#[async_trait]
+pub trait BlobStore: Send + Sync + 'static {
+    /// Write atomically: a reader sees the old blob or the whole new one.
+    async fn put(&self, key: BlobKey, data: bytes::Bytes) -> Result<(), JobError>;
+    /// `None` when there is no such blob.
+    async fn get(&self, key: BlobKey) -> Result<Option<bytes::Bytes>, JobError>;
+    async fn delete(&self, key: BlobKey) -> Result<(), JobError>;
+    /// Every blob of a job.
+    async fn delete_job(&self, id: &str) -> Result<(), JobError>;
+}
+
+/// A job handed to one worker until it acks, releases, or stops heartbeating.
+pub struct Lease {
+    pub id: JobId,
+    /// How many times the job has been delivered, this time included (1 = first time).
+    pub attempt: u32,
+    pub control: std::sync::Arc<dyn LeaseControl>,
+}
+
+/// What a worker tells the queue about its lease.
+#[async_trait]
+pub trait LeaseControl: Send + Sync {
+    /// Still working: do not give the job to another worker yet.
+    async fn heartbeat(&self) -> Result<(), JobError>;
+    /// The job is terminal: remove it from the queue.
+    async fn ack(&self) -> Result<(), JobError>;
+    /// Give the job back now, for another worker or a later start (shutdown).
+    async fn release(&self) -> Result<(), JobError>;
+}
+
+/// The admission queue: bounded, with leases.
+#[async_trait]
+pub trait WorkQueue: Send + Sync + 'static {
+    /// Append an admitted job; `QueueFull` at capacity (cluster-wide where the backend is).
+    async fn push(&self, id: &str) -> Result<(), JobError>;
+    /// Append regardless of capacity: jobs recovered at start were admitted before.
+    async fn push_recovered(&self, id: &str) -> Result<(), JobError>;
+    /// Wait for the next job.
+    async fn lease(&self) -> Result<Lease, JobError>;
+    /// Take a waiting job out; `false` if no worker can be kept from it any more (it was
+    /// leased, or never queued). A `true` may still race a delivery in flight: the worker
+    /// then finds the job terminal at [`JobStore::start`].
+    async fn withdraw(&self, id: &str) -> Result<bool, JobError>;
+    /// Jobs waiting (a cluster's count may lag by a moment).
+    fn depth(&self) -> usize;
+    fn capacity(&self) -> usize;
+    /// Whether the queue's server is reachable (always, for the embedded queue).
+    fn connected(&self) -> bool {
+        true
+    }
+}
+
+/// One item of a job's live event subscription.
+// `Lagged` is rare and carries nothing; boxing every event to shrink it would cost an
+// allocation per frame per watcher.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Debug)]
+pub enum BusEvent {
+    /// An event. A frame's positions may be left out (`Frame::positions` is `None` while
+    /// `has_positions` is true); the watcher then reads them from the blob store.
+    Event {
+        event: JobEvent,
+        has_positions: bool,
+    },
+    /// The subscriber fell behind and missed events: it catches up from the store.
+    Lagged,
+}
+
+/// Live fan-out of job events to every watcher on every node.
+#[async_trait]
+pub trait EventBus: Send + Sync + 'static {
+    /// Send to current subscribers; nobody listening is fine. Never waits for a watcher.
+    async fn publish(&self, id: &str, event: JobEvent) -> Result<(), JobError>;
+    /// Live events of `id` from now on. The stream ends when the job's channel is closed
+    /// (after its `Done`) or the bus goes away.
+    async fn subscribe(&self, id: &str) -> Result<BoxStream<'static, BusEvent>, JobError>;
+    /// The job is terminal: release what its channel holds.
+    async fn close(&self, id: &str);
+}
+
+/// Cancellation that reaches the node running the job.
+#[async_trait]
+pub trait CancelBus: Send + Sync + 'static {
+    /// Ask whoever runs `id` to stop it at its next step.
+    async fn cancel(&self, id: &str) -> Result<(), JobError>;
+    /// The token the running worker checks between steps: cancelled by [`CancelBus::cancel`]
+    /// on any node, including a cancel that came before this call.
+    async fn watch(&self, id: &str) -> CancellationToken;
+    /// The job stopped running here.
+    async fn forget(&self, id: &str);
+}
+
+/// The five ports of one backend.
+#[derive(Clone)]
+pub struct Backend {
+    pub store: std::sync::Arc<dyn JobStore>,
+    pub blobs: std::sync::Arc<dyn BlobStore>,
+    pub queue: std::sync::Arc<dyn WorkQueue>,
+    pub events: std::sync::Arc<dyn EventBus>,
+    pub cancels: std::sync::Arc<dyn CancelBus>,
+    /// For logs and `/readyz`: `embedded` or `nats://…`.
+    pub name: String,
+}
