@@ -106,8 +106,10 @@ pub struct JobParams {
     /// Möbius balancing (default false). Conformal flow only.
     pub mobius_balancing: Option<bool>,
     /// Spectral filter `{"sigma": σ, "k": k}` (default none). Conformal flow only.
+    #[schema(value_type = Option<super::schema::FilterSpecSchema>)]
     pub filter: Option<FilterSpec>,
     /// `"free"` (default), `"fixed"`, `"cmc"` or `{"prescribed": {…}}`. Conformal flow only.
+    #[schema(value_type = Option<super::schema::BoundarySpecSchema>)]
     pub boundary: Option<BoundarySpec>,
     /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
     /// (default true). Every method.
@@ -389,6 +391,7 @@ pub struct JobView {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error_code: Option<String>,
     /// The parameters the job runs with, defaults filled in.
+    #[schema(value_type = super::schema::JobSpecSchema)]
     pub params: JobSpec,
     /// `obj`, `glb` or `gltf`.
     pub input_format: String,
@@ -1200,7 +1203,7 @@ pub async fn metrics(State(st): State<AppState>) -> Response {
 #[openapi(
     info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
     paths(create_job, list_jobs, get_job, cancel_job, delete_job, job_events, list_frames, frame_mesh, job_result, fair_curve, healthz, readyz, metrics),
-    components(schemas(JobView, JobList, JobParams, JobSpec, FilterSpec, BoundarySpec, PrescribedSpec, AxisSpec, AnglesSpec, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
+    components(schemas(JobView, JobList, JobParams, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
     tags((name = "jobs", description = "Fairing jobs"), (name = "curves", description = "Curve fairing (paper §5), synchronous"), (name = "ops", description = "Probes and metrics"))
 )]
 pub struct ApiDoc;

@@ -11,5 +11,6 @@
 pub mod grpc;
 pub mod http;
 pub mod problem;
+pub mod schema;
 pub mod server;
 pub mod web;

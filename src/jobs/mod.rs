@@ -62,12 +62,11 @@ pub type JobId = String;
 /// Stored as JSON with the job: a field added later must have a default (`#[serde(default)]`
 /// fills it in for rows written before it existed) and is appended at the end (see
 /// `codec::request_hash`). Every field of [`FlowParams`] has one here.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct JobSpec {
     /// Which flow: `conformal` (the paper), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
     /// `taubin`.
-    #[schema(value_type = String, example = "conformal")]
     pub method: Method,
     /// Number of flow steps to take (step 0 is the input).
     pub steps: usize,

@@ -14,13 +14,12 @@ use crate::flow::filter::SpectralFilter;
 use crate::flow::prescribed::MAX_FRAME_ANGLE;
 use crate::flow::{Boundary, BoundaryAngles, PrescribedVectors, RotationAxis};
 use serde::{Deserialize, Serialize};
-use utoipa::ToSchema;
 
 /// Largest filter order: the library's `FilterSolver` builds `L (M⁻¹L)^{k−1}` for k ≤ 3.
 pub const MAX_FILTER_K: u32 = 3;
 
 /// Spectral filter of the flow direction (§4): `v ← v − (id + σ(−Δ)^k)⁻¹ v`.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FilterSpec {
     /// Strength σ, unitless and > 0: σ = (l(l+1))^−k puts the crossover at spherical degree
@@ -41,7 +40,7 @@ impl FilterSpec {
 }
 
 /// Boundary condition for surfaces with boundary (§6.3); closed surfaces ignore it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum BoundarySpec {
     /// The boundary moves freely (§6.2).
@@ -74,7 +73,7 @@ impl BoundarySpec {
 /// §6.3.1: at each boundary vertex `V = cos φ·B + sin φ·N` is mapped to a target, the input's
 /// `V` rotated by an angle about an axis. Every field may be left out (all defaults: the CMC
 /// condition).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(default, deny_unknown_fields)]
 pub struct PrescribedSpec {
     /// φ in radians, |φ| ≤ 1.5 (`flow::prescribed::MAX_FRAME_ANGLE`: at ±π/2, `V = ±N` and the
@@ -103,7 +102,7 @@ impl PrescribedSpec {
 }
 
 /// Axis of the rotation that makes the target from the input's `V`.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default, ToSchema)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum AxisSpec {
     /// The boundary tangent at each vertex (flares or tucks the boundary).
@@ -115,7 +114,7 @@ pub enum AxisSpec {
 }
 
 /// Rotation angles in radians.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum AnglesSpec {
     /// The same angle at every boundary vertex.

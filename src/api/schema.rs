@@ -1,0 +1,167 @@
+//! The OpenAPI schemas of the job core's spec types, kept at the edge: the core
+//! ([`crate::jobs::JobSpec`], [`crate::jobs::spec`]) knows no wire format and derives no
+//! schema. Each type here mirrors one core type field for field and is only ever described,
+//! never built; `schema_names_match_the_core_types` below fails when a core type gains,
+//! loses or renames a field that its mirror does not.
+
+#![allow(dead_code)] // described to utoipa, never constructed
+
+use utoipa::ToSchema;
+
+/// What to run on an uploaded mesh (a job's `params`, as reported and as accepted).
+#[derive(ToSchema)]
+#[schema(as = JobSpec)]
+pub struct JobSpecSchema {
+    /// Which flow: `conformal` (the paper), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
+    /// `taubin`.
+    #[schema(example = "conformal")]
+    pub method: String,
+    /// Number of flow steps to take (step 0 is the input).
+    pub steps: usize,
+    /// Time step τ (conformal: the curvature update `u ← (1 − 2τ)u`, stable for τ < 1).
+    pub tau: f64,
+    /// Inverse power iterations per step (conformal flow).
+    pub iterations: usize,
+    /// Every `frame_interval`-th step (and step 0 and the last step) keeps its positions.
+    pub frame_interval: usize,
+    /// Whether live and replayed frames carry positions at all (metrics are always sent).
+    pub include_positions: bool,
+    /// Wall-clock budget from submission, in seconds; null takes the server default.
+    pub deadline_secs: Option<f64>,
+    /// Exactness constraints on surfaces of genus > 0 (§6.2, App. C); conformal flow only.
+    pub exactness: bool,
+    /// Möbius balancing toward the input's area distribution (App. E.1); conformal only.
+    pub mobius_balancing: bool,
+    /// Spectral filter of the flow direction (§4); null is the paper's plain flow.
+    pub filter: Option<FilterSpecSchema>,
+    /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
+    pub boundary: BoundarySpecSchema,
+    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ.
+    pub safeguard: bool,
+}
+
+/// Spectral filter of the flow direction (§4): `v ← v − (id + σ(−Δ)^k)⁻¹ v`.
+#[derive(ToSchema)]
+#[schema(as = FilterSpec)]
+pub struct FilterSpecSchema {
+    /// Strength σ, unitless and > 0: σ = (l(l+1))^−k puts the crossover at spherical degree l.
+    pub sigma: f64,
+    /// Shape k ∈ 0..=3; k = 2 approximates position-based Willmore flow (Figure 19).
+    pub k: u32,
+}
+
+/// Boundary condition for surfaces with boundary (§6.3); closed surfaces ignore it.
+#[derive(ToSchema)]
+#[schema(as = BoundarySpec)]
+#[serde(rename_all = "snake_case")]
+pub enum BoundarySpecSchema {
+    /// The boundary moves freely (§6.2).
+    Free,
+    /// Boundary vertices stay exactly where they are (§6.3.2).
+    Fixed,
+    /// `V = B` held at the input's conormals: converges to constant mean curvature (§6.3.1).
+    Cmc,
+    /// Prescribed boundary vectors (§6.3.1).
+    Prescribed(PrescribedSpecSchema),
+}
+
+/// §6.3.1: at each boundary vertex `V = cos φ·B + sin φ·N` is mapped to a target, the input's
+/// `V` rotated by an angle about an axis. Every field may be left out.
+#[derive(ToSchema)]
+#[schema(as = PrescribedSpec)]
+pub struct PrescribedSpecSchema {
+    /// φ in radians, |φ| ≤ 1.5 (at ±π/2 the boundary problem is not elliptic).
+    pub frame_angle: f64,
+    /// Axis of the rotation from `V` to its target (default: the boundary tangent).
+    pub axis: AxisSpecSchema,
+    /// Rotation angles in radians (default: 0 everywhere).
+    pub angles: AnglesSpecSchema,
+}
+
+/// Axis of the rotation that makes the target from the input's `V`.
+#[derive(ToSchema)]
+#[schema(as = AxisSpec)]
+#[serde(rename_all = "snake_case")]
+pub enum AxisSpecSchema {
+    /// The boundary tangent at each vertex (flares or tucks the boundary).
+    Tangent,
+    /// One direction in space for every vertex, `[x, y, z]`, finite and non-zero.
+    Fixed([f64; 3]),
+}
+
+/// Rotation angles in radians.
+#[derive(ToSchema)]
+#[schema(as = AnglesSpec)]
+#[serde(rename_all = "snake_case")]
+pub enum AnglesSpecSchema {
+    /// The same angle at every boundary vertex.
+    Uniform(f64),
+    /// One angle per boundary loop, in the order of the mesh's boundary loops.
+    PerLoop(Vec<f64>),
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, PrescribedSpec};
+    use crate::jobs::JobSpec;
+    use utoipa::OpenApi;
+
+    /// The property names of schema `name` in the served OpenAPI document.
+    fn properties(doc: &serde_json::Value, name: &str) -> Vec<String> {
+        let mut keys: Vec<String> = doc["components"]["schemas"][name]["properties"]
+            .as_object()
+            .unwrap_or_else(|| panic!("schema {name} has properties"))
+            .keys()
+            .cloned()
+            .collect();
+        keys.sort();
+        keys
+    }
+
+    fn fields(v: serde_json::Value) -> Vec<String> {
+        let mut keys: Vec<String> = v.as_object().expect("an object").keys().cloned().collect();
+        keys.sort();
+        keys
+    }
+
+    #[test]
+    fn schema_names_match_the_core_types() {
+        let doc = serde_json::to_value(crate::api::http::ApiDoc::openapi()).expect("json");
+        let spec = JobSpec {
+            filter: Some(crate::jobs::spec::FilterSpec { sigma: 0.1, k: 2 }),
+            ..JobSpec::default()
+        };
+        assert_eq!(
+            properties(&doc, "JobSpec"),
+            fields(serde_json::to_value(&spec).expect("json"))
+        );
+        assert_eq!(
+            properties(&doc, "FilterSpec"),
+            fields(serde_json::to_value(spec.filter).expect("json"))
+        );
+        assert_eq!(
+            properties(&doc, "PrescribedSpec"),
+            fields(serde_json::to_value(PrescribedSpec::default()).expect("json"))
+        );
+        // The enums' variant names, as serde writes them.
+        let text = doc["components"]["schemas"].to_string();
+        for v in [
+            serde_json::to_value(BoundarySpec::Cmc),
+            serde_json::to_value(BoundarySpec::Prescribed(PrescribedSpec::default())),
+            serde_json::to_value(AxisSpec::Fixed([0.0, 0.0, 1.0])),
+            serde_json::to_value(AnglesSpec::PerLoop(vec![0.1])),
+            serde_json::to_value(AnglesSpec::Uniform(0.1)),
+        ] {
+            let v = v.expect("json");
+            let name = match &v {
+                serde_json::Value::String(s) => s.clone(),
+                serde_json::Value::Object(o) => o.keys().next().expect("a variant").clone(),
+                other => panic!("unexpected {other}"),
+            };
+            assert!(
+                text.contains(&format!("\"{name}\"")),
+                "variant {name} is described"
+            );
+        }
+    }
+}
