@@ -488,6 +488,31 @@ impl Node {
             .expect("metrics text")
     }
 
+    /// Wait until `metric(name, labels)` of this node is `want` (a job's counters and gauges
+    /// may move just after its state does); panics with the metrics after `timeout`.
+    pub async fn wait_metric(
+        &self,
+        name: &str,
+        labels: &[(&str, &str)],
+        want: f64,
+        timeout: Duration,
+    ) {
+        let start = Instant::now();
+        loop {
+            let text = self.metrics().await;
+            if metric(&text, name, labels) == Some(want) {
+                return;
+            }
+            if start.elapsed() > timeout {
+                panic!(
+                    "{}: {name} {labels:?} is not {want} after {timeout:?}:\n{text}",
+                    self.name
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
     /// POST an OBJ with query parameters; (status, headers, JSON body).
     pub async fn submit_obj(
         &self,
