@@ -68,6 +68,15 @@ pub fn routes(state: AppState) -> Router {
         .with_state(state)
 }
 
+/// What a worker node serves: the probes and its metrics, no API.
+pub fn probe_routes(state: AppState) -> Router {
+    Router::new()
+        .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
+        .route("/metrics", get(metrics))
+        .with_state(state)
+}
+
 // ---------------------------------------------------------------------------------------------
 // Wire types
 
@@ -1185,6 +1194,8 @@ pub async fn readyz(State(st): State<AppState>) -> Response {
     } else {
         let why = if st.jobs.is_draining() {
             "draining"
+        } else if !st.jobs.backend_connected() {
+            "backend unreachable"
         } else {
             "workers stalled"
         };

@@ -69,6 +69,38 @@ pub struct ServeArgs {
     /// Seconds between a running job's checkpoints at most.
     #[arg(long, default_value_t = 30.0)]
     pub checkpoint_secs: f64,
+    /// `embedded` (SQLite and files in --data-dir, one process) or `nats://HOST:PORT`
+    /// (NATS JetStream: many API and worker nodes; --data-dir is then scratch).
+    #[arg(long, default_value = "embedded")]
+    pub backend: String,
+    /// `api` (requests, no workers), `worker` (runs jobs; serves only probes and metrics) or
+    /// `all`. The embedded backend needs `all`: its queue lives in the process.
+    #[arg(long, default_value = "all")]
+    pub role: String,
+    /// NATS: seconds without a heartbeat after which a job goes to another worker.
+    #[arg(long, default_value_t = 30.0)]
+    pub nats_ack_wait_secs: f64,
+}
+
+impl ServeArgs {
+    /// The NATS options, when `--backend` names a NATS server.
+    pub fn nats(&self) -> Result<Option<crate::jobs::nats::NatsOptions>, String> {
+        if self.backend == "embedded" {
+            return Ok(None);
+        }
+        if !self.backend.starts_with("nats://") {
+            return Err(format!(
+                "--backend must be `embedded` or `nats://HOST:PORT`, got `{}`",
+                self.backend
+            ));
+        }
+        if !(self.nats_ack_wait_secs.is_finite() && self.nats_ack_wait_secs >= 1.0) {
+            return Err("--nats-ack-wait-secs must be at least 1".into());
+        }
+        let mut o = crate::jobs::nats::NatsOptions::new(&self.backend);
+        o.ack_wait = Duration::from_secs_f64(self.nats_ack_wait_secs);
+        Ok(Some(o))
+    }
 }
 
 impl ServeArgs {
@@ -95,6 +127,23 @@ impl ServeArgs {
             return Err("--checkpoint-secs must be a positive number".into());
         }
         c.checkpoint_interval = Duration::from_secs_f64(self.checkpoint_secs);
+        c.role = crate::jobs::Role::parse(&self.role).ok_or_else(|| {
+            format!(
+                "--role must be `api`, `worker` or `all`, got `{}`",
+                self.role
+            )
+        })?;
+        if self.backend == "embedded" && c.role != crate::jobs::Role::All {
+            return Err(
+                "--role api|worker needs a shared backend (--backend nats://…): the embedded \
+                 queue lives in one process"
+                    .into(),
+            );
+        }
+        if self.nats_ack_wait_secs.is_finite() && self.nats_ack_wait_secs >= 1.0 {
+            // Heartbeats well inside the ack wait: a third leaves room for a lost one.
+            c.heartbeat_interval = Duration::from_secs_f64(self.nats_ack_wait_secs / 3.0);
+        }
         Ok(c)
     }
 }
@@ -173,7 +222,14 @@ pub async fn serve(
     grace: Duration,
 ) -> std::io::Result<()> {
     let streams_stop = CancellationToken::new();
-    let app = app(jobs.clone(), streams_stop.clone());
+    let app = if jobs.config().role.serves_api() {
+        app(jobs.clone(), streams_stop.clone())
+    } else {
+        http::probe_routes(AppState {
+            jobs: jobs.clone(),
+            streams_stop: streams_stop.clone(),
+        })
+    };
     let http_stop = CancellationToken::new();
     let http_stop2 = http_stop.clone();
     let server = tokio::spawn(async move {
@@ -254,12 +310,20 @@ pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
         .enable_all()
         .build()?;
     rt.block_on(async move {
-        let (jobs, core) = Jobs::start(config.clone()).await?;
+        let (jobs, core) = match args.nats()? {
+            None => Jobs::start(config.clone()).await?,
+            Some(options) => {
+                let backend = crate::jobs::nats::connect(&config, &options).await?;
+                Jobs::start_with(config.clone(), backend).await?
+            }
+        };
         let listener = tokio::net::TcpListener::bind(args.addr).await?;
         let local = listener.local_addr()?;
         tracing::info!(
             addr = %local,
             data_dir = %config.data_dir.display(),
+            backend = %jobs.backend_name(),
+            role = ?config.role,
             workers = config.workers,
             queue_capacity = config.queue_capacity,
             "willow serving HTTP/1.1, h2c and gRPC"

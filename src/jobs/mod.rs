@@ -1273,6 +1273,11 @@ impl Jobs {
         idle || since <= inner.config.stall_after.as_millis() as u64
     }
 
+    /// Whether the backend's server is reachable (always, embedded).
+    pub fn backend_connected(&self) -> bool {
+        self.inner.backend.queue.connected()
+    }
+
     /// Jobs waiting in the queue now (a cluster's count may lag by a moment).
     pub fn queue_depth(&self) -> usize {
         self.inner.backend.queue.depth()

@@ -1,1 +1,195 @@
-//! The NATS JetStream backend (see [`super::ports`]).
+//! The NATS JetStream backend: many API nodes and many workers on one NATS.
+//!
+//! | port | JetStream |
+//! |---|---|
+//! | [`WorkQueue`](super::ports::WorkQueue) | stream `WILLOW_JOBS` (work-queue retention, `max_msgs` = capacity, discard new) and the durable pull consumer `willow-workers`: explicit ack, `ack_wait`, progress acks as heartbeats, `max_deliver` |
+//! | [`JobStore`](super::ports::JobStore) | KV bucket `willow-jobs` (records, idempotency keys, uploads, queue sequence numbers, cancel marks); per-step metrics in stream `WILLOW_FRAMES` (limits retention, `max_age` = the result TTL) on `willow.frames.{id}` |
+//! | [`BlobStore`](super::ports::BlobStore) | object store `willow-blobs` |
+//! | [`EventBus`](super::ports::EventBus) | core subjects `willow.live.{id}` (frames) and `willow.events.{id}` (states): any API node streams any job |
+//! | [`CancelBus`](super::ports::CancelBus) | a `cancel.{id}` mark in KV plus `willow.cancel.{id}`, which every worker node subscribes to |
+//!
+//! Everything is created on first connect (`create_or_update`, so a changed capacity or
+//! `ack_wait` takes effect). Durable state lives in NATS only: a node's data dir is scratch.
+
+mod bus;
+mod kv;
+mod objects;
+mod queue;
+
+use super::ports::Backend;
+use super::{Config, JobError};
+use async_nats::jetstream::{self, consumer, stream};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// The work-queue stream and its subject.
+pub const JOBS_STREAM: &str = "WILLOW_JOBS";
+pub const JOBS_SUBJECT: &str = "willow.jobs";
+/// The durable pull consumer every worker node shares.
+pub const WORKERS_CONSUMER: &str = "willow-workers";
+/// The stream of per-step metrics, one subject per job.
+pub const FRAMES_STREAM: &str = "WILLOW_FRAMES";
+pub const KV_BUCKET: &str = "willow-jobs";
+pub const OBJECT_BUCKET: &str = "willow-blobs";
+
+/// How the NATS backend runs, beyond the core's [`Config`].
+#[derive(Clone, Debug)]
+pub struct NatsOptions {
+    /// `nats://host:port`.
+    pub url: String,
+    /// Redelivery of a job whose worker stopped heartbeating (the heartbeat interval is a
+    /// third of it).
+    pub ack_wait: Duration,
+    /// How long start-up waits for NATS before it gives up.
+    pub connect_timeout: Duration,
+}
+
+impl NatsOptions {
+    pub fn new(url: impl Into<String>) -> NatsOptions {
+        NatsOptions {
+            url: url.into(),
+            ack_wait: Duration::from_secs(30),
+            connect_timeout: Duration::from_secs(30),
+        }
+    }
+}
+
+/// What the ports of this backend share.
+pub(crate) struct Nats {
+    pub client: async_nats::Client,
+    pub js: jetstream::Context,
+    pub kv: jetstream::kv::Store,
+}
+
+fn nats_err(what: &str, e: impl std::fmt::Display) -> JobError {
+    JobError::Internal(format!("nats: {what}: {e}"))
+}
+
+/// `e` and its sources, for matching server error texts that the client folds into `Other`.
+fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut out = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        out.push_str(": ");
+        out.push_str(&s.to_string());
+        source = s.source();
+    }
+    out
+}
+
+/// Connect, create or update the streams, consumer, bucket and object store, and assemble the
+/// ports. Retries the connection for `options.connect_timeout` (NATS may start after us).
+pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, JobError> {
+    let client = {
+        let started = std::time::Instant::now();
+        loop {
+            // Reconnects forever once connected; the first connection we retry ourselves, so
+            // a bad address fails start-up instead of hanging it.
+            let attempt = async_nats::ConnectOptions::new()
+                .name("willow")
+                .max_reconnects(None)
+                .connection_timeout(Duration::from_secs(5))
+                .connect(options.url.as_str())
+                .await;
+            match attempt {
+                Ok(c) => break c,
+                Err(e) if started.elapsed() < options.connect_timeout => {
+                    tracing::warn!(url = %options.url, error = %e, "NATS not reachable yet, retrying");
+                    tokio::time::sleep(Duration::from_millis(500)).await;
+                }
+                Err(e) => return Err(nats_err(&format!("connecting to {}", options.url), e)),
+            }
+        }
+    };
+    let js = jetstream::new(client.clone());
+    let jobs_stream = js
+        .create_or_update_stream(stream::Config {
+            name: JOBS_STREAM.into(),
+            subjects: vec![JOBS_SUBJECT.into()],
+            retention: stream::RetentionPolicy::WorkQueue,
+            // Admission is cluster-wide: a publish beyond this is refused by the server.
+            max_messages: i64::try_from(config.queue_capacity).unwrap_or(i64::MAX),
+            discard: stream::DiscardPolicy::New,
+            storage: stream::StorageType::File,
+            // Two submissions of one job id within this window are one message.
+            duplicate_window: Duration::from_secs(120),
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| nats_err("creating the jobs stream", e))?;
+    let _ = jobs_stream;
+    let jobs_stream = js
+        .get_stream(JOBS_STREAM)
+        .await
+        .map_err(|e| nats_err("opening the jobs stream", e))?;
+    let workers = consumer::pull::Config {
+        durable_name: Some(WORKERS_CONSUMER.into()),
+        ack_policy: consumer::AckPolicy::Explicit,
+        ack_wait: options.ack_wait,
+        // One more than the core's limit: the worker that gets the last delivery fails the
+        // job with a reason instead of the server dropping it in silence.
+        max_deliver: i64::from(config.max_deliveries) + 1,
+        ..Default::default()
+    };
+    let consumer = match jobs_stream.create_consumer(workers.clone()).await {
+        Ok(c) => c,
+        Err(_) => {
+            // Exists with other settings (an earlier ack_wait): update it.
+            jobs_stream
+                .update_consumer(workers)
+                .await
+                .map_err(|e| nats_err("creating the workers' consumer", e))?
+        }
+    };
+    js.create_or_update_stream(stream::Config {
+        name: FRAMES_STREAM.into(),
+        subjects: vec!["willow.frames.>".into()],
+        retention: stream::RetentionPolicy::Limits,
+        max_age: config.result_ttl,
+        storage: stream::StorageType::File,
+        allow_direct: true,
+        ..Default::default()
+    })
+    .await
+    .map_err(|e| nats_err("creating the frames stream", e))?;
+    let kv = js
+        .create_or_update_key_value(jetstream::kv::Config {
+            bucket: KV_BUCKET.into(),
+            history: 1,
+            storage: stream::StorageType::File,
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| nats_err("creating the KV bucket", e))?;
+    let objects = match js.get_object_store(OBJECT_BUCKET).await {
+        Ok(o) => o,
+        Err(_) => js
+            .create_object_store(jetstream::object_store::Config {
+                bucket: OBJECT_BUCKET.into(),
+                storage: stream::StorageType::File,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| nats_err("creating the object store", e))?,
+    };
+    let frames = js
+        .get_stream(FRAMES_STREAM)
+        .await
+        .map_err(|e| nats_err("opening the frames stream", e))?;
+    let nats = Arc::new(Nats {
+        client: client.clone(),
+        js: js.clone(),
+        kv,
+    });
+    let queue = queue::NatsQueue::start(nats.clone(), jobs_stream, consumer, config.queue_capacity);
+    let cancels = bus::NatsCancels::start(nats.clone()).await?;
+    tracing::info!(url = %options.url, "connected to NATS JetStream");
+    Ok(Backend {
+        store: Arc::new(kv::KvStore::new(nats.clone(), frames)),
+        blobs: Arc::new(objects::ObjectBlobs::new(objects)),
+        queue: Arc::new(queue),
+        events: Arc::new(bus::NatsBus::new(nats)),
+        cancels: Arc::new(cancels),
+        name: options.url.clone(),
+    })
+}

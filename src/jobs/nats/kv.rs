@@ -1,0 +1,603 @@
+//! The NATS [`JobStore`]: job records in the KV bucket, per-step metrics in the frames stream.
+//!
+//! Keys: `job.{id}` (the [`Record`], JSON), `idem.{sha256(key)}` (an idempotency key's request
+//! hash and job), `upload.{id}`, `qseq.{id}` (the job's sequence in the work-queue stream, for
+//! withdrawing it) and `cancel.{id}`. Every change of a record is a compare-and-set on its
+//! revision, so two nodes never overwrite each other's transitions.
+//!
+//! A step's metrics are a message on `willow.frames.{id}`: one byte (positions kept or not)
+//! and the metrics in [`codec`](super::super::codec) form (JSON cannot carry NaN). A job
+//! resumed from a checkpoint publishes the steps after it again; readers keep the last message
+//! of each step and nothing past the record's progress, which is what [`JobStore::rewind`]
+//! means here (the stream is append-only).
+
+use super::super::codec::{decode_metrics, encode_metrics};
+use super::super::ports::{Inserted, JobStore, NewJob, Swept};
+use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
+use super::{nats_err, Nats};
+use crate::jobs::embedded::sqlite::check_id;
+use crate::mesh::io::Format;
+use crate::metrics::StepMetrics;
+use async_nats::jetstream::consumer::{self, DeliverPolicy};
+use async_nats::jetstream::kv::{CreateErrorKind, UpdateErrorKind};
+use async_trait::async_trait;
+use base64::Engine as _;
+use futures::StreamExt;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// A job as kept in KV.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct Record {
+    /// `latest` is kept apart (below): it may hold NaN.
+    status: JobStatus,
+    /// `status.latest` in codec form, base64.
+    latest: Option<String>,
+    /// The KV key of its idempotency key, to delete with the job.
+    idem: Option<String>,
+    /// Retired by the sweeper: answers `Gone`.
+    expired: bool,
+}
+
+impl Record {
+    fn status(&self) -> Result<JobStatus, JobError> {
+        let mut s = self.status.clone();
+        s.latest = match &self.latest {
+            Some(b) => Some(decode_metrics(
+                &base64::engine::general_purpose::STANDARD
+                    .decode(b)
+                    .map_err(|e| JobError::Internal(format!("stored metrics: {e}")))?,
+            )?),
+            None => None,
+        };
+        Ok(s)
+    }
+
+    fn set_latest(&mut self, m: Option<&StepMetrics>) {
+        self.latest =
+            m.map(|m| base64::engine::general_purpose::STANDARD.encode(encode_metrics(m)));
+        self.status.latest = None;
+    }
+}
+
+#[derive(Serialize, Deserialize)]
+struct IdemEntry {
+    hash: String,
+    job: JobId,
+}
+
+#[derive(Serialize, Deserialize)]
+struct UploadEntry {
+    format: String,
+    expires_at: u64,
+}
+
+pub(crate) struct KvStore {
+    nats: Arc<Nats>,
+    frames: async_nats::jetstream::stream::Stream,
+}
+
+fn job_key(id: &str) -> String {
+    format!("job.{id}")
+}
+
+fn frames_subject(id: &str) -> String {
+    format!("willow.frames.{id}")
+}
+
+/// Idempotency keys are the client's text: hashed into a valid KV key.
+fn idem_key(key: &str) -> String {
+    let h = Sha256::digest(key.as_bytes());
+    let hex: String = h.iter().map(|b| format!("{b:02x}")).collect();
+    format!("idem.{hex}")
+}
+
+fn to_json<T: Serialize>(v: &T) -> Result<bytes::Bytes, JobError> {
+    serde_json::to_vec(v)
+        .map(bytes::Bytes::from)
+        .map_err(|e| JobError::Internal(format!("encoding a record: {e}")))
+}
+
+fn from_json<T: for<'de> Deserialize<'de>>(b: &[u8]) -> Result<T, JobError> {
+    serde_json::from_slice(b).map_err(|e| JobError::Internal(format!("decoding a record: {e}")))
+}
+
+impl KvStore {
+    pub fn new(nats: Arc<Nats>, frames: async_nats::jetstream::stream::Stream) -> KvStore {
+        KvStore { nats, frames }
+    }
+
+    async fn record(&self, id: &str) -> Result<(Record, u64), JobError> {
+        check_id(id)?;
+        let entry = self
+            .nats
+            .kv
+            .entry(job_key(id))
+            .await
+            .map_err(|e| nats_err("reading a job", e))?;
+        match entry {
+            Some(e) if !e.value.is_empty() => Ok((from_json(&e.value)?, e.revision)),
+            _ => Err(JobError::NotFound(id.to_string())),
+        }
+    }
+
+    /// Apply `change` to the record with compare-and-set, retrying on a concurrent write.
+    /// `change` returns `false` to leave the record as it is (the transition does not apply).
+    async fn update(
+        &self,
+        id: &str,
+        mut change: impl FnMut(&mut Record) -> Result<bool, JobError>,
+    ) -> Result<Option<Record>, JobError> {
+        for _ in 0..32 {
+            let (mut rec, revision) = self.record(id).await?;
+            if !change(&mut rec)? {
+                return Ok(None);
+            }
+            match self
+                .nats
+                .kv
+                .update(job_key(id), to_json(&rec)?, revision)
+                .await
+            {
+                Ok(_) => return Ok(Some(rec)),
+                Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => continue,
+                Err(e) => return Err(nats_err("updating a job", e)),
+            }
+        }
+        Err(JobError::Internal(format!(
+            "job `{id}` kept changing under 32 updates"
+        )))
+    }
+
+    fn live(id: &str, rec: &Record) -> Result<JobStatus, JobError> {
+        let expired = rec.expired || rec.status.expires_at.is_some_and(|t| t <= now_ms());
+        if expired {
+            return Err(JobError::Gone(id.to_string()));
+        }
+        rec.status()
+    }
+
+    /// The job's frames as stored: the last message of each step, steps `from..=upto`.
+    async fn read_frames(
+        &self,
+        id: &str,
+        from: usize,
+        upto: usize,
+    ) -> Result<Vec<(StepMetrics, bool)>, JobError> {
+        let mut rows: std::collections::BTreeMap<usize, (StepMetrics, bool)> =
+            std::collections::BTreeMap::new();
+        let consumer = self
+            .frames
+            .create_consumer(consumer::pull::OrderedConfig {
+                filter_subject: frames_subject(id),
+                deliver_policy: DeliverPolicy::All,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| nats_err("reading frames", e))?;
+        let mut pending = consumer.cached_info().num_pending;
+        if pending == 0 {
+            return Ok(Vec::new());
+        }
+        let mut messages = consumer
+            .messages()
+            .await
+            .map_err(|e| nats_err("reading frames", e))?;
+        while pending > 0 {
+            let next = tokio::time::timeout(Duration::from_secs(10), messages.next()).await;
+            let msg = match next {
+                Ok(Some(Ok(m))) => m,
+                Ok(Some(Err(e))) => return Err(nats_err("reading frames", e)),
+                Ok(None) => break,
+                Err(_) => return Err(JobError::Internal("nats: reading frames timed out".into())),
+            };
+            pending = msg.info().map(|i| i.pending).unwrap_or(0);
+            let Some((&flag, metrics)) = msg.payload.split_first() else {
+                continue;
+            };
+            let m = decode_metrics(metrics)?;
+            if m.step >= from && m.step <= upto {
+                rows.insert(m.step, (m, flag != 0));
+            }
+        }
+        Ok(rows.into_values().collect())
+    }
+
+    async fn list_records(&self) -> Result<Vec<Record>, JobError> {
+        let mut keys = self
+            .nats
+            .kv
+            .keys()
+            .await
+            .map_err(|e| nats_err("listing jobs", e))?;
+        let mut out = Vec::new();
+        while let Some(k) = keys.next().await {
+            let k = k.map_err(|e| nats_err("listing jobs", e))?;
+            let Some(id) = k.strip_prefix("job.") else {
+                continue;
+            };
+            match self.record(id).await {
+                Ok((r, _)) => out.push(r),
+                Err(JobError::NotFound(_)) => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(out)
+    }
+}
+
+#[async_trait]
+impl JobStore for KvStore {
+    async fn insert(&self, job: NewJob) -> Result<Inserted, JobError> {
+        let kv = &self.nats.kv;
+        let mut idem = None;
+        if let Some((key, hash)) = &job.idempotency {
+            let k = idem_key(key);
+            let entry = IdemEntry {
+                hash: hash.clone(),
+                job: job.id.clone(),
+            };
+            match kv.create(&k, to_json(&entry)?).await {
+                Ok(_) => idem = Some(k),
+                Err(e) if e.kind() == CreateErrorKind::AlreadyExists => {
+                    return match self.idempotent(key, hash).await? {
+                        Some(status) => Ok(Inserted::Existing(status)),
+                        None => Err(JobError::Conflict(format!(
+                            "idempotency key `{key}` is being used by a request in flight; retry"
+                        ))),
+                    };
+                }
+                Err(e) => return Err(nats_err("storing an idempotency key", e)),
+            }
+        }
+        let status = JobStatus {
+            id: job.id.clone(),
+            state: JobState::Queued,
+            step: 0,
+            total_steps: job.spec.steps,
+            spec: job.spec,
+            input_format: job.format,
+            vertex_count: job.vertex_count,
+            face_count: job.face_count,
+            latest: None,
+            error: None,
+            error_code: None,
+            created_at: job.created_at,
+            started_at: None,
+            finished_at: None,
+            expires_at: None,
+        };
+        let rec = Record {
+            status: status.clone(),
+            latest: None,
+            idem,
+            expired: false,
+        };
+        kv.create(job_key(&job.id), to_json(&rec)?)
+            .await
+            .map_err(|e| nats_err("storing a job", e))?;
+        Ok(Inserted::New(status))
+    }
+
+    async fn idempotent(&self, key: &str, hash: &str) -> Result<Option<JobStatus>, JobError> {
+        let Some(b) = self
+            .nats
+            .kv
+            .get(idem_key(key))
+            .await
+            .map_err(|e| nats_err("reading an idempotency key", e))?
+        else {
+            return Ok(None);
+        };
+        let entry: IdemEntry = from_json(&b)?;
+        if entry.hash != hash {
+            return Err(JobError::IdempotencyMismatch(format!(
+                "key `{key}` was first used with a different mesh or parameters"
+            )));
+        }
+        // The key is written just before its job: a moment later the job is there.
+        for _ in 0..20 {
+            match self.status(&entry.job).await {
+                Err(JobError::NotFound(_)) => tokio::time::sleep(Duration::from_millis(25)).await,
+                other => return other.map(Some),
+            }
+        }
+        Ok(None)
+    }
+
+    async fn status(&self, id: &str) -> Result<JobStatus, JobError> {
+        let (rec, _) = self.record(id).await?;
+        Self::live(id, &rec)
+    }
+
+    async fn list(
+        &self,
+        state: Option<JobState>,
+        size: usize,
+        token: Option<String>,
+    ) -> Result<(Vec<JobStatus>, Option<String>), JobError> {
+        // Newest first by (created_at, id); the token is the last one of the previous page.
+        let before: Option<(u64, String)> = match token.as_deref() {
+            None | Some("") => None,
+            Some(t) => Some(
+                base64::engine::general_purpose::URL_SAFE_NO_PAD
+                    .decode(t)
+                    .ok()
+                    .and_then(|b| String::from_utf8(b).ok())
+                    .and_then(|s| {
+                        let (t, id) = s.strip_prefix("at:")?.split_once(':')?;
+                        Some((t.parse().ok()?, id.to_string()))
+                    })
+                    .ok_or_else(|| JobError::InvalidSpec {
+                        field: "page_token",
+                        reason: "not a token this server returned".into(),
+                    })?,
+            ),
+        };
+        let mut all: Vec<JobStatus> = Vec::new();
+        for rec in self.list_records().await? {
+            if let Ok(s) = Self::live(&rec.status.id, &rec) {
+                if state.is_none_or(|st| s.state == st) {
+                    all.push(s);
+                }
+            }
+        }
+        all.sort_by(|a, b| (b.created_at, &b.id).cmp(&(a.created_at, &a.id)));
+        let mut page: Vec<JobStatus> = all
+            .into_iter()
+            .filter(|s| {
+                before
+                    .as_ref()
+                    .is_none_or(|(t, id)| (s.created_at, &s.id) < (*t, id))
+            })
+            .take(size + 1)
+            .collect();
+        let next = if page.len() > size {
+            page.truncate(size);
+            page.last().map(|s| {
+                base64::engine::general_purpose::URL_SAFE_NO_PAD
+                    .encode(format!("at:{}:{}", s.created_at, s.id))
+            })
+        } else {
+            None
+        };
+        Ok((page, next))
+    }
+
+    async fn start(&self, id: &str, at: u64) -> Result<Option<JobStatus>, JobError> {
+        let rec = match self
+            .update(id, |r| {
+                if r.expired || r.status.state.is_terminal() {
+                    return Ok(false);
+                }
+                r.status.state = JobState::Running;
+                r.status.started_at.get_or_insert(at);
+                Ok(true)
+            })
+            .await
+        {
+            Ok(r) => r,
+            Err(JobError::NotFound(_)) => None,
+            Err(e) => return Err(e),
+        };
+        rec.map(|r| r.status()).transpose()
+    }
+
+    async fn record_frame(
+        &self,
+        id: &str,
+        metrics: StepMetrics,
+        has_positions: bool,
+    ) -> Result<(), JobError> {
+        let mut payload = Vec::with_capacity(1 + 96);
+        payload.push(u8::from(has_positions));
+        payload.extend_from_slice(&encode_metrics(&metrics));
+        self.nats
+            .js
+            .publish(frames_subject(id), payload.into())
+            .await
+            .map_err(|e| nats_err("storing a frame", e))?
+            .await
+            .map_err(|e| nats_err("storing a frame", e))?;
+        self.update(id, |r| {
+            r.status.step = metrics.step;
+            r.set_latest(Some(&metrics));
+            Ok(true)
+        })
+        .await?;
+        Ok(())
+    }
+
+    async fn rewind(&self, id: &str, step: usize) -> Result<(), JobError> {
+        let kept = self.read_frames(id, step, step).await?;
+        let latest = kept.into_iter().next().map(|(m, _)| m);
+        self.update(id, |r| {
+            r.status.step = if latest.is_some() { step } else { 0 };
+            r.set_latest(latest.as_ref());
+            Ok(true)
+        })
+        .await?;
+        Ok(())
+    }
+
+    async fn frame_rows(
+        &self,
+        id: &str,
+        from: usize,
+        limit: usize,
+    ) -> Result<Vec<(StepMetrics, bool)>, JobError> {
+        let (rec, _) = self.record(id).await?;
+        if rec.latest.is_none() {
+            return Ok(Vec::new());
+        }
+        let mut rows = self.read_frames(id, from, rec.status.step).await?;
+        rows.truncate(limit);
+        Ok(rows)
+    }
+
+    async fn finish(
+        &self,
+        id: &str,
+        state: JobState,
+        error: Option<(String, String)>,
+        at: u64,
+        expires_at: u64,
+    ) -> Result<Option<JobStatus>, JobError> {
+        let rec = self
+            .update(id, |r| {
+                if r.status.state.is_terminal() {
+                    return Ok(false);
+                }
+                r.status.state = state;
+                let (code, msg) = error.clone().unzip();
+                r.status.error_code = code;
+                r.status.error = msg;
+                r.status.finished_at = Some(at);
+                r.status.expires_at = Some(expires_at);
+                Ok(true)
+            })
+            .await?;
+        rec.map(|r| r.status()).transpose()
+    }
+
+    async fn requeue(&self, id: &str) -> Result<(), JobError> {
+        self.update(id, |r| {
+            if r.status.state != JobState::Running {
+                return Ok(false);
+            }
+            r.status.state = JobState::Queued;
+            Ok(true)
+        })
+        .await?;
+        Ok(())
+    }
+
+    async fn delete(&self, id: &str) -> Result<(), JobError> {
+        let (rec, _) = self.record(id).await?;
+        if !rec.expired && !rec.status.state.is_terminal() {
+            return Err(JobError::Conflict(format!(
+                "job `{id}` is {}: cancel it first, only finished jobs can be deleted",
+                rec.status.state.as_str()
+            )));
+        }
+        let kv = &self.nats.kv;
+        if let Some(k) = &rec.idem {
+            kv.purge(k)
+                .await
+                .map_err(|e| nats_err("deleting a job", e))?;
+        }
+        for k in [format!("qseq.{id}"), format!("cancel.{id}"), job_key(id)] {
+            kv.purge(&k)
+                .await
+                .map_err(|e| nats_err("deleting a job", e))?;
+        }
+        self.frames
+            .purge()
+            .filter(frames_subject(id))
+            .await
+            .map_err(|e| nats_err("deleting a job's frames", e))?;
+        Ok(())
+    }
+
+    async fn sweep_expired(&self, now: u64) -> Result<Swept, JobError> {
+        let mut swept = Swept::default();
+        for rec in self.list_records().await? {
+            let id = rec.status.id.clone();
+            if rec.expired || rec.status.expires_at.is_none_or(|t| t > now) {
+                continue;
+            }
+            self.update(&id, |r| {
+                r.expired = true;
+                Ok(true)
+            })
+            .await?;
+            self.frames
+                .purge()
+                .filter(frames_subject(&id))
+                .await
+                .map_err(|e| nats_err("sweeping a job's frames", e))?;
+            swept.jobs.push(id);
+        }
+        let mut keys = self
+            .nats
+            .kv
+            .keys()
+            .await
+            .map_err(|e| nats_err("listing uploads", e))?;
+        let mut uploads = Vec::new();
+        while let Some(k) = keys.next().await {
+            let k = k.map_err(|e| nats_err("listing uploads", e))?;
+            if let Some(id) = k.strip_prefix("upload.") {
+                uploads.push(id.to_string());
+            }
+        }
+        for id in uploads {
+            let key = format!("upload.{id}");
+            let Some(b) = self
+                .nats
+                .kv
+                .get(&key)
+                .await
+                .map_err(|e| nats_err("reading an upload", e))?
+            else {
+                continue;
+            };
+            let entry: UploadEntry = from_json(&b)?;
+            if entry.expires_at <= now {
+                self.nats
+                    .kv
+                    .purge(&key)
+                    .await
+                    .map_err(|e| nats_err("sweeping an upload", e))?;
+                if let Some(f) = super::super::parse_format(&entry.format) {
+                    swept.uploads.push((id, f));
+                }
+            }
+        }
+        Ok(swept)
+    }
+
+    async fn recover(&self) -> Result<Vec<JobId>, JobError> {
+        // The work-queue stream is durable: queued jobs are still in it, and running ones are
+        // delivered again when their lease lapses.
+        Ok(Vec::new())
+    }
+
+    async fn put_upload(
+        &self,
+        id: &str,
+        format: Format,
+        _size: u64,
+        expires_at: u64,
+    ) -> Result<(), JobError> {
+        let entry = UploadEntry {
+            format: super::super::format_name(format).to_string(),
+            expires_at,
+        };
+        self.nats
+            .kv
+            .put(format!("upload.{id}"), to_json(&entry)?)
+            .await
+            .map_err(|e| nats_err("storing an upload", e))?;
+        Ok(())
+    }
+
+    async fn upload(&self, id: &str) -> Result<Format, JobError> {
+        check_id(id).map_err(|_| JobError::UploadNotFound(id.to_string()))?;
+        let b = self
+            .nats
+            .kv
+            .get(format!("upload.{id}"))
+            .await
+            .map_err(|e| nats_err("reading an upload", e))?
+            .ok_or_else(|| JobError::UploadNotFound(id.to_string()))?;
+        let entry: UploadEntry = from_json(&b)?;
+        if entry.expires_at <= now_ms() {
+            return Err(JobError::UploadNotFound(id.to_string()));
+        }
+        super::super::parse_format(&entry.format)
+            .ok_or_else(|| JobError::Internal(format!("unknown stored format `{}`", entry.format)))
+    }
+}
