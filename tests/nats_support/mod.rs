@@ -12,7 +12,7 @@ use crate::service_http_support::Sse;
 use futures::StreamExt;
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::{BufRead, BufReader, Read};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
@@ -256,7 +256,10 @@ impl Drop for Nats {
     fn drop(&mut self) {
         self.kill();
         if std::thread::panicking() {
-            print_tail("nats-server", &self.log);
+            for start in 1..=self.starts {
+                let log = self.dir.join(format!("nats-{start}.log"));
+                print_tail(&format!("nats-server (start {start})"), &log);
+            }
         }
     }
 }
@@ -357,7 +360,10 @@ impl Node {
     pub fn spawn(dir: &Path, name: &str, backend: Option<&str>, opts: &NodeOpts) -> Node {
         let data = dir.join(format!("{name}-data"));
         let log = dir.join(format!("{name}.log"));
+        // Logs (stdout, where the tracing subscriber writes) and stderr (clap's errors, panics)
+        // both go to the node's log file.
         let log_file = File::create(&log).expect("node log file");
+        let mut log_out = log_file.try_clone().expect("clone log file");
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_willow"));
         cmd.args(["serve", "--addr", "127.0.0.1:0"])
             .arg("--data-dir")
@@ -386,9 +392,10 @@ impl Node {
         let stdout = child.stdout.take().expect("piped stdout");
         let (tx, rx) = std::sync::mpsc::channel();
         // Reads stdout to its end (the pipe closes when the process dies), so the child never
-        // blocks on a full pipe.
+        // blocks on a full pipe, and copies it into the log.
         std::thread::spawn(move || {
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                let _ = writeln!(log_out, "{line}");
                 if let Some(url) = line.strip_prefix("listening on ") {
                     let _ = tx.send(url.trim().to_string());
                 }
