@@ -30,7 +30,7 @@ installed() {
     [[ -f "$stamp" && "$(cat "$stamp")" == "$requirement" && -f "$path_file" ]] || return 1
     local bin
     bin="$(cat "$path_file")"
-    [[ -x "$bin" ]] && "$bin" --version 2>/dev/null | grep -qF "v$version"
+    [[ -x "$bin" && "$("$bin" --version 2>&1)" == *"v$version"* ]]
 }
 
 install() {
