@@ -263,7 +263,7 @@ fn prescribed_and_cmc_boundaries_from_the_command_line() {
         ),
         (
             &["--boundary", "prescribed", "--boundary-rotation", "1,2,3"][..],
-            "3 per-loop angles given for a mesh with 2 boundary loops",
+            "gives 3 angle(s) but the mesh has 2 boundary loop(s)",
         ),
     ] {
         let out = run(extra);

@@ -907,11 +907,7 @@ fn method_from_pb(raw: i32) -> Result<Method, Status> {
             ))
         }
     };
-    let name = value
-        .as_str_name()
-        .trim_start_matches("METHOD_")
-        .to_ascii_lowercase();
-    serde_json::from_value(serde_json::Value::String(name)).map_err(|_| {
+    Method::parse(value.as_str_name().trim_start_matches("METHOD_")).map_err(|_| {
         bad_request(
             "params.method",
             format!("{} is not supported by this server", value.as_str_name()),
@@ -922,13 +918,8 @@ fn method_from_pb(raw: i32) -> Result<Method, Status> {
 /// The inverse of [`method_from_pb`]; a method without a proto value yet reports
 /// `METHOD_UNSPECIFIED`.
 fn method_pb(method: Method) -> v1::Method {
-    match serde_json::to_value(method) {
-        Ok(serde_json::Value::String(name)) => {
-            v1::Method::from_str_name(&format!("METHOD_{}", name.to_ascii_uppercase()))
-                .unwrap_or(v1::Method::Unspecified)
-        }
-        _ => v1::Method::Unspecified,
-    }
+    v1::Method::from_str_name(&format!("METHOD_{}", method.name().to_ascii_uppercase()))
+        .unwrap_or(v1::Method::Unspecified)
 }
 
 fn duration_from_pb(field: &str, d: &prost_types::Duration) -> Result<Duration, Status> {

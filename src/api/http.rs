@@ -119,7 +119,7 @@ impl JobParams {
     pub fn into_spec(self) -> Result<JobSpec, Problem> {
         let mut spec = JobSpec::default();
         if let Some(m) = self.method {
-            spec.method = parse_method(&m)?;
+            spec.method = Method::parse(&m).map_err(|e| bad_field("method", e))?;
         }
         if let Some(v) = self.steps {
             spec.steps = v;
@@ -152,24 +152,6 @@ impl JobParams {
         }
         Ok(spec)
     }
-}
-
-fn parse_method(m: &str) -> Result<Method, Problem> {
-    Ok(match m.to_ascii_lowercase().as_str() {
-        "conformal" => Method::Conformal,
-        "mcf" => Method::Mcf,
-        "cmcf" => Method::Cmcf,
-        "bilaplacian" => Method::Bilaplacian,
-        "taubin" => Method::Taubin,
-        other => {
-            return Err(bad_field(
-                "method",
-                format!(
-                    "expected `conformal`, `mcf`, `cmcf`, `bilaplacian` or `taubin`, got `{other}`"
-                ),
-            ))
-        }
-    })
 }
 
 /// 400 `invalid_parameter` naming `field`, as the core's own parameter errors do.

@@ -8,7 +8,7 @@
 
 use super::http::AppState;
 use crate::flow::Method;
-use crate::jobs::{method_name, JobSpec};
+use crate::jobs::JobSpec;
 use axum::extract::{Path, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -133,28 +133,6 @@ struct PageLimits {
     max_frame_angle: f64,
 }
 
-/// Every method, in the order the form lists them. The match makes a new method a compile
-/// error here until it is added.
-const METHODS: [Method; 5] = [
-    Method::Conformal,
-    Method::Mcf,
-    Method::Cmcf,
-    Method::Bilaplacian,
-    Method::Taubin,
-];
-const _: () = {
-    const fn listed(m: Method) {
-        match m {
-            Method::Conformal
-            | Method::Mcf
-            | Method::Cmcf
-            | Method::Bilaplacian
-            | Method::Taubin => {}
-        }
-    }
-    listed(Method::Conformal);
-};
-
 async fn config(State(st): State<AppState>) -> Json<PageConfig> {
     let c = st.jobs.config();
     Json(PageConfig {
@@ -167,7 +145,7 @@ async fn config(State(st): State<AppState>) -> Json<PageConfig> {
             max_filter_k: crate::jobs::spec::MAX_FILTER_K,
             max_frame_angle: crate::flow::prescribed::MAX_FRAME_ANGLE,
         },
-        methods: METHODS.into_iter().map(method_name).collect(),
+        methods: Method::ALL.iter().map(|m| m.name().to_string()).collect(),
     })
 }
 

@@ -11,11 +11,9 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use willow::flow::filter::SpectralFilter;
-use willow::flow::{
-    new_flow, Boundary, BoundaryAngles, FlowError, FlowParams, Method, PrescribedVectors,
-    RotationAxis,
-};
+use willow::flow::{new_flow, FlowError, Method};
+use willow::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
+use willow::jobs::JobSpec;
 use willow::mesh::io::{Asset, Format, Limits};
 
 #[derive(Args, Debug)]
@@ -36,8 +34,10 @@ pub struct FairArgs {
     /// Inverse power iterations per step.
     #[arg(long, default_value_t = 1)]
     pub iterations: usize,
-    #[arg(long, value_enum, default_value_t = MethodArg::Conformal)]
-    pub method: MethodArg,
+    /// `conformal` (the paper), `mcf`, `cmcf` (conformalized MCF, genus 0 only),
+    /// `bilaplacian` or `taubin` (λ|μ smoothing, λ = τ).
+    #[arg(long, default_value = "conformal", value_parser = Method::parse)]
+    pub method: Method,
     /// Write every intermediate mesh here (same format as the output).
     #[arg(long)]
     pub frames_dir: Option<PathBuf>,
@@ -87,14 +87,14 @@ pub struct FairArgs {
 }
 
 /// `--boundary-axis`: `tangent` or `x,y,z`.
-fn parse_axis(text: &str) -> Result<RotationAxis, String> {
+fn parse_axis(text: &str) -> Result<AxisSpec, String> {
     if text.eq_ignore_ascii_case("tangent") {
-        return Ok(RotationAxis::Tangent);
+        return Ok(AxisSpec::Tangent);
     }
     let parts: Vec<&str> = text.split(',').map(str::trim).collect();
     let values: Result<Vec<f64>, _> = parts.iter().map(|p| p.parse::<f64>()).collect();
     match values {
-        Ok(v) if v.len() == 3 => Ok(RotationAxis::Fixed([v[0], v[1], v[2]])),
+        Ok(v) if v.len() == 3 => Ok(AxisSpec::Fixed([v[0], v[1], v[2]])),
         _ => Err(format!(
             "--boundary-axis must be `tangent` or three numbers `x,y,z`, got {text:?}"
         )),
@@ -111,30 +111,6 @@ pub enum BoundaryArg {
     Cmc,
     /// Prescribed boundary vectors: see --frame-angle, --boundary-rotation, --boundary-axis.
     Prescribed,
-}
-
-#[derive(clap::ValueEnum, Clone, Copy, Debug)]
-pub enum MethodArg {
-    Conformal,
-    Mcf,
-    /// Conformalized MCF (Kazhdan et al. 2012), genus 0 only.
-    Cmcf,
-    /// Implicit bi-Laplacian flow.
-    Bilaplacian,
-    /// Taubin λ|μ smoothing (λ = τ).
-    Taubin,
-}
-
-impl From<MethodArg> for Method {
-    fn from(m: MethodArg) -> Method {
-        match m {
-            MethodArg::Conformal => Method::Conformal,
-            MethodArg::Mcf => Method::Mcf,
-            MethodArg::Cmcf => Method::Cmcf,
-            MethodArg::Bilaplacian => Method::Bilaplacian,
-            MethodArg::Taubin => Method::Taubin,
-        }
-    }
 }
 
 fn format_of(path: &Path, role: &str) -> Result<Format, String> {
@@ -163,44 +139,56 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(a) => a,
         Err(e) => return fail(EXIT_BAD_INPUT, format!("{}: {e}", args.input.display())),
     };
+    // The CLI maps onto the same job spec as HTTP and gRPC, and is checked by the same rules.
     let boundary = match args.boundary {
-        BoundaryArg::Free => Boundary::Free,
-        BoundaryArg::Fixed => Boundary::Fixed,
-        BoundaryArg::Cmc => Boundary::Cmc,
+        BoundaryArg::Free => BoundarySpec::Free,
+        BoundaryArg::Fixed => BoundarySpec::Fixed,
+        BoundaryArg::Cmc => BoundarySpec::Cmc,
         BoundaryArg::Prescribed => {
             let axis = match parse_axis(&args.boundary_axis) {
                 Ok(a) => a,
                 Err(e) => return fail(EXIT_BAD_INPUT, e),
             };
             let angles = match args.boundary_rotation.as_slice() {
-                [] => BoundaryAngles::Uniform(0.0),
-                [a] => BoundaryAngles::Uniform(*a),
-                many => BoundaryAngles::PerLoop(many.to_vec()),
+                [] => AnglesSpec::Uniform(0.0),
+                [a] => AnglesSpec::Uniform(*a),
+                many => AnglesSpec::PerLoop(many.to_vec()),
             };
-            Boundary::Prescribed(PrescribedVectors {
+            BoundarySpec::Prescribed(PrescribedSpec {
                 frame_angle: args.frame_angle,
                 axis,
                 angles,
             })
         }
     };
-    let params = FlowParams {
-        method: args.method.into(),
+    let spec = JobSpec {
+        method: args.method,
+        steps: args.steps,
         tau: args.tau,
         iterations: args.iterations,
         exactness: !args.no_exactness,
         mobius_balancing: args.mobius,
         filter: match (args.filter_sigma, args.filter_k) {
-            (Some(sigma), Some(k)) => Some(SpectralFilter { sigma, k }),
+            (Some(sigma), Some(k)) => Some(FilterSpec { sigma, k }),
             _ => None,
         },
         boundary,
         safeguard: !args.no_safeguard,
+        ..JobSpec::default()
+    };
+    if let Err(e) = spec
+        .validate_with(usize::MAX, f64::INFINITY)
+        .and_then(|()| spec.validate_for_mesh(asset.surface()))
+    {
+        return fail(EXIT_BAD_INPUT, e);
+    }
+    let params = willow::flow::FlowParams {
         threads: match args.threads {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
             n => n,
         },
         precision: args.precision.into(),
+        ..spec.flow_params()
     };
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,

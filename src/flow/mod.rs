@@ -41,6 +41,55 @@ pub enum Method {
     Taubin,
 }
 
+impl Method {
+    /// Every method, in the order forms and errors list them. The match in [`Method::name`]
+    /// makes a new method a compile error until it is named (and so listed here).
+    pub const ALL: [Method; 5] = [
+        Method::Conformal,
+        Method::Mcf,
+        Method::Cmcf,
+        Method::Bilaplacian,
+        Method::Taubin,
+    ];
+
+    /// The one name of a method, on every transport: JSON, query strings, the CLI, and (upper
+    /// case, after `METHOD_`) the gRPC enum.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Method::Conformal => "conformal",
+            Method::Mcf => "mcf",
+            Method::Cmcf => "cmcf",
+            Method::Bilaplacian => "bilaplacian",
+            Method::Taubin => "taubin",
+        }
+    }
+
+    /// The method of a name (any case), or an error listing the names.
+    pub fn parse(name: &str) -> Result<Method, String> {
+        Method::ALL
+            .into_iter()
+            .find(|m| m.name().eq_ignore_ascii_case(name))
+            .ok_or_else(|| {
+                let names: Vec<String> = Method::ALL
+                    .iter()
+                    .map(|m| format!("`{}`", m.name()))
+                    .collect();
+                format!("expected one of {}, got `{name}`", names.join(", "))
+            })
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Method, String> {
+        Method::parse(s)
+    }
+}
+
+/// More inverse iterations per step than this buy nothing (§6.4.2 uses one) and only burn
+/// CPU: the one cap, for the library and every transport.
+pub const MAX_ITERATIONS: usize = 50;
+
 /// What happens at the boundary of a surface with boundary (§6.3). Closed surfaces ignore it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]

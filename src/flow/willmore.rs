@@ -1081,10 +1081,14 @@ pub(super) fn check_params(params: &FlowParams) -> Result<(), FlowError> {
             reason: format!("must be a positive finite number, got {}", params.tau),
         });
     }
-    if params.iterations == 0 || params.iterations > 100 {
+    if params.iterations == 0 || params.iterations > super::MAX_ITERATIONS {
         return Err(FlowError::InvalidParameter {
             name: "iterations",
-            reason: format!("must be between 1 and 100, got {}", params.iterations),
+            reason: format!(
+                "must be between 1 and {}, got {}",
+                super::MAX_ITERATIONS,
+                params.iterations
+            ),
         });
     }
     Ok(())

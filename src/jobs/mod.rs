@@ -119,15 +119,20 @@ impl Default for JobSpec {
 impl JobSpec {
     /// Check every field against the server's limits; the error names the field.
     pub fn validate(&self, config: &Config) -> Result<(), JobError> {
+        self.validate_with(config.limits.max_steps, config.max_deadline.as_secs_f64())
+    }
+
+    /// [`JobSpec::validate`] with explicit limits (the CLI has none of a server's).
+    pub fn validate_with(&self, max_steps: usize, max_deadline_secs: f64) -> Result<(), JobError> {
         let bad =
             |field: &'static str, reason: String| Err(JobError::InvalidSpec { field, reason });
         if self.steps == 0 {
             return bad("steps", "must be at least 1".into());
         }
-        if self.steps > config.limits.max_steps {
+        if self.steps > max_steps {
             return Err(JobError::TooLarge {
                 what: "steps",
-                limit: config.limits.max_steps as u64,
+                limit: max_steps as u64,
             });
         }
         if !self.tau.is_finite() || self.tau <= 0.0 {
@@ -165,13 +170,10 @@ impl JobSpec {
                     format!("must be a finite number > 0, got {d}"),
                 );
             }
-            if d > config.max_deadline.as_secs_f64() {
+            if d > max_deadline_secs {
                 return bad(
                     "deadline_secs",
-                    format!(
-                        "must be at most {} (the server's maximum), got {d}",
-                        config.max_deadline.as_secs_f64()
-                    ),
+                    format!("must be at most {max_deadline_secs} (the server's maximum), got {d}"),
                 );
             }
         }
@@ -197,7 +199,7 @@ impl JobSpec {
                     field,
                     format!(
                         "applies only to method `conformal`, got `{}`",
-                        method_name(self.method)
+                        self.method.name()
                     ),
                 );
             }
@@ -243,16 +245,7 @@ impl JobSpec {
     }
 }
 
-/// The wire name of a method (`conformal`, `mcf`, …): its serde name.
-pub fn method_name(method: Method) -> String {
-    match serde_json::to_value(method) {
-        Ok(serde_json::Value::String(name)) => name,
-        _ => format!("{method:?}").to_ascii_lowercase(),
-    }
-}
-
-/// More inverse iterations than this buy nothing (§6.4.2 uses one) and only burn CPU.
-pub const MAX_ITERATIONS: usize = 50;
+pub use crate::flow::MAX_ITERATIONS;
 
 /// Where a job is in its life. Terminal states: succeeded, failed, cancelled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

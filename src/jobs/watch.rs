@@ -31,6 +31,10 @@ pub const WATCHER_BUFFER: usize = 16;
 /// subscribes again (a bus reconnecting).
 const RESUBSCRIBE_PAUSE: std::time::Duration = std::time::Duration::from_millis(250);
 
+/// How long a watcher's live channel may stay silent before it asks the store whether the
+/// job has moved on without it.
+const QUIET_CHECK: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// Stored frames read from the store per batch during replay.
 const REPLAY_BATCH: usize = 64;
 
@@ -158,12 +162,27 @@ async fn run_watcher(
         Some(rx) if !terminal => rx,
         _ => return finish_from_store(&jobs, &id, next, &tx).await,
     };
+    let mut quiet = tokio::time::interval(QUIET_CHECK);
+    quiet.reset();
     loop {
         let ev = tokio::select! {
             ev = live.next() => ev,
             // Stop promptly when the client goes away, not at the job's next event.
             _ = tx.closed() => return Err(WatchEnd::Disconnected),
+            // A bus that lost messages (NATS while reconnecting) may have lost the `Done`:
+            // a quiet channel is checked against the store now and then.
+            _ = quiet.tick() => {
+                let status = jobs.get(&id).await?;
+                if status.state.is_terminal() {
+                    return finish_from_store(&jobs, &id, next, &tx).await;
+                }
+                if !skip_frames && status.step >= next && status.latest.is_some() {
+                    next = replay(&jobs, &id, next, &tx).await?;
+                }
+                continue;
+            }
         };
+        quiet.reset();
         match ev {
             Some(BusEvent::Event {
                 event: JobEvent::Frame(mut f),
