@@ -809,6 +809,11 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
             details.set_error_info("NUMERICAL", ERROR_DOMAIN, HashMap::new());
             Code::Unknown
         }
+        JobError::Unavailable(detail) => {
+            tracing::warn!(error = %detail, "backend unavailable in a gRPC call");
+            details.set_retry_info(Some(Duration::from_secs(2)));
+            Code::Unavailable
+        }
         JobError::Internal(detail) => {
             // The detail may name files and SQL: log it, don't send it.
             tracing::error!(error = %detail, "internal error in a gRPC call");

@@ -159,6 +159,16 @@ impl From<JobError> for Problem {
             JobError::Numerical { step, .. } => {
                 Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail).with("step", step)
             }
+            JobError::Unavailable(msg) => {
+                tracing::warn!(error = %msg, "backend unavailable");
+                let mut p = Problem::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    code,
+                    "the job backend is unavailable; retry shortly",
+                );
+                p.retry_after = Some(2);
+                p
+            }
             JobError::Internal(msg) => {
                 // The cause goes to the log, not to the client.
                 tracing::error!(error = %msg, "internal error");

@@ -383,6 +383,11 @@ pub enum JobError {
     ShuttingDown,
     #[error("internal error: {0}")]
     Internal(String),
+    /// The backend's server did not answer in time (NATS restarting, a network partition):
+    /// retry shortly. A running job that meets it is left to be delivered again and resumes
+    /// from its checkpoint; it is never failed for it.
+    #[error("the job backend is unavailable: {0}")]
+    Unavailable(String),
     /// A step that exists but kept no positions, or a step past the job's progress.
     #[error("job `{id}` has no mesh for step {step}: {detail}")]
     FrameNotFound {
@@ -425,6 +430,7 @@ impl JobError {
             JobError::IdempotencyMismatch(_) => "idempotency_mismatch",
             JobError::ShuttingDown => "shutting_down",
             JobError::Internal(_) => "internal",
+            JobError::Unavailable(_) => "unavailable",
             JobError::FrameNotFound { .. } => "frame_not_found",
             JobError::UploadNotFound(_) => "upload_not_found",
             JobError::InvalidCurve(e) => curve::curve_error_code(e),

@@ -127,6 +127,13 @@ async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
     let settled = match outcome {
         Ok(Outcome::Done) => lease.control.ack().await,
         Ok(Outcome::Released) => lease.control.release().await,
+        Err(JobError::Unavailable(e)) => {
+            // The backend went away under the job: not the job's fault. Leave it to be
+            // delivered again (here or elsewhere) once the backend is back; it resumes from
+            // its checkpoint.
+            tracing::warn!(job_id = %id, error = %e, "backend unavailable: the job will be delivered again");
+            lease.control.release().await
+        }
         Err(e) => {
             // The job could not even be recorded as failed (store error or a panic in the
             // flow): try once more to fail it alone, and keep the worker going.

@@ -14,7 +14,7 @@
 use super::super::codec::{decode_metrics, encode_metrics};
 use super::super::ports::{Inserted, JobStore, NewJob, Swept};
 use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
-use super::{nats_err, Nats};
+use super::{nats_err, retry, Nats};
 use crate::jobs::embedded::sqlite::check_id;
 use crate::mesh::io::Format;
 use crate::metrics::StepMetrics;
@@ -77,6 +77,8 @@ struct UploadEntry {
 pub(crate) struct KvStore {
     nats: Arc<Nats>,
     frames: async_nats::jetstream::stream::Stream,
+    /// The stream behind the KV bucket, for listing keys.
+    kv_stream: async_nats::jetstream::stream::Stream,
 }
 
 fn job_key(id: &str) -> String {
@@ -105,18 +107,28 @@ fn from_json<T: for<'de> Deserialize<'de>>(b: &[u8]) -> Result<T, JobError> {
 }
 
 impl KvStore {
-    pub fn new(nats: Arc<Nats>, frames: async_nats::jetstream::stream::Stream) -> KvStore {
-        KvStore { nats, frames }
+    pub fn new(
+        nats: Arc<Nats>,
+        frames: async_nats::jetstream::stream::Stream,
+        kv_stream: async_nats::jetstream::stream::Stream,
+    ) -> KvStore {
+        KvStore {
+            nats,
+            frames,
+            kv_stream,
+        }
     }
 
     async fn record(&self, id: &str) -> Result<(Record, u64), JobError> {
         check_id(id)?;
-        let entry = self
-            .nats
-            .kv
-            .entry(job_key(id))
-            .await
-            .map_err(|e| nats_err("reading a job", e))?;
+        let entry = retry(|| async {
+            self.nats
+                .kv
+                .entry(job_key(id))
+                .await
+                .map_err(|e| nats_err("reading a job", e))
+        })
+        .await?;
         match entry {
             Some(e) if !e.value.is_empty() => Ok((from_json(&e.value)?, e.revision)),
             _ => Err(JobError::NotFound(id.to_string())),
@@ -135,15 +147,24 @@ impl KvStore {
             if !change(&mut rec)? {
                 return Ok(None);
             }
-            match self
-                .nats
-                .kv
-                .update(job_key(id), to_json(&rec)?, revision)
-                .await
-            {
-                Ok(_) => return Ok(Some(rec)),
-                Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => continue,
-                Err(e) => return Err(nats_err("updating a job", e)),
+            // A retried update that had in fact landed fails on the revision and is read
+            // again: compare-and-set makes the retry safe.
+            let value = to_json(&rec)?;
+            let written = retry(|| async {
+                match self
+                    .nats
+                    .kv
+                    .update(job_key(id), value.clone(), revision)
+                    .await
+                {
+                    Ok(_) => Ok(true),
+                    Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => Ok(false),
+                    Err(e) => Err(nats_err("updating a job", e)),
+                }
+            })
+            .await?;
+            if written {
+                return Ok(Some(rec));
             }
         }
         Err(JobError::Internal(format!(
@@ -205,16 +226,29 @@ impl KvStore {
         Ok(rows.into_values().collect())
     }
 
-    async fn list_records(&self) -> Result<Vec<Record>, JobError> {
-        let mut keys = self
-            .nats
-            .kv
-            .keys()
+    /// The keys under `prefix` (`job.`, `upload.`), from the KV stream's subject counts: one
+    /// request and no consumer (a key watcher per listing ran into the server's consumer limit
+    /// under load, and could miss a key updated during its scan).
+    async fn keys(&self, prefix: &str) -> Result<Vec<String>, JobError> {
+        let kv_prefix = format!("$KV.{}.", super::KV_BUCKET);
+        let mut subjects = self
+            .kv_stream
+            .info_with_subjects(format!("{kv_prefix}{prefix}>"))
             .await
-            .map_err(|e| nats_err("listing jobs", e))?;
+            .map_err(|e| nats_err("listing keys", e))?;
         let mut out = Vec::new();
-        while let Some(k) = keys.next().await {
-            let k = k.map_err(|e| nats_err("listing jobs", e))?;
+        while let Some(s) = subjects.next().await {
+            let (subject, _) = s.map_err(|e| nats_err("listing keys", e))?;
+            if let Some(key) = subject.strip_prefix(&kv_prefix) {
+                out.push(key.to_string());
+            }
+        }
+        Ok(out)
+    }
+
+    async fn list_records(&self) -> Result<Vec<Record>, JobError> {
+        let mut out = Vec::new();
+        for k in self.keys("job.").await? {
             let Some(id) = k.strip_prefix("job.") else {
                 continue;
             };
@@ -394,13 +428,18 @@ impl JobStore for KvStore {
         let mut payload = Vec::with_capacity(1 + 96);
         payload.push(u8::from(has_positions));
         payload.extend_from_slice(&encode_metrics(&metrics));
-        self.nats
-            .js
-            .publish(frames_subject(id), payload.into())
-            .await
-            .map_err(|e| nats_err("storing a frame", e))?
-            .await
-            .map_err(|e| nats_err("storing a frame", e))?;
+        // Publishing a step twice is harmless: readers keep one message per step.
+        let payload = bytes::Bytes::from(payload);
+        retry(|| async {
+            self.nats
+                .js
+                .publish(frames_subject(id), payload.clone())
+                .await
+                .map_err(|e| nats_err("storing a frame", e))?
+                .await
+                .map_err(|e| nats_err("storing a frame", e))
+        })
+        .await?;
         self.update(id, |r| {
             r.status.step = metrics.step;
             r.set_latest(Some(&metrics));
@@ -520,19 +559,12 @@ impl JobStore for KvStore {
                 .map_err(|e| nats_err("sweeping a job's frames", e))?;
             swept.jobs.push(id);
         }
-        let mut keys = self
-            .nats
-            .kv
-            .keys()
-            .await
-            .map_err(|e| nats_err("listing uploads", e))?;
-        let mut uploads = Vec::new();
-        while let Some(k) = keys.next().await {
-            let k = k.map_err(|e| nats_err("listing uploads", e))?;
-            if let Some(id) = k.strip_prefix("upload.") {
-                uploads.push(id.to_string());
-            }
-        }
+        let uploads: Vec<String> = self
+            .keys("upload.")
+            .await?
+            .into_iter()
+            .filter_map(|k| k.strip_prefix("upload.").map(str::to_string))
+            .collect();
         for id in uploads {
             let key = format!("upload.{id}");
             let Some(b) = self

@@ -61,9 +61,51 @@ pub(crate) struct Nats {
     pub kv: jetstream::kv::Store,
 }
 
+/// A NATS error as the core sees it: the server not answering (timeouts, a dropped
+/// connection) is [`JobError::Unavailable`], worth retrying; anything else is internal.
 fn nats_err(what: &str, e: impl std::fmt::Display) -> JobError {
-    JobError::Internal(format!("nats: {what}: {e}"))
+    let text = format!("nats: {what}: {e}");
+    let lower = text.to_ascii_lowercase();
+    let transient = [
+        "timed out",
+        "timeout",
+        "broken pipe",
+        "disconnected",
+        "connection",
+        "no responders",
+        "not connected",
+    ];
+    if transient.iter().any(|t| lower.contains(t)) {
+        JobError::Unavailable(text)
+    } else {
+        JobError::Internal(text)
+    }
 }
+
+/// Run `op` again, with a short backoff, while it fails with [`JobError::Unavailable`]: an
+/// operation in flight when the connection dropped times out after the client has already
+/// reconnected, and a second try then succeeds. Only for operations that may be repeated.
+async fn retry<T, F, Fut>(mut op: F) -> Result<T, JobError>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Result<T, JobError>>,
+{
+    let mut pause = Duration::from_millis(250);
+    for _ in 0..RETRIES {
+        match op().await {
+            Err(JobError::Unavailable(e)) => {
+                tracing::debug!(error = %e, "NATS operation retried");
+                tokio::time::sleep(pause).await;
+                pause *= 2;
+            }
+            other => return other,
+        }
+    }
+    op().await
+}
+
+/// Tries of [`retry`] before the last: 0.25 + 0.5 + 1 + 2 s, which covers a server restart.
+const RETRIES: usize = 4;
 
 /// `e` and its sources, for matching server error texts that the client folds into `Other`.
 fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
@@ -176,6 +218,10 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         .get_stream(FRAMES_STREAM)
         .await
         .map_err(|e| nats_err("opening the frames stream", e))?;
+    let kv_stream = js
+        .get_stream(format!("KV_{KV_BUCKET}"))
+        .await
+        .map_err(|e| nats_err("opening the KV stream", e))?;
     let nats = Arc::new(Nats {
         client: client.clone(),
         js: js.clone(),
@@ -185,7 +231,7 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
     let cancels = bus::NatsCancels::start(nats.clone()).await?;
     tracing::info!(url = %options.url, "connected to NATS JetStream");
     Ok(Backend {
-        store: Arc::new(kv::KvStore::new(nats.clone(), frames)),
+        store: Arc::new(kv::KvStore::new(nats.clone(), frames, kv_stream)),
         blobs: Arc::new(objects::ObjectBlobs::new(objects)),
         queue: Arc::new(queue),
         events: Arc::new(bus::NatsBus::new(nats)),

@@ -4,7 +4,7 @@
 
 use super::super::ports::{BlobKey, BlobStore};
 use super::super::{format_name, JobError};
-use super::nats_err;
+use super::{nats_err, retry};
 use crate::jobs::embedded::sqlite::check_id;
 use async_nats::jetstream::object_store::{GetErrorKind, ObjectStore};
 use async_trait::async_trait;
@@ -48,26 +48,19 @@ impl BlobStore for ObjectBlobs {
         let name = name(&key)?;
         // A put replaces the object whole once its last chunk is in: readers see the old
         // blob or the new one.
-        self.store
-            .put(name.as_str(), &mut data.as_ref())
-            .await
-            .map_err(|e| nats_err("storing a blob", e))?;
+        retry(|| async {
+            self.store
+                .put(name.as_str(), &mut data.as_ref())
+                .await
+                .map_err(|e| nats_err("storing a blob", e))
+        })
+        .await?;
         Ok(())
     }
 
     async fn get(&self, key: BlobKey) -> Result<Option<bytes::Bytes>, JobError> {
         let name = name(&key)?;
-        let mut object = match self.store.get(name.as_str()).await {
-            Ok(o) => o,
-            Err(e) if e.kind() == GetErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(nats_err("reading a blob", e)),
-        };
-        let mut out = Vec::with_capacity(object.info().size);
-        object
-            .read_to_end(&mut out)
-            .await
-            .map_err(|e| nats_err("reading a blob", e))?;
-        Ok(Some(out.into()))
+        retry(|| self.get_once(&name)).await
     }
 
     async fn delete(&self, key: BlobKey) -> Result<(), JobError> {
@@ -80,6 +73,26 @@ impl BlobStore for ObjectBlobs {
     }
 
     async fn delete_job(&self, id: &str) -> Result<(), JobError> {
+        self.delete_job_blobs(id).await
+    }
+}
+
+impl ObjectBlobs {
+    async fn get_once(&self, name: &str) -> Result<Option<bytes::Bytes>, JobError> {
+        let mut object = match self.store.get(name).await {
+            Ok(o) => o,
+            Err(e) if e.kind() == GetErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(nats_err("reading a blob", e)),
+        };
+        let mut out = Vec::with_capacity(object.info().size);
+        object
+            .read_to_end(&mut out)
+            .await
+            .map_err(|e| nats_err("reading a blob", e))?;
+        Ok(Some(out.into()))
+    }
+
+    async fn delete_job_blobs(&self, id: &str) -> Result<(), JobError> {
         check_id(id)?;
         let prefix = format!("jobs/{id}/");
         let mut list = self
