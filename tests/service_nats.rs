@@ -593,3 +593,35 @@ async fn idempotency_key_across_api_nodes() {
         )
         .await;
 }
+
+/// `max_deliver`: a job whose worker dies once too often fails with a reason instead of being
+/// handed to one more worker. With `--max-deliveries 1`, the delivery after a crash is the
+/// one too many.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_delivered_too_often_fails_with_code_redelivered() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let nats = Nats::start(d);
+    let url = nats.url();
+    let opts = |o: NodeOpts| o.ack_wait_secs(2).max_deliveries(1);
+    let api = Node::spawn(d, "api", Some(&url), &opts(NodeOpts::api()));
+    let mut first = Node::spawn(d, "worker-1", Some(&url), &opts(NodeOpts::worker()));
+    all_ready(&[&api, &first]).await;
+    let id = api.submit(&slow_obj(), "steps=120&frame_interval=20").await;
+    api.poll_until(&id, |v| {
+        v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 2
+    })
+    .await;
+    first.kill();
+    let second = Node::spawn(d, "worker-2", Some(&url), &opts(NodeOpts::worker()));
+    all_ready(&[&second]).await;
+    let done = api.poll_until(&id, is_terminal).await;
+    assert_eq!(done["state"], "failed", "{done}");
+    assert_eq!(done["error_code"], "redelivered", "{done}");
+    assert!(
+        done["error"]
+            .as_str()
+            .is_some_and(|m| m.contains("delivered 1 times")),
+        "the reason says how often: {done}"
+    );
+}

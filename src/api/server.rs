@@ -77,6 +77,10 @@ pub struct ServeArgs {
     /// `all`. The embedded backend needs `all`: its queue lives in the process.
     #[arg(long, default_value = "all")]
     pub role: String,
+    /// A job delivered more often than this (its workers kept dying on it: killed, out of
+    /// memory) fails with code `redelivered` instead of taking down one more worker.
+    #[arg(long, default_value_t = 3)]
+    pub max_deliveries: u32,
     /// NATS: seconds without a heartbeat after which a job goes to another worker.
     #[arg(long, default_value_t = 30.0)]
     pub nats_ack_wait_secs: f64,
@@ -127,6 +131,10 @@ impl ServeArgs {
             return Err("--checkpoint-secs must be a positive number".into());
         }
         c.checkpoint_interval = Duration::from_secs_f64(self.checkpoint_secs);
+        if self.max_deliveries == 0 {
+            return Err("--max-deliveries must be at least 1".into());
+        }
+        c.max_deliveries = self.max_deliveries;
         c.role = crate::jobs::Role::parse(&self.role).ok_or_else(|| {
             format!(
                 "--role must be `api`, `worker` or `all`, got `{}`",

@@ -291,6 +291,8 @@ pub struct NodeOpts {
     /// `--nats-ack-wait-secs` (NATS nodes only).
     pub ack_wait_secs: u64,
     pub grace_secs: f64,
+    /// `--max-deliveries`.
+    pub max_deliveries: u32,
 }
 
 impl NodeOpts {
@@ -324,6 +326,7 @@ impl NodeOpts {
             checkpoint_steps: 10,
             ack_wait_secs: 3,
             grace_secs: 2.0,
+            max_deliveries: 3,
         }
     }
 
@@ -339,6 +342,11 @@ impl NodeOpts {
 
     pub fn ack_wait_secs(mut self, s: u64) -> NodeOpts {
         self.ack_wait_secs = s;
+        self
+    }
+
+    pub fn max_deliveries(mut self, n: u32) -> NodeOpts {
+        self.max_deliveries = n;
         self
     }
 }
@@ -371,6 +379,7 @@ impl Node {
             .args(["--queue-capacity", &opts.queue_capacity.to_string()])
             .args(["--checkpoint-steps", &opts.checkpoint_steps.to_string()])
             .args(["--grace-secs", &opts.grace_secs.to_string()])
+            .args(["--max-deliveries", &opts.max_deliveries.to_string()])
             .args(["--log-format", "json"]);
         if opts.role != Some("api") {
             cmd.args(["--workers", &opts.workers.to_string()]);
