@@ -92,10 +92,10 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
 
 /// Bytes of a metrics row as the first release wrote it: step as u64, then nine f64
 /// (`willmore_energy` … `step_ms`), all little-endian.
-const METRICS_V1_BYTES: usize = 80;
+pub const METRICS_V1_BYTES: usize = 80;
 /// Bytes of a metrics row now: the first release's 80, then `tau` (f64) and `rejected` (u32),
 /// little-endian. Rows are only ever appended to, so an old row is a prefix of a new one.
-const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
+pub const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
 
 /// The binary form of [`StepMetrics`] ([`METRICS_BYTES`]). Binary and not JSON because a
 /// metric may legitimately be NaN or infinite, which JSON cannot carry.

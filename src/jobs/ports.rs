@@ -36,7 +36,7 @@ pub struct NewJob {
     pub vertex_count: usize,
     pub face_count: usize,
     pub created_at: u64,
-    /// (key, request hash): see [`super::model::request_hash`].
+    /// (key, request hash): see [`super::codec::request_hash`].
     pub idempotency: Option<(String, String)>,
 }
 
@@ -143,7 +143,7 @@ pub enum BlobKey {
     },
     /// The final welded positions, f64.
     Result { id: JobId },
-    /// The flow's latest checkpoint ([`super::model::encode_checkpoint`]).
+    /// The flow's latest checkpoint ([`super::codec::encode_checkpoint`]).
     Checkpoint { id: JobId },
     /// An upload stored ahead of its job.
     Upload { id: String, format: Format },

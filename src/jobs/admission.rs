@@ -1,0 +1,227 @@
+//! Admission: a mesh and a spec become a stored, queued job, or a clear refusal. Validation
+//! runs before anything is stored; this node's admissions are serialised by a lock, and the
+//! backend's atomic operations decide between nodes (the idempotency key's create, the queue's
+//! capacity).
+
+use super::ports::{BlobKey, Inserted, NewJob};
+use super::{
+    codec, join_err, mesh_error, now_ms, JobError, JobId, JobSpec, JobState, JobStatus, Jobs,
+    UploadRef,
+};
+use crate::mesh::io::{Asset, Format};
+use std::sync::atomic::Ordering;
+
+impl Jobs {
+    /// Parse and validate the mesh (on a blocking thread), then store and enqueue the job.
+    ///
+    /// With an idempotency key, a repeat of the same request returns the job it created (even
+    /// when the queue has since filled up, and on any node); the same key with a different
+    /// mesh or spec is [`JobError::IdempotencyMismatch`].
+    pub async fn submit(
+        &self,
+        upload: UploadRef,
+        spec: JobSpec,
+        idempotency_key: Option<String>,
+    ) -> Result<JobStatus, JobError> {
+        if self.inner.draining.load(Ordering::SeqCst) {
+            return Err(JobError::ShuttingDown);
+        }
+        spec.validate(&self.inner.config)?;
+        let backend = &self.inner.backend;
+        let (data, format) = match upload {
+            UploadRef::Bytes { data, format } => (data, format),
+            UploadRef::Stored { upload_id } => {
+                let format = backend.store.upload(&upload_id).await?;
+                let key = BlobKey::Upload {
+                    id: upload_id.clone(),
+                    format,
+                };
+                let data = backend
+                    .blobs
+                    .get(key)
+                    .await?
+                    .ok_or(JobError::UploadNotFound(upload_id))?;
+                (data, format)
+            }
+        };
+        let limit = self.inner.config.limits.max_upload_bytes;
+        if data.len() as u64 > limit {
+            return Err(JobError::TooLarge {
+                what: "upload bytes",
+                limit,
+            });
+        }
+        let key = match idempotency_key {
+            Some(k) if k.is_empty() || k.len() > 255 => {
+                return Err(JobError::InvalidSpec {
+                    field: "idempotency_key",
+                    reason: "must be 1 to 255 characters".into(),
+                })
+            }
+            other => other,
+        };
+        let request_hash = key
+            .as_ref()
+            .map(|_| codec::request_hash(&data, format, &spec));
+        if let (Some(k), Some(h)) = (&key, &request_hash) {
+            if let Some(status) = backend.store.idempotent(k, h).await? {
+                return Ok(status);
+            }
+        }
+
+        // Parse and validate off the runtime: a large OBJ takes a while and the async threads
+        // must keep serving status polls and streams meanwhile.
+        let limits = self.inner.config.limits.clone();
+        let parse_data = data.clone();
+        let parse_spec = spec.clone();
+        let (vertex_count, face_count) = tokio::task::spawn_blocking(move || {
+            let asset =
+                Asset::read(&parse_data, format, &limits.mesh_limits()).map_err(mesh_error)?;
+            let surface = asset.surface();
+            parse_spec.validate_for_mesh(surface)?;
+            if surface.vertex_count() > limits.max_vertices {
+                return Err(JobError::TooLarge {
+                    what: "vertices",
+                    limit: limits.max_vertices as u64,
+                });
+            }
+            if surface.face_count() > limits.max_faces {
+                return Err(JobError::TooLarge {
+                    what: "faces",
+                    limit: limits.max_faces as u64,
+                });
+            }
+            Ok((asset.file_vertex_count(), surface.face_count()))
+        })
+        .await
+        .map_err(join_err)??;
+
+        let id: JobId = uuid::Uuid::new_v4().to_string();
+        // Write the blob before taking the admission lock: fsync is slow and need not be
+        // serialised. A refused job's blob is removed again below.
+        backend
+            .blobs
+            .put(
+                BlobKey::Input {
+                    id: id.clone(),
+                    format,
+                },
+                data,
+            )
+            .await?;
+        let job = NewJob {
+            id: id.clone(),
+            spec: spec.clone(),
+            format,
+            vertex_count,
+            face_count,
+            created_at: now_ms(),
+            idempotency: key.zip(request_hash),
+        };
+        match self.admit(job).await {
+            Ok(Inserted::New(status)) => {
+                tracing::info!(job_id = %status.id, vertex_count, face_count, steps = spec.steps, "job accepted");
+                Ok(status)
+            }
+            Ok(Inserted::Existing(status)) => {
+                let _ = backend.blobs.delete_job(&id).await;
+                Ok(status)
+            }
+            Err(e) => {
+                let _ = backend.blobs.delete_job(&id).await;
+                Err(e)
+            }
+        }
+    }
+
+    async fn admit(&self, job: NewJob) -> Result<Inserted, JobError> {
+        let backend = &self.inner.backend;
+        let _guard = self.inner.admission.lock().await;
+        if self.inner.draining.load(Ordering::SeqCst) {
+            return Err(JobError::ShuttingDown);
+        }
+        // A quick local refusal; the queue's own `push` is the cluster-wide decision.
+        if backend.queue.depth() >= backend.queue.capacity() {
+            return Err(self.queue_full());
+        }
+        let id = job.id.clone();
+        let inserted = backend.store.insert(job).await?;
+        if let Inserted::Existing(_) = inserted {
+            return Ok(inserted);
+        }
+        if let Err(e) = backend.queue.push(&id).await {
+            // Lost the race for the last slot to another node (or the queue is away): the
+            // record goes again, key and all, so a retry can succeed.
+            let now = now_ms();
+            let withdrawn = Some(("queue_full".to_string(), e.to_string()));
+            let _ = backend
+                .store
+                .finish(&id, JobState::Failed, withdrawn, now, now)
+                .await;
+            let _ = backend.store.delete(&id).await;
+            return Err(match e {
+                JobError::QueueFull { .. } => self.queue_full(),
+                other => other,
+            });
+        }
+        self.inner.telemetry.submitted.inc();
+        self.inner
+            .telemetry
+            .queue_depth
+            .set(backend.queue.depth() as i64);
+        Ok(inserted)
+    }
+
+    fn queue_full(&self) -> JobError {
+        self.inner.telemetry.rejected.inc();
+        JobError::QueueFull {
+            retry_after_secs: self.retry_after_secs(),
+            capacity: self.inner.backend.queue.capacity(),
+        }
+    }
+
+    /// `Retry-After` estimate: the time for the workers to drain the queue once, from the
+    /// moving average of job durations, clamped to 1..=300 s.
+    fn retry_after_secs(&self) -> u64 {
+        let avg_ms = self.inner.avg_job_ms.load(Ordering::Relaxed);
+        let workers = self.inner.config.workers.max(1) as u64;
+        let depth = self.inner.backend.queue.depth().max(1) as u64;
+        (avg_ms * depth / workers / 1000).clamp(1, 300)
+    }
+
+    /// Store an upload for later use by [`UploadRef::Stored`]. The mesh is validated now, so a
+    /// bad upload fails here and not at job creation.
+    pub async fn store_upload(
+        &self,
+        data: bytes::Bytes,
+        format: Format,
+    ) -> Result<String, JobError> {
+        if self.inner.draining.load(Ordering::SeqCst) {
+            return Err(JobError::ShuttingDown);
+        }
+        let limit = self.inner.config.limits.max_upload_bytes;
+        if data.len() as u64 > limit {
+            return Err(JobError::TooLarge {
+                what: "upload bytes",
+                limit,
+            });
+        }
+        let limits = self.inner.config.limits.mesh_limits();
+        let check = data.clone();
+        tokio::task::spawn_blocking(move || Asset::read(&check, format, &limits).map(|_| ()))
+            .await
+            .map_err(join_err)?
+            .map_err(mesh_error)?;
+        let id = uuid::Uuid::new_v4().to_string();
+        let expires = now_ms() + self.inner.config.result_ttl.as_millis() as u64;
+        let size = data.len() as u64;
+        let backend = &self.inner.backend;
+        let key = BlobKey::Upload {
+            id: id.clone(),
+            format,
+        };
+        backend.blobs.put(key, data).await?;
+        backend.store.put_upload(&id, format, size, expires).await?;
+        Ok(id)
+    }
+}

@@ -1,0 +1,634 @@
+//! The job core's vocabulary: what a job asks for ([`JobSpec`]), where it is ([`JobState`],
+//! [`JobStatus`]), what watchers get ([`Frame`], [`JobEvent`]), what can go wrong
+//! ([`JobError`]) and how the core runs ([`Config`], [`JobLimits`], [`Role`]). Plain data: no
+//! transport, no backend.
+
+use super::{curve, spec};
+use crate::flow::curve::CurveError;
+use crate::flow::{FlowParams, Method};
+use crate::mesh::io::Format;
+use crate::mesh::{Limits, MeshError};
+use crate::metrics::StepMetrics;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// A job's identifier: a UUID v4 in its hyphenated lower-case text form.
+pub type JobId = String;
+
+/// What to run on an uploaded mesh. Transports turn their wire parameters into this and call
+/// [`JobSpec::validate`] (which [`Jobs::submit`](super::Jobs::submit) calls again, so no transport can skip it).
+///
+/// Stored as JSON with the job: a field added later must have a default (`#[serde(default)]`
+/// fills it in for rows written before it existed) and is appended at the end (see
+/// `codec::request_hash`). Every field of [`FlowParams`] has one here.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct JobSpec {
+    /// Which flow: `conformal` (the paper), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
+    /// `taubin`.
+    pub method: Method,
+    /// Number of flow steps to take (step 0 is the input).
+    pub steps: usize,
+    /// Time step τ (see [`FlowParams::tau`]).
+    pub tau: f64,
+    /// Inverse power iterations per step (conformal flow).
+    pub iterations: usize,
+    /// Every `frame_interval`-th step (and step 0 and the last step) keeps its vertex positions,
+    /// so `frames/{step}` can serve that mesh and watchers get `positions`.
+    pub frame_interval: usize,
+    /// Whether live and replayed frames carry positions at all (metrics are always sent).
+    pub include_positions: bool,
+    /// Wall-clock budget from submission, in seconds; `None` takes the server default.
+    pub deadline_secs: Option<f64>,
+    /// Exactness constraints on surfaces of genus > 0 (§6.2, App. C); conformal flow only.
+    pub exactness: bool,
+    /// Möbius balancing toward the input's area distribution (App. E.1); conformal flow only.
+    pub mobius_balancing: bool,
+    /// Spectral filter of the flow direction (§4); `None` is the paper's plain flow. Conformal
+    /// flow only.
+    pub filter: Option<spec::FilterSpec>,
+    /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
+    pub boundary: spec::BoundarySpec,
+    /// Safeguarded steps (see [`crate::flow::safeguard`]): a step that raises W or damages the
+    /// mesh is retried at a smaller τ. Every method; default on.
+    pub safeguard: bool,
+}
+
+impl Default for JobSpec {
+    fn default() -> Self {
+        let flow = FlowParams::default();
+        JobSpec {
+            method: flow.method,
+            steps: 20,
+            tau: flow.tau,
+            iterations: flow.iterations,
+            frame_interval: 1,
+            include_positions: true,
+            deadline_secs: None,
+            exactness: flow.exactness,
+            mobius_balancing: flow.mobius_balancing,
+            filter: None,
+            boundary: spec::BoundarySpec::Free,
+            safeguard: flow.safeguard,
+        }
+    }
+}
+
+impl JobSpec {
+    /// Check every field against the server's limits; the error names the field.
+    pub fn validate(&self, config: &Config) -> Result<(), JobError> {
+        self.validate_with(config.limits.max_steps, config.max_deadline.as_secs_f64())
+    }
+
+    /// [`JobSpec::validate`] with explicit limits (the CLI has none of a server's).
+    pub fn validate_with(&self, max_steps: usize, max_deadline_secs: f64) -> Result<(), JobError> {
+        let bad =
+            |field: &'static str, reason: String| Err(JobError::InvalidSpec { field, reason });
+        if self.steps == 0 {
+            return bad("steps", "must be at least 1".into());
+        }
+        if self.steps > max_steps {
+            return Err(JobError::TooLarge {
+                what: "steps",
+                limit: max_steps as u64,
+            });
+        }
+        if !self.tau.is_finite() || self.tau <= 0.0 {
+            return bad(
+                "tau",
+                format!("must be a finite number > 0, got {}", self.tau),
+            );
+        }
+        if self.method == Method::Conformal && self.tau >= 1.0 {
+            // Paper §4: the curvature update u ← (1 − 2τ)u is only stable for τ < 1.
+            return bad(
+                "tau",
+                format!(
+                    "must be < 1 for the conformal flow (paper §4), got {}",
+                    self.tau
+                ),
+            );
+        }
+        if self.iterations == 0 || self.iterations > MAX_ITERATIONS {
+            return bad(
+                "iterations",
+                format!(
+                    "must be between 1 and {MAX_ITERATIONS}, got {}",
+                    self.iterations
+                ),
+            );
+        }
+        if self.frame_interval == 0 {
+            return bad("frame_interval", "must be at least 1".into());
+        }
+        if let Some(d) = self.deadline_secs {
+            if !d.is_finite() || d <= 0.0 {
+                return bad(
+                    "deadline_secs",
+                    format!("must be a finite number > 0, got {d}"),
+                );
+            }
+            if d > max_deadline_secs {
+                return bad(
+                    "deadline_secs",
+                    format!("must be at most {max_deadline_secs} (the server's maximum), got {d}"),
+                );
+            }
+        }
+        if let Some(filter) = &self.filter {
+            if let Err((field, reason)) = spec::check_filter(filter) {
+                return bad(field, reason);
+            }
+        }
+        if let Err((field, reason)) = spec::check_boundary(&self.boundary) {
+            return bad(field, reason);
+        }
+        if self.method != Method::Conformal {
+            // The other flows would run and silently ignore these (the library only reads them
+            // in the conformal flow); a client that asks for them should hear so.
+            let ignored = [
+                ("exactness", !self.exactness),
+                ("mobius_balancing", self.mobius_balancing),
+                ("filter", self.filter.is_some()),
+                ("boundary", !self.boundary.is_free()),
+            ];
+            if let Some((field, _)) = ignored.iter().find(|(_, set)| *set) {
+                return bad(
+                    field,
+                    format!(
+                        "applies only to method `conformal`, got `{}`",
+                        self.method.name()
+                    ),
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks that need the uploaded surface: one per-loop boundary angle per boundary loop.
+    pub fn validate_for_mesh(&self, mesh: &crate::mesh::Mesh) -> Result<(), JobError> {
+        if let spec::BoundarySpec::Prescribed(p) = &self.boundary {
+            if matches!(p.angles, spec::AnglesSpec::PerLoop(_)) {
+                let loops = crate::mesh::topology::Topology::new(mesh)
+                    .boundary_loops
+                    .len();
+                spec::check_loop_count(&self.boundary, loops)
+                    .map_err(|(field, reason)| JobError::InvalidSpec { field, reason })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The flow parameters this spec asks for: every field of [`FlowParams`].
+    pub fn flow_params(&self) -> FlowParams {
+        FlowParams {
+            method: self.method,
+            tau: self.tau,
+            iterations: self.iterations,
+            exactness: self.exactness,
+            mobius_balancing: self.mobius_balancing,
+            filter: self.filter.map(spec::FilterSpec::to_flow),
+            boundary: self.boundary.to_flow(),
+            safeguard: self.safeguard,
+            // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
+            threads: 1,
+            precision: crate::flow::Precision::Auto,
+        }
+    }
+
+    /// Whether `step` keeps positions (step 0, every `frame_interval`-th, and the last).
+    pub fn keeps_positions(&self, step: usize) -> bool {
+        self.include_positions
+            && (step.is_multiple_of(self.frame_interval.max(1)) || step == self.steps)
+    }
+}
+
+pub use crate::flow::MAX_ITERATIONS;
+
+/// Where a job is in its life. Terminal states: succeeded, failed, cancelled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub fn is_terminal(self) -> bool {
+        matches!(
+            self,
+            JobState::Succeeded | JobState::Failed | JobState::Cancelled
+        )
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<JobState> {
+        Some(match s {
+            "queued" => JobState::Queued,
+            "running" => JobState::Running,
+            "succeeded" => JobState::Succeeded,
+            "failed" => JobState::Failed,
+            "cancelled" => JobState::Cancelled,
+            _ => return None,
+        })
+    }
+}
+
+/// A snapshot of one job, as every transport reports it. Times are unix milliseconds.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct JobStatus {
+    pub id: JobId,
+    pub state: JobState,
+    /// Steps completed so far (0 while queued).
+    pub step: usize,
+    pub total_steps: usize,
+    pub spec: JobSpec,
+    #[serde(
+        serialize_with = "serialize_format",
+        deserialize_with = "deserialize_format"
+    )]
+    pub input_format: Format,
+    /// Vertices in the uploaded file's order: a frame's positions are this many xyz triples.
+    pub vertex_count: usize,
+    /// Triangles of the welded surface.
+    pub face_count: usize,
+    /// Metrics of the latest completed step (step 0 = the input) once the job has started.
+    pub latest: Option<StepMetrics>,
+    /// Why the job failed or was cancelled, for people; on a succeeded job, why it stopped
+    /// before `total_steps` (code `no_progress`).
+    pub error: Option<String>,
+    /// The same, for programs: `deadline_exceeded`, `cancelled`, `numerical`, `invalid_mesh`,
+    /// `unsupported`, `invalid_parameter`, `internal`; and `no_progress` on a **succeeded** job
+    /// the safeguard stopped early (no acceptable step, even at τ/1024): its result is the
+    /// last accepted surface, the one after step `step`.
+    pub error_code: Option<String>,
+    pub created_at: u64,
+    pub started_at: Option<u64>,
+    pub finished_at: Option<u64>,
+    /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
+    pub expires_at: Option<u64>,
+}
+
+fn serialize_format<S: serde::Serializer>(f: &Format, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(format_name(*f))
+}
+
+fn deserialize_format<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Format, D::Error> {
+    let name = String::deserialize(d)?;
+    parse_format(&name)
+        .ok_or_else(|| serde::de::Error::custom(format!("unknown mesh format `{name}`")))
+}
+
+/// One step of a running job, as watchers receive it.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub step: usize,
+    pub metrics: StepMetrics,
+    /// Vertex positions after the step, in the uploaded file's vertex order, when this step
+    /// keeps positions ([`JobSpec::keeps_positions`]). Shared, so fan-out copies no vertices.
+    pub positions: Option<Arc<Vec<[f32; 3]>>>,
+}
+
+/// What a watcher sees: state changes, one frame per step, then the final status.
+#[derive(Clone, Debug)]
+pub enum JobEvent {
+    State(JobStatus),
+    Frame(Frame),
+    Done(JobStatus),
+}
+
+/// The mesh a job runs on: the bytes themselves, or an upload stored earlier by
+/// [`Jobs::store_upload`](super::Jobs::store_upload) (chunked gRPC uploads).
+pub enum UploadRef {
+    Bytes { data: bytes::Bytes, format: Format },
+    Stored { upload_id: String },
+}
+
+/// Everything that can go wrong, typed so each transport maps it once to its own codes.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    #[error("job `{0}` not found")]
+    NotFound(JobId),
+    #[error("job `{0}` has expired and its results were deleted")]
+    Gone(JobId),
+    #[error("the queue is full ({capacity} jobs waiting); retry in about {retry_after_secs} s")]
+    QueueFull {
+        retry_after_secs: u64,
+        capacity: usize,
+    },
+    #[error("invalid mesh: {0}")]
+    InvalidMesh(MeshError),
+    #[error("invalid parameter `{field}`: {reason}")]
+    InvalidSpec { field: &'static str, reason: String },
+    #[error("{what} exceeds the limit of {limit}")]
+    TooLarge { what: &'static str, limit: u64 },
+    #[error("{0}")]
+    Conflict(String),
+    #[error("idempotency key reused with a different request: {0}")]
+    IdempotencyMismatch(String),
+    #[error("the server is shutting down and accepts no new jobs")]
+    ShuttingDown,
+    #[error("internal error: {0}")]
+    Internal(String),
+    /// The backend's server did not answer in time (NATS restarting, a network partition):
+    /// retry shortly. A running job that meets it is left to be delivered again and resumes
+    /// from its checkpoint; it is never failed for it.
+    #[error("the job backend is unavailable: {0}")]
+    Unavailable(String),
+    /// A step that exists but kept no positions, or a step past the job's progress.
+    #[error("job `{id}` has no mesh for step {step}: {detail}")]
+    FrameNotFound {
+        id: JobId,
+        step: usize,
+        detail: String,
+    },
+    /// An upload id that [`Jobs::store_upload`](super::Jobs::store_upload) never returned (or that expired).
+    #[error("upload `{0}` not found")]
+    UploadNotFound(String),
+    /// A curve the curve flow refuses (see [`CurveError`]).
+    #[error("invalid curve: {0}")]
+    InvalidCurve(CurveError),
+    /// Every slot for synchronous work is taken (curve fairing); retry shortly.
+    #[error("all {slots} curve slots are busy; retry in about {retry_after_secs} s")]
+    Busy { retry_after_secs: u64, slots: usize },
+    /// A synchronous request ran out of its time budget.
+    #[error("deadline of {secs} s exceeded after step {step} of {steps}")]
+    DeadlineExceeded {
+        secs: f64,
+        step: usize,
+        steps: usize,
+    },
+    /// The flow broke down on this input (non-finite positions).
+    #[error("numerical failure at step {step}: {reason}")]
+    Numerical { step: usize, reason: String },
+}
+
+impl JobError {
+    /// A stable machine-readable code, shared by every transport.
+    pub fn code(&self) -> &'static str {
+        match self {
+            JobError::NotFound(_) => "not_found",
+            JobError::Gone(_) => "gone",
+            JobError::QueueFull { .. } => "queue_full",
+            JobError::InvalidMesh(e) => e.code(),
+            JobError::InvalidSpec { .. } => "invalid_parameter",
+            JobError::TooLarge { .. } => "too_large",
+            JobError::Conflict(_) => "conflict",
+            JobError::IdempotencyMismatch(_) => "idempotency_mismatch",
+            JobError::ShuttingDown => "shutting_down",
+            JobError::Internal(_) => "internal",
+            JobError::Unavailable(_) => "unavailable",
+            JobError::FrameNotFound { .. } => "frame_not_found",
+            JobError::UploadNotFound(_) => "upload_not_found",
+            JobError::InvalidCurve(e) => curve::curve_error_code(e),
+            JobError::Busy { .. } => "busy",
+            JobError::DeadlineExceeded { .. } => "deadline_exceeded",
+            JobError::Numerical { .. } => "numerical",
+        }
+    }
+}
+
+impl From<rusqlite::Error> for JobError {
+    fn from(e: rusqlite::Error) -> Self {
+        JobError::Internal(format!("store: {e}"))
+    }
+}
+
+impl From<std::io::Error> for JobError {
+    fn from(e: std::io::Error) -> Self {
+        JobError::Internal(format!("file: {e}"))
+    }
+}
+
+/// Size limits, all named in the errors that enforce them.
+#[derive(Clone, Debug)]
+pub struct JobLimits {
+    /// Largest accepted upload in bytes.
+    pub max_upload_bytes: u64,
+    /// Most vertices of the welded surface.
+    pub max_vertices: usize,
+    /// Most triangles.
+    pub max_faces: usize,
+    /// Most steps one job may ask for.
+    pub max_steps: usize,
+    /// Most points of a curve sent to [`Jobs::fair_curve`](super::Jobs::fair_curve).
+    pub max_curve_points: usize,
+    /// Most steps one curve request may ask for.
+    pub max_curve_steps: usize,
+    /// Largest curve file (JSON or OBJ) in bytes.
+    pub max_curve_bytes: u64,
+    /// Most points a curve response may carry in its frames, all frames together.
+    pub max_curve_frame_points: usize,
+}
+
+impl Default for JobLimits {
+    fn default() -> Self {
+        JobLimits {
+            // 64 MiB: a 1M-triangle GLB is about 40 MiB; above that one job would hold a
+            // worker for hours on this class of machine anyway.
+            max_upload_bytes: 64 << 20,
+            max_vertices: 1_000_000,
+            max_faces: 2_000_000,
+            max_steps: 10_000,
+            // A curve step costs ~0.1 ms per 2k points and a flow holds ~15 f64 per point, so
+            // 100k points are ~5 ms a step and ~12 MB a request: a synchronous answer stays
+            // well inside the deadline even at a few hundred steps.
+            max_curve_points: 100_000,
+            // The flow reaches its minimum in about six steps at τ = 0.5 (§5); a thousand is
+            // room for small τ without letting one request hold a slot for long.
+            max_curve_steps: 1_000,
+            // 100k points as JSON or OBJ text are ~5 MB.
+            max_curve_bytes: 8 << 20,
+            // ~45 MB of JSON at most: a few hundred frames of a detailed curve.
+            max_curve_frame_points: 1_000_000,
+        }
+    }
+}
+
+impl JobLimits {
+    /// The same limits in the mesh reader's terms.
+    pub fn mesh_limits(&self) -> Limits {
+        Limits {
+            max_bytes: usize::try_from(self.max_upload_bytes).unwrap_or(usize::MAX),
+            max_vertices: self.max_vertices,
+            max_faces: self.max_faces,
+        }
+    }
+}
+
+/// How the job core runs. `Config::new(dir)` gives defaults that work on a fresh machine.
+#[derive(Clone, Debug)]
+pub struct Config {
+    /// Holds `willow.sqlite3` and the blob folders; created if missing.
+    pub data_dir: PathBuf,
+    /// Blocking workers, each running one single-threaded flow (default: the core count, since
+    /// a flow step is CPU-bound and more workers than cores only interleave them).
+    pub workers: usize,
+    /// Jobs that may wait (not counting running ones) before `submit` answers `QueueFull`.
+    pub queue_capacity: usize,
+    pub limits: JobLimits,
+    /// How long a finished job (and an unused upload) is kept before it answers `Gone`.
+    pub result_ttl: Duration,
+    /// Deadline of jobs whose spec names none.
+    pub default_deadline: Duration,
+    /// Largest deadline a spec may ask for.
+    pub max_deadline: Duration,
+    /// How often expired jobs are swept from disk.
+    pub sweep_interval: Duration,
+    /// Readiness turns false when a job is running and no step finished for this long: a
+    /// wedged worker must not keep a pod in the load balancer.
+    pub stall_after: Duration,
+    /// Curve requests that may run at once, each on one blocking thread (default: `workers`).
+    /// Separate from the job workers, whose jobs may hold them for hours; see [`curve`].
+    pub curve_slots: usize,
+    /// Time budget of a curve request that names none.
+    pub curve_default_deadline: Duration,
+    /// Largest time budget a curve request may ask for: the answer is synchronous, and common
+    /// proxies cut idle requests after 60 s.
+    pub curve_max_deadline: Duration,
+    /// What this node does: take requests, run jobs, or both.
+    pub role: Role,
+    /// A running job checkpoints after this many steps…
+    pub checkpoint_steps: usize,
+    /// …or this long after its last checkpoint, whichever comes first.
+    pub checkpoint_interval: Duration,
+    /// How often a running job's lease is renewed (well inside the queue's `ack_wait`).
+    pub heartbeat_interval: Duration,
+    /// A job delivered more often than this (its workers kept dying on it) fails with code
+    /// `redelivered` instead of taking down one more worker.
+    pub max_deliveries: u32,
+}
+
+/// What a node of the service does. One process of the embedded backend is both; with NATS,
+/// API nodes and worker nodes scale separately.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    /// Admission, status, streams, results: no worker loops.
+    Api,
+    /// Worker loops only (the transports then serve probes and metrics).
+    Worker,
+    All,
+}
+
+impl Role {
+    pub fn parse(s: &str) -> Option<Role> {
+        Some(match s {
+            "api" => Role::Api,
+            "worker" => Role::Worker,
+            "all" => Role::All,
+            _ => return None,
+        })
+    }
+
+    pub fn runs_workers(self) -> bool {
+        self != Role::Api
+    }
+
+    pub fn serves_api(self) -> bool {
+        self != Role::Worker
+    }
+}
+
+impl Config {
+    pub fn new(data_dir: impl Into<PathBuf>) -> Config {
+        Config {
+            data_dir: data_dir.into(),
+            workers: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1),
+            queue_capacity: 64,
+            limits: JobLimits::default(),
+            result_ttl: Duration::from_secs(24 * 3600),
+            default_deadline: Duration::from_secs(3600),
+            max_deadline: Duration::from_secs(24 * 3600),
+            sweep_interval: Duration::from_secs(60),
+            stall_after: Duration::from_secs(600),
+            curve_slots: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1),
+            curve_default_deadline: Duration::from_secs(10),
+            curve_max_deadline: Duration::from_secs(60),
+            role: Role::All,
+            // A checkpoint is one blob of 24 bytes per vertex: ~1 ms for a 100k-triangle mesh
+            // whose step takes ~0.5 s, so ten steps or half a minute lose little on a crash
+            // and cost well under 1% (`cargo bench --bench service_load` measures it).
+            checkpoint_steps: 10,
+            checkpoint_interval: Duration::from_secs(30),
+            heartbeat_interval: Duration::from_secs(5),
+            max_deliveries: 3,
+        }
+    }
+}
+
+/// Unix milliseconds now.
+pub fn now_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
+}
+
+/// RFC 3339 UTC text (`2026-11-22T12:52:02.123Z`) of unix milliseconds.
+pub fn rfc3339(ms: u64) -> String {
+    let secs = ms / 1000;
+    let (days, rem) = (secs / 86_400, secs % 86_400);
+    // Civil-from-days (Howard Hinnant's algorithm), valid for all dates after 1970.
+    let z = days as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:03}Z",
+        rem / 3600,
+        (rem % 3600) / 60,
+        rem % 60,
+        ms % 1000
+    )
+}
+
+/// The lower-case name of a mesh format, as stored and as in `?format=`.
+pub fn format_name(f: Format) -> &'static str {
+    match f {
+        Format::Obj => "obj",
+        Format::Glb => "glb",
+        Format::Gltf => "gltf",
+    }
+}
+
+/// The inverse of [`format_name`].
+pub fn parse_format(s: &str) -> Option<Format> {
+    Some(match s.to_ascii_lowercase().as_str() {
+        "obj" => Format::Obj,
+        "glb" => Format::Glb,
+        "gltf" => Format::Gltf,
+        _ => return None,
+    })
+}
+
+/// The media type of a mesh format (for downloads).
+pub fn format_media_type(f: Format) -> &'static str {
+    match f {
+        Format::Obj => "model/obj",
+        Format::Glb => "model/gltf-binary",
+        Format::Gltf => "model/gltf+json",
+    }
+}
