@@ -625,3 +625,53 @@ async fn a_job_delivered_too_often_fails_with_code_redelivered() {
         "the reason says how often: {done}"
     );
 }
+
+/// A worker that shuts down cleanly hands its job back without using up a delivery: with
+/// `--max-deliveries 1` the job still succeeds on the next worker, resumed from the checkpoint
+/// its first worker wrote on the way out.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_drained_mid_job_hands_it_back_without_spending_a_delivery() {
+    const N: u64 = 120;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let nats = Nats::start(d);
+    let url = nats.url();
+    let opts = |o: NodeOpts| NodeOpts {
+        grace_secs: 0.0,
+        ..o.ack_wait_secs(30).max_deliveries(1)
+    };
+    let api = Node::spawn(d, "api", Some(&url), &opts(NodeOpts::api()));
+    let mut first = Node::spawn(d, "worker-1", Some(&url), &opts(NodeOpts::worker()));
+    all_ready(&[&api, &first]).await;
+    let id = api
+        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20"))
+        .await;
+    let before = api
+        .poll_until(&id, |v| {
+            v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 5
+        })
+        .await;
+    let exit = first.terminate(Duration::from_secs(30));
+    assert!(exit.is_some_and(|s| s.success()), "a clean exit: {exit:?}");
+    let stopped_at = api.get_json(&format!("/v1/jobs/{id}")).await.1;
+    assert_ne!(
+        stopped_at["state"], "succeeded",
+        "stopped mid-job: {stopped_at}"
+    );
+    let second = Node::spawn(d, "worker-2", Some(&url), &opts(NodeOpts::worker()));
+    all_ready(&[&second]).await;
+    let done = api.poll_until(&id, is_terminal).await;
+    assert_eq!(
+        done["state"], "succeeded",
+        "not failed as redelivered: {done}"
+    );
+    assert_eq!(api.frame_list(&id).await, steps(0..=N));
+    assert!(
+        done["progress"]["step"].as_u64() == Some(N)
+            && before["progress"]["step"].as_u64().unwrap_or(0) >= 5,
+        "{before} → {done}"
+    );
+    second
+        .wait_metric("willow_jobs_resumed_total", &[], 1.0, METRIC_PATIENCE)
+        .await;
+}

@@ -79,6 +79,8 @@ impl NatsQueue {
 
 struct NatsLease {
     message: async_nats::jetstream::Message,
+    nats: Arc<Nats>,
+    id: String,
 }
 
 #[async_trait]
@@ -99,47 +101,83 @@ impl LeaseControl for NatsLease {
             .map_err(|e| nats_err("ack", e))
     }
 
+    /// A clean hand-back (shutdown, the backend away) must not count as a delivery that
+    /// killed its worker, or a long job would fail `max_deliver` after a few rolling updates:
+    /// the job is queued again as a new message (a fresh delivery count) and the old one
+    /// acked. Only if that publish is refused (the stream full) is the old one nak'ed, which
+    /// keeps its place and its count.
     async fn release(&self) -> Result<(), JobError> {
-        self.message
-            .ack_with(AckKind::Nak(None))
-            .await
-            .map_err(|e| nats_err("nak", e))
+        match publish_job(
+            &self.nats,
+            &self.id,
+            &format!("{}.{}", self.id, uuid::Uuid::new_v4()),
+        )
+        .await
+        {
+            Ok(()) => self
+                .message
+                .double_ack()
+                .await
+                .map_err(|e| nats_err("ack", e)),
+            Err(e) => {
+                tracing::warn!(job_id = %self.id, error = %e, "could not queue the job again: nak");
+                self.message
+                    .ack_with(AckKind::Nak(None))
+                    .await
+                    .map_err(|e| nats_err("nak", e))
+            }
+        }
     }
+}
+
+/// Publish job `id` on the work queue as message `msg_id` (the stream drops a second message
+/// with one id within its duplicate window, so a retried publish is one job), and record its
+/// sequence for [`WorkQueue::withdraw`]. `QueueFull` when the stream is at capacity.
+async fn publish_job(nats: &Nats, id: &str, msg_id: &str) -> Result<(), JobError> {
+    let mut headers = async_nats::HeaderMap::new();
+    headers.insert("Nats-Msg-Id", msg_id);
+    let ack = nats
+        .js
+        .publish_with_headers(JOBS_SUBJECT, headers, id.to_string().into())
+        .await
+        .map_err(|e| nats_err("queueing a job", e))?
+        .await;
+    let ack = match ack {
+        Ok(a) => a,
+        Err(e) => {
+            let text = error_chain(&e);
+            if text.contains("maximum messages") {
+                return Err(JobError::QueueFull {
+                    retry_after_secs: 1,
+                    capacity: 0,
+                });
+            }
+            return Err(nats_err("queueing a job", text));
+        }
+    };
+    nats.kv
+        .put(format!("qseq.{id}"), ack.sequence.to_string().into())
+        .await
+        .map_err(|e| nats_err("recording a job's queue entry", e))?;
+    Ok(())
 }
 
 #[async_trait]
 impl WorkQueue for NatsQueue {
     async fn push(&self, id: &str) -> Result<(), JobError> {
-        let mut headers = async_nats::HeaderMap::new();
-        // Deduplicated by the stream: a retried publish of one job is one message.
-        headers.insert("Nats-Msg-Id", id);
-        let ack = self
-            .nats
-            .js
-            .publish_with_headers(JOBS_SUBJECT, headers, id.to_string().into())
-            .await
-            .map_err(|e| nats_err("queueing a job", e))?
-            .await;
-        let ack = match ack {
-            Ok(a) => a,
-            Err(e) => {
-                let text = error_chain(&e);
-                if text.contains("maximum messages") {
-                    return Err(JobError::QueueFull {
-                        retry_after_secs: 1,
-                        capacity: self.capacity,
-                    });
-                }
-                return Err(nats_err("queueing a job", text));
+        match publish_job(&self.nats, id, id).await {
+            Err(JobError::QueueFull {
+                retry_after_secs, ..
+            }) => Err(JobError::QueueFull {
+                retry_after_secs,
+                capacity: self.capacity,
+            }),
+            other => {
+                other?;
+                self.depth.fetch_add(1, Ordering::Relaxed);
+                Ok(())
             }
-        };
-        self.nats
-            .kv
-            .put(format!("qseq.{id}"), ack.sequence.to_string().into())
-            .await
-            .map_err(|e| nats_err("recording a job's queue entry", e))?;
-        self.depth.fetch_add(1, Ordering::Relaxed);
-        Ok(())
+        }
     }
 
     async fn push_recovered(&self, id: &str) -> Result<(), JobError> {
@@ -168,9 +206,13 @@ impl WorkQueue for NatsQueue {
                     .unwrap_or(1);
                 let id = String::from_utf8_lossy(&message.payload).into_owned();
                 return Ok(Lease {
-                    id,
+                    id: id.clone(),
                     attempt,
-                    control: Arc::new(NatsLease { message }),
+                    control: Arc::new(NatsLease {
+                        message,
+                        nats: self.nats.clone(),
+                        id,
+                    }),
                 });
             }
         }
