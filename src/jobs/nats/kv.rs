@@ -5,11 +5,11 @@
 //! withdrawing it) and `cancel.{id}`. Every change of a record is a compare-and-set on its
 //! revision, so two nodes never overwrite each other's transitions.
 //!
-//! A step's metrics are a message on `willow.frames.{id}`: one byte (positions kept or not)
-//! and the metrics in [`codec`](super::super::codec) form (JSON cannot carry NaN). A job
-//! resumed from a checkpoint publishes the steps after it again; readers keep the last message
-//! of each step and nothing past the record's progress, which is what [`JobStore::rewind`]
-//! means here (the stream is append-only).
+//! A step's metrics are a message on `willow.frames.{id}.{step}`: one byte (positions kept or
+//! not) and the metrics in [`codec`](super::super::codec) form (JSON cannot carry NaN). The
+//! stream keeps one message per subject, so a job resumed from a checkpoint replaces the steps
+//! it takes again; readers stop at the record's progress, which is what [`JobStore::rewind`]
+//! means here.
 
 use super::super::codec::{decode_metrics, encode_metrics};
 use super::super::ports::{Inserted, JobStore, NewJob, Swept};
@@ -18,8 +18,8 @@ use super::{nats_err, retry, Nats};
 use crate::jobs::embedded::sqlite::check_id;
 use crate::mesh::io::Format;
 use crate::metrics::StepMetrics;
-use async_nats::jetstream::consumer::{self, DeliverPolicy};
 use async_nats::jetstream::kv::{CreateErrorKind, UpdateErrorKind};
+use async_nats::jetstream::stream::DirectGetErrorKind;
 use async_trait::async_trait;
 use base64::Engine as _;
 use futures::StreamExt;
@@ -85,8 +85,13 @@ fn job_key(id: &str) -> String {
     format!("job.{id}")
 }
 
+/// A step's frame subject; the job's frames are `willow.frames.{id}.>`.
+fn frame_subject(id: &str, step: usize) -> String {
+    format!("willow.frames.{id}.{step}")
+}
+
 fn frames_subject(id: &str) -> String {
-    format!("willow.frames.{id}")
+    format!("willow.frames.{id}.>")
 }
 
 /// Idempotency keys are the client's text: hashed into a valid KV key.
@@ -180,50 +185,41 @@ impl KvStore {
         rec.status()
     }
 
-    /// The job's frames as stored: the last message of each step, steps `from..=upto`.
+    /// The job's frames of steps `from..=upto`, at most `limit`: one direct get of the last
+    /// message on each step's subject (the stream keeps one per subject), so a replay from any
+    /// step costs what it returns, and a step taken again after a resume replaces the old one.
     async fn read_frames(
         &self,
         id: &str,
         from: usize,
         upto: usize,
+        limit: usize,
     ) -> Result<Vec<(StepMetrics, bool)>, JobError> {
-        let mut rows: std::collections::BTreeMap<usize, (StepMetrics, bool)> =
-            std::collections::BTreeMap::new();
-        let consumer = self
-            .frames
-            .create_consumer(consumer::pull::OrderedConfig {
-                filter_subject: frames_subject(id),
-                deliver_policy: DeliverPolicy::All,
-                ..Default::default()
+        let mut rows = Vec::new();
+        let mut step = from;
+        while step <= upto && rows.len() < limit {
+            let got = retry(|| async {
+                match self
+                    .frames
+                    .direct_get_last_for_subject(frame_subject(id, step))
+                    .await
+                {
+                    Ok(m) => Ok(Some(m)),
+                    Err(e) if e.kind() == DirectGetErrorKind::NotFound => Ok(None),
+                    Err(e) => Err(nats_err("reading a frame", e)),
+                }
             })
-            .await
-            .map_err(|e| nats_err("reading frames", e))?;
-        let mut pending = consumer.cached_info().num_pending;
-        if pending == 0 {
-            return Ok(Vec::new());
-        }
-        let mut messages = consumer
-            .messages()
-            .await
-            .map_err(|e| nats_err("reading frames", e))?;
-        while pending > 0 {
-            let next = tokio::time::timeout(Duration::from_secs(10), messages.next()).await;
-            let msg = match next {
-                Ok(Some(Ok(m))) => m,
-                Ok(Some(Err(e))) => return Err(nats_err("reading frames", e)),
-                Ok(None) => break,
-                Err(_) => return Err(JobError::Internal("nats: reading frames timed out".into())),
+            .await?;
+            let Some(msg) = got else {
+                // Expired with the job, or never kept: nothing further either.
+                break;
             };
-            pending = msg.info().map(|i| i.pending).unwrap_or(0);
-            let Some((&flag, metrics)) = msg.payload.split_first() else {
-                continue;
-            };
-            let m = decode_metrics(metrics)?;
-            if m.step >= from && m.step <= upto {
-                rows.insert(m.step, (m, flag != 0));
+            if let Some((&flag, metrics)) = msg.payload.split_first() {
+                rows.push((decode_metrics(metrics)?, flag != 0));
             }
+            step += 1;
         }
-        Ok(rows.into_values().collect())
+        Ok(rows)
     }
 
     /// The keys under `prefix` (`job.`, `upload.`), from the KV stream's subject counts: one
@@ -433,7 +429,7 @@ impl JobStore for KvStore {
         retry(|| async {
             self.nats
                 .js
-                .publish(frames_subject(id), payload.clone())
+                .publish(frame_subject(id, metrics.step), payload.clone())
                 .await
                 .map_err(|e| nats_err("storing a frame", e))?
                 .await
@@ -450,7 +446,7 @@ impl JobStore for KvStore {
     }
 
     async fn rewind(&self, id: &str, step: usize) -> Result<(), JobError> {
-        let kept = self.read_frames(id, step, step).await?;
+        let kept = self.read_frames(id, step, step, 1).await?;
         let latest = kept.into_iter().next().map(|(m, _)| m);
         self.update(id, |r| {
             r.status.step = if latest.is_some() { step } else { 0 };
@@ -471,9 +467,7 @@ impl JobStore for KvStore {
         if rec.latest.is_none() {
             return Ok(Vec::new());
         }
-        let mut rows = self.read_frames(id, from, rec.status.step).await?;
-        rows.truncate(limit);
-        Ok(rows)
+        self.read_frames(id, from, rec.status.step, limit).await
     }
 
     async fn finish(

@@ -188,6 +188,8 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         subjects: vec!["willow.frames.>".into()],
         retention: stream::RetentionPolicy::Limits,
         max_age: config.result_ttl,
+        // One message per step: a step taken again after a resume replaces the first.
+        max_messages_per_subject: 1,
         storage: stream::StorageType::File,
         allow_direct: true,
         ..Default::default()
