@@ -13,6 +13,11 @@ const JOB_TIMEOUT: Duration = Duration::from_secs(90);
 
 /// Start `willow serve` on an ephemeral port; returns the child and its base URL.
 fn spawn_server(data_dir: &std::path::Path) -> (Child, String) {
+    spawn_server_with(data_dir, &[])
+}
+
+/// [`spawn_server`] with more flags.
+fn spawn_server_with(data_dir: &std::path::Path, extra: &[&str]) -> (Child, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_willow"))
         .args([
             "serve",
@@ -25,6 +30,7 @@ fn spawn_server(data_dir: &std::path::Path) -> (Child, String) {
             "--checkpoint-steps",
             "3",
         ])
+        .args(extra)
         .arg("--data-dir")
         .arg(data_dir)
         .args(["--log-format", "json"])
@@ -172,4 +178,28 @@ async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
     {
         let _ = server.kill();
     }
+}
+
+/// A job that dies with its server more often than `--max-deliveries` allows fails with code
+/// `redelivered` on the next start, instead of taking the server down in a loop (a mesh that
+/// runs a worker out of memory, say).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_that_keeps_killing_the_server_fails_as_redelivered() {
+    let dir = tempfile::tempdir().expect("dir");
+    let client = reqwest::Client::new();
+    let flags = ["--max-deliveries", "1"];
+    let (mut server, base) = spawn_server_with(dir.path(), &flags);
+    let id = submit(&client, &base, &slow_obj(), "steps=400").await;
+    poll_until(&client, &base, &id, JOB_TIMEOUT, |v| {
+        v["state"] == "running"
+    })
+    .await;
+    server.kill().expect("SIGKILL");
+    let _ = server.wait();
+    let (mut server, base) = spawn_server_with(dir.path(), &flags);
+    let v = poll_until(&client, &base, &id, JOB_TIMEOUT, is_terminal).await;
+    let _ = server.kill();
+    let _ = server.wait();
+    assert_eq!(v["state"], "failed", "{v}");
+    assert_eq!(v["error_code"], "redelivered", "{v}");
 }

@@ -122,9 +122,9 @@ impl Jobs {
             });
         }
         let recovered = backend.store.recover().await?;
-        for id in &recovered {
+        for (id, delivered) in &recovered {
             // Recovered jobs bypass the capacity check: they were admitted before.
-            backend.queue.push_recovered(id).await?;
+            backend.queue.push_recovered(id, *delivered).await?;
         }
         if !recovered.is_empty() {
             tracing::info!(count = recovered.len(), "re-queued jobs from the store");

@@ -115,8 +115,9 @@ pub trait JobStore: Send + Sync + 'static {
     /// `Gone`).
     async fn sweep_expired(&self, now: u64) -> Result<Swept, JobError>;
     /// After a restart: the jobs a durable queue does not hold, in queue order, for the core
-    /// to queue again (the embedded backend: queued and running jobs; NATS: none).
-    async fn recover(&self) -> Result<Vec<JobId>, JobError>;
+    /// to queue again (the embedded backend: queued and running jobs; NATS: none), each with
+    /// its deliveries so far (a job found running died with its process: that counts).
+    async fn recover(&self) -> Result<Vec<(JobId, u32)>, JobError>;
     /// Record an upload stored ahead of its job (chunked gRPC).
     async fn put_upload(
         &self,
@@ -204,8 +205,9 @@ pub trait LeaseControl: Send + Sync {
 pub trait WorkQueue: Send + Sync + 'static {
     /// Append an admitted job; `QueueFull` at capacity (cluster-wide where the backend is).
     async fn push(&self, id: &str) -> Result<(), JobError>;
-    /// Append regardless of capacity: jobs recovered at start were admitted before.
-    async fn push_recovered(&self, id: &str) -> Result<(), JobError>;
+    /// Append regardless of capacity: jobs recovered at start were admitted before. `delivered`
+    /// is how often the job was delivered already; its next lease is attempt `delivered + 1`.
+    async fn push_recovered(&self, id: &str, delivered: u32) -> Result<(), JobError>;
     /// Wait for the next job.
     async fn lease(&self) -> Result<Lease, JobError>;
     /// Take a waiting job out; `false` if no worker can be kept from it any more (it was

@@ -17,7 +17,8 @@ use tokio::sync::Notify;
 /// The in-process queue. Waiters are woken by a [`Notify`]; `notify_one` stores a permit when
 /// nobody waits, so a push between a worker's empty check and its wait is never lost.
 pub struct EmbeddedQueue {
-    items: Mutex<VecDeque<JobId>>,
+    /// Job ids with how often each was delivered before (by earlier processes).
+    items: Mutex<VecDeque<(JobId, u32)>>,
     capacity: usize,
     notify: Notify,
     /// `items.len()`, readable without the lock (`depth` is read on every metrics scrape).
@@ -34,7 +35,7 @@ impl EmbeddedQueue {
         }
     }
 
-    fn items(&self) -> std::sync::MutexGuard<'_, VecDeque<JobId>> {
+    fn items(&self) -> std::sync::MutexGuard<'_, VecDeque<(JobId, u32)>> {
         // A panic while holding this lock can only come from VecDeque itself (allocation
         // failure aborts anyway); the deque is still consistent, so recover the guard.
         self.items.lock().unwrap_or_else(|p| p.into_inner())
@@ -48,23 +49,23 @@ impl EmbeddedQueue {
             if items.len() >= self.capacity {
                 return false;
             }
-            items.push_back(id);
+            items.push_back((id, 0));
             self.depth.store(items.len(), Ordering::Relaxed);
         }
         self.notify.notify_one();
         true
     }
 
-    fn push_back(&self, id: JobId) {
+    fn push_back(&self, id: JobId, delivered: u32) {
         {
             let mut items = self.items();
-            items.push_back(id);
+            items.push_back((id, delivered));
             self.depth.store(items.len(), Ordering::Relaxed);
         }
         self.notify.notify_one();
     }
 
-    async fn pop(&self) -> JobId {
+    async fn pop(&self) -> (JobId, u32) {
         loop {
             let notified = self.notify.notified();
             let (next, more) = {
@@ -86,7 +87,7 @@ impl EmbeddedQueue {
 
     fn remove(&self, id: &str) -> bool {
         let mut items = self.items();
-        match items.iter().position(|x| x == id) {
+        match items.iter().position(|(x, _)| x == id) {
             Some(i) => {
                 items.remove(i);
                 self.depth.store(items.len(), Ordering::Relaxed);
@@ -101,6 +102,8 @@ impl EmbeddedQueue {
 struct EmbeddedLease {
     queue: Arc<EmbeddedQueue>,
     id: JobId,
+    /// Deliveries before this one.
+    delivered: u32,
 }
 
 #[async_trait]
@@ -114,7 +117,8 @@ impl LeaseControl for EmbeddedLease {
     }
 
     async fn release(&self) -> Result<(), JobError> {
-        self.queue.push_back(self.id.clone());
+        // A clean hand-back: the next lease is not one more delivery.
+        self.queue.push_back(self.id.clone(), self.delivered);
         Ok(())
     }
 }
@@ -136,19 +140,20 @@ impl WorkQueue for SharedQueue {
         }
     }
 
-    async fn push_recovered(&self, id: &str) -> Result<(), JobError> {
-        self.0.push_back(id.to_string());
+    async fn push_recovered(&self, id: &str, delivered: u32) -> Result<(), JobError> {
+        self.0.push_back(id.to_string(), delivered);
         Ok(())
     }
 
     async fn lease(&self) -> Result<Lease, JobError> {
-        let id = self.0.pop().await;
+        let (id, delivered) = self.0.pop().await;
         Ok(Lease {
             id: id.clone(),
-            attempt: 1,
+            attempt: delivered.saturating_add(1),
             control: Arc::new(EmbeddedLease {
                 queue: self.0.clone(),
                 id,
+                delivered,
             }),
         })
     }
@@ -200,8 +205,13 @@ mod tests {
         .into();
         assert_eq!(order, ["c", "d", "b"]);
         for id in ["e", "f", "g"] {
-            q.push_recovered(id).await.expect("recovered");
+            q.push_recovered(id, 2).await.expect("recovered");
         }
         assert_eq!(q.depth(), 3, "recovered jobs bypass the capacity");
+        assert_eq!(
+            q.lease().await.expect("lease").attempt,
+            3,
+            "a recovered job's lease counts its earlier deliveries"
+        );
     }
 }

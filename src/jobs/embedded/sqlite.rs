@@ -41,7 +41,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     started_at      INTEGER,
     finished_at     INTEGER,
     expires_at      INTEGER,
-    expired         INTEGER NOT NULL DEFAULT 0
+    expired         INTEGER NOT NULL DEFAULT 0,
+    crashes         INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_expiry ON jobs(expires_at) WHERE expired = 0;
@@ -151,6 +152,17 @@ impl SqliteStore {
         conn.pragma_update(None, "journal_mode", "WAL")?;
         conn.pragma_update(None, "synchronous", "NORMAL")?;
         conn.execute_batch(SCHEMA)?;
+        // Databases from before the crash count: add the column (SQLite has no
+        // `ADD COLUMN IF NOT EXISTS`).
+        let has_crashes: bool = conn
+            .prepare("SELECT 1 FROM pragma_table_info('jobs') WHERE name = 'crashes'")?
+            .exists([])?;
+        if !has_crashes {
+            conn.execute(
+                "ALTER TABLE jobs ADD COLUMN crashes INTEGER NOT NULL DEFAULT 0",
+                [],
+            )?;
+        }
         Ok(SqliteStore {
             conn: Arc::new(Mutex::new(conn)),
         })
@@ -537,7 +549,7 @@ impl JobStore for SqliteStore {
         .await
     }
 
-    async fn recover(&self) -> Result<Vec<JobId>, JobError> {
+    async fn recover(&self) -> Result<Vec<(JobId, u32)>, JobError> {
         self.blocking(move |s| {
             let mut conn = s.conn()?;
             let tx = conn.transaction()?;
@@ -547,12 +559,20 @@ impl JobStore for SqliteStore {
                 rows.collect::<Result<_, _>>()?
             };
             // Running jobs go back to the queue, at their place; their frames and checkpoint
-            // stay, and the worker that takes them resumes from the checkpoint.
-            tx.execute("UPDATE jobs SET state = 'queued' WHERE state = 'running'", [])?;
-            let queued: Vec<String> = {
-                let mut st =
-                    tx.prepare("SELECT id FROM jobs WHERE state = 'queued' ORDER BY seq")?;
-                let rows = st.query_map([], |r| r.get(0))?;
+            // stay, and the worker that takes them resumes from the checkpoint. They died with
+            // the process (a clean shutdown re-queues first), which counts as a delivery: a
+            // job that keeps killing the server fails `redelivered` instead of looping.
+            tx.execute(
+                "UPDATE jobs SET state = 'queued', crashes = crashes + 1 WHERE state = 'running'",
+                [],
+            )?;
+            let queued: Vec<(String, u32)> = {
+                let mut st = tx.prepare(
+                    "SELECT id, crashes FROM jobs WHERE state = 'queued' ORDER BY seq",
+                )?;
+                let rows = st.query_map([], |r| {
+                    Ok((r.get(0)?, u32::try_from(r.get::<_, i64>(1)?).unwrap_or(u32::MAX)))
+                })?;
                 rows.collect::<Result<_, _>>()?
             };
             tx.commit()?;

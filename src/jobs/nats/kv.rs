@@ -585,7 +585,7 @@ impl JobStore for KvStore {
         Ok(swept)
     }
 
-    async fn recover(&self) -> Result<Vec<JobId>, JobError> {
+    async fn recover(&self) -> Result<Vec<(JobId, u32)>, JobError> {
         // The work-queue stream is durable: queued jobs are still in it, and running ones are
         // delivered again when their lease lapses.
         Ok(Vec::new())

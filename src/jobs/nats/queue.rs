@@ -180,7 +180,7 @@ impl WorkQueue for NatsQueue {
         }
     }
 
-    async fn push_recovered(&self, id: &str) -> Result<(), JobError> {
+    async fn push_recovered(&self, id: &str, _delivered: u32) -> Result<(), JobError> {
         self.push(id).await
     }
 
