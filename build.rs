@@ -57,6 +57,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // One file with the nested `google::…` / `willow::v1` modules, so the generated
         // cross-package paths (`super::super::google::…`) resolve.
         .include_file("willow_proto.rs")
+        // tonic-prost's codec, except that a request that does not decode is INVALID_ARGUMENT
+        // rather than INTERNAL (src/api/codec.rs).
+        .codec_path("crate::api::codec::ProtoCodec")
         .compile_fds(fds)?;
     Ok(())
 }

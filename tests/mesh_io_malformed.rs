@@ -464,3 +464,76 @@ fn token_mutations_of_an_obj_never_panic() {
         "some harmless mutations (e.g. in comments) must be accepted"
     );
 }
+
+#[test]
+fn obj_faces_of_one_or_two_vertices_are_refused_by_line() {
+    for short in ["f 1 2", "f 3", "f 1// 2//"] {
+        let e = refuse(format!("{QUAD_OBJ}{short}\n").as_bytes(), Format::Obj);
+        assert_eq!(e.code(), "parse_error", "{short}: {e}");
+        assert!(e.to_string().contains("line 7"), "{short}: {e}");
+        assert!(
+            e.to_string().contains("at least 3 vertices"),
+            "{short}: {e}"
+        );
+    }
+    // `l` and `p` with one or two vertices are still lines and points.
+    Asset::read(
+        format!("{QUAD_OBJ}l 1 2\np 3\n").as_bytes(),
+        Format::Obj,
+        &Limits::default(),
+    )
+    .expect("lines and points next to faces are kept as text");
+}
+
+#[test]
+fn obj_with_a_utf8_bom_keeps_its_first_vertex_and_the_mark() {
+    let with_bom = format!("\u{feff}{QUAD_OBJ}");
+    let asset = Asset::read(with_bom.as_bytes(), Format::Obj, &Limits::default())
+        .expect("a BOM is accepted");
+    let plain =
+        Asset::read(QUAD_OBJ.as_bytes(), Format::Obj, &Limits::default()).expect("plain OBJ");
+    assert_eq!(asset.file_vertex_count(), 4);
+    assert_eq!(asset.surface().positions, plain.surface().positions);
+    // Written back, the text (mark included) is the same, numbers in their place.
+    let out = asset
+        .write(&asset.surface().positions, Format::Obj)
+        .expect("writes");
+    let text = String::from_utf8(out).expect("UTF-8");
+    assert!(text.starts_with('\u{feff}'), "{text:?}");
+    let again = Asset::read(text.as_bytes(), Format::Obj, &Limits::default()).expect("rereads");
+    assert_eq!(again.surface().positions, plain.surface().positions);
+}
+
+#[test]
+fn huge_finite_coordinates_are_refused_at_read_time() {
+    let e = refuse(
+        QUAD_OBJ.replace("v 1 0 0", "v 1e300 0 0").as_bytes(),
+        Format::Obj,
+    );
+    assert_eq!(e.code(), "coordinate_out_of_range", "{e}");
+    assert!(e.to_string().contains("first: 1"), "{e}");
+    // Just inside the bound is a mesh (the flow may still find it hard; it is not refused).
+    Asset::read(
+        QUAD_OBJ.replace("v 1 0 0", "v 1e14 0 0").as_bytes(),
+        Format::Obj,
+        &Limits::default(),
+    )
+    .expect("1e14 is in range");
+    // glTF: a node scale that takes the world positions out of range.
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["nodes"][0]["scale"] = serde_json::json!([1e20, 1.0, 1.0]);
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(e.code(), "coordinate_out_of_range", "{e}");
+}
+
+#[test]
+fn gltf_1_0_is_refused() {
+    let (mut json, bin, _, _) = textured_cube_gltf();
+    json["asset"]["version"] = serde_json::json!("1.0");
+    let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
+    assert_eq!(e.code(), "unsupported", "{e}");
+    assert!(e.to_string().contains("2.x"), "{e}");
+    json["asset"]["version"] = serde_json::json!("2.1");
+    Asset::read(&glb_bytes(&json, &bin), Format::Glb, &Limits::default())
+        .expect("2.x minor versions are read");
+}

@@ -1825,3 +1825,114 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
     );
     service_http_support::assert_obj_result_is_frame(&text, &frame, 162);
 }
+
+// ---------------------------------------------------------------------------------------------
+// Issue 12, part 4: one error contract.
+
+/// A unary call with hand-made request bytes over h2c; returns `grpc-status` and
+/// `grpc-message` (a request refused before the handler runs is a trailers-only response:
+/// both are headers).
+async fn raw_unary(addr: &str, method: &str, message: &[u8]) -> (String, String) {
+    let client = reqwest::Client::builder()
+        .http2_prior_knowledge()
+        .build()
+        .expect("h2c client");
+    let mut body = vec![0u8];
+    body.extend_from_slice(&(message.len() as u32).to_be_bytes());
+    body.extend_from_slice(message);
+    let res = client
+        .post(format!("{addr}/willow.v1.Fairing/{method}"))
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .body(body)
+        .send()
+        .await
+        .expect("raw gRPC call");
+    let header = |name: &str| {
+        res.headers()
+            .get(name)
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("")
+            .to_string()
+    };
+    (header("grpc-status"), header("grpc-message"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_protobuf_and_invalid_utf8_are_invalid_argument() {
+    let server = Server::start(|_| {}).await;
+    // GetJobRequest.name (field 1, length-delimited) claims 5 bytes and has 1: truncated.
+    let (status, message) = raw_unary(&server.addr, "GetJob", &[0x0a, 0x05, b'a']).await;
+    assert_eq!(status, "3", "truncated message: {message}");
+    // The same field holding bytes that are not UTF-8.
+    let (status, message) = raw_unary(&server.addr, "GetJob", &[0x0a, 0x02, 0xff, 0xfe]).await;
+    assert_eq!(status, "3", "invalid UTF-8: {message}");
+    // A well-formed request still reaches the handler (NOT_FOUND for an unknown job).
+    let ok = v1::GetJobRequest {
+        name: format!("jobs/{}", uuid()),
+    }
+    .encode_to_vec();
+    let (status, _) = raw_unary(&server.addr, "GetJob", &ok).await;
+    assert_eq!(status, "5");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn negative_from_step_is_refused_not_waited_on() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let op = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, small_obj()),
+        params(v1::Method::Conformal, 2),
+        &uuid(),
+    )
+    .await
+    .expect("CreateJob");
+    // A client's int32 -1 arrives in the uint32 field as u32::MAX.
+    for from_step in [u32::MAX, i32::MAX as u32 + 1, 1_000_000] {
+        let result = tokio::time::timeout(
+            PATIENCE,
+            client.stream_frames(v1::StreamFramesRequest {
+                name: op.name.clone(),
+                from_step,
+            }),
+        )
+        .await
+        .expect("answered, not left waiting");
+        assert_bad_field(result.map(|_| ()), "from_step");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn long_user_text_is_capped_in_status_messages() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let long = "x".repeat(1 << 20);
+    let status = client
+        .get_job(v1::GetJobRequest {
+            name: format!("jobs/{long}"),
+        })
+        .await
+        .expect_err("no such job");
+    assert_eq!(status.code(), Code::NotFound, "{}", &status.message()[..80]);
+    assert!(
+        status.message().chars().count() <= 1025,
+        "{} chars",
+        status.message().len()
+    );
+    let status = client
+        .create_job(v1::CreateJobRequest {
+            mesh: Some(v1::create_job_request::Mesh::Upload(format!(
+                "uploads/{long}"
+            ))),
+            params: Some(params(v1::Method::Conformal, 2)),
+            request_id: uuid(),
+        })
+        .await
+        .expect_err("no such upload");
+    assert!(
+        status.message().chars().count() <= 1025,
+        "{} chars",
+        status.message().len()
+    );
+}

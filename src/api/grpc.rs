@@ -23,6 +23,7 @@ use prost::Message as _;
 use tonic::{Code, Request, Response, Status, Streaming};
 use tonic_types::{ErrorDetails, StatusExt};
 
+use super::problem::cap_detail;
 use crate::flow::Method;
 use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
@@ -341,6 +342,24 @@ impl v1::fairing_server::Fairing for GrpcApi {
         use v1::stream_frames_response::Event;
         let request = request.into_inner();
         let id = parse_name("name", "jobs/", &request.name)?;
+        // No job has more steps than the server's limit, so a `from_step` beyond it could only
+        // wait for the terminal message without a frame: it is a client bug, most often a
+        // negative number (a client's int32 -1 arrives in this uint32 field as 4294967295).
+        let max_steps = self.jobs.config().limits.max_steps;
+        if request.from_step as usize > max_steps.saturating_add(1) {
+            let shown = if request.from_step > i32::MAX as u32 {
+                format!("{} (a negative number?)", request.from_step as i32)
+            } else {
+                request.from_step.to_string()
+            };
+            return Err(bad_request(
+                "from_step",
+                format!(
+                    "must be between 0 and {} (the server's step limit + 1), got {shown}",
+                    max_steps.saturating_add(1)
+                ),
+            ));
+        }
         let events = self
             .jobs
             .watch(&id, request.from_step as usize)
@@ -651,10 +670,10 @@ impl tonic_health::pb::health_server::Health for HealthService {
 /// INVALID_ARGUMENT with a `google.rpc.BadRequest` naming `field` (a path in the request, as
 /// AIP-193 asks: `params.tau`, `inline_mesh.data`, …).
 fn bad_request(field: &str, description: impl Into<String>) -> Status {
-    let description = description.into();
+    let description = cap_detail(description.into());
     Status::with_error_details(
         Code::InvalidArgument,
-        format!("invalid `{field}`: {description}"),
+        cap_detail(format!("invalid `{field}`: {description}")),
         ErrorDetails::with_bad_request_violation(field, description),
     )
 }
@@ -683,17 +702,24 @@ fn spec_field(core_field: &str) -> String {
 /// Map a job-core error to its status. `mesh_field` is the request field that carried the mesh
 /// (or the job name), so field violations point at what the client sent.
 fn job_error(err: JobError, mesh_field: &str) -> Status {
-    let message = err.to_string();
+    // The core's messages may echo user input (a parameter value, a parser's complaint about
+    // the mesh): capped so the status stays small enough to travel in a header.
+    let message = cap_detail(err.to_string());
     let mut details = ErrorDetails::new();
     let code = match &err {
         JobError::NotFound(id) => {
-            details.set_resource_info("willow.v1.Job", format!("jobs/{id}"), "", "no such job");
+            details.set_resource_info(
+                "willow.v1.Job",
+                format!("jobs/{}", clip(id)),
+                "",
+                "no such job",
+            );
             Code::NotFound
         }
         JobError::Gone(id) => {
             details.set_resource_info(
                 "willow.v1.Job",
-                format!("jobs/{id}"),
+                format!("jobs/{}", clip(id)),
                 "",
                 "the job expired and its results were deleted",
             );
@@ -703,7 +729,7 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
         JobError::UploadNotFound(id) => {
             details.set_resource_info(
                 "willow.v1.Upload",
-                format!("uploads/{id}"),
+                format!("uploads/{}", clip(id)),
                 "",
                 "no such upload (uploads expire like jobs)",
             );
@@ -712,7 +738,7 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
         JobError::FrameNotFound { id, step, detail } => {
             details.set_resource_info(
                 "willow.v1.Frame",
-                format!("jobs/{id}/frames/{step}"),
+                format!("jobs/{}/frames/{step}", clip(id)),
                 "",
                 detail.clone(),
             );
@@ -731,7 +757,7 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
             Code::ResourceExhausted
         }
         JobError::InvalidMesh(mesh) => {
-            details.add_bad_request_violation(mesh_field, mesh.to_string());
+            details.add_bad_request_violation(mesh_field, cap_detail(mesh.to_string()));
             details.set_error_info(
                 mesh.code().to_ascii_uppercase(),
                 ERROR_DOMAIN,
@@ -740,7 +766,7 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
             Code::InvalidArgument
         }
         JobError::InvalidSpec { field, reason } => {
-            details.add_bad_request_violation(spec_field(field), reason.clone());
+            details.add_bad_request_violation(spec_field(field), cap_detail(reason.clone()));
             Code::InvalidArgument
         }
         // A step count over the limit is a parameter out of range, not a resource.
@@ -783,7 +809,7 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
             Code::Unavailable
         }
         JobError::InvalidCurve(curve) => {
-            details.add_bad_request_violation(mesh_field, curve.to_string());
+            details.add_bad_request_violation(mesh_field, cap_detail(curve.to_string()));
             details.set_error_info(
                 crate::jobs::curve::curve_error_code(curve).to_ascii_uppercase(),
                 ERROR_DOMAIN,

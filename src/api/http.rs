@@ -10,7 +10,7 @@
 // most one is built per request, so moving it costs nothing measurable next to the I/O.
 #![allow(clippy::result_large_err)]
 
-use super::problem::Problem;
+use super::problem::{clip, Problem};
 use crate::flow::Method;
 use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
@@ -90,6 +90,7 @@ pub struct JobParams {
     /// `conformal` (default), `mcf`, `cmcf`, `bilaplacian` or `taubin`.
     pub method: Option<String>,
     /// Flow steps to take (default 20).
+    #[schema(minimum = 1)]
     pub steps: Option<usize>,
     /// Time step τ (default 0.5; conformal needs 0 < τ < 1).
     pub tau: Option<f64>,
@@ -177,6 +178,7 @@ pub struct JobQuery {
     /// `conformal` (default), `mcf`, `cmcf`, `bilaplacian` or `taubin`.
     pub method: Option<String>,
     /// Flow steps to take (default 20).
+    #[param(minimum = 1)]
     pub steps: Option<usize>,
     /// Time step τ (default 0.5; conformal needs 0 < τ < 1).
     pub tau: Option<f64>,
@@ -482,7 +484,8 @@ pub struct FrameList {
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]
 pub struct FormatQuery {
-    /// `glb` (default), `gltf` or `obj`.
+    /// `glb`, `gltf` or `obj`. Default: a frame is `glb`; the result is in the input's own
+    /// format, as gRPC `DownloadResult` sends it (what you upload is what you get back).
     pub format: Option<String>,
 }
 
@@ -510,19 +513,49 @@ pub struct FrameEvent {
 // ---------------------------------------------------------------------------------------------
 // Helpers
 
+/// The query string as `T`. Parsed here rather than by axum's `Query`, whose rejection is text
+/// without the parameter's name: a type error (`?tau=abc`, `?steps=1.5`) becomes 400
+/// `invalid_parameter` with `field` = the parameter, as every other parameter error does.
 fn query<T: serde::de::DeserializeOwned>(uri: &Uri) -> Result<T, Problem> {
-    axum::extract::Query::<T>::try_from_uri(uri)
-        .map(|q| q.0)
-        .map_err(|e| Problem::bad_request("invalid_parameter", e.body_text()))
-}
-
-fn parse_out_format(q: &FormatQuery) -> Result<Format, Problem> {
-    match &q.format {
-        None => Ok(Format::Glb),
-        Some(f) => parse_format(f).ok_or_else(|| {
+    let raw = uri.query().unwrap_or("");
+    let de = serde_urlencoded::Deserializer::new(form_urlencoded::parse(raw.as_bytes()));
+    serde_path_to_error::deserialize(de).map_err(|e| {
+        let field = e.path().to_string();
+        let inner = e.into_inner().to_string();
+        // An unknown parameter has no path (it is not a field of `T`): name it from the message.
+        let field = if field.is_empty() || field == "." || field == "?" {
+            unknown_field_name(&inner).unwrap_or_default()
+        } else {
+            field
+        };
+        if field.is_empty() {
             Problem::bad_request(
                 "invalid_parameter",
-                format!("invalid parameter `format`: expected `glb`, `gltf` or `obj`, got `{f}`"),
+                format!("invalid query string: {}", clip(&inner)),
+            )
+        } else {
+            bad_field(&field, clip(&inner))
+        }
+    })
+}
+
+/// The name in serde's "unknown field `x`, expected …".
+fn unknown_field_name(message: &str) -> Option<String> {
+    let rest = message.strip_prefix("unknown field `")?;
+    Some(rest.split_once('`')?.0.to_string())
+}
+
+/// The requested output format; `None` when the query names none (each route has its default).
+fn parse_out_format(q: &FormatQuery) -> Result<Option<Format>, Problem> {
+    match &q.format {
+        None => Ok(None),
+        Some(f) => parse_format(f).map(Some).ok_or_else(|| {
+            Problem::bad_request(
+                "invalid_parameter",
+                format!(
+                    "invalid parameter `format`: expected `glb`, `gltf` or `obj`, got `{}`",
+                    clip(f)
+                ),
             )
             .with("field", "format")
         }),
@@ -662,6 +695,7 @@ async fn create_job_inner(st: &AppState, req: Request) -> Result<JobStatus, Prob
             }));
         }
     }
+    let query_given = req.uri().query().is_some_and(|q| !q.is_empty());
     let query_params = query::<JobQuery>(req.uri())?.into_params()?;
 
     let (data, format, params) = if let Some(format) = format_of_media_type(&content_type) {
@@ -676,7 +710,7 @@ async fn create_job_inner(st: &AppState, req: Request) -> Result<JobStatus, Prob
         .to_ascii_lowercase()
         .starts_with("multipart/form-data")
     {
-        read_multipart(req, limit, query_params).await?
+        read_multipart(req, limit, query_params, query_given).await?
     } else {
         return Err(unsupported_media_type(&content_type));
     };
@@ -691,6 +725,7 @@ async fn read_multipart(
     req: Request,
     limit: u64,
     query_params: JobParams,
+    query_given: bool,
 ) -> Result<(bytes::Bytes, Format, JobParams), Problem> {
     let mut mp = axum::extract::Multipart::from_request(req, &())
         .await
@@ -707,6 +742,20 @@ async fn read_multipart(
             Err(e) => return Err(Problem::bad_request("invalid_multipart", e.body_text())),
         };
         let name = field.name().unwrap_or("").to_string();
+        // A second `mesh` or `params` part would silently replace the first: refuse it, so a
+        // client that meant to send one job's worth learns what it actually sent.
+        let seen = match name.as_str() {
+            "mesh" => mesh.is_some(),
+            "params" => params.is_some(),
+            _ => false,
+        };
+        if seen {
+            return Err(Problem::bad_request(
+                "invalid_multipart",
+                format!("more than one `{name}` part: send exactly one"),
+            )
+            .with("field", name));
+        }
         match name.as_str() {
             "mesh" => {
                 let by_type = field.content_type().and_then(format_of_media_type);
@@ -741,6 +790,16 @@ async fn read_multipart(
                 mesh = Some((data, format));
             }
             "params" => {
+                // Two sources of parameters would have to be merged by rules nobody reads:
+                // one request, one place.
+                if query_given {
+                    return Err(Problem::bad_request(
+                        "invalid_parameter",
+                        "parameters given both in the `params` part and in the query string: \
+                         send them in one place",
+                    )
+                    .with("field", "params"));
+                }
                 let text = field
                     .bytes()
                     .await
@@ -757,7 +816,10 @@ async fn read_multipart(
             other => {
                 return Err(Problem::bad_request(
                     "invalid_multipart",
-                    format!("unexpected part `{other}`: only `mesh` and `params` are accepted"),
+                    format!(
+                        "unexpected part `{}`: only `mesh` and `params` are accepted",
+                        clip(other)
+                    ),
                 ))
             }
         }
@@ -771,8 +833,8 @@ async fn read_multipart(
 /// The job's status (poll this).
 #[utoipa::path(get, path = "/v1/jobs/{id}", tag = "jobs",
     params(("id" = String, Path)),
-    responses((status = 200, body = JobView),
-        (status = 404, body = Problem, content_type = "application/problem+json"),
+    responses((status = 200, description = "The job", body = JobView),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
     record_job(&id);
@@ -786,8 +848,8 @@ pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Resp
 
 /// Jobs, newest first, paged.
 #[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(ListQuery),
-    responses((status = 200, body = JobList),
-        (status = 400, body = Problem, content_type = "application/problem+json")))]
+    responses((status = 200, description = "A page of jobs, newest first", body = JobList),
+        (status = 400, description = "Bad parameters (`state`, `page_size`, `page_token`; the field is named)", body = Problem, content_type = "application/problem+json")))]
 pub async fn list_jobs(State(st): State<AppState>, uri: Uri) -> Response {
     let run = async {
         let q: ListQuery = query(&uri)?;
@@ -820,7 +882,7 @@ pub async fn list_jobs(State(st): State<AppState>, uri: Uri) -> Response {
 #[utoipa::path(post, path = "/v1/jobs/{id}/cancel", tag = "jobs",
     params(("id" = String, Path)),
     responses((status = 202, description = "Cancelled, or cancellation requested (a running job stops at its next step)", body = JobView),
-        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Already finished", body = Problem, content_type = "application/problem+json")))]
 pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
     record_job(&id);
@@ -836,7 +898,7 @@ pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> R
 #[utoipa::path(delete, path = "/v1/jobs/{id}", tag = "jobs",
     params(("id" = String, Path)),
     responses((status = 204, description = "Deleted"),
-        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Queued or running", body = Problem, content_type = "application/problem+json")))]
 pub async fn delete_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
     record_job(&id);
@@ -853,7 +915,7 @@ pub async fn delete_job(State(st): State<AppState>, Path(id): Path<String>) -> R
     params(("id" = String, Path), EventsQuery,
         ("Last-Event-ID" = Option<String>, Header, description = "Resume after this step")),
     responses((status = 200, description = "text/event-stream; frame data is a FrameEvent", body = FrameEvent, content_type = "text/event-stream"),
-        (status = 404, body = Problem, content_type = "application/problem+json")))]
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_events(
     State(st): State<AppState>,
     Path(id): Path<String>,
@@ -863,12 +925,29 @@ pub async fn job_events(
     record_job(&id);
     let q: EventsQuery = match query(&uri) {
         Ok(q) => q,
-        Err(p) => return p.into_response(),
+        Err(p) => return p.instance(format!("/v1/jobs/{id}/events")).into_response(),
     };
-    let last_event = headers
-        .get("last-event-id")
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.trim().parse::<usize>().ok());
+    // A Last-Event-ID this server never sent (not a step number) is refused: replaying from
+    // step 0 instead would hand the client frames it already has as if they were new.
+    let last_event = match headers.get("last-event-id") {
+        None => None,
+        Some(v) => match v.to_str().ok().and_then(|v| v.trim().parse::<usize>().ok()) {
+            Some(n) => Some(n),
+            None => {
+                return Problem::bad_request(
+                    "invalid_parameter",
+                    format!(
+                        "invalid header `Last-Event-ID`: expected the step number of an event \
+                         this stream sent, got `{}`",
+                        clip(&String::from_utf8_lossy(v.as_bytes()))
+                    ),
+                )
+                .with("field", "Last-Event-ID")
+                .instance(format!("/v1/jobs/{id}/events"))
+                .into_response()
+            }
+        },
+    };
     let from = match last_event {
         Some(n) => n.saturating_add(1),
         None => q.from_step.unwrap_or(0),
@@ -917,9 +996,9 @@ fn sse_event(ev: JobEvent) -> Event {
 /// Metrics of every step, paged by step.
 #[utoipa::path(get, path = "/v1/jobs/{id}/frames", tag = "jobs",
     params(("id" = String, Path), FramesQuery),
-    responses((status = 200, body = FrameList),
-        (status = 404, body = Problem, content_type = "application/problem+json"),
-        (status = 410, body = Problem, content_type = "application/problem+json")))]
+    responses((status = 200, description = "A page of step metrics", body = FrameList),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn list_frames(State(st): State<AppState>, Path(id): Path<String>, uri: Uri) -> Response {
     record_job(&id);
     let run = async {
@@ -944,7 +1023,7 @@ pub async fn list_frames(State(st): State<AppState>, Path(id): Path<String>, uri
     params(("id" = String, Path), ("step" = usize, Path), FormatQuery),
     responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
-        (status = 410, body = Problem, content_type = "application/problem+json")))]
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
     State(st): State<AppState>,
     Path((id, step)): Path<(String, String)>,
@@ -959,7 +1038,7 @@ pub async fn frame_mesh(
             )
             .with("field", "step")
         })?;
-        let format = parse_out_format(&query(&uri)?)?;
+        let format = parse_out_format(&query(&uri)?)?.unwrap_or(Format::Glb);
         let bytes = st.jobs.frame_mesh(&id, step, format).await?;
         Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, bytes))
     };
@@ -969,17 +1048,21 @@ pub async fn frame_mesh(
     }
 }
 
-/// The faired mesh, with the input's UVs, materials and textures.
+/// The faired mesh, with the input's UVs, materials and textures; in the input's format unless
+/// `format` asks for another.
 #[utoipa::path(get, path = "/v1/jobs/{id}/result", tag = "jobs",
     params(("id" = String, Path), FormatQuery),
     responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
-        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_result(State(st): State<AppState>, Path(id): Path<String>, uri: Uri) -> Response {
     record_job(&id);
     let run = async {
-        let format = parse_out_format(&query(&uri)?)?;
+        let format = match parse_out_format(&query(&uri)?)? {
+            Some(f) => f,
+            None => st.jobs.get(&id).await?.input_format,
+        };
         let bytes = st.jobs.result(&id, format).await?;
         Ok::<_, Problem>(mesh_response(&id, "result", format, bytes))
     };
@@ -995,6 +1078,7 @@ pub async fn job_result(State(st): State<AppState>, Path(id): Path<String>, uri:
 #[into_params(parameter_in = Query)]
 pub struct CurveQuery {
     /// Flow steps (default 8; the flow reaches its minimum in about six at τ = 0.5).
+    #[param(minimum = 1)]
     pub steps: Option<usize>,
     /// Time step τ, 0 < τ < 1 (default 0.5): unconstrained curvature becomes (1 − 2τ)κ.
     pub tau: Option<f64>,
@@ -1023,6 +1107,7 @@ pub struct CurveFrameView {
 /// The parameters a curve request ran with, defaults filled in.
 #[derive(Debug, Serialize, ToSchema)]
 pub struct CurveParamsView {
+    #[schema(minimum = 1)]
     pub steps: usize,
     pub tau: f64,
     pub frame_interval: Option<usize>,
@@ -1250,20 +1335,47 @@ pub async fn no_route(req: Request<Body>) -> Response {
     .into_response()
 }
 
-/// Turn any 413 produced below the handlers (tower-http's body limit) into a problem that
-/// names the limit.
+/// Turn the errors produced below the handlers into problems: a 413 from tower-http's body
+/// limit (plain text, no limit named) and axum's 405 for a known path with another method
+/// (empty body). The 405 keeps its `Allow` header.
 pub async fn problem_for_plain_413(
     State(limit): State<u64>,
     req: Request<Body>,
     next: axum::middleware::Next,
 ) -> Response {
+    let method = req.method().clone();
+    let path = req.uri().path().to_string();
     let res = next.run(req).await;
     let is_problem = res
         .headers()
         .get(header::CONTENT_TYPE)
         .is_some_and(|v| v.as_bytes().starts_with(b"application/problem+json"));
-    if res.status() == StatusCode::PAYLOAD_TOO_LARGE && !is_problem {
-        return Problem::too_large("request body bytes", limit).into_response();
+    if is_problem {
+        return res;
     }
-    res
+    match res.status() {
+        StatusCode::PAYLOAD_TOO_LARGE => Problem::too_large("request body bytes", limit)
+            .instance(path)
+            .into_response(),
+        StatusCode::METHOD_NOT_ALLOWED => {
+            let allow = res.headers().get(header::ALLOW).cloned();
+            let allowed = allow
+                .as_ref()
+                .and_then(|v| v.to_str().ok())
+                .unwrap_or("")
+                .to_string();
+            let mut out = Problem::new(
+                StatusCode::METHOD_NOT_ALLOWED,
+                "method_not_allowed",
+                format!("{method} is not allowed on {path}; allowed: {allowed}"),
+            )
+            .instance(path)
+            .into_response();
+            if let Some(v) = allow {
+                out.headers_mut().insert(header::ALLOW, v);
+            }
+            out
+        }
+        _ => res,
+    }
 }

@@ -7,7 +7,9 @@
 //! - [`web`]: the web page at `/` (issue 13), its files embedded at build time.
 //! - [`grpc`]: the tonic services (package `willow.v1`, longrunning Operations, health,
 //!   reflection), merged into the same router by [`server::app`].
+//! - [`codec`]: their protobuf codec (a request that does not decode is INVALID_ARGUMENT).
 
+pub mod codec;
 pub mod grpc;
 pub mod http;
 pub mod problem;

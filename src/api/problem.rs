@@ -39,13 +39,48 @@ fn ser_status<S: serde::Serializer>(s: &StatusCode, ser: S) -> Result<S::Ok, S::
     ser.serialize_u16(s.as_u16())
 }
 
+/// Longest piece of user input (a name, a parameter value, a parser's message about it) echoed
+/// in an error: enough to recognise it, and a 1 MB bogus value does not become a 1 MB error.
+pub const MAX_ECHO_CHARS: usize = 256;
+
+/// Longest error message (`detail`, `grpc-message`) as a whole: the fixed text plus a few
+/// clipped echoes. gRPC sends the message in a header, which proxies and clients cap at 8 to
+/// 16 KiB, so this also keeps every status deliverable.
+pub const MAX_DETAIL_CHARS: usize = 1024;
+
+/// At most [`MAX_ECHO_CHARS`] characters of `s`, with an ellipsis when cut.
+pub fn clip(s: &str) -> String {
+    clip_to(s, MAX_ECHO_CHARS)
+}
+
+/// An error message capped at [`MAX_DETAIL_CHARS`]: the backstop for any path that echoes
+/// user text without clipping it first.
+pub fn cap_detail(s: String) -> String {
+    if s.chars().count() <= MAX_DETAIL_CHARS {
+        s
+    } else {
+        clip_to(&s, MAX_DETAIL_CHARS)
+    }
+}
+
+fn clip_to(s: &str, max: usize) -> String {
+    if s.chars().count() <= max {
+        s.to_string()
+    } else {
+        let mut out: String = s.chars().take(max).collect();
+        out.push('…');
+        out
+    }
+}
+
 impl Problem {
     pub fn new(status: StatusCode, code: &str, detail: impl Into<String>) -> Problem {
+        let detail = cap_detail(detail.into());
         Problem {
             type_: format!("urn:willow:problem:{code}"),
             title: status.canonical_reason().unwrap_or("Error").to_string(),
             status,
-            detail: detail.into(),
+            detail,
             instance: None,
             code: code.to_string(),
             extensions: Map::new(),
@@ -53,13 +88,20 @@ impl Problem {
         }
     }
 
+    /// An extension member. Text values are clipped: they are often user input (a job id
+    /// from the path, a field name from the query).
     pub fn with(mut self, key: &str, value: impl Into<Value>) -> Problem {
-        self.extensions.insert(key.to_string(), value.into());
+        let value = match value.into() {
+            Value::String(s) => Value::String(clip(&s)),
+            other => other,
+        };
+        self.extensions.insert(key.to_string(), value);
         self
     }
 
+    /// The request path (clipped: it holds the client's ids).
     pub fn instance(mut self, path: impl Into<String>) -> Problem {
-        self.instance = Some(path.into());
+        self.instance = Some(clip(&path.into()));
         self
     }
 

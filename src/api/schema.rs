@@ -17,6 +17,7 @@ pub struct JobSpecSchema {
     #[schema(example = "conformal")]
     pub method: String,
     /// Number of flow steps to take (step 0 is the input).
+    #[schema(minimum = 1)]
     pub steps: usize,
     /// Time step τ (conformal: the curvature update `u ← (1 − 2τ)u`, stable for τ < 1).
     pub tau: f64,

@@ -184,11 +184,13 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
         jobs: jobs.clone(),
         streams_stop,
     })
+    .layer(RequestBodyLimitLayer::new(body_limit))
+    // Outside the body limit: a Content-Length over it is refused by that layer itself, before
+    // any inner layer runs, and that plain-text 413 must become a problem too.
     .layer(axum::middleware::from_fn_with_state(
         limit.saturating_add(MULTIPART_SLACK),
         http::problem_for_plain_413,
     ))
-    .layer(RequestBodyLimitLayer::new(body_limit))
     .layer(DefaultBodyLimit::max(body_limit))
     .layer(cors);
 

@@ -198,7 +198,18 @@ impl Jobs {
             0 => 50,
             n => n.min(1000),
         };
-        self.inner.backend.store.list(state, size, page_token).await
+        // Backends' tokens are positions (`seq:N`, `at:T:ID`): a hand-edited one still decodes
+        // and silently lists the wrong page (or nothing). The core seals them with a checksum
+        // so any token it did not hand out is refused, on every backend, with `page_token` named.
+        let inner = match page_token.as_deref() {
+            None | Some("") => None,
+            Some(t) => Some(unseal_page_token(t).ok_or_else(|| JobError::InvalidSpec {
+                field: "page_token",
+                reason: "not a token this server returned".into(),
+            })?),
+        };
+        let (jobs, next) = self.inner.backend.store.list(state, size, inner).await?;
+        Ok((jobs, next.map(|t| seal_page_token(&t))))
     }
 
     /// Cancel a job. Queued: removed from the queue and cancelled now. Running (on any node):
@@ -548,4 +559,23 @@ pub(crate) fn join_err(e: tokio::task::JoinError) -> JobError {
 
 pub(crate) fn poisoned<T>(_: std::sync::PoisonError<T>) -> JobError {
     JobError::Internal("a lock was poisoned by a panicking thread".into())
+}
+
+/// `{token}.{check}`: the backend's page token and 16 hex digits of SHA-256 over it. Not a
+/// secret (nodes share no key): it catches edited and made-up tokens, which is what matters for
+/// a position cursor; a token is no capability.
+fn seal_page_token(token: &str) -> String {
+    format!("{token}.{}", page_token_check(token))
+}
+
+/// The backend's token inside a sealed one, if the check matches.
+fn unseal_page_token(sealed: &str) -> Option<String> {
+    let (token, check) = sealed.rsplit_once('.')?;
+    (!token.is_empty() && check == page_token_check(token)).then(|| token.to_string())
+}
+
+fn page_token_check(token: &str) -> String {
+    use sha2::{Digest, Sha256};
+    let digest = Sha256::digest(format!("willow page token v1:{token}").as_bytes());
+    digest[..8].iter().map(|b| format!("{b:02x}")).collect()
 }

@@ -92,6 +92,19 @@ pub enum MeshError {
     #[error("{} vertices have non-finite (NaN or infinite) coordinates; first: {}", .vertices.count, .vertices)]
     NonFinite { vertices: Offenders<usize> },
 
+    /// Some coordinates are finite but larger in magnitude than
+    /// [`MAX_COORDINATE`](super::validate::MAX_COORDINATE): the flow's squared quantities would
+    /// overflow or lose all precision later, so they are refused when the mesh is read.
+    #[error(
+        "{} vertices have coordinates of magnitude above {limit:e}; first: {}; scale the model down",
+        .vertices.count,
+        .vertices
+    )]
+    CoordinateOutOfRange {
+        vertices: Offenders<usize>,
+        limit: f64,
+    },
+
     /// Some triangle corners name a vertex that does not exist.
     #[error(
         "{} triangles reference vertices out of range (the mesh has {vertex_count} vertices); \
@@ -181,6 +194,7 @@ impl MeshError {
             MeshError::Empty { .. } => "empty_mesh",
             MeshError::PointsOrLinesOnly { .. } => "no_triangles",
             MeshError::NonFinite { .. } => "non_finite_coordinate",
+            MeshError::CoordinateOutOfRange { .. } => "coordinate_out_of_range",
             MeshError::IndexOutOfRange { .. } => "index_out_of_range",
             MeshError::DegenerateFaces { .. } => "degenerate_face",
             MeshError::UnreferencedVertices { .. } => "unreferenced_vertex",

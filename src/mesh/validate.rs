@@ -3,12 +3,20 @@
 //!
 //! Checks run cheapest and most basic first, so each later check may rely on the earlier ones
 //! (e.g. the edge table needs in-range indices):
-//! size limits → empty → non-finite coordinates → indices in range → degenerate faces →
+//! size limits → empty → non-finite or out-of-range coordinates → indices in range → degenerate faces →
 //! unreferenced vertices → non-manifold edges → non-manifold vertices → orientation.
 
 use super::error::{MeshError, Offenders};
 use super::topology::EdgeTable;
 use super::Mesh;
+
+/// Largest coordinate magnitude a mesh may have. The flow squares lengths (|e|² ≈ 4·10³⁰ here)
+/// and areas (|e₁ × e₂|² ≈ 10⁶¹) and multiplies those again in the cotan weights, mass matrix
+/// and Willmore energy; from 10¹⁵ all of that stays far inside f64's 1.8·10³⁰⁸, while a 1e300
+/// coordinate is finite on input and overflows to infinity in its first squared length. It is
+/// also where f64 still resolves 1/8 of a unit (below 2⁵³ ≈ 9·10¹⁵), and real models sit far
+/// inside it (the Earth is 1.3·10¹⁰ mm across).
+pub const MAX_COORDINATE: f64 = 1e15;
 
 /// Upper bounds on what one upload may make Willow allocate.
 ///
@@ -124,6 +132,18 @@ fn check_basic(
     if !non_finite.is_empty() {
         return Err(MeshError::NonFinite {
             vertices: non_finite,
+        });
+    }
+    let mut huge = Offenders::default();
+    for (v, p) in positions.iter().enumerate() {
+        if p.iter().any(|x| x.abs() > MAX_COORDINATE) {
+            huge.push(v);
+        }
+    }
+    if !huge.is_empty() {
+        return Err(MeshError::CoordinateOutOfRange {
+            vertices: huge,
+            limit: MAX_COORDINATE,
         });
     }
 

@@ -390,6 +390,25 @@ fn affine_of(node: &gltf::Node<'_>) -> Affine {
     }
 }
 
+/// `asset.version` must be 2.x (glTF 2.0 says a reader refuses a major version it does not
+/// know). glTF 1.0 is a different schema the gltf crate would half-read (a 1.0 file's
+/// meshes look empty or wrong), so a 1.0 file is refused by name instead.
+fn check_asset_version(json: &Value) -> Result<(), MeshError> {
+    let version = json
+        .get("asset")
+        .and_then(|a| a.get("version"))
+        .and_then(Value::as_str);
+    match version {
+        Some(v) if v.split('.').next() == Some("2") => Ok(()),
+        Some(v) => Err(MeshError::unsupported(format!(
+            "glTF asset.version {:?}: only glTF 2.x is read",
+            v.chars().take(32).collect::<String>()
+        ))),
+        // Missing: the gltf crate's own parse error says so.
+        None => Ok(()),
+    }
+}
+
 pub(crate) fn read(
     bytes: &[u8],
     format: Format,
@@ -409,6 +428,7 @@ pub(crate) fn read(
             )));
         }
     }
+    check_asset_version(&json)?;
     check_primitive_references(&json)?;
     check_images(&json)?;
     let root = gltf::json::Root::from_slice(json_bytes)

@@ -76,12 +76,21 @@ fn parse_error(line_no: usize, what: &str) -> MeshError {
 }
 
 /// The lines of `text` with the byte offset where each starts, without `\n` or `\r\n`.
+/// A UTF-8 byte order mark at the start of the file (Windows editors write one) is skipped,
+/// or the first line's keyword would be `\u{feff}v` and that vertex silently lost; offsets
+/// still count from the file's first byte, so written files keep the mark.
 fn lines_with_offsets(text: &str) -> impl Iterator<Item = (usize, &str)> {
     let mut at = 0;
     text.split_inclusive('\n').map(move |raw| {
-        let start = at;
+        let mut start = at;
         at += raw.len();
-        let line = raw.strip_suffix('\n').unwrap_or(raw);
+        let mut line = raw.strip_suffix('\n').unwrap_or(raw);
+        if start == 0 {
+            if let Some(rest) = line.strip_prefix('\u{feff}') {
+                start = '\u{feff}'.len_utf8();
+                line = rest;
+            }
+        }
         (start, line.strip_suffix('\r').unwrap_or(line))
     })
 }
@@ -315,6 +324,14 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
                     }
                 }
                 match (kw, n) {
+                    // A face needs a triangle's worth of corners; dropping a shorter one would
+                    // leave a hole nobody asked for.
+                    ("f", 1 | 2) => {
+                        return Err(parse_error(
+                            line_no,
+                            &format!("f: a face needs at least 3 vertices, got {n}"),
+                        ))
+                    }
                     ("p", _) | (_, 1) => points += 1,
                     (_, 0) => return Err(parse_error(line_no, "element without vertices")),
                     (_, 2) => lines += 1,
