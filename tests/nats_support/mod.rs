@@ -704,7 +704,7 @@ impl SseStream {
         loop {
             while let Some(end) = self.buf.find("\n\n") {
                 let block: String = self.buf.drain(..end + 2).collect();
-                if let Some(event) = parse_block(&block) {
+                if let Some(event) = crate::service_http_support::parse_sse_block(&block) {
                     return SseNext::Event(event);
                 }
             }
@@ -742,25 +742,4 @@ impl SseStream {
             }
         }
     }
-}
-
-fn parse_block(block: &str) -> Option<Sse> {
-    let (mut event, mut id, mut data) = (String::from("message"), None, String::new());
-    for line in block.lines() {
-        if let Some(v) = line.strip_prefix("event:") {
-            event = v.trim().to_string();
-        } else if let Some(v) = line.strip_prefix("id:") {
-            id = Some(v.trim().to_string());
-        } else if let Some(v) = line.strip_prefix("data:") {
-            data.push_str(v.strip_prefix(' ').unwrap_or(v));
-        }
-    }
-    if data.is_empty() {
-        return None; // keep-alive comment
-    }
-    Some(Sse {
-        event,
-        id,
-        data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
-    })
 }

@@ -333,30 +333,38 @@ pub async fn read_sse(res: reqwest::Response, timeout: Duration) -> Vec<Sse> {
         buf.push_str(&String::from_utf8_lossy(&chunk));
         while let Some(end) = buf.find("\n\n") {
             let block: String = buf.drain(..end + 2).collect();
-            let (mut event, mut id, mut data) = (String::from("message"), None, String::new());
-            for line in block.lines() {
-                if let Some(v) = line.strip_prefix("event:") {
-                    event = v.trim().to_string();
-                } else if let Some(v) = line.strip_prefix("id:") {
-                    id = Some(v.trim().to_string());
-                } else if let Some(v) = line.strip_prefix("data:") {
-                    data.push_str(v.strip_prefix(' ').unwrap_or(v));
-                }
-            }
-            if data.is_empty() {
+            let Some(event) = parse_sse_block(&block) else {
                 continue; // keep-alive comment
-            }
-            let done = event == "done";
-            out.push(Sse {
-                event,
-                id,
-                data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
-            });
+            };
+            let done = event.event == "done";
+            out.push(event);
             if done {
                 return out;
             }
         }
     }
+}
+
+/// One SSE event block (the lines before a blank line); `None` for a keep-alive comment.
+pub fn parse_sse_block(block: &str) -> Option<Sse> {
+    let (mut event, mut id, mut data) = (String::from("message"), None, String::new());
+    for line in block.lines() {
+        if let Some(v) = line.strip_prefix("event:") {
+            event = v.trim().to_string();
+        } else if let Some(v) = line.strip_prefix("id:") {
+            id = Some(v.trim().to_string());
+        } else if let Some(v) = line.strip_prefix("data:") {
+            data.push_str(v.strip_prefix(' ').unwrap_or(v));
+        }
+    }
+    if data.is_empty() {
+        return None;
+    }
+    Some(Sse {
+        event,
+        id,
+        data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
+    })
 }
 
 /// Steps of the `frame` events, in arrival order.

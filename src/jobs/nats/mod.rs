@@ -144,22 +144,20 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         }
     };
     let js = jetstream::new(client.clone());
-    let jobs_stream = js
-        .create_or_update_stream(stream::Config {
-            name: JOBS_STREAM.into(),
-            subjects: vec![JOBS_SUBJECT.into()],
-            retention: stream::RetentionPolicy::WorkQueue,
-            // Admission is cluster-wide: a publish beyond this is refused by the server.
-            max_messages: i64::try_from(config.queue_capacity).unwrap_or(i64::MAX),
-            discard: stream::DiscardPolicy::New,
-            storage: stream::StorageType::File,
-            // Two submissions of one job id within this window are one message.
-            duplicate_window: Duration::from_secs(120),
-            ..Default::default()
-        })
-        .await
-        .map_err(|e| nats_err("creating the jobs stream", e))?;
-    let _ = jobs_stream;
+    js.create_or_update_stream(stream::Config {
+        name: JOBS_STREAM.into(),
+        subjects: vec![JOBS_SUBJECT.into()],
+        retention: stream::RetentionPolicy::WorkQueue,
+        // Admission is cluster-wide: a publish beyond this is refused by the server.
+        max_messages: i64::try_from(config.queue_capacity).unwrap_or(i64::MAX),
+        discard: stream::DiscardPolicy::New,
+        storage: stream::StorageType::File,
+        // Two submissions of one job id within this window are one message.
+        duplicate_window: Duration::from_secs(120),
+        ..Default::default()
+    })
+    .await
+    .map_err(|e| nats_err("creating the jobs stream", e))?;
     let jobs_stream = js
         .get_stream(JOBS_STREAM)
         .await

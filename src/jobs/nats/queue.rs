@@ -238,7 +238,10 @@ impl WorkQueue for NatsQueue {
         let deleted = self.stream.delete_message(seq).await.unwrap_or(false);
         if deleted {
             let _ = self.nats.kv.purge(&key).await;
-            self.depth.fetch_sub(1, Ordering::Relaxed);
+            // Saturating: the refresh task may have counted this job out already.
+            let _ = self
+                .depth
+                .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |d| d.checked_sub(1));
         }
         Ok(deleted)
     }
