@@ -248,6 +248,51 @@ impl JobState {
     }
 }
 
+/// Who is asking: every job, upload, idempotency key and operation belongs to one tenant, and a
+/// caller sees only its own tenant's. The api layer's authentication makes it (an API key or a
+/// JWT names the tenant); with `--auth none` every caller is [`Caller::anonymous`].
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct Caller {
+    /// The tenant: 1–64 of `A-Z a-z 0-9 . _ -` (it names NATS subjects and keys).
+    pub tenant: String,
+    /// The key's name or the token's subject, for audit lines; never a secret.
+    pub subject: String,
+}
+
+/// The tenant of [`Caller::anonymous`].
+pub const DEFAULT_TENANT: &str = "default";
+
+impl Caller {
+    /// A caller of `tenant`; `Err` names what is wrong with the tenant id.
+    pub fn new(tenant: &str, subject: &str) -> Result<Caller, String> {
+        if !valid_tenant(tenant) {
+            return Err(format!(
+                "tenant id must be 1-64 characters of A-Z a-z 0-9 . _ -, got {:?}",
+                tenant.chars().take(80).collect::<String>()
+            ));
+        }
+        Ok(Caller {
+            tenant: tenant.to_string(),
+            subject: subject.chars().take(128).collect(),
+        })
+    }
+
+    /// Everyone, when authentication is off (`--auth none`, loopback only).
+    pub fn anonymous() -> Caller {
+        Caller {
+            tenant: DEFAULT_TENANT.to_string(),
+            subject: "anonymous".to_string(),
+        }
+    }
+}
+
+/// Whether `t` may name a tenant.
+pub fn valid_tenant(t: &str) -> bool {
+    (1..=64).contains(&t.len())
+        && t.bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
+}
+
 /// A snapshot of one job, as every transport reports it. Times are unix milliseconds.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobStatus {
