@@ -43,7 +43,7 @@ use willow::jobs::embedded::files::FileBlobs;
 use willow::jobs::embedded::sqlite::SqliteStore;
 use willow::jobs::nats;
 use willow::jobs::ports::{Backend, BlobKey, BlobStore, JobStore, NewJob};
-use willow::jobs::{Config, JobSpec, Jobs};
+use willow::jobs::{Caller, Config, JobSpec, Jobs};
 use willow::mesh::io::{Asset, Format};
 
 /// Every request loop stops after this long, whatever its count: the benchmark must end.
@@ -297,7 +297,7 @@ async fn overhead(steps: usize) {
         let id = v["id"].as_str().expect("id").to_string();
         let done = srv
             .jobs
-            .wait(&id, Duration::from_secs(3600))
+            .wait(&Caller::anonymous(), &id, Duration::from_secs(3600))
             .await
             .expect("wait");
         e2e_runs.push(t.elapsed().as_secs_f64());
@@ -769,10 +769,12 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
             .store
             .insert(NewJob {
                 id: id.clone(),
+                tenant: willow::jobs::DEFAULT_TENANT.to_string(),
                 spec: JobSpec::default(),
                 format: Format::Obj,
                 vertex_count,
                 face_count,
+                input_bytes: data.len() as u64,
                 created_at: willow::jobs::now_ms(),
                 idempotency: None,
             })
@@ -780,10 +782,14 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
             .map_err(err)?;
         out[1].push(ms(t));
         let pushed = Instant::now();
-        backend.queue.push(&id).await.map_err(err)?;
+        backend
+            .queue
+            .push(willow::jobs::DEFAULT_TENANT, &id)
+            .await
+            .map_err(err)?;
         out[2].push(ms(pushed));
         let t = Instant::now();
-        backend.store.status(&id).await.map_err(err)?;
+        backend.store.status(&id, None).await.map_err(err)?;
         out[3].push(ms(t));
         let t = Instant::now();
         let watching = backend.events.subscribe(&id).await.map_err(err)?;
@@ -1405,7 +1411,11 @@ async fn crash_embedded_rounds(
         // Where the crash left the job, read from its SQLite file before the restart (a few
         // ms, counted in the times below).
         let store = SqliteStore::open(&data).map_err(|e| e.to_string())?;
-        let dead_step = store.status(&id).await.map_err(|e| e.to_string())?.step as u64;
+        let dead_step = store
+            .status(&id, None)
+            .await
+            .map_err(|e| e.to_string())?
+            .step as u64;
         drop(store);
         let log = dir.path().join(format!("{}.log", round + 1));
         (process, base) = spawn_willow(args.clone(), &log).await?;

@@ -6,8 +6,13 @@ mod service_http_support;
 use futures::StreamExt;
 use service_http_support::{slow_obj, small_obj};
 use std::time::Duration;
-use willow::jobs::{Config, JobEvent, JobSpec, JobState, Jobs, UploadRef};
+use willow::jobs::{Caller, Config, JobEvent, JobSpec, JobState, Jobs, UploadRef};
 use willow::mesh::io::Format;
+
+/// Every call here is the default tenant's, as with `--auth none`.
+fn me() -> Caller {
+    Caller::anonymous()
+}
 
 fn config(dir: &std::path::Path) -> Config {
     let mut c = Config::new(dir);
@@ -62,6 +67,7 @@ async fn many_watchers_each_see_every_step_once_even_when_slow() {
     let steps = 300;
     let job = jobs
         .submit(
+            &me(),
             obj(small_obj()),
             JobSpec {
                 include_positions: false,
@@ -71,8 +77,8 @@ async fn many_watchers_each_see_every_step_once_even_when_slow() {
         )
         .await
         .expect("submit");
-    let fast = jobs.watch(&job.id, 0).await.expect("watch");
-    let slow = jobs.watch(&job.id, 0).await.expect("watch");
+    let fast = jobs.watch(&me(), &job.id, 0).await.expect("watch");
+    let slow = jobs.watch(&me(), &job.id, 0).await.expect("watch");
     let fast = tokio::spawn(collect(fast, Duration::ZERO));
     let slow = tokio::spawn(collect(slow, Duration::from_millis(3)));
     let (fast_steps, fast_done) = fast.await.expect("fast watcher");
@@ -87,12 +93,12 @@ async fn many_watchers_each_see_every_step_once_even_when_slow() {
     assert_eq!(slow_done, Some(JobState::Succeeded));
 
     // A late watcher replays from any step.
-    let late = jobs.watch(&job.id, 290).await.expect("watch");
+    let late = jobs.watch(&me(), &job.id, 290).await.expect("watch");
     let (late_steps, late_done) = collect(late, Duration::ZERO).await;
     assert_eq!(late_steps, (290..=steps).collect::<Vec<_>>());
     assert_eq!(late_done, Some(JobState::Succeeded));
 
-    let (page, next) = jobs.frames(&job.id, 0, 100).await.expect("frames");
+    let (page, next) = jobs.frames(&me(), &job.id, 0, 100).await.expect("frames");
     assert_eq!(page.len(), 100);
     assert_eq!(next, Some(100));
     assert!(page.iter().enumerate().all(|(i, m)| m.step == i));
@@ -105,6 +111,7 @@ async fn deadline_fails_a_job_between_steps() {
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
     let job = jobs
         .submit(
+            &me(),
             obj(slow_obj()),
             JobSpec {
                 deadline_secs: Some(0.5),
@@ -115,7 +122,7 @@ async fn deadline_fails_a_job_between_steps() {
         .await
         .expect("submit");
     let done = jobs
-        .wait(&job.id, Duration::from_secs(60))
+        .wait(&me(), &job.id, Duration::from_secs(60))
         .await
         .expect("wait");
     assert_eq!(done.state, JobState::Failed, "{done:?}");
@@ -131,15 +138,15 @@ async fn graceful_shutdown_checkpoints_running_jobs_and_restart_resumes_them() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
     let running = jobs
-        .submit(obj(slow_obj()), spec(5000), None)
+        .submit(&me(), obj(slow_obj()), spec(5000), None)
         .await
         .expect("submit");
     let queued = jobs
-        .submit(obj(small_obj()), spec(3), None)
+        .submit(&me(), obj(small_obj()), spec(3), None)
         .await
         .expect("submit");
     // Wait until the first job is running and has made progress.
-    let mut events = Box::pin(jobs.watch(&running.id, 0).await.expect("watch"));
+    let mut events = Box::pin(jobs.watch(&me(), &running.id, 0).await.expect("watch"));
     while let Some(ev) = events.next().await {
         if matches!(ev, JobEvent::Frame(ref f) if f.step >= 1) {
             break;
@@ -149,10 +156,10 @@ async fn graceful_shutdown_checkpoints_running_jobs_and_restart_resumes_them() {
     // Zero grace: the running job is stopped at its next step, checkpointed and re-queued.
     core.shutdown(Duration::ZERO).await;
     assert!(!jobs.is_ready());
-    let s = jobs.get(&running.id).await.expect("get");
+    let s = jobs.get(&me(), &running.id).await.expect("get");
     assert_eq!(s.state, JobState::Queued, "re-queued, not lost: {s:?}");
     assert!(s.step >= 1, "keeps its progress: {s:?}");
-    let err = jobs.submit(obj(small_obj()), spec(1), None).await;
+    let err = jobs.submit(&me(), obj(small_obj()), spec(1), None).await;
     assert!(matches!(err, Err(willow::jobs::JobError::ShuttingDown)));
     drop(jobs);
 
@@ -160,7 +167,7 @@ async fn graceful_shutdown_checkpoints_running_jobs_and_restart_resumes_them() {
     // be wrong: order is kept).
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");
     let q = jobs
-        .wait(&queued.id, Duration::from_secs(1))
+        .wait(&me(), &queued.id, Duration::from_secs(1))
         .await
         .expect("get");
     assert_ne!(
@@ -170,7 +177,7 @@ async fn graceful_shutdown_checkpoints_running_jobs_and_restart_resumes_them() {
     );
     // It resumes where it stopped: every step once, in order, from 0 for a new watcher, and
     // the first step run after the restart follows the checkpoint.
-    let mut events = Box::pin(jobs.watch(&running.id, 0).await.expect("watch"));
+    let mut events = Box::pin(jobs.watch(&me(), &running.id, 0).await.expect("watch"));
     let mut next = 0;
     while let Some(ev) = events.next().await {
         if let JobEvent::Frame(f) = ev {
@@ -186,14 +193,16 @@ async fn graceful_shutdown_checkpoints_running_jobs_and_restart_resumes_them() {
         jobs.metrics_text().contains("willow_jobs_resumed_total 1"),
         "resumed from its checkpoint, not restarted"
     );
-    jobs.cancel(&running.id).await.expect("cancel the long one");
+    jobs.cancel(&me(), &running.id)
+        .await
+        .expect("cancel the long one");
     let r = jobs
-        .wait(&running.id, Duration::from_secs(60))
+        .wait(&me(), &running.id, Duration::from_secs(60))
         .await
         .expect("wait");
     assert_eq!(r.state, JobState::Cancelled);
     let q = jobs
-        .wait(&queued.id, Duration::from_secs(60))
+        .wait(&me(), &queued.id, Duration::from_secs(60))
         .await
         .expect("wait");
     assert_eq!(q.state, JobState::Succeeded);
@@ -205,11 +214,12 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
     let upload = jobs
-        .store_upload(bytes::Bytes::from(small_obj()), Format::Obj)
+        .store_upload(&me(), bytes::Bytes::from(small_obj()), Format::Obj)
         .await
         .expect("store upload");
     let a = jobs
         .submit(
+            &me(),
             UploadRef::Stored {
                 upload_id: upload.clone(),
             },
@@ -220,6 +230,7 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
         .expect("submit stored");
     let again = jobs
         .submit(
+            &me(),
             UploadRef::Stored { upload_id: upload },
             spec(2),
             Some("k1".into()),
@@ -228,7 +239,7 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
         .expect("idempotent");
     assert_eq!(a.id, again.id);
     let mismatch = jobs
-        .submit(obj(small_obj()), spec(3), Some("k1".into()))
+        .submit(&me(), obj(small_obj()), spec(3), Some("k1".into()))
         .await;
     assert!(matches!(
         mismatch,
@@ -236,6 +247,7 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
     ));
     let missing = jobs
         .submit(
+            &me(),
             UploadRef::Stored {
                 upload_id: "nope".into(),
             },
@@ -248,30 +260,33 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
         Err(willow::jobs::JobError::UploadNotFound(_))
     ));
     let bad = jobs
-        .store_upload(bytes::Bytes::from_static(b"f 1 2 3\n"), Format::Obj)
+        .store_upload(&me(), bytes::Bytes::from_static(b"f 1 2 3\n"), Format::Obj)
         .await;
     assert!(
         matches!(bad, Err(willow::jobs::JobError::InvalidMesh(_))),
         "{bad:?}"
     );
     let done = jobs
-        .wait(&a.id, Duration::from_secs(60))
+        .wait(&me(), &a.id, Duration::from_secs(60))
         .await
         .expect("wait");
     assert_eq!(done.state, JobState::Succeeded);
     assert!(matches!(
-        jobs.cancel(&a.id).await,
+        jobs.cancel(&me(), &a.id).await,
         Err(willow::jobs::JobError::Conflict(_))
     ));
-    let mesh = jobs.result(&a.id, Format::Obj).await.expect("result");
+    let mesh = jobs
+        .result(&me(), &a.id, Format::Obj)
+        .await
+        .expect("result");
     assert!(!mesh.is_empty());
     assert!(matches!(
-        jobs.frame_mesh(&a.id, 99, Format::Obj).await,
+        jobs.frame_mesh(&me(), &a.id, 99, Format::Obj).await,
         Err(willow::jobs::JobError::FrameNotFound { .. })
     ));
-    jobs.delete(&a.id).await.expect("delete");
+    jobs.delete(&me(), &a.id).await.expect("delete");
     assert!(matches!(
-        jobs.get(&a.id).await,
+        jobs.get(&me(), &a.id).await,
         Err(willow::jobs::JobError::NotFound(_))
     ));
     core.shutdown(Duration::from_secs(1)).await;
@@ -285,10 +300,15 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
     let job = jobs
-        .submit(obj(small_obj()), spec(1), Some("before-upgrade".into()))
+        .submit(
+            &me(),
+            obj(small_obj()),
+            spec(1),
+            Some("before-upgrade".into()),
+        )
         .await
         .expect("submit");
-    jobs.wait(&job.id, Duration::from_secs(60))
+    jobs.wait(&me(), &job.id, Duration::from_secs(60))
         .await
         .expect("wait");
     core.shutdown(Duration::from_secs(1)).await;
@@ -317,20 +337,33 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
     };
     let changed = db
         .execute(
-            "UPDATE idempotency SET request_hash = ?1 WHERE key = 'before-upgrade'",
+            "UPDATE idempotency SET request_hash = ?1, key = 'before-upgrade'
+             WHERE key = 'default/before-upgrade'",
             rusqlite::params![old_hash],
         )
         .expect("update");
     assert_eq!(changed, 1);
+    // And without tenants (issue 12): no tenant column, keys unscoped. The upgrade gives the
+    // rows to the default tenant and scopes their keys to it.
+    db.execute_batch(
+        "DROP INDEX jobs_by_tenant; ALTER TABLE jobs DROP COLUMN tenant;
+         DROP INDEX uploads_by_tenant; ALTER TABLE uploads DROP COLUMN tenant;",
+    )
+    .expect("drop the tenant columns");
     drop(db);
 
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");
-    let status = jobs.get(&job.id).await.expect("the old row loads");
+    let status = jobs.get(&me(), &job.id).await.expect("the old row loads");
     assert_eq!(status.spec, spec(1), "new fields take their defaults");
     assert!(status.spec.safeguard, "an old row runs safeguarded");
     assert_eq!(status.state, JobState::Succeeded);
     let again = jobs
-        .submit(obj(small_obj()), spec(1), Some("before-upgrade".into()))
+        .submit(
+            &me(),
+            obj(small_obj()),
+            spec(1),
+            Some("before-upgrade".into()),
+        )
         .await
         .expect("the same request with the same key");
     assert_eq!(again.id, job.id, "still recognised as the same request");

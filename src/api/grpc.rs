@@ -27,7 +27,9 @@ use super::problem::cap_detail;
 use crate::flow::Method;
 use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
-use crate::jobs::{Frame, JobError, JobEvent, JobSpec, JobState, JobStatus, Jobs, UploadRef};
+use crate::jobs::{
+    Caller, Frame, JobError, JobEvent, JobSpec, JobState, JobStatus, Jobs, UploadRef,
+};
 use crate::mesh::io::Format;
 use crate::metrics::StepMetrics;
 
@@ -152,6 +154,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         request: Request<Streaming<v1::UploadMeshChunk>>,
     ) -> Result<Response<v1::Upload>, Status> {
         use v1::upload_mesh_chunk::Part;
+        let caller = caller(&request)?;
         let mut chunks = request.into_inner();
         let limit = self.jobs.config().limits.max_upload_bytes;
 
@@ -224,7 +227,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         let size_bytes = data.len() as u64;
         let id = self
             .jobs
-            .store_upload(Bytes::from(data), format)
+            .store_upload(&caller, Bytes::from(data), format)
             .await
             .map_err(|e| job_error(e, "data"))?;
         Ok(Response::new(v1::Upload {
@@ -239,6 +242,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         request: Request<v1::CreateJobRequest>,
     ) -> Result<Response<lro::Operation>, Status> {
         use v1::create_job_request::Mesh;
+        let caller = caller(&request)?;
         let request = request.into_inner();
         let (upload, mesh_field) = match request.mesh {
             Some(Mesh::Upload(name)) => (
@@ -265,7 +269,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         let key = request_id(&request.request_id)?;
         let status = self
             .jobs
-            .submit(upload, spec, key)
+            .submit(&caller, upload, spec, key)
             .await
             .map_err(|e| job_error(e, mesh_field))?;
         Ok(Response::new(operation(&status)))
@@ -275,8 +279,13 @@ impl v1::fairing_server::Fairing for GrpcApi {
         &self,
         request: Request<v1::GetJobRequest>,
     ) -> Result<Response<v1::Job>, Status> {
+        let caller = caller(&request)?;
         let id = parse_name("name", "jobs/", &request.get_ref().name)?;
-        let status = self.jobs.get(&id).await.map_err(|e| job_error(e, "name"))?;
+        let status = self
+            .jobs
+            .get(&caller, &id)
+            .await
+            .map_err(|e| job_error(e, "name"))?;
         Ok(Response::new(job_pb(&status)))
     }
 
@@ -284,6 +293,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         &self,
         request: Request<v1::ListJobsRequest>,
     ) -> Result<Response<v1::ListJobsResponse>, Status> {
+        let caller = caller(&request)?;
         let request = request.into_inner();
         let page_size = page_size(request.page_size)?;
         let state = match v1::job::State::try_from(request.state) {
@@ -299,7 +309,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         let token = Some(request.page_token).filter(|t| !t.is_empty());
         let (jobs, next) = self
             .jobs
-            .list(state, page_size, token)
+            .list(&caller, state, page_size, token)
             .await
             .map_err(|e| job_error(e, "page_token"))?;
         Ok(Response::new(v1::ListJobsResponse {
@@ -312,10 +322,11 @@ impl v1::fairing_server::Fairing for GrpcApi {
         &self,
         request: Request<v1::CancelJobRequest>,
     ) -> Result<Response<v1::Job>, Status> {
+        let caller = caller(&request)?;
         let id = parse_name("name", "jobs/", &request.get_ref().name)?;
         let status = self
             .jobs
-            .cancel(&id)
+            .cancel(&caller, &id)
             .await
             .map_err(|e| job_error(e, "name"))?;
         Ok(Response::new(job_pb(&status)))
@@ -325,9 +336,10 @@ impl v1::fairing_server::Fairing for GrpcApi {
         &self,
         request: Request<v1::DeleteJobRequest>,
     ) -> Result<Response<()>, Status> {
+        let caller = caller(&request)?;
         let id = parse_name("name", "jobs/", &request.get_ref().name)?;
         self.jobs
-            .delete(&id)
+            .delete(&caller, &id)
             .await
             .map_err(|e| job_error(e, "name"))?;
         Ok(Response::new(()))
@@ -340,6 +352,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         request: Request<v1::StreamFramesRequest>,
     ) -> Result<Response<Self::StreamFramesStream>, Status> {
         use v1::stream_frames_response::Event;
+        let caller = caller(&request)?;
         let request = request.into_inner();
         let id = parse_name("name", "jobs/", &request.name)?;
         // No job has more steps than the server's limit, so a `from_step` beyond it could only
@@ -362,7 +375,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         }
         let events = self
             .jobs
-            .watch(&id, request.from_step as usize)
+            .watch(&caller, &id, request.from_step as usize)
             .await
             .map_err(|e| job_error(e, "name"))?;
         // End the stream right after `Done`, whatever the core does afterwards: the proto
@@ -394,12 +407,13 @@ impl v1::fairing_server::Fairing for GrpcApi {
         &self,
         request: Request<v1::DownloadResultRequest>,
     ) -> Result<Response<Self::DownloadResultStream>, Status> {
+        let caller = caller(&request)?;
         let request = request.into_inner();
         let id = parse_name("name", "jobs/", &request.name)?;
         let format = match v1::MeshFormat::try_from(request.format) {
             Ok(v1::MeshFormat::Unspecified) => {
                 self.jobs
-                    .get(&id)
+                    .get(&caller, &id)
                     .await
                     .map_err(|e| job_error(e, "name"))?
                     .input_format
@@ -408,7 +422,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
         };
         let file = Bytes::from(
             self.jobs
-                .result(&id, format)
+                .result(&caller, &id, format)
                 .await
                 .map_err(|e| job_error(e, "name"))?,
         );
@@ -497,6 +511,7 @@ impl lro::operations_server::Operations for GrpcApi {
         &self,
         request: Request<lro::ListOperationsRequest>,
     ) -> Result<Response<lro::ListOperationsResponse>, Status> {
+        let caller = caller(&request)?;
         let request = request.into_inner();
         // The collection's name: "jobs" (ours), "operations" (what generic LRO clients send)
         // or empty. Anything else names a collection this server does not have.
@@ -511,7 +526,7 @@ impl lro::operations_server::Operations for GrpcApi {
         let token = Some(request.page_token).filter(|t| !t.is_empty());
         let (jobs, next) = self
             .jobs
-            .list(state, page_size, token)
+            .list(&caller, state, page_size, token)
             .await
             .map_err(|e| job_error(e, "page_token"))?;
         Ok(Response::new(lro::ListOperationsResponse {
@@ -525,8 +540,13 @@ impl lro::operations_server::Operations for GrpcApi {
         &self,
         request: Request<lro::GetOperationRequest>,
     ) -> Result<Response<lro::Operation>, Status> {
+        let caller = caller(&request)?;
         let id = parse_name("name", "jobs/", &request.get_ref().name)?;
-        let status = self.jobs.get(&id).await.map_err(|e| job_error(e, "name"))?;
+        let status = self
+            .jobs
+            .get(&caller, &id)
+            .await
+            .map_err(|e| job_error(e, "name"))?;
         Ok(Response::new(operation(&status)))
     }
 
@@ -534,9 +554,10 @@ impl lro::operations_server::Operations for GrpcApi {
         &self,
         request: Request<lro::DeleteOperationRequest>,
     ) -> Result<Response<()>, Status> {
+        let caller = caller(&request)?;
         let id = parse_name("name", "jobs/", &request.get_ref().name)?;
         self.jobs
-            .delete(&id)
+            .delete(&caller, &id)
             .await
             .map_err(|e| job_error(e, "name"))?;
         Ok(Response::new(()))
@@ -546,9 +567,10 @@ impl lro::operations_server::Operations for GrpcApi {
         &self,
         request: Request<lro::CancelOperationRequest>,
     ) -> Result<Response<()>, Status> {
+        let caller = caller(&request)?;
         let id = parse_name("name", "jobs/", &request.get_ref().name)?;
         self.jobs
-            .cancel(&id)
+            .cancel(&caller, &id)
             .await
             .map_err(|e| job_error(e, "name"))?;
         Ok(Response::new(()))
@@ -559,6 +581,7 @@ impl lro::operations_server::Operations for GrpcApi {
         request: Request<lro::WaitOperationRequest>,
     ) -> Result<Response<lro::Operation>, Status> {
         let client_deadline = grpc_timeout(&request);
+        let caller = caller(&request)?;
         let request = request.into_inner();
         let id = parse_name("name", "jobs/", &request.name)?;
         let asked = match request.timeout {
@@ -578,7 +601,7 @@ impl lro::operations_server::Operations for GrpcApi {
         .unwrap_or(MAX_WAIT);
         let status = self
             .jobs
-            .wait(&id, wait)
+            .wait(&caller, &id, wait)
             .await
             .map_err(|e| job_error(e, "name"))?;
         Ok(Response::new(operation(&status)))
@@ -669,6 +692,16 @@ impl tonic_health::pb::health_server::Health for HealthService {
 
 /// INVALID_ARGUMENT with a `google.rpc.BadRequest` naming `field` (a path in the request, as
 /// AIP-193 asks: `params.tau`, `inline_mesh.data`, …).
+/// The caller the authentication layer put on the request (HTTP extensions reach tonic's
+/// request). None means the layer did not run for this route: refused, never served as anyone.
+fn caller<T>(request: &Request<T>) -> Result<Caller, Status> {
+    request
+        .extensions()
+        .get::<Caller>()
+        .cloned()
+        .ok_or_else(|| Status::unauthenticated("this call needs credentials and none were checked"))
+}
+
 fn bad_request(field: &str, description: impl Into<String>) -> Status {
     let description = cap_detail(description.into());
     Status::with_error_details(
@@ -754,6 +787,27 @@ fn job_error(err: JobError, mesh_field: &str) -> Status {
                 ERROR_DOMAIN,
                 HashMap::from([("capacity".to_string(), capacity.to_string())]),
             );
+            Code::ResourceExhausted
+        }
+        JobError::QuotaExceeded {
+            quota,
+            limit,
+            used,
+            retry_after_secs,
+        } => {
+            details.set_retry_info(Some(Duration::from_secs(*retry_after_secs)));
+            details.add_quota_failure_violation(
+                format!("tenant_quota:{quota}"),
+                format!("tenant quota `{quota}` of {limit} is spent"),
+            );
+            let mut meta = HashMap::from([
+                ("quota".to_string(), quota.to_string()),
+                ("limit".to_string(), limit.to_string()),
+            ]);
+            if let Some(used) = used {
+                meta.insert("used".to_string(), used.to_string());
+            }
+            details.set_error_info("QUOTA_EXCEEDED", ERROR_DOMAIN, meta);
             Code::ResourceExhausted
         }
         JobError::InvalidMesh(mesh) => {

@@ -15,8 +15,8 @@ use crate::flow::Method;
 use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{
-    format_media_type, format_name, parse_format, rfc3339, JobEvent, JobSpec, JobState, JobStatus,
-    Jobs, UploadRef,
+    format_media_type, format_name, parse_format, rfc3339, Caller, JobEvent, JobSpec, JobState,
+    JobStatus, Jobs, UploadRef,
 };
 use crate::mesh::io::Format;
 use axum::body::Body;
@@ -37,6 +37,27 @@ use utoipa::{IntoParams, OpenApi, ToSchema};
 /// SSE keep-alive comments every 15 s: shorter than the 30–60 s idle timeouts of common
 /// proxies and load balancers, so a quiet stream (a long step) is not cut.
 const SSE_KEEPALIVE: Duration = Duration::from_secs(15);
+
+/// The caller the authentication layer put on the request: every job route takes it. A
+/// request without one (a route the layer does not cover) is refused rather than served as
+/// anyone: the layer fails closed.
+impl<S: Send + Sync> axum::extract::FromRequestParts<S> for Caller {
+    type Rejection = Response;
+
+    async fn from_request_parts(
+        parts: &mut axum::http::request::Parts,
+        _state: &S,
+    ) -> Result<Self, Self::Rejection> {
+        parts.extensions.get::<Caller>().cloned().ok_or_else(|| {
+            Problem::new(
+                StatusCode::UNAUTHORIZED,
+                "unauthenticated",
+                "this route needs credentials and none were checked",
+            )
+            .into_response()
+        })
+    }
+}
 
 /// Shared by all handlers.
 #[derive(Clone)]
@@ -640,8 +661,8 @@ fn record_job(id: &str) {
         (status = 503, description = "Shutting down", body = Problem, content_type = "application/problem+json"),
     )
 )]
-pub async fn create_job(State(st): State<AppState>, req: Request) -> Response {
-    match create_job_inner(&st, req).await {
+pub async fn create_job(State(st): State<AppState>, caller: Caller, req: Request) -> Response {
+    match create_job_inner(&st, &caller, req).await {
         Ok(s) => {
             record_job(&s.id);
             job_response(StatusCode::ACCEPTED, s)
@@ -650,7 +671,11 @@ pub async fn create_job(State(st): State<AppState>, req: Request) -> Response {
     }
 }
 
-async fn create_job_inner(st: &AppState, req: Request) -> Result<JobStatus, Problem> {
+async fn create_job_inner(
+    st: &AppState,
+    caller: &Caller,
+    req: Request,
+) -> Result<JobStatus, Problem> {
     let limit = st.jobs.config().limits.max_upload_bytes;
     let headers = req.headers().clone();
     let key = match headers.get("idempotency-key") {
@@ -716,7 +741,7 @@ async fn create_job_inner(st: &AppState, req: Request) -> Result<JobStatus, Prob
     };
     let spec = params.into_spec()?;
     st.jobs
-        .submit(UploadRef::Bytes { data, format }, spec, key)
+        .submit(caller, UploadRef::Bytes { data, format }, spec, key)
         .await
         .map_err(Problem::from)
 }
@@ -836,9 +861,13 @@ async fn read_multipart(
     responses((status = 200, description = "The job", body = JobView),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
-pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
+pub async fn get_job(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Response {
     record_job(&id);
-    match st.jobs.get(&id).await {
+    match st.jobs.get(&caller, &id).await {
         Ok(s) => (StatusCode::OK, Json(JobView::from(s))).into_response(),
         Err(e) => Problem::from(e)
             .instance(format!("/v1/jobs/{id}"))
@@ -850,7 +879,7 @@ pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Resp
 #[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(ListQuery),
     responses((status = 200, description = "A page of jobs, newest first", body = JobList),
         (status = 400, description = "Bad parameters (`state`, `page_size`, `page_token`; the field is named)", body = Problem, content_type = "application/problem+json")))]
-pub async fn list_jobs(State(st): State<AppState>, uri: Uri) -> Response {
+pub async fn list_jobs(State(st): State<AppState>, caller: Caller, uri: Uri) -> Response {
     let run = async {
         let q: ListQuery = query(&uri)?;
         let state = match q.state.as_deref() {
@@ -865,7 +894,7 @@ pub async fn list_jobs(State(st): State<AppState>, uri: Uri) -> Response {
         };
         let (jobs, next) = st
             .jobs
-            .list(state, q.page_size.unwrap_or(0), q.page_token)
+            .list(&caller, state, q.page_size.unwrap_or(0), q.page_token)
             .await?;
         Ok::<_, Problem>(JobList {
             jobs: jobs.into_iter().map(JobView::from).collect(),
@@ -884,9 +913,13 @@ pub async fn list_jobs(State(st): State<AppState>, uri: Uri) -> Response {
     responses((status = 202, description = "Cancelled, or cancellation requested (a running job stops at its next step)", body = JobView),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Already finished", body = Problem, content_type = "application/problem+json")))]
-pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
+pub async fn cancel_job(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Response {
     record_job(&id);
-    match st.jobs.cancel(&id).await {
+    match st.jobs.cancel(&caller, &id).await {
         Ok(s) => job_response(StatusCode::ACCEPTED, s),
         Err(e) => Problem::from(e)
             .instance(format!("/v1/jobs/{id}/cancel"))
@@ -900,9 +933,13 @@ pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> R
     responses((status = 204, description = "Deleted"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Queued or running", body = Problem, content_type = "application/problem+json")))]
-pub async fn delete_job(State(st): State<AppState>, Path(id): Path<String>) -> Response {
+pub async fn delete_job(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Response {
     record_job(&id);
-    match st.jobs.delete(&id).await {
+    match st.jobs.delete(&caller, &id).await {
         Ok(()) => StatusCode::NO_CONTENT.into_response(),
         Err(e) => Problem::from(e)
             .instance(format!("/v1/jobs/{id}"))
@@ -918,6 +955,7 @@ pub async fn delete_job(State(st): State<AppState>, Path(id): Path<String>) -> R
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_events(
     State(st): State<AppState>,
+    caller: Caller,
     Path(id): Path<String>,
     headers: HeaderMap,
     uri: Uri,
@@ -952,7 +990,7 @@ pub async fn job_events(
         Some(n) => n.saturating_add(1),
         None => q.from_step.unwrap_or(0),
     };
-    let stream = match st.jobs.watch(&id, from).await {
+    let stream = match st.jobs.watch(&caller, &id, from).await {
         Ok(s) => s,
         Err(e) => {
             return Problem::from(e)
@@ -999,13 +1037,23 @@ fn sse_event(ev: JobEvent) -> Event {
     responses((status = 200, description = "A page of step metrics", body = FrameList),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
-pub async fn list_frames(State(st): State<AppState>, Path(id): Path<String>, uri: Uri) -> Response {
+pub async fn list_frames(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+    uri: Uri,
+) -> Response {
     record_job(&id);
     let run = async {
         let q: FramesQuery = query(&uri)?;
         let (frames, next) = st
             .jobs
-            .frames(&id, q.from_step.unwrap_or(0), q.page_size.unwrap_or(0))
+            .frames(
+                &caller,
+                &id,
+                q.from_step.unwrap_or(0),
+                q.page_size.unwrap_or(0),
+            )
             .await?;
         Ok::<_, Problem>(FrameList {
             frames,
@@ -1026,6 +1074,7 @@ pub async fn list_frames(State(st): State<AppState>, Path(id): Path<String>, uri
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
     State(st): State<AppState>,
+    caller: Caller,
     Path((id, step)): Path<(String, String)>,
     uri: Uri,
 ) -> Response {
@@ -1039,7 +1088,7 @@ pub async fn frame_mesh(
             .with("field", "step")
         })?;
         let format = parse_out_format(&query(&uri)?)?.unwrap_or(Format::Glb);
-        let bytes = st.jobs.frame_mesh(&id, step, format).await?;
+        let bytes = st.jobs.frame_mesh(&caller, &id, step, format).await?;
         Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, bytes))
     };
     match run.await {
@@ -1056,14 +1105,19 @@ pub async fn frame_mesh(
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
-pub async fn job_result(State(st): State<AppState>, Path(id): Path<String>, uri: Uri) -> Response {
+pub async fn job_result(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+    uri: Uri,
+) -> Response {
     record_job(&id);
     let run = async {
         let format = match parse_out_format(&query(&uri)?)? {
             Some(f) => f,
-            None => st.jobs.get(&id).await?.input_format,
+            None => st.jobs.get(&caller, &id).await?.input_format,
         };
-        let bytes = st.jobs.result(&id, format).await?;
+        let bytes = st.jobs.result(&caller, &id, format).await?;
         Ok::<_, Problem>(mesh_response(&id, "result", format, bytes))
     };
     match run.await {

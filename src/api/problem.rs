@@ -148,6 +148,22 @@ impl From<JobError> for Problem {
                 p.retry_after = Some(retry_after_secs);
                 p
             }
+            JobError::QuotaExceeded {
+                quota,
+                limit,
+                used,
+                retry_after_secs,
+            } => {
+                let mut p = Problem::new(StatusCode::TOO_MANY_REQUESTS, code, detail)
+                    .with("quota", quota)
+                    .with("limit", limit)
+                    .with("retry_after_secs", retry_after_secs);
+                if let Some(used) = used {
+                    p = p.with("used", used);
+                }
+                p.retry_after = Some(retry_after_secs);
+                p
+            }
             JobError::InvalidMesh(_) => {
                 Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail)
             }

@@ -84,6 +84,16 @@ pub struct ServeArgs {
     /// NATS: seconds without a heartbeat after which a job goes to another worker.
     #[arg(long, default_value_t = 30.0)]
     pub nats_ack_wait_secs: f64,
+    /// Per tenant: queued plus running jobs at most (0 = no limit).
+    #[arg(long, default_value_t = 32)]
+    pub tenant_max_live_jobs: usize,
+    /// Per tenant: MiB of uploaded meshes kept (inputs of unexpired jobs and stored uploads;
+    /// 0 = no limit).
+    #[arg(long, default_value_t = 1024)]
+    pub tenant_max_stored_mib: u64,
+    /// Per tenant: meshes received (jobs and uploads) in any minute (0 = no limit).
+    #[arg(long, default_value_t = 120)]
+    pub tenant_uploads_per_minute: usize,
 }
 
 impl ServeArgs {
@@ -135,6 +145,11 @@ impl ServeArgs {
             return Err("--max-deliveries must be at least 1".into());
         }
         c.max_deliveries = self.max_deliveries;
+        c.quotas = crate::jobs::TenantQuotas {
+            max_live_jobs: self.tenant_max_live_jobs,
+            max_stored_bytes: self.tenant_max_stored_mib.saturating_mul(1 << 20),
+            uploads_per_minute: self.tenant_uploads_per_minute,
+        };
         c.role = crate::jobs::Role::parse(&self.role).ok_or_else(|| {
             format!(
                 "--role must be `api`, `worker` or `all`, got `{}`",
@@ -200,7 +215,9 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
     // unknown *HTTP* path a 200 with a grpc-status header.
     let app = rest
         .merge(super::grpc::routes(jobs.clone()))
-        .fallback(http::no_route);
+        .fallback(http::no_route)
+        // Until authentication is configured every caller is the default tenant.
+        .layer(axum::middleware::from_fn(anonymous_caller));
 
     app.layer(
         TraceLayer::new_for_http().make_span_with(|req: &Request<_>| {
@@ -220,6 +237,16 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
     )
     .layer(PropagateRequestIdLayer::new(REQUEST_ID))
     .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
+}
+
+/// Every request is [`Caller::anonymous`](crate::jobs::Caller::anonymous) (`--auth none`).
+async fn anonymous_caller(
+    mut req: Request<axum::body::Body>,
+    next: axum::middleware::Next,
+) -> axum::response::Response {
+    req.extensions_mut()
+        .insert(crate::jobs::Caller::anonymous());
+    next.run(req).await
 }
 
 /// Serve `jobs` on `listener` until `shutdown` resolves; then drain the job core for `grace`

@@ -5,8 +5,8 @@
 
 use super::ports::{BlobKey, Inserted, NewJob};
 use super::{
-    codec, join_err, mesh_error, now_ms, JobError, JobId, JobSpec, JobState, JobStatus, Jobs,
-    UploadRef,
+    audit, codec, join_err, mesh_error, now_ms, Caller, JobError, JobId, JobSpec, JobState,
+    JobStatus, Jobs, UploadRef,
 };
 use crate::mesh::io::{Asset, Format};
 use std::sync::atomic::Ordering;
@@ -16,9 +16,14 @@ impl Jobs {
     ///
     /// With an idempotency key, a repeat of the same request returns the job it created (even
     /// when the queue has since filled up, and on any node); the same key with a different
-    /// mesh or spec is [`JobError::IdempotencyMismatch`].
+    /// mesh or spec is [`JobError::IdempotencyMismatch`]. Keys are the caller's tenant's: two
+    /// tenants never see each other's jobs through them.
+    ///
+    /// The caller's tenant quotas ([`super::TenantQuotas`]) are checked at admission, each
+    /// refusal naming its quota ([`JobError::QuotaExceeded`]).
     pub async fn submit(
         &self,
+        caller: &Caller,
         upload: UploadRef,
         spec: JobSpec,
         idempotency_key: Option<String>,
@@ -31,7 +36,7 @@ impl Jobs {
         let (data, format) = match upload {
             UploadRef::Bytes { data, format } => (data, format),
             UploadRef::Stored { upload_id } => {
-                let format = backend.store.upload(&upload_id).await?;
+                let format = backend.store.upload(&caller.tenant, &upload_id).await?;
                 let key = BlobKey::Upload {
                     id: upload_id.clone(),
                     format,
@@ -64,7 +69,7 @@ impl Jobs {
             .as_ref()
             .map(|_| codec::request_hash(&data, format, &spec));
         if let (Some(k), Some(h)) = (&key, &request_hash) {
-            if let Some(status) = backend.store.idempotent(k, h).await? {
+            if let Some(status) = backend.store.idempotent(&caller.tenant, k, h).await? {
                 return Ok(status);
             }
         }
@@ -97,6 +102,7 @@ impl Jobs {
         .map_err(join_err)??;
 
         let id: JobId = uuid::Uuid::new_v4().to_string();
+        let data_len = data.len() as u64;
         // Write the blob before taking the admission lock: fsync is slow and need not be
         // serialised. A refused job's blob is removed again below.
         backend
@@ -111,16 +117,28 @@ impl Jobs {
             .await?;
         let job = NewJob {
             id: id.clone(),
+            tenant: caller.tenant.clone(),
             spec: spec.clone(),
             format,
             vertex_count,
             face_count,
+            input_bytes: data_len,
             created_at: now_ms(),
             idempotency: key.zip(request_hash),
         };
         match self.admit(job).await {
             Ok(Inserted::New(status)) => {
-                tracing::info!(job_id = %status.id, vertex_count, face_count, steps = spec.steps, "job accepted");
+                tracing::info!(
+                    target: "audit",
+                    action = "create",
+                    tenant = %caller.tenant,
+                    subject = %caller.subject,
+                    job_id = %status.id,
+                    vertex_count,
+                    face_count,
+                    steps = spec.steps,
+                    "audit"
+                );
                 Ok(status)
             }
             Ok(Inserted::Existing(status)) => {
@@ -144,12 +162,16 @@ impl Jobs {
         if backend.queue.depth() >= backend.queue.capacity() {
             return Err(self.queue_full());
         }
-        let id = job.id.clone();
+        // Under the lock, so this node's concurrent submissions of one tenant cannot all pass
+        // the same last unit of quota (across nodes a quota may overshoot by one per node).
+        self.check_quotas(&job.tenant, job.input_bytes, true)
+            .await?;
+        let (id, tenant) = (job.id.clone(), job.tenant.clone());
         let inserted = backend.store.insert(job).await?;
         if let Inserted::Existing(_) = inserted {
             return Ok(inserted);
         }
-        if let Err(e) = backend.queue.push(&id).await {
+        if let Err(e) = backend.queue.push(&tenant, &id).await {
             // Lost the race for the last slot to another node (or the queue is away): the
             // record goes again, key and all, so a retry can succeed.
             let now = now_ms();
@@ -158,7 +180,7 @@ impl Jobs {
                 .store
                 .finish(&id, JobState::Failed, withdrawn, now, now)
                 .await;
-            let _ = backend.store.delete(&id).await;
+            let _ = backend.store.delete(&tenant, &id).await;
             return Err(match e {
                 JobError::QueueFull { .. } => self.queue_full(),
                 other => other,
@@ -170,6 +192,53 @@ impl Jobs {
             .queue_depth
             .set(backend.queue.depth() as i64);
         Ok(inserted)
+    }
+
+    /// Refuse when `tenant` would go over a quota by storing `bytes` more (and, for a job,
+    /// one more live job).
+    async fn check_quotas(&self, tenant: &str, bytes: u64, job: bool) -> Result<(), JobError> {
+        let q = &self.inner.config.quotas;
+        if q.max_live_jobs == 0 && q.max_stored_bytes == 0 && q.uploads_per_minute == 0 {
+            return Ok(());
+        }
+        let since = now_ms().saturating_sub(60_000);
+        let usage = self.inner.backend.store.usage(tenant, since).await?;
+        let refuse = |quota, limit: u64, used: u64, retry_after_secs| {
+            self.inner.telemetry.rejected.inc();
+            tracing::info!(tenant, quota, limit, used, "tenant quota spent");
+            Err(JobError::QuotaExceeded {
+                quota,
+                limit,
+                used: Some(used),
+                retry_after_secs,
+            })
+        };
+        if job && q.max_live_jobs > 0 && usage.live_jobs >= q.max_live_jobs {
+            return refuse(
+                "live_jobs",
+                q.max_live_jobs as u64,
+                usage.live_jobs as u64,
+                self.retry_after_secs(),
+            );
+        }
+        if q.uploads_per_minute > 0 && usage.uploads_since >= q.uploads_per_minute {
+            return refuse(
+                "uploads_per_minute",
+                q.uploads_per_minute as u64,
+                usage.uploads_since as u64,
+                60,
+            );
+        }
+        if q.max_stored_bytes > 0 && usage.stored_bytes.saturating_add(bytes) > q.max_stored_bytes {
+            // Bytes come back when jobs are deleted or expire.
+            return refuse(
+                "stored_bytes",
+                q.max_stored_bytes,
+                usage.stored_bytes,
+                self.inner.config.result_ttl.as_secs().clamp(1, 3600),
+            );
+        }
+        Ok(())
     }
 
     fn queue_full(&self) -> JobError {
@@ -193,6 +262,7 @@ impl Jobs {
     /// bad upload fails here and not at job creation.
     pub async fn store_upload(
         &self,
+        caller: &Caller,
         data: bytes::Bytes,
         format: Format,
     ) -> Result<String, JobError> {
@@ -216,12 +286,20 @@ impl Jobs {
         let expires = now_ms() + self.inner.config.result_ttl.as_millis() as u64;
         let size = data.len() as u64;
         let backend = &self.inner.backend;
-        let key = BlobKey::Upload {
-            id: id.clone(),
-            format,
-        };
-        backend.blobs.put(key, data).await?;
-        backend.store.put_upload(&id, format, size, expires).await?;
+        {
+            let _guard = self.inner.admission.lock().await;
+            self.check_quotas(&caller.tenant, size, false).await?;
+            let key = BlobKey::Upload {
+                id: id.clone(),
+                format,
+            };
+            backend.blobs.put(key, data).await?;
+            backend
+                .store
+                .put_upload(&caller.tenant, &id, format, size, expires)
+                .await?;
+        }
+        audit("upload", caller, &id);
         Ok(id)
     }
 }

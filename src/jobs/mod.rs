@@ -52,6 +52,19 @@ use std::time::Duration;
 use tokio_util::sync::CancellationToken;
 
 use ports::{Backend, BlobKey};
+/// One audit line (target `audit`) for a change a caller made: who (tenant and subject), what,
+/// to which job. Creations are logged by admission with the job's size.
+pub(crate) fn audit(action: &'static str, caller: &Caller, job_id: &str) {
+    tracing::info!(
+        target: "audit",
+        action,
+        tenant = %caller.tenant,
+        subject = %caller.subject,
+        job_id = %job_id,
+        "audit"
+    );
+}
+
 /// Shared state behind the [`Jobs`] handle.
 pub(crate) struct Inner {
     pub config: Config,
@@ -122,12 +135,13 @@ impl Jobs {
             });
         }
         let recovered = backend.store.recover().await?;
-        for (id, delivered) in &recovered {
+        let count = recovered.len();
+        for job in recovered {
             // Recovered jobs bypass the capacity check: they were admitted before.
-            backend.queue.push_recovered(id, *delivered).await?;
+            backend.queue.push_recovered(job).await?;
         }
-        if !recovered.is_empty() {
-            tracing::info!(count = recovered.len(), "re-queued jobs from the store");
+        if count > 0 {
+            tracing::info!(count, "re-queued jobs from the store");
         }
         let inner = Arc::new(Inner {
             config: config.clone(),
@@ -181,15 +195,21 @@ impl Jobs {
         &self.inner.backend.name
     }
 
-    /// The job's current status; `Gone` once it expired.
-    pub async fn get(&self, id: &str) -> Result<JobStatus, JobError> {
-        self.inner.backend.store.status(id).await
+    /// The caller's job's current status; `Gone` once it expired. Another tenant's job is
+    /// `NotFound`, exactly like an unknown id (so is every call below).
+    pub async fn get(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
+        self.inner
+            .backend
+            .store
+            .status(id, Some(&caller.tenant))
+            .await
     }
 
-    /// Jobs newest first, optionally of one state. `page_token` is the opaque
+    /// The caller's jobs newest first, optionally of one state. `page_token` is the opaque
     /// `next_page_token` of the previous page; `page_size` 0 means 50, at most 1000.
     pub async fn list(
         &self,
+        caller: &Caller,
         state: Option<JobState>,
         page_size: usize,
         page_token: Option<String>,
@@ -208,15 +228,20 @@ impl Jobs {
                 reason: "not a token this server returned".into(),
             })?),
         };
-        let (jobs, next) = self.inner.backend.store.list(state, size, inner).await?;
+        let (jobs, next) = self
+            .inner
+            .backend
+            .store
+            .list(&caller.tenant, state, size, inner)
+            .await?;
         Ok((jobs, next.map(|t| seal_page_token(&t))))
     }
 
     /// Cancel a job. Queued: removed from the queue and cancelled now. Running (on any node):
     /// it stops at the next step boundary (the returned status may still say `running`; watch
     /// or poll for `cancelled`). Terminal: [`JobError::Conflict`].
-    pub async fn cancel(&self, id: &str) -> Result<JobStatus, JobError> {
-        let status = self.get(id).await?;
+    pub async fn cancel(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
+        let status = self.get(caller, id).await?;
         if status.state.is_terminal() {
             return Err(JobError::Conflict(format!(
                 "job `{id}` is already {} and cannot be cancelled",
@@ -231,23 +256,27 @@ impl Jobs {
                 .telemetry
                 .queue_depth
                 .set(backend.queue.depth() as i64);
-            return worker::finish(
+            let status = worker::finish(
                 &self.inner,
                 id,
                 JobState::Cancelled,
                 Some(("cancelled", "cancelled while queued".to_string())),
             )
-            .await;
+            .await?;
+            audit("cancel", caller, id);
+            return Ok(status);
         }
         backend.cancels.cancel(id).await?;
-        tracing::info!(job_id = %id, "cancellation requested");
-        self.get(id).await
+        audit("cancel", caller, id);
+        self.get(caller, id).await
     }
 
-    /// Remove a terminal job, its frames and its files. Queued or running: `Conflict`.
-    pub async fn delete(&self, id: &str) -> Result<(), JobError> {
+    /// Remove the caller's terminal job, its frames and its files. Queued or running:
+    /// `Conflict`.
+    pub async fn delete(&self, caller: &Caller, id: &str) -> Result<(), JobError> {
         let backend = &self.inner.backend;
-        backend.store.delete(id).await?;
+        backend.store.delete(&caller.tenant, id).await?;
+        audit("delete", caller, id);
         backend.blobs.delete_job(id).await
     }
 
@@ -257,16 +286,18 @@ impl Jobs {
     /// worker down.
     pub async fn watch(
         &self,
+        caller: &Caller,
         id: &str,
         from_step: usize,
     ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
-        watch::watch(self.clone(), id.to_string(), from_step).await
+        watch::watch(self.clone(), &caller.tenant, id.to_string(), from_step).await
     }
 
     /// Metrics of steps `from_step..` (at most `page_size`, 0 = 100, max 10 000) and the step
     /// to ask for next, if any.
     pub async fn frames(
         &self,
+        caller: &Caller,
         id: &str,
         from_step: usize,
         page_size: usize,
@@ -276,7 +307,7 @@ impl Jobs {
             n => n.min(10_000),
         };
         let store = &self.inner.backend.store;
-        store.status(id).await?;
+        store.status(id, Some(&caller.tenant)).await?;
         let rows = store.frame_rows(id, from_step, size + 1).await?;
         let mut metrics: Vec<StepMetrics> = rows.into_iter().map(|(m, _)| m).collect();
         let next = if metrics.len() > size {
@@ -291,11 +322,12 @@ impl Jobs {
     /// The mesh after `step` in `format`, for steps that kept positions.
     pub async fn frame_mesh(
         &self,
+        caller: &Caller,
         id: &str,
         step: usize,
         format: Format,
     ) -> Result<Vec<u8>, JobError> {
-        let status = self.get(id).await?;
+        let status = self.get(caller, id).await?;
         let kept = if step <= status.step {
             let rows = self.inner.backend.store.frame_rows(id, step, 1).await?;
             rows.first().is_some_and(|(m, p)| m.step == step && *p)
@@ -340,8 +372,13 @@ impl Jobs {
 
     /// The faired mesh in `format` (input UVs, materials and textures kept). `Conflict` until
     /// the job succeeded.
-    pub async fn result(&self, id: &str, format: Format) -> Result<Vec<u8>, JobError> {
-        let status = self.get(id).await?;
+    pub async fn result(
+        &self,
+        caller: &Caller,
+        id: &str,
+        format: Format,
+    ) -> Result<Vec<u8>, JobError> {
+        let status = self.get(caller, id).await?;
         if status.state != JobState::Succeeded {
             return Err(JobError::Conflict(format!(
                 "job `{id}` is {}: only a succeeded job has a result",
@@ -386,15 +423,16 @@ impl Jobs {
     /// Wait until the job is terminal or `timeout` passed; returns the status either way.
     pub async fn wait(
         &self,
+        caller: &Caller,
         id: &str,
         timeout: std::time::Duration,
     ) -> Result<JobStatus, JobError> {
         use futures::StreamExt;
-        let status = self.get(id).await?;
+        let status = self.get(caller, id).await?;
         if status.state.is_terminal() {
             return Ok(status);
         }
-        let mut events = Box::pin(self.watch(id, usize::MAX).await?);
+        let mut events = Box::pin(self.watch(caller, id, usize::MAX).await?);
         let waited = tokio::time::timeout(timeout, async {
             while let Some(ev) = events.next().await {
                 if let JobEvent::Done(s) = ev {
@@ -406,7 +444,7 @@ impl Jobs {
         .await;
         match waited {
             Ok(Some(s)) => Ok(s),
-            _ => self.get(id).await,
+            _ => self.get(caller, id).await,
         }
     }
 

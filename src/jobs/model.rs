@@ -297,6 +297,10 @@ pub fn valid_tenant(t: &str) -> bool {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobStatus {
     pub id: JobId,
+    /// The tenant that owns the job ([`Caller::tenant`]); records from before tenants belong
+    /// to [`DEFAULT_TENANT`].
+    #[serde(default = "default_tenant")]
+    pub tenant: String,
     pub state: JobState,
     /// Steps completed so far (0 while queued).
     pub step: usize,
@@ -311,6 +315,9 @@ pub struct JobStatus {
     pub vertex_count: usize,
     /// Triangles of the welded surface.
     pub face_count: usize,
+    /// Size of the uploaded file: what the job counts against its tenant's storage quota.
+    #[serde(default)]
+    pub input_bytes: u64,
     /// Metrics of the latest completed step (step 0 = the input) once the job has started.
     pub latest: Option<StepMetrics>,
     /// Why the job failed or was cancelled, for people; on a succeeded job, why it stopped
@@ -326,6 +333,10 @@ pub struct JobStatus {
     pub finished_at: Option<u64>,
     /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
     pub expires_at: Option<u64>,
+}
+
+fn default_tenant() -> String {
+    DEFAULT_TENANT.to_string()
 }
 
 fn serialize_format<S: serde::Serializer>(f: &Format, s: S) -> Result<S::Ok, S::Error> {
@@ -374,6 +385,14 @@ pub enum JobError {
     QueueFull {
         retry_after_secs: u64,
         capacity: usize,
+    },
+    /// A tenant's quota ([`TenantQuotas`]) is spent: retry once its jobs finish or age out.
+    #[error("tenant quota `{quota}` of {limit} is spent{}; retry in about {retry_after_secs} s", quota_detail(.used))]
+    QuotaExceeded {
+        quota: &'static str,
+        limit: u64,
+        used: Option<u64>,
+        retry_after_secs: u64,
     },
     #[error("invalid mesh: {0}")]
     InvalidMesh(MeshError),
@@ -429,6 +448,7 @@ impl JobError {
             JobError::NotFound(_) => "not_found",
             JobError::Gone(_) => "gone",
             JobError::QueueFull { .. } => "queue_full",
+            JobError::QuotaExceeded { .. } => "quota_exceeded",
             JobError::InvalidMesh(e) => e.code(),
             JobError::InvalidSpec { .. } => "invalid_parameter",
             JobError::TooLarge { .. } => "too_large",
@@ -445,6 +465,10 @@ impl JobError {
             JobError::Numerical { .. } => "numerical",
         }
     }
+}
+
+fn quota_detail(used: &Option<u64>) -> String {
+    used.map(|u| format!(" ({u} in use)")).unwrap_or_default()
 }
 
 impl From<rusqlite::Error> for JobError {
@@ -556,6 +580,34 @@ pub struct Config {
     /// A job delivered more often than this (its workers kept dying on it) fails with code
     /// `redelivered` instead of taking down one more worker.
     pub max_deliveries: u32,
+    /// What one tenant may hold at once.
+    pub quotas: TenantQuotas,
+}
+
+/// Per-tenant quotas: each refusal names its quota (`QuotaExceeded`, 429 /
+/// RESOURCE_EXHAUSTED). The same for every tenant; 0 turns a quota off.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TenantQuotas {
+    /// Queued plus running jobs.
+    pub max_live_jobs: usize,
+    /// Bytes of uploaded meshes kept (inputs of unexpired jobs and stored uploads).
+    pub max_stored_bytes: u64,
+    /// Meshes received (job submissions and stored uploads) in any 60 s.
+    pub uploads_per_minute: usize,
+}
+
+impl Default for TenantQuotas {
+    fn default() -> Self {
+        TenantQuotas {
+            // Half the default queue: one tenant's burst leaves room for the others (the
+            // queue's fair order does the rest).
+            max_live_jobs: 32,
+            // Sixteen uploads at the 64 MiB limit.
+            max_stored_bytes: 1 << 30,
+            // Two a second on average: far more than people upload, and bounded for scripts.
+            uploads_per_minute: 120,
+        }
+    }
 }
 
 /// What a node of the service does. One process of the embedded backend is both; with NATS,
@@ -616,6 +668,7 @@ impl Config {
             checkpoint_interval: Duration::from_secs(30),
             heartbeat_interval: Duration::from_secs(5),
             max_deliveries: 3,
+            quotas: TenantQuotas::default(),
         }
     }
 }

@@ -31,12 +31,16 @@ use tokio_util::sync::CancellationToken;
 #[derive(Clone, Debug)]
 pub struct NewJob {
     pub id: JobId,
+    /// The owner: every read by a caller is scoped to it.
+    pub tenant: String,
     pub spec: JobSpec,
     pub format: Format,
     pub vertex_count: usize,
     pub face_count: usize,
+    /// Size of the uploaded file (the tenant's storage quota counts it).
+    pub input_bytes: u64,
     pub created_at: u64,
-    /// (key, request hash): see [`super::codec::request_hash`].
+    /// (key, request hash), the key scoped to `tenant`: see [`super::codec::request_hash`].
     pub idempotency: Option<(String, String)>,
 }
 
@@ -58,20 +62,53 @@ pub struct Swept {
     pub uploads: Vec<(String, Format)>,
 }
 
+/// What one tenant holds, for its quotas ([`super::TenantQuotas`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Usage {
+    /// Queued and running jobs.
+    pub live_jobs: usize,
+    /// Bytes of uploaded meshes kept: inputs of unexpired jobs and unexpired uploads.
+    pub stored_bytes: u64,
+    /// Meshes received (jobs and uploads) since the `since` of [`JobStore::usage`].
+    pub uploads_since: usize,
+}
+
+/// A job found queued or running at start ([`JobStore::recover`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Recovered {
+    pub id: JobId,
+    pub tenant: String,
+    /// Deliveries so far (a job found running died with its process: that counts).
+    pub delivered: u32,
+}
+
 /// Job records: state, spec, progress, per-step metrics, idempotency keys and upload records.
+///
+/// Tenancy is in the signatures: what a caller reaches (a status, a listing, an idempotency
+/// key, an upload, a delete) takes the caller's tenant, and another tenant's job answers
+/// exactly as an unknown one (`NotFound`, never `Gone` or `Conflict`). Calls without a tenant
+/// (`status(id, None)`, `start`, `finish`, …) are the core's own, by job id.
 #[async_trait]
 pub trait JobStore: Send + Sync + 'static {
     /// Store an admitted job, queued, with its idempotency key, atomically: of two requests
     /// with one key (on any node), one inserts and the other gets [`Inserted::Existing`], or
     /// [`JobError::IdempotencyMismatch`] when its hash differs.
     async fn insert(&self, job: NewJob) -> Result<Inserted, JobError>;
-    /// The job a key created, when the key is known and bound to `hash`.
-    async fn idempotent(&self, key: &str, hash: &str) -> Result<Option<JobStatus>, JobError>;
-    /// `NotFound` if unknown, `Gone` once expired.
-    async fn status(&self, id: &str) -> Result<JobStatus, JobError>;
-    /// Newest first; `token` is the opaque `next_page_token` of the previous page.
+    /// The job `tenant`'s key created, when the key is known and bound to `hash`. Keys are
+    /// per tenant: two tenants' equal keys are unrelated.
+    async fn idempotent(
+        &self,
+        tenant: &str,
+        key: &str,
+        hash: &str,
+    ) -> Result<Option<JobStatus>, JobError>;
+    /// `NotFound` if unknown (or, with `Some(tenant)`, another tenant's), `Gone` once expired.
+    async fn status(&self, id: &str, tenant: Option<&str>) -> Result<JobStatus, JobError>;
+    /// `tenant`'s jobs, newest first; `token` is the opaque `next_page_token` of the previous
+    /// page.
     async fn list(
         &self,
+        tenant: &str,
         state: Option<JobState>,
         size: usize,
         token: Option<String>,
@@ -108,26 +145,28 @@ pub trait JobStore: Send + Sync + 'static {
     ) -> Result<Option<JobStatus>, JobError>;
     /// A running job goes back to queued (shutdown); its frames and checkpoint stay.
     async fn requeue(&self, id: &str) -> Result<(), JobError>;
-    /// Remove a terminal (or expired) job's record and frames; `Conflict` if it is live.
-    /// Its blobs are the caller's to delete.
-    async fn delete(&self, id: &str) -> Result<(), JobError>;
+    /// Remove `tenant`'s terminal (or expired) job's record and frames; `Conflict` if it is
+    /// live. Its blobs are the caller's to delete.
+    async fn delete(&self, tenant: &str, id: &str) -> Result<(), JobError>;
     /// Retire jobs and uploads past their expiry (jobs keep a tombstone, so they answer
     /// `Gone`).
     async fn sweep_expired(&self, now: u64) -> Result<Swept, JobError>;
     /// After a restart: the jobs a durable queue does not hold, in queue order, for the core
-    /// to queue again (the embedded backend: queued and running jobs; NATS: none), each with
-    /// its deliveries so far (a job found running died with its process: that counts).
-    async fn recover(&self) -> Result<Vec<(JobId, u32)>, JobError>;
-    /// Record an upload stored ahead of its job (chunked gRPC).
+    /// to queue again (the embedded backend: queued and running jobs; NATS: none).
+    async fn recover(&self) -> Result<Vec<Recovered>, JobError>;
+    /// Record `tenant`'s upload stored ahead of its job (chunked gRPC).
     async fn put_upload(
         &self,
+        tenant: &str,
         id: &str,
         format: Format,
         size: u64,
         expires_at: u64,
     ) -> Result<(), JobError>;
-    /// An upload's format; `UploadNotFound` if unknown or expired.
-    async fn upload(&self, id: &str) -> Result<Format, JobError>;
+    /// `tenant`'s upload's format; `UploadNotFound` if unknown, expired or another tenant's.
+    async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError>;
+    /// What `tenant` holds now, counting uploads received at or after `since` (unix ms).
+    async fn usage(&self, tenant: &str, since: u64) -> Result<Usage, JobError>;
 }
 
 /// What a blob holds; the backend names it (file path, object name).
@@ -200,15 +239,18 @@ pub trait LeaseControl: Send + Sync {
     async fn release(&self) -> Result<(), JobError>;
 }
 
-/// The admission queue: bounded, with leases.
+/// The admission queue: bounded, with leases, fair between tenants.
 #[async_trait]
 pub trait WorkQueue: Send + Sync + 'static {
-    /// Append an admitted job; `QueueFull` at capacity (cluster-wide where the backend is).
-    async fn push(&self, id: &str) -> Result<(), JobError>;
-    /// Append regardless of capacity: jobs recovered at start were admitted before. `delivered`
-    /// is how often the job was delivered already; its next lease is attempt `delivered + 1`.
-    async fn push_recovered(&self, id: &str, delivered: u32) -> Result<(), JobError>;
-    /// Wait for the next job.
+    /// Append `tenant`'s admitted job; `QueueFull` at capacity (cluster-wide where the backend
+    /// is).
+    async fn push(&self, tenant: &str, id: &str) -> Result<(), JobError>;
+    /// Append regardless of capacity: jobs recovered at start were admitted before. Its next
+    /// lease is attempt `delivered + 1`.
+    async fn push_recovered(&self, job: Recovered) -> Result<(), JobError>;
+    /// Wait for the next job. Tenants take turns: the next lease goes to the waiting tenant
+    /// served least recently, so one tenant's burst delays another's job by at most one job
+    /// per worker, not by the whole burst.
     async fn lease(&self) -> Result<Lease, JobError>;
     /// Take a waiting job out; `false` if no worker can be kept from it any more (it was
     /// leased, or never queued). A `true` may still race a delivery in flight: the worker

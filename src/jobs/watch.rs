@@ -41,6 +41,7 @@ const REPLAY_BATCH: usize = 64;
 /// See [`Jobs::watch`].
 pub(super) async fn watch(
     jobs: Jobs,
+    tenant: &str,
     id: String,
     from_step: usize,
 ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
@@ -48,7 +49,7 @@ pub(super) async fn watch(
     // Subscribe before reading the store: every frame is either already stored or still to
     // come on the bus, so none falls between the two.
     let live = backend.events.subscribe(&id).await?;
-    let status = match backend.store.status(&id).await {
+    let status = match backend.store.status(&id, Some(tenant)).await {
         Ok(s) => s,
         Err(e) => {
             drop(live);
@@ -134,7 +135,7 @@ async fn replay(jobs: &Jobs, id: &str, mut next: usize, tx: &Tx) -> Result<usize
 }
 
 async fn finish_from_store(jobs: &Jobs, id: &str, next: usize, tx: &Tx) -> Result<(), WatchEnd> {
-    let status = jobs.get(id).await?;
+    let status = jobs.inner.backend.store.status(id, None).await?;
     if next != usize::MAX {
         replay(jobs, id, next, tx).await?;
     }
@@ -172,7 +173,7 @@ async fn run_watcher(
             // A bus that lost messages (NATS while reconnecting) may have lost the `Done`:
             // a quiet channel is checked against the store now and then.
             _ = quiet.tick() => {
-                let status = jobs.get(&id).await?;
+                let status = jobs.inner.backend.store.status(&id, None).await?;
                 if status.state.is_terminal() {
                     return finish_from_store(&jobs, &id, next, &tx).await;
                 }
@@ -227,7 +228,7 @@ async fn run_watcher(
                 // The channel closed: after `Done` (embedded), or the bus connection dropped
                 // (NATS). Only a terminal job ends the watch; otherwise subscribe again and
                 // catch up on what went by meanwhile.
-                let status = jobs.get(&id).await?;
+                let status = jobs.inner.backend.store.status(&id, None).await?;
                 if status.state.is_terminal() {
                     return finish_from_store(&jobs, &id, next, &tx).await;
                 }

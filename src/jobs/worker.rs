@@ -532,7 +532,7 @@ fn stopped(
             }
             let backend = &inner.backend;
             rt.block_on(backend.store.requeue(id))?;
-            if let Ok(s) = rt.block_on(backend.store.status(id)) {
+            if let Ok(s) = rt.block_on(backend.store.status(id, None)) {
                 let _ = rt.block_on(backend.events.publish(id, JobEvent::State(s)));
             }
             tracing::info!("shutting down: job checkpointed and re-queued");
@@ -565,7 +565,7 @@ pub(crate) async fn finish(
     let code = error.as_ref().map(|(c, _)| c.to_string());
     let error = error.map(|(c, m)| (c.to_string(), m));
     let Some(status) = backend.store.finish(id, state, error, now, expires).await? else {
-        return backend.store.status(id).await;
+        return backend.store.status(id, None).await;
     };
     backend
         .events

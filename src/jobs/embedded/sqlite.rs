@@ -6,10 +6,9 @@
 //! microseconds, so a single connection is not the bottleneck the flow step is.
 
 use super::super::codec::{decode_metrics, encode_metrics};
-use super::super::ports::{Inserted, JobStore, NewJob, Swept};
+use super::super::ports::{Inserted, JobStore, NewJob, Recovered, Swept, Usage};
 use super::super::{
-    format_name, join_err, now_ms, parse_format, poisoned, JobError, JobId, JobSpec, JobState,
-    JobStatus,
+    format_name, join_err, now_ms, parse_format, poisoned, JobError, JobSpec, JobState, JobStatus,
 };
 use crate::mesh::io::Format;
 use crate::metrics::StepMetrics;
@@ -42,7 +41,9 @@ CREATE TABLE IF NOT EXISTS jobs (
     finished_at     INTEGER,
     expires_at      INTEGER,
     expired         INTEGER NOT NULL DEFAULT 0,
-    crashes         INTEGER NOT NULL DEFAULT 0
+    crashes         INTEGER NOT NULL DEFAULT 0,
+    tenant          TEXT NOT NULL DEFAULT 'default',
+    input_bytes     INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_expiry ON jobs(expires_at) WHERE expired = 0;
@@ -63,8 +64,25 @@ CREATE TABLE IF NOT EXISTS uploads (
     format          TEXT NOT NULL,
     size            INTEGER NOT NULL,
     created_at      INTEGER NOT NULL,
-    expires_at      INTEGER NOT NULL
+    expires_at      INTEGER NOT NULL,
+    tenant          TEXT NOT NULL DEFAULT 'default'
 );
+";
+
+/// Columns added after the first release, with their definitions: databases from before them
+/// get them at open (SQLite has no `ADD COLUMN IF NOT EXISTS`). Rows from before tenants
+/// belong to the default tenant.
+const ADDED_COLUMNS: [(&str, &str, &str); 4] = [
+    ("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0"),
+    ("jobs", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
+    ("jobs", "input_bytes", "INTEGER NOT NULL DEFAULT 0"),
+    ("uploads", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
+];
+
+/// Created after the columns they index exist.
+const INDEXES: &str = "
+CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant, seq);
+CREATE INDEX IF NOT EXISTS uploads_by_tenant ON uploads(tenant, created_at);
 ";
 
 /// The SQLite job store: one connection behind a mutex, used on tokio's blocking pool.
@@ -75,7 +93,8 @@ pub struct SqliteStore {
 
 const STATUS_COLUMNS: &str =
     "id, state, spec, input_format, vertex_count, face_count, step, latest, \
-     error, error_code, created_at, started_at, finished_at, expires_at, expired, seq";
+     error, error_code, created_at, started_at, finished_at, expires_at, expired, seq, \
+     tenant, input_bytes";
 
 /// A row as read, before the expiry check.
 struct Row {
@@ -104,6 +123,8 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
     let error_code: Option<String> = r.get(9)?;
     let expired: i64 = r.get(14)?;
     let seq: i64 = r.get(15)?;
+    let tenant: String = r.get(16)?;
+    let input_bytes = get_u64(17)?.unwrap_or(0);
     Ok((|| {
         let state = JobState::parse(&state)
             .ok_or_else(|| JobError::Internal(format!("unknown stored state `{state}`")))?;
@@ -115,6 +136,7 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
         Ok(Row {
             status: JobStatus {
                 id,
+                tenant,
                 state,
                 step: step.max(0) as usize,
                 total_steps: spec.steps,
@@ -122,6 +144,7 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
                 input_format,
                 vertex_count: vertex_count.max(0) as usize,
                 face_count: face_count.max(0) as usize,
+                input_bytes,
                 latest,
                 error,
                 error_code,
@@ -152,17 +175,23 @@ impl SqliteStore {
         conn.pragma_update(None, "journal_mode", "WAL")?;
         conn.pragma_update(None, "synchronous", "NORMAL")?;
         conn.execute_batch(SCHEMA)?;
-        // Databases from before the crash count: add the column (SQLite has no
-        // `ADD COLUMN IF NOT EXISTS`).
-        let has_crashes: bool = conn
-            .prepare("SELECT 1 FROM pragma_table_info('jobs') WHERE name = 'crashes'")?
-            .exists([])?;
-        if !has_crashes {
-            conn.execute(
-                "ALTER TABLE jobs ADD COLUMN crashes INTEGER NOT NULL DEFAULT 0",
-                [],
-            )?;
+        for (table, column, definition) in ADDED_COLUMNS {
+            let present: bool = conn
+                .prepare("SELECT 1 FROM pragma_table_info(?1) WHERE name = ?2")?
+                .exists(params![table, column])?;
+            if !present {
+                conn.execute(
+                    &format!("ALTER TABLE {table} ADD COLUMN {column} {definition}"),
+                    [],
+                )?;
+                if (table, column) == ("jobs", "tenant") {
+                    // Keys stored before tenants were the client's text alone; they are the
+                    // default tenant's now (see `scoped_key`).
+                    conn.execute("UPDATE idempotency SET key = 'default/' || key", [])?;
+                }
+            }
         }
+        conn.execute_batch(INDEXES)?;
         Ok(SqliteStore {
             conn: Arc::new(Mutex::new(conn)),
         })
@@ -199,10 +228,13 @@ impl SqliteStore {
         }
     }
 
-    /// The status of a live job: `NotFound` if unknown, `Gone` once expired (even before the
-    /// sweeper deleted its files).
-    fn status_now(&self, id: &str) -> Result<JobStatus, JobError> {
+    /// The status of a live job: `NotFound` if unknown or another tenant's, `Gone` once
+    /// expired (even before the sweeper deleted its files).
+    fn status_now(&self, id: &str, tenant: Option<&str>) -> Result<JobStatus, JobError> {
         let row = self.row(id)?;
+        if tenant.is_some_and(|t| t != row.status.tenant) {
+            return Err(JobError::NotFound(id.to_string()));
+        }
         let expired_now = row.status.expires_at.is_some_and(|t| t <= now_ms());
         if row.expired || expired_now {
             return Err(JobError::Gone(id.to_string()));
@@ -210,12 +242,17 @@ impl SqliteStore {
         Ok(row.status)
     }
 
-    fn idempotent_now(&self, key: &str, hash: &str) -> Result<Option<JobStatus>, JobError> {
+    fn idempotent_now(
+        &self,
+        tenant: &str,
+        key: &str,
+        hash: &str,
+    ) -> Result<Option<JobStatus>, JobError> {
         let found: Option<(String, String)> = self
             .conn()?
             .query_row(
                 "SELECT request_hash, job_id FROM idempotency WHERE key = ?1",
-                params![key],
+                params![scoped_key(tenant, key)],
                 |r| Ok((r.get(0)?, r.get(1)?)),
             )
             .optional()?;
@@ -224,7 +261,7 @@ impl SqliteStore {
             Some((stored, _)) if stored != hash => Err(JobError::IdempotencyMismatch(format!(
                 "key `{key}` was first used with a different mesh or parameters"
             ))),
-            Some((_, job_id)) => self.status_now(&job_id).map(Some),
+            Some((_, job_id)) => self.status_now(&job_id, Some(tenant)).map(Some),
         }
     }
 
@@ -238,7 +275,7 @@ impl SqliteStore {
                 let found: Option<(String, String)> = tx
                     .query_row(
                         "SELECT request_hash, job_id FROM idempotency WHERE key = ?1",
-                        params![key],
+                        params![scoped_key(&job.tenant, key)],
                         |r| Ok((r.get(0)?, r.get(1)?)),
                     )
                     .optional()?;
@@ -250,34 +287,40 @@ impl SqliteStore {
                             "key `{key}` was first used with a different mesh or parameters"
                         )));
                     }
-                    return self.status_now(&existing).map(Inserted::Existing);
+                    return self
+                        .status_now(&existing, Some(&job.tenant))
+                        .map(Inserted::Existing);
                 }
             }
             tx.execute(
-                "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at)
-                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6)",
+                "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at,
+                                   tenant, input_bytes)
+                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
                 params![
                     job.id,
                     spec,
                     format_name(job.format),
                     job.vertex_count as i64,
                     job.face_count as i64,
-                    ms(job.created_at)
+                    ms(job.created_at),
+                    job.tenant,
+                    ms(job.input_bytes)
                 ],
             )?;
             if let Some((key, hash)) = &job.idempotency {
                 tx.execute(
                     "INSERT INTO idempotency (key, request_hash, job_id) VALUES (?1, ?2, ?3)",
-                    params![key, hash, job.id],
+                    params![scoped_key(&job.tenant, key), hash, job.id],
                 )?;
             }
             tx.commit()?;
         }
-        self.status_now(&job.id).map(Inserted::New)
+        self.status_now(&job.id, None).map(Inserted::New)
     }
 
     fn list_now(
         &self,
+        tenant: &str,
         state: Option<JobState>,
         size: usize,
         token: Option<&str>,
@@ -298,13 +341,19 @@ impl SqliteStore {
         let conn = self.conn()?;
         let sql = format!(
             "SELECT {STATUS_COLUMNS} FROM jobs
-             WHERE seq < ?1 AND expired = 0 AND (expires_at IS NULL OR expires_at > ?2)
-               AND (?3 IS NULL OR state = ?3)
+             WHERE tenant = ?5 AND seq < ?1 AND expired = 0
+               AND (expires_at IS NULL OR expires_at > ?2) AND (?3 IS NULL OR state = ?3)
              ORDER BY seq DESC LIMIT ?4"
         );
         let mut st = conn.prepare(&sql)?;
         let rows = st.query_map(
-            params![before, now, state.map(|s| s.as_str()), (size + 1) as i64],
+            params![
+                before,
+                now,
+                state.map(|s| s.as_str()),
+                (size + 1) as i64,
+                tenant
+            ],
             row_to_status,
         )?;
         let mut out = Vec::with_capacity(size + 1);
@@ -346,6 +395,12 @@ impl SqliteStore {
     }
 }
 
+/// Idempotency keys are per tenant: the stored key is the tenant, a `/` (which no tenant id
+/// holds) and the client's key.
+fn scoped_key(tenant: &str, key: &str) -> String {
+    format!("{tenant}/{key}")
+}
+
 /// Ids come from URLs: only our own UUID text is looked up (and, in the file store, becomes a
 /// path).
 pub(crate) fn check_id(id: &str) -> Result<(), JobError> {
@@ -361,23 +416,32 @@ impl JobStore for SqliteStore {
         self.blocking(move |s| s.insert_now(&job)).await
     }
 
-    async fn idempotent(&self, key: &str, hash: &str) -> Result<Option<JobStatus>, JobError> {
-        let (key, hash) = (key.to_string(), hash.to_string());
-        self.blocking(move |s| s.idempotent_now(&key, &hash)).await
+    async fn idempotent(
+        &self,
+        tenant: &str,
+        key: &str,
+        hash: &str,
+    ) -> Result<Option<JobStatus>, JobError> {
+        let (tenant, key, hash) = (tenant.to_string(), key.to_string(), hash.to_string());
+        self.blocking(move |s| s.idempotent_now(&tenant, &key, &hash))
+            .await
     }
 
-    async fn status(&self, id: &str) -> Result<JobStatus, JobError> {
-        let id = id.to_string();
-        self.blocking(move |s| s.status_now(&id)).await
+    async fn status(&self, id: &str, tenant: Option<&str>) -> Result<JobStatus, JobError> {
+        let (id, tenant) = (id.to_string(), tenant.map(str::to_string));
+        self.blocking(move |s| s.status_now(&id, tenant.as_deref()))
+            .await
     }
 
     async fn list(
         &self,
+        tenant: &str,
         state: Option<JobState>,
         size: usize,
         token: Option<String>,
     ) -> Result<(Vec<JobStatus>, Option<String>), JobError> {
-        self.blocking(move |s| s.list_now(state, size, token.as_deref()))
+        let tenant = tenant.to_string();
+        self.blocking(move |s| s.list_now(&tenant, state, size, token.as_deref()))
             .await
     }
 
@@ -393,7 +457,7 @@ impl JobStore for SqliteStore {
             if n == 0 {
                 return Ok(None);
             }
-            s.status_now(&id).map(Some)
+            s.status_now(&id, None).map(Some)
         })
         .await
     }
@@ -497,10 +561,13 @@ impl JobStore for SqliteStore {
         .await
     }
 
-    async fn delete(&self, id: &str) -> Result<(), JobError> {
-        let id = id.to_string();
+    async fn delete(&self, tenant: &str, id: &str) -> Result<(), JobError> {
+        let (tenant, id) = (tenant.to_string(), id.to_string());
         self.blocking(move |s| {
             let row = s.row(&id)?;
+            if row.status.tenant != tenant {
+                return Err(JobError::NotFound(id));
+            }
             if !row.expired && !row.status.state.is_terminal() {
                 return Err(JobError::Conflict(format!(
                     "job `{id}` is {}: cancel it first, only finished jobs can be deleted",
@@ -549,7 +616,7 @@ impl JobStore for SqliteStore {
         .await
     }
 
-    async fn recover(&self) -> Result<Vec<(JobId, u32)>, JobError> {
+    async fn recover(&self) -> Result<Vec<Recovered>, JobError> {
         self.blocking(move |s| {
             let mut conn = s.conn()?;
             let tx = conn.transaction()?;
@@ -566,12 +633,16 @@ impl JobStore for SqliteStore {
                 "UPDATE jobs SET state = 'queued', crashes = crashes + 1 WHERE state = 'running'",
                 [],
             )?;
-            let queued: Vec<(String, u32)> = {
+            let queued: Vec<Recovered> = {
                 let mut st = tx.prepare(
-                    "SELECT id, crashes FROM jobs WHERE state = 'queued' ORDER BY seq",
+                    "SELECT id, crashes, tenant FROM jobs WHERE state = 'queued' ORDER BY seq",
                 )?;
                 let rows = st.query_map([], |r| {
-                    Ok((r.get(0)?, u32::try_from(r.get::<_, i64>(1)?).unwrap_or(u32::MAX)))
+                    Ok(Recovered {
+                        id: r.get(0)?,
+                        delivered: u32::try_from(r.get::<_, i64>(1)?).unwrap_or(u32::MAX),
+                        tenant: r.get(2)?,
+                    })
                 })?;
                 rows.collect::<Result<_, _>>()?
             };
@@ -586,30 +657,39 @@ impl JobStore for SqliteStore {
 
     async fn put_upload(
         &self,
+        tenant: &str,
         id: &str,
         format: Format,
         size: u64,
         expires_at: u64,
     ) -> Result<(), JobError> {
-        let id = id.to_string();
+        let (tenant, id) = (tenant.to_string(), id.to_string());
         self.blocking(move |s| {
             s.conn()?.execute(
-                "INSERT INTO uploads (id, format, size, created_at, expires_at) VALUES (?1, ?2, ?3, ?4, ?5)",
-                params![id, format_name(format), ms(size), ms(now_ms()), ms(expires_at)],
+                "INSERT INTO uploads (id, format, size, created_at, expires_at, tenant)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+                params![
+                    id,
+                    format_name(format),
+                    ms(size),
+                    ms(now_ms()),
+                    ms(expires_at),
+                    tenant
+                ],
             )?;
             Ok(())
         })
         .await
     }
 
-    async fn upload(&self, id: &str) -> Result<Format, JobError> {
-        let id = id.to_string();
+    async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError> {
+        let (tenant, id) = (tenant.to_string(), id.to_string());
         self.blocking(move |s| {
             let found: Option<(String, i64)> = s
                 .conn()?
                 .query_row(
-                    "SELECT format, expires_at FROM uploads WHERE id = ?1",
-                    params![id],
+                    "SELECT format, expires_at FROM uploads WHERE id = ?1 AND tenant = ?2",
+                    params![id, tenant],
                     |r| Ok((r.get(0)?, r.get(1)?)),
                 )
                 .optional()?;
@@ -619,6 +699,37 @@ impl JobStore for SqliteStore {
             }
             parse_format(&format)
                 .ok_or_else(|| JobError::Internal(format!("unknown stored format `{format}`")))
+        })
+        .await
+    }
+
+    async fn usage(&self, tenant: &str, since: u64) -> Result<Usage, JobError> {
+        let tenant = tenant.to_string();
+        self.blocking(move |s| {
+            let now = ms(now_ms());
+            let conn = s.conn()?;
+            let (live, job_bytes, job_uploads): (i64, i64, i64) = conn.query_row(
+                "SELECT
+                    COALESCE(SUM(state IN ('queued', 'running')), 0),
+                    COALESCE(SUM(input_bytes), 0),
+                    COALESCE(SUM(created_at >= ?2), 0)
+                 FROM jobs
+                 WHERE tenant = ?1 AND expired = 0 AND (expires_at IS NULL OR expires_at > ?3)",
+                params![tenant, ms(since), now],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+            )?;
+            let (upload_bytes, uploads): (i64, i64) = conn.query_row(
+                "SELECT COALESCE(SUM(size), 0), COALESCE(SUM(created_at >= ?2), 0)
+                 FROM uploads WHERE tenant = ?1 AND expires_at > ?3",
+                params![tenant, ms(since), now],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )?;
+            let n = |v: i64| usize::try_from(v).unwrap_or(0);
+            Ok(Usage {
+                live_jobs: n(live),
+                stored_bytes: u64::try_from(job_bytes.saturating_add(upload_bytes)).unwrap_or(0),
+                uploads_since: n(job_uploads) + n(uploads),
+            })
         })
         .await
     }

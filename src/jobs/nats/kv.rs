@@ -12,7 +12,7 @@
 //! means here.
 
 use super::super::codec::{decode_metrics, encode_metrics};
-use super::super::ports::{Inserted, JobStore, NewJob, Swept};
+use super::super::ports::{Inserted, JobStore, NewJob, Recovered, Swept, Usage};
 use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
 use super::{nats_err, retry, Nats};
 use crate::jobs::embedded::sqlite::check_id;
@@ -72,6 +72,17 @@ struct IdemEntry {
 struct UploadEntry {
     format: String,
     expires_at: u64,
+    /// Entries from before tenants belong to the default tenant.
+    #[serde(default = "default_tenant")]
+    tenant: String,
+    #[serde(default)]
+    size: u64,
+    #[serde(default)]
+    created_at: u64,
+}
+
+fn default_tenant() -> String {
+    super::super::DEFAULT_TENANT.to_string()
 }
 
 pub(crate) struct KvStore {
@@ -94,9 +105,10 @@ fn frames_subject(id: &str) -> String {
     format!("willow.frames.{id}.>")
 }
 
-/// Idempotency keys are the client's text: hashed into a valid KV key.
-fn idem_key(key: &str) -> String {
-    let h = Sha256::digest(key.as_bytes());
+/// Idempotency keys are the client's text, per tenant: the tenant and the key hashed into a
+/// valid KV key (no tenant id holds the `/`).
+fn idem_key(tenant: &str, key: &str) -> String {
+    let h = Sha256::digest(format!("{tenant}/{key}").as_bytes());
     let hex: String = h.iter().map(|b| format!("{b:02x}")).collect();
     format!("idem.{hex}")
 }
@@ -264,7 +276,7 @@ impl JobStore for KvStore {
         let kv = &self.nats.kv;
         let mut idem = None;
         if let Some((key, hash)) = &job.idempotency {
-            let k = idem_key(key);
+            let k = idem_key(&job.tenant, key);
             let entry = IdemEntry {
                 hash: hash.clone(),
                 job: job.id.clone(),
@@ -272,7 +284,7 @@ impl JobStore for KvStore {
             match kv.create(&k, to_json(&entry)?).await {
                 Ok(_) => idem = Some(k),
                 Err(e) if e.kind() == CreateErrorKind::AlreadyExists => {
-                    return match self.idempotent(key, hash).await? {
+                    return match self.idempotent(&job.tenant, key, hash).await? {
                         Some(status) => Ok(Inserted::Existing(status)),
                         None => Err(JobError::Conflict(format!(
                             "idempotency key `{key}` is being used by a request in flight; retry"
@@ -284,6 +296,7 @@ impl JobStore for KvStore {
         }
         let status = JobStatus {
             id: job.id.clone(),
+            tenant: job.tenant.clone(),
             state: JobState::Queued,
             step: 0,
             total_steps: job.spec.steps,
@@ -291,6 +304,7 @@ impl JobStore for KvStore {
             input_format: job.format,
             vertex_count: job.vertex_count,
             face_count: job.face_count,
+            input_bytes: job.input_bytes,
             latest: None,
             error: None,
             error_code: None,
@@ -311,11 +325,16 @@ impl JobStore for KvStore {
         Ok(Inserted::New(status))
     }
 
-    async fn idempotent(&self, key: &str, hash: &str) -> Result<Option<JobStatus>, JobError> {
+    async fn idempotent(
+        &self,
+        tenant: &str,
+        key: &str,
+        hash: &str,
+    ) -> Result<Option<JobStatus>, JobError> {
         let Some(b) = self
             .nats
             .kv
-            .get(idem_key(key))
+            .get(idem_key(tenant, key))
             .await
             .map_err(|e| nats_err("reading an idempotency key", e))?
         else {
@@ -329,7 +348,7 @@ impl JobStore for KvStore {
         }
         // The key is written just before its job: a moment later the job is there.
         for _ in 0..20 {
-            match self.status(&entry.job).await {
+            match self.status(&entry.job, Some(tenant)).await {
                 Err(JobError::NotFound(_)) => tokio::time::sleep(Duration::from_millis(25)).await,
                 other => return other.map(Some),
             }
@@ -337,13 +356,17 @@ impl JobStore for KvStore {
         Ok(None)
     }
 
-    async fn status(&self, id: &str) -> Result<JobStatus, JobError> {
+    async fn status(&self, id: &str, tenant: Option<&str>) -> Result<JobStatus, JobError> {
         let (rec, _) = self.record(id).await?;
+        if tenant.is_some_and(|t| t != rec.status.tenant) {
+            return Err(JobError::NotFound(id.to_string()));
+        }
         Self::live(id, &rec)
     }
 
     async fn list(
         &self,
+        tenant: &str,
         state: Option<JobState>,
         size: usize,
         token: Option<String>,
@@ -368,6 +391,9 @@ impl JobStore for KvStore {
         };
         let mut all: Vec<JobStatus> = Vec::new();
         for rec in self.list_records().await? {
+            if rec.status.tenant != tenant {
+                continue;
+            }
             if let Ok(s) = Self::live(&rec.status.id, &rec) {
                 if state.is_none_or(|st| s.state == st) {
                     all.push(s);
@@ -507,8 +533,11 @@ impl JobStore for KvStore {
         Ok(())
     }
 
-    async fn delete(&self, id: &str) -> Result<(), JobError> {
+    async fn delete(&self, tenant: &str, id: &str) -> Result<(), JobError> {
         let (rec, _) = self.record(id).await?;
+        if rec.status.tenant != tenant {
+            return Err(JobError::NotFound(id.to_string()));
+        }
         if !rec.expired && !rec.status.state.is_terminal() {
             return Err(JobError::Conflict(format!(
                 "job `{id}` is {}: cancel it first, only finished jobs can be deleted",
@@ -585,7 +614,7 @@ impl JobStore for KvStore {
         Ok(swept)
     }
 
-    async fn recover(&self) -> Result<Vec<(JobId, u32)>, JobError> {
+    async fn recover(&self) -> Result<Vec<Recovered>, JobError> {
         // The work-queue stream is durable: queued jobs are still in it, and running ones are
         // delivered again when their lease lapses.
         Ok(Vec::new())
@@ -593,14 +622,18 @@ impl JobStore for KvStore {
 
     async fn put_upload(
         &self,
+        tenant: &str,
         id: &str,
         format: Format,
-        _size: u64,
+        size: u64,
         expires_at: u64,
     ) -> Result<(), JobError> {
         let entry = UploadEntry {
             format: super::super::format_name(format).to_string(),
             expires_at,
+            tenant: tenant.to_string(),
+            size,
+            created_at: now_ms(),
         };
         self.nats
             .kv
@@ -610,7 +643,7 @@ impl JobStore for KvStore {
         Ok(())
     }
 
-    async fn upload(&self, id: &str) -> Result<Format, JobError> {
+    async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError> {
         check_id(id).map_err(|_| JobError::UploadNotFound(id.to_string()))?;
         let b = self
             .nats
@@ -620,10 +653,51 @@ impl JobStore for KvStore {
             .map_err(|e| nats_err("reading an upload", e))?
             .ok_or_else(|| JobError::UploadNotFound(id.to_string()))?;
         let entry: UploadEntry = from_json(&b)?;
-        if entry.expires_at <= now_ms() {
+        if entry.expires_at <= now_ms() || entry.tenant != tenant {
             return Err(JobError::UploadNotFound(id.to_string()));
         }
         super::super::parse_format(&entry.format)
             .ok_or_else(|| JobError::Internal(format!("unknown stored format `{}`", entry.format)))
+    }
+
+    /// A scan of the tenant's records, like [`JobStore::list`]: O(jobs kept) per admission.
+    /// Fine for the thousands of jobs a TTL keeps; a busier cluster wants per-tenant
+    /// counters (KV entries updated with compare-and-set), a change inside this method.
+    async fn usage(&self, tenant: &str, since: u64) -> Result<Usage, JobError> {
+        let mut usage = Usage::default();
+        for rec in self.list_records().await? {
+            if rec.status.tenant != tenant || Self::live(&rec.status.id, &rec).is_err() {
+                continue;
+            }
+            let s = &rec.status;
+            if !s.state.is_terminal() {
+                usage.live_jobs += 1;
+            }
+            usage.stored_bytes = usage.stored_bytes.saturating_add(s.input_bytes);
+            if s.created_at >= since {
+                usage.uploads_since += 1;
+            }
+        }
+        let now = now_ms();
+        for k in self.keys("upload.").await? {
+            let Some(b) = self
+                .nats
+                .kv
+                .get(&k)
+                .await
+                .map_err(|e| nats_err("reading an upload", e))?
+            else {
+                continue;
+            };
+            let entry: UploadEntry = from_json(&b)?;
+            if entry.tenant != tenant || entry.expires_at <= now {
+                continue;
+            }
+            usage.stored_bytes = usage.stored_bytes.saturating_add(entry.size);
+            if entry.created_at >= since {
+                usage.uploads_since += 1;
+            }
+        }
+        Ok(usage)
     }
 }

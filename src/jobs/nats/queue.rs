@@ -10,7 +10,7 @@
 //!   up to `max_deliver`.
 //! - **Withdrawing** a queued job deletes its message by sequence (kept in KV at push).
 
-use super::super::ports::{Lease, LeaseControl, WorkQueue};
+use super::super::ports::{Lease, LeaseControl, Recovered, WorkQueue};
 use super::super::JobError;
 use super::{error_chain, nats_err, Nats, JOBS_SUBJECT};
 use async_nats::jetstream::consumer::{pull, Consumer};
@@ -164,7 +164,7 @@ async fn publish_job(nats: &Nats, id: &str, msg_id: &str) -> Result<(), JobError
 
 #[async_trait]
 impl WorkQueue for NatsQueue {
-    async fn push(&self, id: &str) -> Result<(), JobError> {
+    async fn push(&self, _tenant: &str, id: &str) -> Result<(), JobError> {
         match publish_job(&self.nats, id, id).await {
             Err(JobError::QueueFull {
                 retry_after_secs, ..
@@ -180,8 +180,8 @@ impl WorkQueue for NatsQueue {
         }
     }
 
-    async fn push_recovered(&self, id: &str, _delivered: u32) -> Result<(), JobError> {
-        self.push(id).await
+    async fn push_recovered(&self, job: Recovered) -> Result<(), JobError> {
+        self.push(&job.tenant, &job.id).await
     }
 
     async fn lease(&self) -> Result<Lease, JobError> {
