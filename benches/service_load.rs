@@ -431,12 +431,23 @@ fn main() {
     });
 }
 
+/// Quotas that are checked on every submission (their cost is part of what is measured) but
+/// never refuse: the load here is one tenant's, far beyond the defaults.
+fn bench_quotas() -> willow::jobs::TenantQuotas {
+    willow::jobs::TenantQuotas {
+        max_live_jobs: 1 << 30,
+        max_stored_bytes: 1 << 50,
+        uploads_per_minute: 1 << 30,
+    }
+}
+
 /// The real router on loopback with `workers` workers and a queue of `queue_capacity` (the
 /// tests' server, sized for load).
 async fn start(workers: usize, queue_capacity: usize) -> TestServer {
     start_server(|c| {
         c.workers = workers;
         c.queue_capacity = queue_capacity;
+        c.quotas = bench_quotas();
     })
     .await
 }
@@ -621,6 +632,7 @@ impl NatsNode {
         let mut config = Config::new(dir.path());
         config.workers = workers;
         config.queue_capacity = queue_capacity;
+        config.quotas = bench_quotas();
         let backend = nats::connect(&config, &nats::NatsOptions::new(nats.url.clone()))
             .await
             .map_err(|e| e.to_string())?;
