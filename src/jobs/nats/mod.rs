@@ -2,7 +2,7 @@
 //!
 //! | port | JetStream |
 //! |---|---|
-//! | [`WorkQueue`](super::ports::WorkQueue) | stream `WILLOW_JOBS` (work-queue retention, `max_msgs` = capacity, discard new) and the durable pull consumer `willow-workers`: explicit ack, `ack_wait`, progress acks as heartbeats, `max_deliver` |
+//! | [`WorkQueue`](super::ports::WorkQueue) | stream `WILLOW_JOBS` (work-queue retention, `max_msgs` = capacity, discard new) on `willow.jobs.{tenant}`, one durable pull consumer per tenant that workers take turns on (fair between tenants): explicit ack, `ack_wait`, progress acks as heartbeats, `max_deliver` |
 //! | [`JobStore`](super::ports::JobStore) | KV bucket `willow-jobs` (records, idempotency keys, uploads, queue sequence numbers, cancel marks); per-step metrics in stream `WILLOW_FRAMES` (limits retention, `max_age` = the result TTL) on `willow.frames.{id}` |
 //! | [`BlobStore`](super::ports::BlobStore) | object store `willow-blobs` |
 //! | [`EventBus`](super::ports::EventBus) | core subjects `willow.live.{id}` (frames) and `willow.events.{id}` (states): any API node streams any job |
@@ -22,10 +22,11 @@ use async_nats::jetstream::{self, consumer, stream};
 use std::sync::Arc;
 use std::time::Duration;
 
-/// The work-queue stream and its subject.
+/// The work-queue stream and its subject: jobs are published on `willow.jobs.{tenant}`.
 pub const JOBS_STREAM: &str = "WILLOW_JOBS";
 pub const JOBS_SUBJECT: &str = "willow.jobs";
-/// The durable pull consumer every worker node shares.
+/// The durable pull consumer of jobs queued before tenants, on `willow.jobs` itself; each
+/// tenant's consumer is `willow-workers-{hash of the tenant}`.
 pub const WORKERS_CONSUMER: &str = "willow-workers";
 /// The stream of per-step metrics, one subject per job.
 pub const FRAMES_STREAM: &str = "WILLOW_FRAMES";
@@ -146,7 +147,7 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
     let js = jetstream::new(client.clone());
     js.create_or_update_stream(stream::Config {
         name: JOBS_STREAM.into(),
-        subjects: vec![JOBS_SUBJECT.into()],
+        subjects: vec![JOBS_SUBJECT.into(), format!("{JOBS_SUBJECT}.>")],
         retention: stream::RetentionPolicy::WorkQueue,
         // Admission is cluster-wide: a publish beyond this is refused by the server.
         max_messages: i64::try_from(config.queue_capacity).unwrap_or(i64::MAX),
@@ -162,14 +163,20 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         .get_stream(JOBS_STREAM)
         .await
         .map_err(|e| nats_err("opening the jobs stream", e))?;
-    let workers = consumer::pull::Config {
-        durable_name: Some(WORKERS_CONSUMER.into()),
+    let template = consumer::pull::Config {
         ack_policy: consumer::AckPolicy::Explicit,
         ack_wait: options.ack_wait,
         // One more than the core's limit: the worker that gets the last delivery fails the
         // job with a reason instead of the server dropping it in silence.
         max_deliver: i64::from(config.max_deliveries) + 1,
         ..Default::default()
+    };
+    // Only `willow.jobs` itself: a work-queue stream refuses consumers whose filters overlap,
+    // and the tenants' consumers take `willow.jobs.{tenant}`.
+    let workers = consumer::pull::Config {
+        durable_name: Some(WORKERS_CONSUMER.into()),
+        filter_subject: JOBS_SUBJECT.into(),
+        ..template.clone()
     };
     let consumer = match jobs_stream.create_consumer(workers.clone()).await {
         Ok(c) => c,
@@ -227,7 +234,13 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         js: js.clone(),
         kv,
     });
-    let queue = queue::NatsQueue::start(nats.clone(), jobs_stream, consumer, config.queue_capacity);
+    let queue = queue::NatsQueue::start(
+        nats.clone(),
+        jobs_stream,
+        consumer,
+        template,
+        config.queue_capacity,
+    );
     let cancels = bus::NatsCancels::start(nats.clone()).await?;
     tracing::info!(url = %options.url, "connected to NATS JetStream");
     Ok(Backend {
