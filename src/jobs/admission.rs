@@ -10,6 +10,7 @@ use super::{
 };
 use crate::mesh::io::{Asset, Format};
 use std::sync::atomic::Ordering;
+use std::time::Instant;
 
 impl Jobs {
     /// Parse and validate the mesh (on a blocking thread), then store and enqueue the job.
@@ -78,6 +79,7 @@ impl Jobs {
         // must keep serving status polls and streams meanwhile.
         let limits = self.inner.config.limits.clone();
         let parse_data = data.clone();
+        let t = Instant::now();
         let parse_spec = spec.clone();
         let (vertex_count, face_count) = tokio::task::spawn_blocking(move || {
             let asset =
@@ -100,11 +102,14 @@ impl Jobs {
         })
         .await
         .map_err(join_err)??;
+        let telemetry = &self.inner.telemetry;
+        telemetry.phase("parse", t);
 
         let id: JobId = uuid::Uuid::new_v4().to_string();
         let data_len = data.len() as u64;
         // Write the blob before taking the admission lock: fsync is slow and need not be
         // serialised. A refused job's blob is removed again below.
+        let t = Instant::now();
         backend
             .blobs
             .put(
@@ -115,6 +120,7 @@ impl Jobs {
                 data,
             )
             .await?;
+        telemetry.phase("blob_put", t);
         let job = NewJob {
             id: id.clone(),
             tenant: caller.tenant.clone(),
@@ -154,7 +160,10 @@ impl Jobs {
 
     async fn admit(&self, job: NewJob) -> Result<Inserted, JobError> {
         let backend = &self.inner.backend;
+        let telemetry = &self.inner.telemetry;
+        let t = Instant::now();
         let _guard = self.inner.admission.lock().await;
+        telemetry.phase("admission_wait", t);
         if self.inner.draining.load(Ordering::SeqCst) {
             return Err(JobError::ShuttingDown);
         }
@@ -164,14 +173,21 @@ impl Jobs {
         }
         // Under the lock, so this node's concurrent submissions of one tenant cannot all pass
         // the same last unit of quota (across nodes a quota may overshoot by one per node).
+        let t = Instant::now();
         self.check_quotas(&job.tenant, job.input_bytes, true)
             .await?;
+        telemetry.phase("quota", t);
         let (id, tenant) = (job.id.clone(), job.tenant.clone());
+        let t = Instant::now();
         let inserted = backend.store.insert(job).await?;
+        telemetry.phase("insert", t);
         if let Inserted::Existing(_) = inserted {
             return Ok(inserted);
         }
-        if let Err(e) = backend.queue.push(&tenant, &id).await {
+        let t = Instant::now();
+        let pushed = backend.queue.push(&tenant, &id).await;
+        telemetry.phase("push", t);
+        if let Err(e) = pushed {
             // Lost the race for the last slot to another node (or the queue is away): the
             // record goes again, key and all, so a retry can succeed.
             let now = now_ms();
@@ -204,7 +220,11 @@ impl Jobs {
         let since = now_ms().saturating_sub(60_000);
         let usage = self.inner.backend.store.usage(tenant, since).await?;
         let refuse = |quota, limit: u64, used: u64, retry_after_secs| {
-            self.inner.telemetry.rejected.inc();
+            self.inner
+                .telemetry
+                .rejected_quota
+                .get_or_create(&super::telemetry::QuotaLabels { quota })
+                .inc();
             tracing::info!(tenant, quota, limit, used, "tenant quota spent");
             Err(JobError::QuotaExceeded {
                 quota,

@@ -18,6 +18,20 @@ pub struct OutcomeLabels {
     pub code: String,
 }
 
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct PhaseLabels {
+    /// A part of a submission: `parse` (reading and validating the mesh, on a blocking thread),
+    /// `blob_put` (storing the file), `admission_wait` (waiting for this node's admission
+    /// lock), `quota` (the tenant's usage), `insert` (the job record), `push` (the queue).
+    pub phase: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct QuotaLabels {
+    /// `live_jobs`, `stored_bytes` or `uploads_per_minute`.
+    pub quota: &'static str,
+}
+
 pub struct Telemetry {
     registry: Registry,
     pub queue_depth: Gauge,
@@ -29,6 +43,8 @@ pub struct Telemetry {
     pub job_seconds: Histogram,
     pub checkpoint_seconds: Histogram,
     pub resumed: Counter,
+    pub submit_phase_seconds: Family<PhaseLabels, Histogram>,
+    pub rejected_quota: Family<QuotaLabels, Counter>,
 }
 
 impl Default for Telemetry {
@@ -53,6 +69,22 @@ impl Telemetry {
         // 0.1 ms .. ~3 s in doublings: a checkpoint is one blob of 24 bytes per vertex.
         let checkpoint_seconds = Histogram::new(exponential_buckets(0.0001, 2.0, 15));
         let resumed = Counter::default();
+        // 50 µs .. ~3 s in doublings: where a submission's time goes, to find what makes the
+        // slow ones slow under load.
+        let submit_phase_seconds = Family::<PhaseLabels, Histogram>::new_with_constructor(|| {
+            Histogram::new(exponential_buckets(0.00005, 2.0, 17))
+        });
+        let rejected_quota = Family::<QuotaLabels, Counter>::default();
+        registry.register(
+            "submit_phase_seconds",
+            "Wall time of each part of a job submission",
+            submit_phase_seconds.clone(),
+        );
+        registry.register(
+            "jobs_rejected_quota",
+            "Submissions refused because a tenant quota was spent, by quota",
+            rejected_quota.clone(),
+        );
         registry.register(
             "checkpoint_seconds",
             "Wall time of writing one flow checkpoint",
@@ -105,7 +137,16 @@ impl Telemetry {
             job_seconds,
             checkpoint_seconds,
             resumed,
+            submit_phase_seconds,
+            rejected_quota,
         }
+    }
+
+    /// Time `phase` of a submission took since `since`.
+    pub fn phase(&self, phase: &'static str, since: std::time::Instant) {
+        self.submit_phase_seconds
+            .get_or_create(&PhaseLabels { phase })
+            .observe(since.elapsed().as_secs_f64());
     }
 
     pub fn record_outcome(&self, state: JobState, code: Option<&str>, run_ms: Option<u64>) {
