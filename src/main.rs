@@ -16,6 +16,8 @@ struct Args {
     command: Command,
 }
 
+// Parsed once per process: the size of the `serve` flags (auth included) does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand)]
 enum Command {
     /// Fair a mesh file and write the result (format by extension: .obj, .gltf, .glb).
