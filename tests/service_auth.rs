@@ -491,6 +491,14 @@ async fn open_routes_and_metrics() {
     assert!(doc["paths"]["/v1/jobs/{id}/stream-token"]["post"].is_object());
     assert_eq!(doc["security"][0]["bearer"], json!([]));
     assert_eq!(doc["paths"]["/healthz"]["get"]["security"], json!([{}]));
+    assert_eq!(
+        doc["components"]["securitySchemes"]["stream_token"]["in"],
+        "query"
+    );
+    assert_eq!(
+        doc["paths"]["/v1/jobs/{id}/events"]["get"]["security"],
+        json!([{"bearer": []}, {"stream_token": []}])
+    );
     // An unknown path is refused, not described.
     assert_eq!(server.get("/nope", None).await.status(), 401);
     server.stop().await;

@@ -1126,7 +1126,7 @@ pub struct SecurityAddon;
 impl utoipa::Modify for SecurityAddon {
     fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
         use utoipa::openapi::security::{
-            HttpAuthScheme, HttpBuilder, SecurityRequirement, SecurityScheme,
+            ApiKey, ApiKeyValue, HttpAuthScheme, HttpBuilder, SecurityRequirement, SecurityScheme,
         };
         let components = openapi.components.get_or_insert_with(Default::default);
         components.add_security_scheme(
@@ -1143,6 +1143,14 @@ impl utoipa::Modify for SecurityAddon {
                     .build(),
             ),
         );
+        components.add_security_scheme(
+            "stream_token",
+            SecurityScheme::ApiKey(ApiKey::Query(ApiKeyValue::with_description(
+                ACCESS_TOKEN_PARAM,
+                "A stream token from POST /v1/jobs/{id}/stream-token, for this job's events \
+                 and frames only",
+            ))),
+        );
         openapi.security = Some(vec![SecurityRequirement::new(
             "bearer",
             Vec::<String>::new(),
@@ -1151,6 +1159,14 @@ impl utoipa::Modify for SecurityAddon {
             if is_open(path, false) {
                 for op in [&mut item.get, &mut item.post].into_iter().flatten() {
                     op.security = Some(vec![SecurityRequirement::default()]);
+                }
+            } else if stream_token_job(&Method::GET, path).is_some() {
+                // Either a bearer or this job's stream token.
+                if let Some(op) = item.get.as_mut() {
+                    op.security = Some(vec![
+                        SecurityRequirement::new("bearer", Vec::<String>::new()),
+                        SecurityRequirement::new("stream_token", Vec::<String>::new()),
+                    ]);
                 }
             }
         }
