@@ -465,6 +465,49 @@ async fn key_file_reloads() {
     server.stop().await;
 }
 
+/// SIGHUP re-reads the key file at once (the poll here is an hour away).
+#[cfg(unix)]
+#[tokio::test]
+async fn sighup_reloads_keys() {
+    let (old, old_line) = willow::api::auth::new_key("acme", "old").expect("key");
+    let (new, new_line) = willow::api::auth::new_key("acme", "new").expect("key");
+    let keys = key_file(&[old_line]);
+    let config = AuthConfig {
+        keys_poll: Duration::from_secs(3600),
+        ..keys_and_jwt(&keys.file)
+    };
+    let server = Server::start(config).await;
+    // A request first: the reloader task has run and installed its SIGHUP handler by then
+    // (this runtime has one thread), so the signal below cannot end the process.
+    assert_eq!(
+        server.get("/v1/jobs", Some(&bearer(&old))).await.status(),
+        200
+    );
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    std::fs::write(&keys.file, format!("{new_line}\n")).expect("rewrite");
+    let status = std::process::Command::new("kill")
+        .args(["-HUP", &std::process::id().to_string()])
+        .status()
+        .expect("kill -HUP");
+    assert!(status.success());
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        if server.get("/v1/jobs", Some(&bearer(&new))).await.status() == 200 {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "SIGHUP did not reload"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(
+        server.get("/v1/jobs", Some(&bearer(&old))).await.status(),
+        401
+    );
+    server.stop().await;
+}
+
 /// Probes, docs and the web page are open; /metrics is open unless protected.
 #[tokio::test]
 async fn open_routes_and_metrics() {
