@@ -338,8 +338,9 @@ pub fn init_logging(format: &str) {
 pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
     init_logging(&args.log_format);
     let config = args.config()?;
-    // Before anything starts: a non-loopback address without auth is refused here.
-    let auth_config = AuthConfig::from_args(&args.auth, args.addr)?;
+    // Before anything starts: a non-loopback address without auth is refused here, and a bad
+    // key file or JWT key too.
+    let auth = Auth::new(&AuthConfig::from_args(&args.auth, args.addr)?)?;
     let grace = Duration::from_secs_f64(args.grace_secs.max(0.0));
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -352,7 +353,6 @@ pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
                 Jobs::start_with(config.clone(), backend).await?
             }
         };
-        let auth = Auth::new(&auth_config)?;
         auth.spawn_reloader();
         let listener = tokio::net::TcpListener::bind(args.addr).await?;
         let local = listener.local_addr()?;
