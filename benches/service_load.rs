@@ -986,6 +986,9 @@ async fn submit_burst(base: &str, obj: &str, clients: usize, per_client: usize) 
     all
 }
 
+/// A histogram as scraped: (upper bound, cumulative count) buckets, sum, count.
+type Histogram = (Vec<(f64, u64)>, f64, u64);
+
 /// Per phase of `willow_submit_phase_seconds`: (count, mean ms, the bucket bound under which
 /// 99% fall, in ms).
 async fn phase_table(base: &str) -> Vec<(String, u64, f64, f64)> {
@@ -993,8 +996,7 @@ async fn phase_table(base: &str) -> Vec<(String, u64, f64, f64)> {
         Ok(r) => r.text().await.unwrap_or_default(),
         Err(_) => String::new(),
     };
-    let mut phases: std::collections::BTreeMap<String, (Vec<(f64, u64)>, f64, u64)> =
-        Default::default();
+    let mut phases: std::collections::BTreeMap<String, Histogram> = Default::default();
     for line in text.lines() {
         let Some(rest) = line.strip_prefix("willow_submit_phase_seconds_") else {
             continue;

@@ -16,6 +16,8 @@ struct Args {
     command: Command,
 }
 
+// Parsed once per process: the size of the `serve` flags (auth included) does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand)]
 enum Command {
     /// Fair a mesh file and write the result (format by extension: .obj, .gltf, .glb).
@@ -26,6 +28,8 @@ enum Command {
     Curve(cli::curve::CurveArgs),
     /// Run the fairing service: HTTP/1.1, h2c and gRPC on one port (jobs kept in --data-dir).
     Serve(willow::api::server::ServeArgs),
+    /// Manage API keys for `serve --auth keys` (`keys new --tenant T --name N`).
+    Keys(cli::keys::KeysArgs),
 }
 
 fn main() -> ExitCode {
@@ -34,6 +38,7 @@ fn main() -> ExitCode {
         Command::Fair(a) => cli::fair::run(a),
         Command::Bench(a) => cli::bench::run(a),
         Command::Curve(a) => cli::curve::run(a),
+        Command::Keys(a) => cli::keys::run(a),
         Command::Serve(a) => match willow::api::server::run(a) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {

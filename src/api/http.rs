@@ -10,6 +10,7 @@
 // most one is built per request, so moving it costs nothing measurable next to the I/O.
 #![allow(clippy::result_large_err)]
 
+use super::auth::SecurityAddon;
 use super::problem::{clip, Problem};
 use crate::flow::Method;
 use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
@@ -1341,8 +1342,9 @@ pub async fn metrics(State(st): State<AppState>) -> Response {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
-    paths(create_job, list_jobs, get_job, cancel_job, delete_job, job_events, list_frames, frame_mesh, job_result, fair_curve, healthz, readyz, metrics),
-    components(schemas(JobView, JobList, JobParams, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
+    paths(create_job, list_jobs, get_job, cancel_job, delete_job, job_events, list_frames, frame_mesh, job_result, fair_curve, healthz, readyz, metrics, super::auth::mint_stream_token),
+    modifiers(&SecurityAddon),
+    components(schemas(super::auth::StreamToken, JobView, JobList, JobParams, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
     tags((name = "jobs", description = "Fairing jobs"), (name = "curves", description = "Curve fairing (paper §5), synchronous"), (name = "ops", description = "Probes and metrics"))
 )]
 pub struct ApiDoc;

@@ -7,8 +7,10 @@
 //! - [`web`]: the web page at `/` (issue 13), its files embedded at build time.
 //! - [`grpc`]: the tonic services (package `willow.v1`, longrunning Operations, health,
 //!   reflection), merged into the same router by [`server::app`].
+//! - [`auth`]: authentication (API keys, JWT, stream tokens), one layer for HTTP and gRPC.
 //! - [`codec`]: their protobuf codec (a request that does not decode is INVALID_ARGUMENT).
 
+pub mod auth;
 pub mod codec;
 pub mod grpc;
 pub mod http;

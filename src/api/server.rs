@@ -6,6 +6,7 @@
 //! for the REST routes only: CORS and the body limits. gRPC routes get their own limits on the
 //! generated services.
 
+use super::auth::{Auth, AuthArgs, AuthConfig};
 use super::http::{self, AppState};
 use crate::jobs::{Config, Jobs, Shutdown};
 use axum::extract::DefaultBodyLimit;
@@ -94,6 +95,8 @@ pub struct ServeArgs {
     /// Per tenant: meshes received (jobs and uploads) in any minute (0 = no limit).
     #[arg(long, default_value_t = 120)]
     pub tenant_uploads_per_minute: usize,
+    #[command(flatten)]
+    pub auth: AuthArgs,
 }
 
 impl ServeArgs {
@@ -172,8 +175,9 @@ impl ServeArgs {
 }
 
 /// The whole application router for `jobs`: REST + probes + docs, with the gRPC services
-/// merged in. `streams_stop` ends open SSE streams (for shutdown).
-pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
+/// merged in, all behind `auth` ([`Auth::none`]: everyone is the anonymous caller).
+/// `streams_stop` ends open SSE streams (for shutdown).
+pub fn app(jobs: Jobs, streams_stop: CancellationToken, auth: Auth) -> Router {
     let limit = jobs.config().limits.max_upload_bytes;
     // Both limits must be raised together: axum's DefaultBodyLimit (2 MB by default) applies to
     // its extractors, tower-http's to the raw body stream. Same number, plus multipart slack.
@@ -199,6 +203,7 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
         jobs: jobs.clone(),
         streams_stop,
     })
+    .merge(super::auth::routes(jobs.clone(), auth.clone()))
     .layer(RequestBodyLimitLayer::new(body_limit))
     // Outside the body limit: a Content-Length over it is refused by that layer itself, before
     // any inner layer runs, and that plain-text 413 must become a problem too.
@@ -215,9 +220,10 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
     // unknown *HTTP* path a 200 with a grpc-status header.
     let app = rest
         .merge(super::grpc::routes(jobs.clone()))
-        .fallback(http::no_route)
-        // Until authentication is configured every caller is the default tenant.
-        .layer(axum::middleware::from_fn(anonymous_caller));
+        .fallback(http::no_route);
+    // Authentication: one layer for REST, SSE and gRPC alike, inside the request span (so a
+    // refusal is logged with its request id) and outside everything else.
+    let app = auth.wrap(app);
 
     app.layer(
         TraceLayer::new_for_http().make_span_with(|req: &Request<_>| {
@@ -232,6 +238,7 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
                 path = %req.uri().path(),
                 request_id = %request_id,
                 job_id = tracing::field::Empty,
+                tenant = tracing::field::Empty,
             )
         }),
     )
@@ -239,18 +246,9 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken) -> Router {
     .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
 }
 
-/// Every request is [`Caller::anonymous`](crate::jobs::Caller::anonymous) (`--auth none`).
-async fn anonymous_caller(
-    mut req: Request<axum::body::Body>,
-    next: axum::middleware::Next,
-) -> axum::response::Response {
-    req.extensions_mut()
-        .insert(crate::jobs::Caller::anonymous());
-    next.run(req).await
-}
-
 /// Serve `jobs` on `listener` until `shutdown` resolves; then drain the job core for `grace`
 /// (running jobs finish or are re-queued), end SSE streams and stop the HTTP server.
+/// Without authentication ([`Auth::none`]); see [`serve_with_auth`].
 pub async fn serve(
     listener: tokio::net::TcpListener,
     jobs: Jobs,
@@ -258,14 +256,27 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
     grace: Duration,
 ) -> std::io::Result<()> {
+    serve_with_auth(listener, jobs, core, shutdown, grace, Auth::none()).await
+}
+
+/// [`serve`] with every request (the probes and open routes aside) authenticated by `auth`.
+pub async fn serve_with_auth(
+    listener: tokio::net::TcpListener,
+    jobs: Jobs,
+    core: Shutdown,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+    grace: Duration,
+    auth: Auth,
+) -> std::io::Result<()> {
     let streams_stop = CancellationToken::new();
     let app = if jobs.config().role.serves_api() {
-        app(jobs.clone(), streams_stop.clone())
+        app(jobs.clone(), streams_stop.clone(), auth)
     } else {
-        http::probe_routes(AppState {
+        // A worker serves probes and metrics only; --protect-metrics still applies.
+        auth.wrap(http::probe_routes(AppState {
             jobs: jobs.clone(),
             streams_stop: streams_stop.clone(),
-        })
+        }))
     };
     let http_stop = CancellationToken::new();
     let http_stop2 = http_stop.clone();
@@ -342,6 +353,9 @@ pub fn init_logging(format: &str) {
 pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
     init_logging(&args.log_format);
     let config = args.config()?;
+    // Before anything starts: a non-loopback address without auth is refused here, and a bad
+    // key file or JWT key too.
+    let auth = Auth::new(&AuthConfig::from_args(&args.auth, args.addr)?)?;
     let grace = Duration::from_secs_f64(args.grace_secs.max(0.0));
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -354,6 +368,7 @@ pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
                 Jobs::start_with(config.clone(), backend).await?
             }
         };
+        auth.spawn_reloader();
         let listener = tokio::net::TcpListener::bind(args.addr).await?;
         let local = listener.local_addr()?;
         tracing::info!(
@@ -363,11 +378,12 @@ pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
             role = ?config.role,
             workers = config.workers,
             queue_capacity = config.queue_capacity,
+            auth = %args.auth.auth,
             "willow serving HTTP/1.1, h2c and gRPC"
         );
         // One line on stdout for scripts (and the tests) that start us on port 0.
         println!("listening on http://{local}");
-        serve(listener, jobs, core, shutdown_signal(), grace).await?;
+        serve_with_auth(listener, jobs, core, shutdown_signal(), grace, auth).await?;
         Ok::<(), Box<dyn std::error::Error>>(())
     })
 }

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod bench_genus;
 pub mod curve;
 pub mod fair;
+pub mod keys;
 
 use std::process::ExitCode;
 
