@@ -8,8 +8,10 @@
 //! - [`grpc`]: the tonic services (package `willow.v1`, longrunning Operations, health,
 //!   reflection), merged into the same router by [`server::app`].
 //! - [`codec`]: their protobuf codec (a request that does not decode is INVALID_ARGUMENT).
+//! - [`conn`]: the accept loop: connection and request timeouts and limits.
 
 pub mod codec;
+pub mod conn;
 pub mod grpc;
 pub mod http;
 pub mod problem;
