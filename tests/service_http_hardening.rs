@@ -724,3 +724,60 @@ fn cors_origins_are_validated_and_normalised() {
         assert!(e.contains("--cors-origin"), "{e}");
     }
 }
+
+#[test]
+fn serve_flags_have_defaults_and_are_validated() {
+    use clap::Parser;
+    #[derive(clap::Parser)]
+    struct Cli {
+        #[command(flatten)]
+        serve: willow::api::server::ServeArgs,
+    }
+    let parse = |args: &[&str]| {
+        let mut all = vec!["willow"];
+        all.extend_from_slice(args);
+        Cli::try_parse_from(all)
+            .expect("flags parse")
+            .serve
+            .serve_options()
+    };
+    let o = parse(&[]).expect("the defaults are valid");
+    assert!(o.app.cors_origins.is_empty());
+    assert_eq!(o.conn.header_read_timeout, Duration::from_secs(10));
+    assert_eq!(o.conn.body_timeout, Duration::from_secs(30));
+    assert_eq!(o.conn.body_min_rate, 32 * 1024);
+    assert_eq!(o.conn.idle_timeout, Duration::from_secs(60));
+    assert_eq!(o.conn.max_connections, 1024);
+    assert_eq!(o.conn.max_requests_per_connection, 1000);
+    assert_eq!(o.conn.max_streams_per_connection, 128);
+    let o = parse(&[
+        "--cors-origin",
+        "https://a.example",
+        "--cors-origin",
+        "http://localhost:5173",
+        "--idle-timeout-secs",
+        "1.5",
+        "--max-requests-per-connection",
+        "0",
+    ])
+    .expect("valid");
+    assert_eq!(o.app.cors_origins.len(), 2);
+    assert_eq!(o.conn.idle_timeout, Duration::from_millis(1500));
+    for (flag, value) in [
+        ("--header-read-timeout-secs", "0"),
+        ("--body-timeout-secs=-1", ""),
+        ("--idle-timeout-secs", "NaN"),
+        ("--keepalive-interval-secs", "1e300"),
+        ("--max-connections", "0"),
+        ("--max-streams-per-connection", "0"),
+        ("--cors-origin", "*"),
+    ] {
+        let args: Vec<&str> = [flag, value]
+            .into_iter()
+            .filter(|a| !a.is_empty())
+            .collect();
+        let e = parse(&args).expect_err(flag);
+        let name = flag.split('=').next().unwrap_or(flag);
+        assert!(e.contains(name), "{flag} {value}: {e}");
+    }
+}

@@ -457,8 +457,16 @@ impl<B> TimedBody<B> {
         if self.min_rate == 0 {
             return stalled;
         }
-        let earned = Duration::from_secs_f64(self.received as f64 / self.min_rate as f64);
-        stalled.min(start + self.timeout + earned)
+        // Saturating: no byte count may overflow the clock (that would panic).
+        let earned = Duration::try_from_secs_f64(self.received as f64 / self.min_rate as f64)
+            .unwrap_or(Duration::MAX);
+        match start
+            .checked_add(self.timeout)
+            .and_then(|t| t.checked_add(earned))
+        {
+            Some(rate) => stalled.min(rate),
+            None => stalled,
+        }
     }
 }
 
