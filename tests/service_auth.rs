@@ -53,7 +53,14 @@ impl Server {
             .expect("bind loopback");
         let base = format!("http://{}", listener.local_addr().expect("local addr"));
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(willow::api::server::serve_with_auth(
+        let options = willow::api::server::ServeOptions {
+            app: willow::api::server::AppOptions {
+                auth,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let task = tokio::spawn(willow::api::server::serve_with(
             listener,
             jobs.clone(),
             core,
@@ -61,7 +68,7 @@ impl Server {
                 let _ = rx.await;
             },
             Duration::from_secs(2),
-            auth,
+            options,
         ));
         Server {
             base,

@@ -768,7 +768,16 @@ async fn list_delete_and_expiry() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn probes_metrics_openapi_docs_cors_and_request_id() {
-    let srv = start(|_| {}).await;
+    let options = willow::api::server::ServeOptions {
+        app: willow::api::server::AppOptions {
+            cors_origins: vec![
+                willow::api::server::parse_origin("http://example.test").expect("an origin")
+            ],
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let srv = start_with(tempfile::tempdir().expect("temp dir"), |_| {}, options).await;
     let res = srv
         .client
         .get(srv.url("/healthz"))
@@ -847,7 +856,7 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
         "self-contained docs page"
     );
 
-    // CORS: a browser can read Location and Retry-After.
+    // CORS, for the listed origin only: a browser can read Location and Retry-After.
     let res = srv
         .client
         .post(srv.url("/v1/jobs?steps=1"))
@@ -858,7 +867,15 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
         .await
         .expect("cors post");
     assert_eq!(res.status(), 202);
-    assert_eq!(res.headers()["access-control-allow-origin"], "*");
+    assert_eq!(
+        res.headers()["access-control-allow-origin"],
+        "http://example.test"
+    );
+    let vary = res.headers()["vary"]
+        .to_str()
+        .expect("ascii")
+        .to_ascii_lowercase();
+    assert!(vary.contains("origin"), "{vary}");
     let exposed = res.headers()["access-control-expose-headers"]
         .to_str()
         .expect("ascii")
@@ -885,6 +902,29 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
         .expect("ascii")
         .to_ascii_lowercase();
     assert!(allowed.contains("idempotency-key"), "{allowed}");
+    assert_eq!(
+        res.headers()["access-control-allow-origin"],
+        "http://example.test"
+    );
+    // Another origin gets no grant, on the preflight or the request itself.
+    let res = srv
+        .client
+        .request(reqwest::Method::OPTIONS, srv.url("/v1/jobs"))
+        .header("origin", "http://other.test")
+        .header("access-control-request-method", "POST")
+        .send()
+        .await
+        .expect("preflight");
+    assert!(res.headers().get("access-control-allow-origin").is_none());
+    let res = srv
+        .client
+        .get(srv.url("/healthz"))
+        .header("origin", "http://other.test")
+        .send()
+        .await
+        .expect("get");
+    assert_eq!(res.status(), 200);
+    assert!(res.headers().get("access-control-allow-origin").is_none());
 
     // Draining: readiness turns false and submissions get 503 with Retry-After.
     srv.jobs.begin_drain();

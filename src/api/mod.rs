@@ -9,9 +9,11 @@
 //!   reflection), merged into the same router by [`server::app`].
 //! - [`auth`]: authentication (API keys, JWT, stream tokens), one layer for HTTP and gRPC.
 //! - [`codec`]: their protobuf codec (a request that does not decode is INVALID_ARGUMENT).
+//! - [`conn`]: the accept loop: connection and request timeouts and limits.
 
 pub mod auth;
 pub mod codec;
+pub mod conn;
 pub mod grpc;
 pub mod http;
 pub mod problem;

@@ -7,18 +7,18 @@
 //! generated services.
 
 use super::auth::{Auth, AuthArgs, AuthConfig};
+use super::conn::ConnLimits;
 use super::http::{self, AppState};
 use crate::jobs::{Config, Jobs, Shutdown};
 use axum::extract::DefaultBodyLimit;
-use axum::http::{header, HeaderName, Method, Request};
-use axum::serve::ListenerExt;
+use axum::http::{header, HeaderName, HeaderValue, Method, Request};
 use axum::Router;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 use tokio_util::sync::CancellationToken;
-use tower_http::cors::{Any, CorsLayer};
+use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::limit::RequestBodyLimitLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
@@ -97,6 +97,164 @@ pub struct ServeArgs {
     pub tenant_uploads_per_minute: usize,
     #[command(flatten)]
     pub auth: AuthArgs,
+    /// An origin (`https://app.example`, exactly as browsers send it) whose pages may call the
+    /// API (CORS); repeat for more. Default: none, no CORS headers at all (the built-in page
+    /// at `/` is same-origin and needs none).
+    #[arg(long = "cors-origin", value_name = "ORIGIN")]
+    pub cors_origins: Vec<String>,
+    /// Seconds a client has to send a complete request head; for HTTP/1 this also bounds the
+    /// wait for the next request on a keep-alive connection.
+    #[arg(long, default_value_t = 10.0)]
+    pub header_read_timeout_secs: f64,
+    /// Seconds a request body may stall; also the grace period before --body-min-rate-kib
+    /// applies.
+    #[arg(long, default_value_t = 30.0)]
+    pub body_timeout_secs: f64,
+    /// Minimum average request-body rate (KiB/s) once --body-timeout-secs has passed; 0: only
+    /// the stall limit.
+    #[arg(long, default_value_t = 32)]
+    pub body_min_rate_kib: u64,
+    /// Seconds a connection with no request in flight stays open.
+    #[arg(long, default_value_t = 60.0)]
+    pub idle_timeout_secs: f64,
+    /// Seconds between HTTP/2 keep-alive pings (unanswered for 20 s: the connection closes).
+    #[arg(long, default_value_t = 30.0)]
+    pub keepalive_interval_secs: f64,
+    /// Connections served at once; further ones wait in the listen backlog until one closes.
+    #[arg(long, default_value_t = 1024)]
+    pub max_connections: usize,
+    /// Requests per connection (HTTP/1: the last response says `Connection: close`; HTTP/2:
+    /// graceful GOAWAY); 0: no limit.
+    #[arg(long, default_value_t = 1000)]
+    pub max_requests_per_connection: u64,
+    /// HTTP/2 streams (gRPC calls, requests) open at once on one connection.
+    #[arg(long, default_value_t = 128)]
+    pub max_streams_per_connection: u32,
+}
+
+/// Longest timeout the flags accept (a day): beyond it `Duration` conversions could overflow
+/// and no client needs it.
+const MAX_TIMEOUT_SECS: f64 = 86_400.0;
+
+/// Seconds from a flag, validated: positive, finite, at most a day.
+fn secs(flag: &str, v: f64) -> Result<Duration, String> {
+    if !(v.is_finite() && v > 0.0 && v <= MAX_TIMEOUT_SECS) {
+        return Err(format!(
+            "--{flag} must be a number of seconds above 0 and at most {MAX_TIMEOUT_SECS}, got {v}"
+        ));
+    }
+    Ok(Duration::from_secs_f64(v))
+}
+
+/// A `--cors-origin` value as the `Origin` header carries it: `http` or `https`, a host, an
+/// optional port, nothing else. Scheme and host are lower-cased and a default port dropped,
+/// as browsers do, so the comparison is exact.
+pub fn parse_origin(s: &str) -> Result<HeaderValue, String> {
+    let bad = |why: &str| format!("--cors-origin `{}`: {why}", super::problem::clip(s));
+    if s == "*" || s == "null" {
+        return Err(bad(
+            "give exact origins (`https://app.example`); CORS here is an allow-list",
+        ));
+    }
+    let (scheme, rest) = s
+        .split_once("://")
+        .ok_or_else(|| bad("expected `http://HOST[:PORT]` or `https://HOST[:PORT]`"))?;
+    let scheme = scheme.to_ascii_lowercase();
+    if scheme != "http" && scheme != "https" {
+        return Err(bad("the scheme must be http or https"));
+    }
+    if rest.contains(['/', '?', '#']) {
+        return Err(bad(
+            "an origin has no path, query or fragment (not even a trailing `/`)",
+        ));
+    }
+    if rest.contains('@') {
+        return Err(bad("an origin has no user name or password"));
+    }
+    let authority: axum::http::uri::Authority =
+        rest.parse().map_err(|_| bad("not a valid host[:port]"))?;
+    if authority.host().is_empty() {
+        return Err(bad("the host is missing"));
+    }
+    let host = authority.host().to_ascii_lowercase();
+    let port = match rest.get(authority.host().len()..).unwrap_or("") {
+        "" => None,
+        tail => Some(
+            tail.strip_prefix(':')
+                .filter(|p| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()))
+                .and_then(|p| p.parse::<u16>().ok())
+                .ok_or_else(|| bad("the port must be a number up to 65535"))?,
+        ),
+    };
+    let port = match (port, scheme.as_str()) {
+        (Some(80), "http") | (Some(443), "https") | (None, _) => String::new(),
+        (Some(p), _) => format!(":{p}"),
+    };
+    HeaderValue::from_str(&format!("{scheme}://{host}{port}"))
+        .map_err(|_| bad("not a valid header value"))
+}
+
+/// What [`app`] needs beyond the job core; `Default` (no CORS grants, [`Auth::none`]) is what
+/// tests usually want.
+#[derive(Debug, Clone)]
+pub struct AppOptions {
+    /// Origins granted CORS (see [`parse_origin`]); empty: no CORS headers at all.
+    pub cors_origins: Vec<HeaderValue>,
+    /// Every request but the probes and open routes goes through it ([`Auth::none`]: everyone
+    /// is the anonymous caller).
+    pub auth: Auth,
+}
+
+impl Default for AppOptions {
+    fn default() -> Self {
+        AppOptions {
+            cors_origins: Vec::new(),
+            auth: Auth::none(),
+        }
+    }
+}
+
+/// [`serve_with`]'s options: the router's and the connections'.
+#[derive(Debug, Clone, Default)]
+pub struct ServeOptions {
+    pub app: AppOptions,
+    pub conn: ConnLimits,
+}
+
+impl ServeArgs {
+    /// The HTTP options these flags describe, validated. Authentication is built here too,
+    /// before anything starts: a non-loopback address without auth is refused, and a bad key
+    /// file or JWT key too.
+    pub fn serve_options(&self) -> Result<ServeOptions, String> {
+        let auth = Auth::new(&AuthConfig::from_args(&self.auth, self.addr)?)?;
+        let cors_origins = self
+            .cors_origins
+            .iter()
+            .map(|o| parse_origin(o))
+            .collect::<Result<Vec<_>, _>>()?;
+        if self.max_connections == 0 || self.max_connections > 1_000_000 {
+            return Err("--max-connections must be between 1 and 1000000".into());
+        }
+        if self.max_streams_per_connection == 0 {
+            return Err("--max-streams-per-connection must be at least 1".into());
+        }
+        Ok(ServeOptions {
+            app: AppOptions { cors_origins, auth },
+            conn: ConnLimits {
+                header_read_timeout: secs(
+                    "header-read-timeout-secs",
+                    self.header_read_timeout_secs,
+                )?,
+                body_timeout: secs("body-timeout-secs", self.body_timeout_secs)?,
+                body_min_rate: self.body_min_rate_kib.saturating_mul(1024),
+                idle_timeout: secs("idle-timeout-secs", self.idle_timeout_secs)?,
+                keepalive_interval: secs("keepalive-interval-secs", self.keepalive_interval_secs)?,
+                max_connections: self.max_connections,
+                max_requests_per_connection: self.max_requests_per_connection,
+                max_streams_per_connection: self.max_streams_per_connection,
+            },
+        })
+    }
 }
 
 impl ServeArgs {
@@ -175,15 +333,17 @@ impl ServeArgs {
 }
 
 /// The whole application router for `jobs`: REST + probes + docs, with the gRPC services
-/// merged in, all behind `auth` ([`Auth::none`]: everyone is the anonymous caller).
-/// `streams_stop` ends open SSE streams (for shutdown).
-pub fn app(jobs: Jobs, streams_stop: CancellationToken, auth: Auth) -> Router {
+/// merged in, all behind `options.auth`. `streams_stop` ends open SSE streams (for shutdown).
+pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) -> Router {
+    let auth = &options.auth;
     let limit = jobs.config().limits.max_upload_bytes;
     // Both limits must be raised together: axum's DefaultBodyLimit (2 MB by default) applies to
     // its extractors, tower-http's to the raw body stream. Same number, plus multipart slack.
     let body_limit = usize::try_from(limit.saturating_add(MULTIPART_SLACK)).unwrap_or(usize::MAX);
+    // An allow-list: a listed origin is echoed (with `Vary: Origin`), any other gets no
+    // `Access-Control-Allow-Origin`. With none listed there is no CORS layer at all.
     let cors = CorsLayer::new()
-        .allow_origin(Any)
+        .allow_origin(AllowOrigin::list(options.cors_origins.iter().cloned()))
         .allow_methods([Method::GET, Method::POST, Method::DELETE, Method::OPTIONS])
         .allow_headers([
             header::CONTENT_TYPE,
@@ -211,8 +371,12 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, auth: Auth) -> Router {
         limit.saturating_add(MULTIPART_SLACK),
         http::problem_for_plain_413,
     ))
-    .layer(DefaultBodyLimit::max(body_limit))
-    .layer(cors);
+    .layer(DefaultBodyLimit::max(body_limit));
+    let rest = if options.cors_origins.is_empty() {
+        rest
+    } else {
+        rest.layer(cors)
+    };
 
     // gRPC: the other transport, merged on the same port (its paths are /pkg.Service/Method,
     // so nothing collides). Its limits live on the generated services, not on these layers.
@@ -248,7 +412,7 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, auth: Auth) -> Router {
 
 /// Serve `jobs` on `listener` until `shutdown` resolves; then drain the job core for `grace`
 /// (running jobs finish or are re-queued), end SSE streams and stop the HTTP server.
-/// Without authentication ([`Auth::none`]); see [`serve_with_auth`].
+/// Default [`ServeOptions`] (no authentication, no CORS grants); see [`serve_with`].
 pub async fn serve(
     listener: tokio::net::TcpListener,
     jobs: Jobs,
@@ -256,21 +420,30 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
     grace: Duration,
 ) -> std::io::Result<()> {
-    serve_with_auth(listener, jobs, core, shutdown, grace, Auth::none()).await
+    serve_with(
+        listener,
+        jobs,
+        core,
+        shutdown,
+        grace,
+        ServeOptions::default(),
+    )
+    .await
 }
 
-/// [`serve`] with every request (the probes and open routes aside) authenticated by `auth`.
-pub async fn serve_with_auth(
+/// [`serve`] with authentication, CORS origins and connection limits (see [`super::conn`]).
+pub async fn serve_with(
     listener: tokio::net::TcpListener,
     jobs: Jobs,
     core: Shutdown,
     shutdown: impl Future<Output = ()> + Send + 'static,
     grace: Duration,
-    auth: Auth,
+    options: ServeOptions,
 ) -> std::io::Result<()> {
     let streams_stop = CancellationToken::new();
+    let auth = options.app.auth.clone();
     let app = if jobs.config().role.serves_api() {
-        app(jobs.clone(), streams_stop.clone(), auth)
+        app(jobs.clone(), streams_stop.clone(), &options.app)
     } else {
         // A worker serves probes and metrics only; --protect-metrics still applies.
         auth.wrap(http::probe_routes(AppState {
@@ -279,17 +452,13 @@ pub async fn serve_with_auth(
         }))
     };
     let http_stop = CancellationToken::new();
-    let http_stop2 = http_stop.clone();
-    let server = tokio::spawn(async move {
-        // TCP_NODELAY: SSE writes one small event at a time; with Nagle's algorithm each
-        // event after the first waits for the client's delayed ACK (~40 ms).
-        let listener = listener.tap_io(|tcp| {
-            let _ = tcp.set_nodelay(true);
-        });
-        axum::serve(listener, app)
-            .with_graceful_shutdown(async move { http_stop2.cancelled().await })
-            .await
-    });
+    // The accept loop sets TCP_NODELAY and closes connections gracefully on `http_stop`.
+    let server = tokio::spawn(super::conn::serve(
+        listener,
+        app,
+        options.conn,
+        http_stop.clone(),
+    ));
     shutdown.await;
     tracing::info!("shutdown requested: draining");
     // Readiness turns false and submissions get 503 while the jobs drain; status, events and
@@ -353,9 +522,9 @@ pub fn init_logging(format: &str) {
 pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
     init_logging(&args.log_format);
     let config = args.config()?;
-    // Before anything starts: a non-loopback address without auth is refused here, and a bad
-    // key file or JWT key too.
-    let auth = Auth::new(&AuthConfig::from_args(&args.auth, args.addr)?)?;
+    // Before anything starts: bad flags, a non-loopback address without auth, a bad key file.
+    let options = args.serve_options()?;
+    let auth = options.app.auth.clone();
     let grace = Duration::from_secs_f64(args.grace_secs.max(0.0));
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -383,7 +552,7 @@ pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
         );
         // One line on stdout for scripts (and the tests) that start us on port 0.
         println!("listening on http://{local}");
-        serve_with_auth(listener, jobs, core, shutdown_signal(), grace, auth).await?;
+        serve_with(listener, jobs, core, shutdown_signal(), grace, options).await?;
         Ok::<(), Box<dyn std::error::Error>>(())
     })
 }

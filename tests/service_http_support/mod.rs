@@ -184,6 +184,15 @@ pub async fn start(tweak: impl FnOnce(&mut Config)) -> TestServer {
 }
 
 pub async fn start_in(dir: tempfile::TempDir, tweak: impl FnOnce(&mut Config)) -> TestServer {
+    start_with(dir, tweak, willow::api::server::ServeOptions::default()).await
+}
+
+/// [`start_in`] with CORS origins and connection limits.
+pub async fn start_with(
+    dir: tempfile::TempDir,
+    tweak: impl FnOnce(&mut Config),
+    options: willow::api::server::ServeOptions,
+) -> TestServer {
     let mut config = Config::new(dir.path());
     config.workers = 1;
     config.queue_capacity = 8;
@@ -194,7 +203,7 @@ pub async fn start_in(dir: tempfile::TempDir, tweak: impl FnOnce(&mut Config)) -
         .expect("bind loopback");
     let base = format!("http://{}", listener.local_addr().expect("local addr"));
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let task = tokio::spawn(willow::api::server::serve(
+    let task = tokio::spawn(willow::api::server::serve_with(
         listener,
         jobs.clone(),
         core,
@@ -202,6 +211,7 @@ pub async fn start_in(dir: tempfile::TempDir, tweak: impl FnOnce(&mut Config)) -
             let _ = rx.await;
         },
         Duration::from_secs(2),
+        options,
     ));
     TestServer {
         base,
