@@ -79,7 +79,9 @@ impl Server {
             .await
             .expect("bind loopback");
         let addr = format!("http://{}", listener.local_addr().expect("local addr"));
-        let app = willow::api::grpc::routes(jobs.clone());
+        // The gRPC services alone, behind the server's authentication layer (`--auth none`:
+        // every call is the anonymous caller's).
+        let app = willow::api::auth::Auth::none().wrap(willow::api::grpc::routes(jobs.clone()));
         tokio::spawn(async move { axum::serve(listener, app).await });
         Server {
             addr,
