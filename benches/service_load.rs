@@ -793,6 +793,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
                 vertex_count,
                 face_count,
                 input_bytes: data.len() as u64,
+                quotas: bench_quotas(),
                 created_at: willow::jobs::now_ms(),
                 idempotency: None,
             })

@@ -344,3 +344,42 @@ async fn a_burst_of_one_tenant_does_not_starve_another() {
     );
     core.shutdown(Duration::from_secs(1)).await;
 }
+
+/// Submissions of one tenant racing for the last units of its quota: the count and the insert
+/// are one transaction, so exactly the quota is accepted (no admission lock is needed).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_submissions_do_not_overshoot_a_quota() {
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path(), |c| {
+        c.quotas = TenantQuotas {
+            max_live_jobs: 5,
+            max_stored_bytes: 0,
+            uploads_per_minute: 0,
+        }
+    }))
+    .await
+    .expect("start");
+    let a = tenant("alpha");
+    let tasks: Vec<_> = (0..24)
+        .map(|_| {
+            let (jobs, a) = (jobs.clone(), a.clone());
+            tokio::spawn(async move { jobs.submit(&a, obj(slow_obj()), spec(5000), None).await })
+        })
+        .collect();
+    let (mut accepted, mut refused) = (Vec::new(), 0);
+    for t in tasks {
+        match t.await.expect("task") {
+            Ok(s) => accepted.push(s.id),
+            Err(JobError::QuotaExceeded {
+                quota: "live_jobs", ..
+            }) => refused += 1,
+            Err(e) => panic!("unexpected refusal: {e}"),
+        }
+    }
+    assert_eq!(accepted.len(), 5, "exactly the quota is accepted");
+    assert_eq!(refused, 19);
+    for id in &accepted {
+        jobs.cancel(&a, id).await.expect("cancel");
+    }
+    core.shutdown(Duration::from_secs(1)).await;
+}

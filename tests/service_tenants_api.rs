@@ -47,7 +47,7 @@ async fn start(quotas: TenantQuotas) -> (Server, Keys) {
         ..AuthConfig::default()
     })
     .expect("auth");
-    let mut config = Config::new(&dir.path().join("data"));
+    let mut config = Config::new(dir.path().join("data"));
     config.workers = 1;
     config.queue_capacity = 16;
     config.quotas = quotas;

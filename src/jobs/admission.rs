@@ -1,9 +1,9 @@
 //! Admission: a mesh and a spec become a stored, queued job, or a clear refusal. Validation
-//! runs before anything is stored; this node's admissions are serialised by a lock, and the
-//! backend's atomic operations decide between nodes (the idempotency key's create, the queue's
-//! capacity).
+//! runs before anything is stored; the backend's atomic operations decide between concurrent
+//! submissions, on this node and across nodes (the idempotency key's create and, on SQLite,
+//! the tenant's quota, in the insert; the queue's capacity, in the push).
 
-use super::ports::{BlobKey, Inserted, NewJob};
+use super::ports::{over_quota, BlobKey, Inserted, NewJob, OverQuota};
 use super::{
     audit, codec, join_err, mesh_error, now_ms, Caller, JobError, JobId, JobSpec, JobState,
     JobStatus, Jobs, UploadRef,
@@ -129,6 +129,8 @@ impl Jobs {
             vertex_count,
             face_count,
             input_bytes: data_len,
+            // Set by `admit`.
+            quotas: super::TenantQuotas::default(),
             created_at: now_ms(),
             idempotency: key.zip(request_hash),
         };
@@ -151,6 +153,10 @@ impl Jobs {
                 let _ = backend.blobs.delete_job(&id).await;
                 Ok(status)
             }
+            Ok(Inserted::OverQuota(over)) => {
+                let _ = backend.blobs.delete_job(&id).await;
+                Err(self.over_quota(&caller.tenant, over))
+            }
             Err(e) => {
                 let _ = backend.blobs.delete_job(&id).await;
                 Err(e)
@@ -158,12 +164,14 @@ impl Jobs {
         }
     }
 
-    async fn admit(&self, job: NewJob) -> Result<Inserted, JobError> {
+    /// Store and queue the job. No lock: the store's insert is atomic (idempotency key, and
+    /// on SQLite the quota count), and so is the queue's push (capacity). A lock here
+    /// serialised every submission of the node behind two store round trips: at 50
+    /// concurrent clients its wait was most of a submission's time (`cargo bench --bench
+    /// service_load`, part 7).
+    async fn admit(&self, mut job: NewJob) -> Result<Inserted, JobError> {
         let backend = &self.inner.backend;
         let telemetry = &self.inner.telemetry;
-        let t = Instant::now();
-        let _guard = self.inner.admission.lock().await;
-        telemetry.phase("admission_wait", t);
         if self.inner.draining.load(Ordering::SeqCst) {
             return Err(JobError::ShuttingDown);
         }
@@ -171,25 +179,20 @@ impl Jobs {
         if backend.queue.depth() >= backend.queue.capacity() {
             return Err(self.queue_full());
         }
-        // Under the lock, so this node's concurrent submissions of one tenant cannot all pass
-        // the same last unit of quota (across nodes a quota may overshoot by one per node).
-        let t = Instant::now();
-        self.check_quotas(&job.tenant, job.input_bytes, true)
-            .await?;
-        telemetry.phase("quota", t);
+        job.quotas = self.inner.config.quotas.clone();
         let (id, tenant) = (job.id.clone(), job.tenant.clone());
         let t = Instant::now();
         let inserted = backend.store.insert(job).await?;
         telemetry.phase("insert", t);
-        if let Inserted::Existing(_) = inserted {
+        if !matches!(inserted, Inserted::New(_)) {
             return Ok(inserted);
         }
         let t = Instant::now();
         let pushed = backend.queue.push(&tenant, &id).await;
         telemetry.phase("push", t);
         if let Err(e) = pushed {
-            // Lost the race for the last slot to another node (or the queue is away): the
-            // record goes again, key and all, so a retry can succeed.
+            // Lost the race for the last slot (to another submission or node), or the queue
+            // is away: the record goes again, key and all, so a retry can succeed.
             let now = now_ms();
             let withdrawn = Some(("queue_full".to_string(), e.to_string()));
             let _ = backend
@@ -210,55 +213,47 @@ impl Jobs {
         Ok(inserted)
     }
 
-    /// Refuse when `tenant` would go over a quota by storing `bytes` more (and, for a job,
-    /// one more live job).
-    async fn check_quotas(&self, tenant: &str, bytes: u64, job: bool) -> Result<(), JobError> {
-        let q = &self.inner.config.quotas;
-        if q.max_live_jobs == 0 && q.max_stored_bytes == 0 && q.uploads_per_minute == 0 {
+    /// The refusal for `over`, counted and logged, with a `Retry-After` that fits the quota:
+    /// live jobs free up as jobs finish, the minute's uploads within a minute, stored bytes
+    /// when finished jobs are deleted or expire.
+    fn over_quota(&self, tenant: &str, over: OverQuota) -> JobError {
+        self.inner
+            .telemetry
+            .rejected_quota
+            .get_or_create(&super::telemetry::QuotaLabels { quota: over.quota })
+            .inc();
+        tracing::info!(
+            tenant,
+            quota = over.quota,
+            limit = over.limit,
+            used = over.used,
+            "tenant quota spent"
+        );
+        let retry_after_secs = match over.quota {
+            "live_jobs" => self.retry_after_secs(),
+            "uploads_per_minute" => 60,
+            _ => self.inner.config.result_ttl.as_secs().clamp(1, 3600),
+        };
+        JobError::QuotaExceeded {
+            quota: over.quota,
+            limit: over.limit,
+            used: Some(over.used),
+            retry_after_secs,
+        }
+    }
+
+    /// Refuse an upload of `bytes` that `tenant`'s quotas have no room for.
+    async fn check_upload_quotas(&self, tenant: &str, bytes: u64) -> Result<(), JobError> {
+        let quotas = &self.inner.config.quotas;
+        if !quotas.any() {
             return Ok(());
         }
         let since = now_ms().saturating_sub(60_000);
         let usage = self.inner.backend.store.usage(tenant, since).await?;
-        let refuse = |quota, limit: u64, used: u64, retry_after_secs| {
-            self.inner
-                .telemetry
-                .rejected_quota
-                .get_or_create(&super::telemetry::QuotaLabels { quota })
-                .inc();
-            tracing::info!(tenant, quota, limit, used, "tenant quota spent");
-            Err(JobError::QuotaExceeded {
-                quota,
-                limit,
-                used: Some(used),
-                retry_after_secs,
-            })
-        };
-        if job && q.max_live_jobs > 0 && usage.live_jobs >= q.max_live_jobs {
-            return refuse(
-                "live_jobs",
-                q.max_live_jobs as u64,
-                usage.live_jobs as u64,
-                self.retry_after_secs(),
-            );
+        match over_quota(quotas, &usage, bytes, false) {
+            Some(over) => Err(self.over_quota(tenant, over)),
+            None => Ok(()),
         }
-        if q.uploads_per_minute > 0 && usage.uploads_since >= q.uploads_per_minute {
-            return refuse(
-                "uploads_per_minute",
-                q.uploads_per_minute as u64,
-                usage.uploads_since as u64,
-                60,
-            );
-        }
-        if q.max_stored_bytes > 0 && usage.stored_bytes.saturating_add(bytes) > q.max_stored_bytes {
-            // Bytes come back when jobs are deleted or expire.
-            return refuse(
-                "stored_bytes",
-                q.max_stored_bytes,
-                usage.stored_bytes,
-                self.inner.config.result_ttl.as_secs().clamp(1, 3600),
-            );
-        }
-        Ok(())
     }
 
     fn queue_full(&self) -> JobError {
@@ -308,7 +303,7 @@ impl Jobs {
         let backend = &self.inner.backend;
         {
             let _guard = self.inner.admission.lock().await;
-            self.check_quotas(&caller.tenant, size, false).await?;
+            self.check_upload_quotas(&caller.tenant, size).await?;
             let key = BlobKey::Upload {
                 id: id.clone(),
                 format,

@@ -69,9 +69,8 @@ pub(crate) fn audit(action: &'static str, caller: &Caller, job_id: &str) {
 pub(crate) struct Inner {
     pub config: Config,
     pub backend: Backend,
-    /// Serialises this node's admission decisions (idempotency lookup, capacity, insert,
-    /// enqueue) so two of its submissions cannot both take the last slot. Across nodes the
-    /// backend's own atomic operations decide (see [`ports::JobStore::insert`]).
+    /// Serialises this node's stored uploads between their quota count and their record
+    /// (jobs need no lock: their quota is counted in the store's insert).
     pub admission: tokio::sync::Mutex<()>,
     pub draining: AtomicBool,
     /// Cancelled when draining begins, for transports that must react (gRPC health).

@@ -20,7 +20,7 @@
 //! - a [`Lease`] that is neither acked nor heartbeaten is delivered again (NATS: after
 //!   `ack_wait`; embedded: on the next start of the process).
 
-use super::{JobError, JobEvent, JobId, JobSpec, JobState, JobStatus};
+use super::{JobError, JobEvent, JobId, JobSpec, JobState, JobStatus, TenantQuotas};
 use crate::mesh::io::Format;
 use crate::metrics::StepMetrics;
 use async_trait::async_trait;
@@ -40,6 +40,9 @@ pub struct NewJob {
     /// Size of the uploaded file (the tenant's storage quota counts it).
     pub input_bytes: u64,
     pub created_at: u64,
+    /// The tenant's quotas: [`JobStore::insert`] refuses the job when its tenant's usage
+    /// leaves no room ([`Inserted::OverQuota`]).
+    pub quotas: TenantQuotas,
     /// (key, request hash), the key scoped to `tenant`: see [`super::codec::request_hash`].
     pub idempotency: Option<(String, String)>,
 }
@@ -52,6 +55,44 @@ pub enum Inserted {
     /// Its idempotency key already named this job (the same request sent again): nothing was
     /// stored, the caller answers with the existing job.
     Existing(JobStatus),
+    /// Nothing was stored: the tenant's usage leaves no room under this quota.
+    OverQuota(OverQuota),
+}
+
+/// Which quota a job or upload would break, and by how much.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct OverQuota {
+    /// `live_jobs`, `uploads_per_minute` or `stored_bytes`.
+    pub quota: &'static str,
+    pub limit: u64,
+    pub used: u64,
+}
+
+/// The quota `usage` plus one more upload of `bytes` (and, for a job, one more live job) would
+/// break, if any. A limit of 0 is no limit.
+pub fn over_quota(q: &TenantQuotas, usage: &Usage, bytes: u64, job: bool) -> Option<OverQuota> {
+    let over = |quota, limit: u64, used: u64| Some(OverQuota { quota, limit, used });
+    if job && q.max_live_jobs > 0 && usage.live_jobs >= q.max_live_jobs {
+        return over("live_jobs", q.max_live_jobs as u64, usage.live_jobs as u64);
+    }
+    if q.uploads_per_minute > 0 && usage.uploads_since >= q.uploads_per_minute {
+        return over(
+            "uploads_per_minute",
+            q.uploads_per_minute as u64,
+            usage.uploads_since as u64,
+        );
+    }
+    if q.max_stored_bytes > 0 && usage.stored_bytes.saturating_add(bytes) > q.max_stored_bytes {
+        return over("stored_bytes", q.max_stored_bytes, usage.stored_bytes);
+    }
+    None
+}
+
+impl TenantQuotas {
+    /// Whether any quota is on (else usage need not be counted).
+    pub fn any(&self) -> bool {
+        self.max_live_jobs > 0 || self.max_stored_bytes > 0 || self.uploads_per_minute > 0
+    }
 }
 
 /// Jobs and uploads that [`JobStore::sweep_expired`] retired: their blobs are the caller's to
@@ -92,7 +133,11 @@ pub struct Recovered {
 pub trait JobStore: Send + Sync + 'static {
     /// Store an admitted job, queued, with its idempotency key, atomically: of two requests
     /// with one key (on any node), one inserts and the other gets [`Inserted::Existing`], or
-    /// [`JobError::IdempotencyMismatch`] when its hash differs.
+    /// [`JobError::IdempotencyMismatch`] when its hash differs. A job its tenant's quotas have
+    /// no room for is [`Inserted::OverQuota`] (a repeat with a known key is `Existing` first);
+    /// where the backend has transactions the count and the insert are one, so concurrent
+    /// submissions cannot overshoot (NATS: the count is a scan just before the insert, so
+    /// concurrent submissions of one tenant may overshoot by their number).
     async fn insert(&self, job: NewJob) -> Result<Inserted, JobError>;
     /// The job `tenant`'s key created, when the key is known and bound to `hash`. Keys are
     /// per tenant: two tenants' equal keys are unrelated.

@@ -6,7 +6,7 @@
 //! microseconds, so a single connection is not the bottleneck the flow step is.
 
 use super::super::codec::{decode_metrics, encode_metrics};
-use super::super::ports::{Inserted, JobStore, NewJob, Recovered, Swept, Usage};
+use super::super::ports::{over_quota, Inserted, JobStore, NewJob, Recovered, Swept, Usage};
 use super::super::{
     format_name, join_err, now_ms, parse_format, poisoned, JobError, JobSpec, JobState, JobStatus,
 };
@@ -292,6 +292,15 @@ impl SqliteStore {
                         .map(Inserted::Existing);
                 }
             }
+            // In the transaction: concurrent submissions of one tenant cannot both take the
+            // last unit of a quota.
+            if job.quotas.any() {
+                let since = now_ms().saturating_sub(60_000);
+                let usage = usage_on(&tx, &job.tenant, since)?;
+                if let Some(over) = over_quota(&job.quotas, &usage, job.input_bytes, true) {
+                    return Ok(Inserted::OverQuota(over));
+                }
+            }
             tx.execute(
                 "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at,
                                    tenant, input_bytes)
@@ -393,6 +402,33 @@ impl SqliteStore {
         }
         Ok(out)
     }
+}
+
+/// What `tenant` holds (see [`JobStore::usage`]), on `conn` (or a transaction).
+fn usage_on(conn: &Connection, tenant: &str, since: u64) -> Result<Usage, JobError> {
+    let now = ms(now_ms());
+    let (live, job_bytes, job_uploads): (i64, i64, i64) = conn.query_row(
+        "SELECT
+            COALESCE(SUM(state IN ('queued', 'running')), 0),
+            COALESCE(SUM(input_bytes), 0),
+            COALESCE(SUM(created_at >= ?2), 0)
+         FROM jobs
+         WHERE tenant = ?1 AND expired = 0 AND (expires_at IS NULL OR expires_at > ?3)",
+        params![tenant, ms(since), now],
+        |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+    )?;
+    let (upload_bytes, uploads): (i64, i64) = conn.query_row(
+        "SELECT COALESCE(SUM(size), 0), COALESCE(SUM(created_at >= ?2), 0)
+         FROM uploads WHERE tenant = ?1 AND expires_at > ?3",
+        params![tenant, ms(since), now],
+        |r| Ok((r.get(0)?, r.get(1)?)),
+    )?;
+    let n = |v: i64| usize::try_from(v).unwrap_or(0);
+    Ok(Usage {
+        live_jobs: n(live),
+        stored_bytes: u64::try_from(job_bytes.saturating_add(upload_bytes)).unwrap_or(0),
+        uploads_since: n(job_uploads) + n(uploads),
+    })
 }
 
 /// Idempotency keys are per tenant: the stored key is the tenant, a `/` (which no tenant id
@@ -705,32 +741,7 @@ impl JobStore for SqliteStore {
 
     async fn usage(&self, tenant: &str, since: u64) -> Result<Usage, JobError> {
         let tenant = tenant.to_string();
-        self.blocking(move |s| {
-            let now = ms(now_ms());
-            let conn = s.conn()?;
-            let (live, job_bytes, job_uploads): (i64, i64, i64) = conn.query_row(
-                "SELECT
-                    COALESCE(SUM(state IN ('queued', 'running')), 0),
-                    COALESCE(SUM(input_bytes), 0),
-                    COALESCE(SUM(created_at >= ?2), 0)
-                 FROM jobs
-                 WHERE tenant = ?1 AND expired = 0 AND (expires_at IS NULL OR expires_at > ?3)",
-                params![tenant, ms(since), now],
-                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
-            )?;
-            let (upload_bytes, uploads): (i64, i64) = conn.query_row(
-                "SELECT COALESCE(SUM(size), 0), COALESCE(SUM(created_at >= ?2), 0)
-                 FROM uploads WHERE tenant = ?1 AND expires_at > ?3",
-                params![tenant, ms(since), now],
-                |r| Ok((r.get(0)?, r.get(1)?)),
-            )?;
-            let n = |v: i64| usize::try_from(v).unwrap_or(0);
-            Ok(Usage {
-                live_jobs: n(live),
-                stored_bytes: u64::try_from(job_bytes.saturating_add(upload_bytes)).unwrap_or(0),
-                uploads_since: n(job_uploads) + n(uploads),
-            })
-        })
-        .await
+        self.blocking(move |s| usage_on(&*s.conn()?, &tenant, since))
+            .await
     }
 }

@@ -12,7 +12,7 @@
 //! means here.
 
 use super::super::codec::{decode_metrics, encode_metrics};
-use super::super::ports::{Inserted, JobStore, NewJob, Recovered, Swept, Usage};
+use super::super::ports::{over_quota, Inserted, JobStore, NewJob, Recovered, Swept, Usage};
 use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
 use super::{nats_err, retry, Nats};
 use crate::jobs::embedded::sqlite::check_id;
@@ -274,6 +274,19 @@ impl KvStore {
 impl JobStore for KvStore {
     async fn insert(&self, job: NewJob) -> Result<Inserted, JobError> {
         let kv = &self.nats.kv;
+        // A repeat is answered before the quota is counted (it adds nothing).
+        if let Some((key, hash)) = &job.idempotency {
+            if let Some(status) = self.idempotent(&job.tenant, key, hash).await? {
+                return Ok(Inserted::Existing(status));
+            }
+        }
+        if job.quotas.any() {
+            let since = now_ms().saturating_sub(60_000);
+            let usage = self.usage(&job.tenant, since).await?;
+            if let Some(over) = over_quota(&job.quotas, &usage, job.input_bytes, true) {
+                return Ok(Inserted::OverQuota(over));
+            }
+        }
         let mut idem = None;
         if let Some((key, hash)) = &job.idempotency {
             let k = idem_key(&job.tenant, key);
