@@ -17,6 +17,8 @@
 //! 7. submissions at 50 concurrent clients while the workers are busy: submit p50/p99 against
 //!    one client alone, and where the slow submissions' time goes (the server's
 //!    `willow_submit_phase_seconds` histograms);
+//! 8. what authentication and the tenant checks cost a submission: 8 clients against a server
+//!    with `--auth none` and quotas off, and against one with API keys and quotas on;
 //! 6. recovery after a worker crash: with NATS (API node and two worker nodes as processes of
 //!    this build), the time from SIGKILLing the worker running a job until the other one
 //!    resumes it, against the configured `ack_wait`; embedded, until a restarted process does.
@@ -433,6 +435,9 @@ fn main() {
         }
         if part(7) {
             submit_under_load(&small).await;
+        }
+        if part(8) {
+            auth_overhead(&small).await;
         }
     });
 }
@@ -946,13 +951,19 @@ async fn submit_phases(obj: &str) {
 // ---------------------------------------------------------------------------------------------
 // 7. Submissions at 50 concurrent clients while the workers are busy.
 
-/// `clients` clients each submitting `per_client` jobs back to back (no watching): the
-/// latency of each submission in ms, sorted.
-async fn submit_burst(base: &str, obj: &str, clients: usize, per_client: usize) -> Vec<f64> {
+/// `clients` clients each submitting `per_client` jobs back to back (no watching), with `key`
+/// as their bearer if given: the latency of each submission in ms, sorted.
+async fn submit_burst(
+    base: &str,
+    obj: &str,
+    clients: usize,
+    per_client: usize,
+    key: Option<&str>,
+) -> Vec<f64> {
     let deadline = Instant::now() + PHASE_BUDGET;
     let tasks: Vec<_> = (0..clients)
         .map(|_| {
-            let (base, obj) = (base.to_string(), obj.to_string());
+            let (base, obj, key) = (base.to_string(), obj.to_string(), key.map(str::to_string));
             tokio::spawn(async move {
                 let client = reqwest::Client::new();
                 let mut out = Vec::new();
@@ -961,13 +972,14 @@ async fn submit_burst(base: &str, obj: &str, clients: usize, per_client: usize) 
                         break;
                     }
                     let t = Instant::now();
-                    let res = client
+                    let mut req = client
                         .post(format!("{base}/v1/jobs?steps=1&include_positions=false"))
                         .header("content-type", "model/obj")
-                        .body(obj.clone())
-                        .send()
-                        .await;
-                    if let Ok(res) = res {
+                        .body(obj.clone());
+                    if let Some(k) = &key {
+                        req = req.bearer_auth(k);
+                    }
+                    if let Ok(res) = req.send().await {
                         if res.status() == 202 && res.bytes().await.is_ok() {
                             out.push(t.elapsed().as_secs_f64() * 1e3);
                         }
@@ -1066,8 +1078,8 @@ async fn submit_under_load(obj: &str) {
         long.push(v["id"].as_str().unwrap_or_default().to_string());
     }
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let idle = submit_burst(&srv.base, obj, 1, 50).await;
-    let loaded = submit_burst(&srv.base, obj, CLIENTS, 20).await;
+    let idle = submit_burst(&srv.base, obj, 1, 50, None).await;
+    let loaded = submit_burst(&srv.base, obj, CLIENTS, 20, None).await;
     println!("| clients | submissions | submit p50 ms | submit p99 ms | max ms |");
     println!("|---|---|---|---|---|");
     for (clients, v) in [(1, &idle), (CLIENTS, &loaded)] {
@@ -1095,6 +1107,95 @@ async fn submit_under_load(obj: &str) {
             .await;
     }
     srv.stop().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 8. What authentication and the tenant checks cost a submission.
+
+async fn auth_overhead(obj: &str) {
+    const CLIENTS: usize = 8;
+    const PER_CLIENT: usize = 60;
+    const ROUNDS: usize = 3;
+    println!();
+    println!(
+        "## 8. Authentication and tenant checks: submit latency at {CLIENTS} clients \
+         (embedded, small mesh, 1 step; {ROUNDS} alternating rounds of {} submissions each)",
+        CLIENTS * PER_CLIENT
+    );
+    println!();
+    let off = willow::jobs::TenantQuotas {
+        max_live_jobs: 0,
+        max_stored_bytes: 0,
+        uploads_per_minute: 0,
+    };
+    let plain = service_http_support::start_with(
+        tempfile::tempdir().expect("dir"),
+        |c| {
+            c.workers = 2;
+            c.queue_capacity = 100_000;
+            c.quotas = off;
+        },
+        willow::api::server::ServeOptions::default(),
+    )
+    .await;
+    let keys_dir = tempfile::tempdir().expect("dir");
+    let (key, line) = willow::api::auth::new_key("bench", "load").expect("key");
+    let file = keys_dir.path().join("keys");
+    std::fs::write(&file, format!("{line}\n")).expect("key file");
+    let auth = willow::api::auth::Auth::new(&willow::api::auth::AuthConfig {
+        mode: willow::api::auth::AuthMode {
+            keys: true,
+            jwt: false,
+        },
+        keys_file: Some(file),
+        ..Default::default()
+    })
+    .expect("auth");
+    let guarded = service_http_support::start_with(
+        tempfile::tempdir().expect("dir"),
+        |c| {
+            c.workers = 2;
+            c.queue_capacity = 100_000;
+            c.quotas = bench_quotas();
+        },
+        willow::api::server::ServeOptions {
+            app: willow::api::server::AppOptions {
+                auth,
+                ..Default::default()
+            },
+            ..Default::default()
+        },
+    )
+    .await;
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for _ in 0..ROUNDS {
+        a.extend(submit_burst(&plain.base, obj, CLIENTS, PER_CLIENT, None).await);
+        b.extend(submit_burst(&guarded.base, obj, CLIENTS, PER_CLIENT, Some(&key)).await);
+    }
+    a.sort_by(f64::total_cmp);
+    b.sort_by(f64::total_cmp);
+    println!("| server | submissions | submit p50 ms | submit p99 ms |");
+    println!("|---|---|---|---|");
+    println!(
+        "| `--auth none`, quotas off | {} | {:.2} | {:.2} |",
+        a.len(),
+        pct(&a, 0.5),
+        pct(&a, 0.99)
+    );
+    println!(
+        "| API key, quotas on | {} | {:.2} | {:.2} |",
+        b.len(),
+        pct(&b, 0.5),
+        pct(&b, 0.99)
+    );
+    println!();
+    println!(
+        "Auth and tenant checks: p50 × {:.3} ({:+.1}%).",
+        pct(&b, 0.5) / pct(&a, 0.5),
+        (pct(&b, 0.5) / pct(&a, 0.5) - 1.0) * 100.0
+    );
+    plain.stop().await;
+    guarded.stop().await;
 }
 
 // ---------------------------------------------------------------------------------------------
