@@ -346,8 +346,13 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
     // And without tenants (issue 12): no tenant column, keys unscoped. The upgrade gives the
     // rows to the default tenant and scopes their keys to it.
     db.execute_batch(
-        "DROP INDEX jobs_by_tenant; ALTER TABLE jobs DROP COLUMN tenant;
-         DROP INDEX uploads_by_tenant; ALTER TABLE uploads DROP COLUMN tenant;",
+        "DROP TRIGGER tenant_bytes_job_in; DROP TRIGGER tenant_bytes_job_expired;
+         DROP TRIGGER tenant_bytes_job_out; DROP TRIGGER tenant_bytes_upload_in;
+         DROP TRIGGER tenant_bytes_upload_out; DROP TABLE tenant_bytes;
+         DROP INDEX jobs_by_tenant; DROP INDEX jobs_by_tenant_state;
+         DROP INDEX jobs_by_tenant_created; DROP INDEX uploads_by_tenant;
+         ALTER TABLE jobs DROP COLUMN tenant; ALTER TABLE jobs DROP COLUMN input_bytes;
+         ALTER TABLE uploads DROP COLUMN tenant;",
     )
     .expect("drop the tenant columns");
     drop(db);

@@ -79,10 +79,47 @@ const ADDED_COLUMNS: [(&str, &str, &str); 4] = [
     ("uploads", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
 ];
 
-/// Created after the columns they index exist.
+/// Created after the columns they index exist. `tenant_bytes` is each tenant's stored bytes
+/// (inputs of unexpired jobs and uploads), kept by triggers on every path that adds, expires or
+/// removes one, and recomputed at every open (so it also heals from anything older).
 const INDEXES: &str = "
 CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant, seq);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant_state ON jobs(tenant, state);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant_created ON jobs(tenant, created_at);
 CREATE INDEX IF NOT EXISTS uploads_by_tenant ON uploads(tenant, created_at);
+CREATE TABLE IF NOT EXISTS tenant_bytes (
+    tenant          TEXT PRIMARY KEY,
+    bytes           INTEGER NOT NULL
+) WITHOUT ROWID;
+CREATE TRIGGER IF NOT EXISTS tenant_bytes_job_in AFTER INSERT ON jobs WHEN NEW.expired = 0
+BEGIN
+    INSERT INTO tenant_bytes (tenant, bytes) VALUES (NEW.tenant, NEW.input_bytes)
+    ON CONFLICT (tenant) DO UPDATE SET bytes = bytes + excluded.bytes;
+END;
+CREATE TRIGGER IF NOT EXISTS tenant_bytes_job_expired AFTER UPDATE OF expired ON jobs
+WHEN OLD.expired = 0 AND NEW.expired != 0
+BEGIN
+    UPDATE tenant_bytes SET bytes = bytes - OLD.input_bytes WHERE tenant = OLD.tenant;
+END;
+CREATE TRIGGER IF NOT EXISTS tenant_bytes_job_out AFTER DELETE ON jobs WHEN OLD.expired = 0
+BEGIN
+    UPDATE tenant_bytes SET bytes = bytes - OLD.input_bytes WHERE tenant = OLD.tenant;
+END;
+CREATE TRIGGER IF NOT EXISTS tenant_bytes_upload_in AFTER INSERT ON uploads
+BEGIN
+    INSERT INTO tenant_bytes (tenant, bytes) VALUES (NEW.tenant, NEW.size)
+    ON CONFLICT (tenant) DO UPDATE SET bytes = bytes + excluded.bytes;
+END;
+CREATE TRIGGER IF NOT EXISTS tenant_bytes_upload_out AFTER DELETE ON uploads
+BEGIN
+    UPDATE tenant_bytes SET bytes = bytes - OLD.size WHERE tenant = OLD.tenant;
+END;
+DELETE FROM tenant_bytes;
+INSERT INTO tenant_bytes (tenant, bytes)
+    SELECT tenant, SUM(b) FROM (
+        SELECT tenant, input_bytes AS b FROM jobs WHERE expired = 0
+        UNION ALL SELECT tenant, size FROM uploads
+    ) GROUP BY tenant;
 ";
 
 /// The SQLite job store: one connection behind a mutex, used on tokio's blocking pool.
@@ -404,30 +441,33 @@ impl SqliteStore {
     }
 }
 
-/// What `tenant` holds (see [`JobStore::usage`]), on `conn` (or a transaction).
+/// What `tenant` holds (see [`JobStore::usage`]), on `conn` (or a transaction). Each count is
+/// an index range of the tenant's live or recent rows, and the bytes one row of
+/// `tenant_bytes`, so the cost does not grow with the jobs a tenant keeps.
 fn usage_on(conn: &Connection, tenant: &str, since: u64) -> Result<Usage, JobError> {
-    let now = ms(now_ms());
-    let (live, job_bytes, job_uploads): (i64, i64, i64) = conn.query_row(
-        "SELECT
-            COALESCE(SUM(state IN ('queued', 'running')), 0),
-            COALESCE(SUM(input_bytes), 0),
-            COALESCE(SUM(created_at >= ?2), 0)
-         FROM jobs
-         WHERE tenant = ?1 AND expired = 0 AND (expires_at IS NULL OR expires_at > ?3)",
-        params![tenant, ms(since), now],
-        |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+    let live: i64 = conn.query_row(
+        "SELECT COUNT(*) FROM jobs WHERE tenant = ?1 AND state IN ('queued', 'running')",
+        params![tenant],
+        |r| r.get(0),
     )?;
-    let (upload_bytes, uploads): (i64, i64) = conn.query_row(
-        "SELECT COALESCE(SUM(size), 0), COALESCE(SUM(created_at >= ?2), 0)
-         FROM uploads WHERE tenant = ?1 AND expires_at > ?3",
-        params![tenant, ms(since), now],
-        |r| Ok((r.get(0)?, r.get(1)?)),
+    let recent: i64 = conn.query_row(
+        "SELECT (SELECT COUNT(*) FROM jobs WHERE tenant = ?1 AND created_at >= ?2)
+              + (SELECT COUNT(*) FROM uploads WHERE tenant = ?1 AND created_at >= ?2)",
+        params![tenant, ms(since)],
+        |r| r.get(0),
     )?;
+    let bytes: Option<i64> = conn
+        .query_row(
+            "SELECT bytes FROM tenant_bytes WHERE tenant = ?1",
+            params![tenant],
+            |r| r.get(0),
+        )
+        .optional()?;
     let n = |v: i64| usize::try_from(v).unwrap_or(0);
     Ok(Usage {
         live_jobs: n(live),
-        stored_bytes: u64::try_from(job_bytes.saturating_add(upload_bytes)).unwrap_or(0),
-        uploads_since: n(job_uploads) + n(uploads),
+        stored_bytes: u64::try_from(bytes.unwrap_or(0)).unwrap_or(0),
+        uploads_since: n(recent),
     })
 }
 
