@@ -1379,3 +1379,43 @@ pub async fn problem_for_plain_413(
         _ => res,
     }
 }
+
+/// Entry points for the fuzz targets in `fuzz/` (not an API: hidden from the docs, may change
+/// at any time). They run the same code `create_job` runs, minus the network and the job core.
+#[doc(hidden)]
+pub mod fuzzing {
+    use super::{JobParams, JobQuery, Problem};
+    use crate::jobs::JobSpec;
+
+    /// `POST /v1/jobs?{query}` with, when `params` is given, a multipart `params` part holding
+    /// those bytes: the validated job spec, or the problem the client gets. A query that does
+    /// not make a valid URI never reaches the handler (hyper refuses the request line), so it
+    /// is `Ok(None)`.
+    pub fn create_job_params(
+        query: &str,
+        params: Option<&[u8]>,
+    ) -> Result<Option<JobSpec>, Problem> {
+        let Ok(uri) = format!("/v1/jobs?{query}").parse::<axum::http::Uri>() else {
+            return Ok(None);
+        };
+        let query_params = super::query::<JobQuery>(&uri)?.into_params()?;
+        let params = match params {
+            None => query_params,
+            Some(text) => {
+                if !query.is_empty() {
+                    return Err(Problem::bad_request(
+                        "invalid_parameter",
+                        "parameters in both places",
+                    ));
+                }
+                serde_json::from_slice::<JobParams>(text).map_err(|e| {
+                    Problem::bad_request("invalid_parameter", super::clip(&e.to_string()))
+                })?
+            }
+        };
+        let spec = params.into_spec()?;
+        spec.validate(crate::api::grpc::fuzzing::default_config())
+            .map_err(Problem::from)?;
+        Ok(Some(spec))
+    }
+}
