@@ -915,6 +915,7 @@ pub async fn delete_job(State(st): State<AppState>, Path(id): Path<String>) -> R
     params(("id" = String, Path), EventsQuery,
         ("Last-Event-ID" = Option<String>, Header, description = "Resume after this step")),
     responses((status = 200, description = "text/event-stream; frame data is a FrameEvent", body = FrameEvent, content_type = "text/event-stream"),
+        (status = 400, description = "Bad parameters (`from_step`, `Last-Event-ID`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_events(
     State(st): State<AppState>,
@@ -997,6 +998,7 @@ fn sse_event(ev: JobEvent) -> Event {
 #[utoipa::path(get, path = "/v1/jobs/{id}/frames", tag = "jobs",
     params(("id" = String, Path), FramesQuery),
     responses((status = 200, description = "A page of step metrics", body = FrameList),
+        (status = 400, description = "Bad parameters (`page_size`, `page_token`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn list_frames(State(st): State<AppState>, Path(id): Path<String>, uri: Uri) -> Response {
@@ -1022,6 +1024,7 @@ pub async fn list_frames(State(st): State<AppState>, Path(id): Path<String>, uri
 #[utoipa::path(get, path = "/v1/jobs/{id}/frames/{step}", tag = "jobs",
     params(("id" = String, Path), ("step" = usize, Path), FormatQuery),
     responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
@@ -1053,6 +1056,7 @@ pub async fn frame_mesh(
 #[utoipa::path(get, path = "/v1/jobs/{id}/result", tag = "jobs",
     params(("id" = String, Path), FormatQuery),
     responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 400, description = "Bad parameters (`format`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
