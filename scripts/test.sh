@@ -5,10 +5,12 @@
 # test, lints and validates the container and Kubernetes files (scripts/lint-deploy.sh: its
 # pinned tools from PyPI into target/deploy-tools/), and runs the web page's browser tests
 # (scripts/browser-test.sh: Debian's chromium, installed when missing, and playwright-core
-# from npm).
+# from npm), then a short fuzzing run of every fuzz target (scripts/fuzz.sh --smoke: cargo-fuzz
+# pinned into target/fuzz-tools/) and schemathesis against the real server's OpenAPI document
+# (scripts/schemathesis.sh: pinned, from PyPI into target/schemathesis/).
 # Extra arguments go to `cargo test` (e.g. `scripts/test.sh flow_conformal`) and then skip the
-# deployment lint and the browser tests; WILLOW_SKIP_DEPLOY_LINT=1 skips the former,
-# WILLOW_SKIP_BROWSER_TESTS=1 the latter.
+# deployment lint, the browser tests, fuzzing and schemathesis; WILLOW_SKIP_DEPLOY_LINT=1,
+# WILLOW_SKIP_BROWSER_TESTS=1, WILLOW_SKIP_FUZZ=1 and WILLOW_SKIP_SCHEMATHESIS=1 skip each.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -46,4 +48,14 @@ fi
 # The web page in a real browser, against the real server (a few seconds once installed).
 if [[ $# -eq 0 && "${WILLOW_SKIP_BROWSER_TESTS:-0}" != 1 ]]; then
     scripts/browser-test.sh
+fi
+
+# Every fuzz target for a short bounded run (~20 s each once built); fails on any crash.
+if [[ $# -eq 0 && "${WILLOW_SKIP_FUZZ:-0}" != 1 ]]; then
+    scripts/fuzz.sh --smoke
+fi
+
+# schemathesis against /openapi.json of a real server (bounded to a few minutes).
+if [[ $# -eq 0 && "${WILLOW_SKIP_SCHEMATHESIS:-0}" != 1 ]]; then
+    scripts/schemathesis.sh
 fi

@@ -72,7 +72,7 @@ impl<D: Decoder<Error = Status>> Decoder for ClientFaultDecoder<D> {
 /// INVALID_ARGUMENT for prost's message, which reads `failed to decode Protobuf message:
 /// CreateJobRequest.params: JobParams.method: invalid varint`: the `Type.field` segments give
 /// the field path (`params.method`) for the `BadRequest` violation.
-fn malformed(message: &str) -> Status {
+pub(crate) fn malformed(message: &str) -> Status {
     let reason = cap_detail(message.to_string());
     let field: Vec<&str> = message
         .split(": ")

@@ -153,77 +153,14 @@ impl v1::fairing_server::Fairing for GrpcApi {
         &self,
         request: Request<Streaming<v1::UploadMeshChunk>>,
     ) -> Result<Response<v1::Upload>, Status> {
-        use v1::upload_mesh_chunk::Part;
         let caller = caller(&request)?;
         let mut chunks = request.into_inner();
         let limit = self.jobs.config().limits.max_upload_bytes;
-
-        let header = match chunks.message().await? {
-            Some(v1::UploadMeshChunk {
-                part: Some(Part::Header(h)),
-            }) => h,
-            Some(_) => {
-                return Err(bad_request(
-                    "header",
-                    "the first message of the stream must carry `header`",
-                ))
-            }
-            None => return Err(bad_request("header", "the upload stream was empty")),
-        };
-        let format = format_from_pb("header.format", header.format)?;
-        if header.size_bytes > limit {
-            return Err(job_error(
-                JobError::TooLarge {
-                    what: "upload bytes",
-                    limit,
-                },
-                "header.size_bytes",
-            ));
-        }
-
-        // Reserve what the client announced (already checked against the limit), fallibly:
-        // a client lying about its size must get an error, not abort the server.
-        let mut data: Vec<u8> = Vec::new();
-        let announced = usize::try_from(header.size_bytes).unwrap_or(usize::MAX);
-        data.try_reserve(announced)
-            .map_err(|_| Status::resource_exhausted("not enough memory for the upload"))?;
+        let mut upload = UploadAssembly::start(chunks.message().await?, limit)?;
         while let Some(chunk) = chunks.message().await? {
-            match chunk.part {
-                Some(Part::Data(bytes)) => {
-                    if (data.len() + bytes.len()) as u64 > limit {
-                        return Err(job_error(
-                            JobError::TooLarge {
-                                what: "upload bytes",
-                                limit,
-                            },
-                            "data",
-                        ));
-                    }
-                    data.try_reserve(bytes.len()).map_err(|_| {
-                        Status::resource_exhausted("not enough memory for the upload")
-                    })?;
-                    data.extend_from_slice(&bytes);
-                }
-                Some(Part::Header(_)) => {
-                    return Err(bad_request(
-                        "header",
-                        "only the first message of the stream may carry `header`",
-                    ))
-                }
-                // An empty message carries nothing; tolerate it like an empty chunk.
-                None => {}
-            }
+            upload.push(chunk)?;
         }
-        if header.size_bytes != 0 && data.len() as u64 != header.size_bytes {
-            return Err(bad_request(
-                "header.size_bytes",
-                format!(
-                    "announced {} bytes but the stream carried {}",
-                    header.size_bytes,
-                    data.len()
-                ),
-            ));
-        }
+        let (data, format) = upload.finish()?;
         let size_bytes = data.len() as u64;
         let id = self
             .jobs
@@ -1428,6 +1365,158 @@ fn operation(status: &JobStatus) -> lro::Operation {
         metadata: Some(packed),
         done: status.state.is_terminal(),
         result,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// UploadMesh: the chunks of the client stream assembled into one file, without the stream, so
+// the logic is testable and fuzzable on its own (`fuzzing::upload_mesh`).
+
+/// An `UploadMesh` stream being assembled: the header's format and announced size, the bytes
+/// so far, and the server's upload limit.
+struct UploadAssembly {
+    format: Format,
+    announced: u64,
+    limit: u64,
+    data: Vec<u8>,
+}
+
+impl UploadAssembly {
+    /// Starts from the stream's first message (`None`: the stream was empty), which must carry
+    /// the header.
+    fn start(first: Option<v1::UploadMeshChunk>, limit: u64) -> Result<UploadAssembly, Status> {
+        use v1::upload_mesh_chunk::Part;
+        let header = match first {
+            Some(v1::UploadMeshChunk {
+                part: Some(Part::Header(h)),
+            }) => h,
+            Some(_) => {
+                return Err(bad_request(
+                    "header",
+                    "the first message of the stream must carry `header`",
+                ))
+            }
+            None => return Err(bad_request("header", "the upload stream was empty")),
+        };
+        let format = format_from_pb("header.format", header.format)?;
+        if header.size_bytes > limit {
+            return Err(job_error(
+                JobError::TooLarge {
+                    what: "upload bytes",
+                    limit,
+                },
+                "header.size_bytes",
+            ));
+        }
+        // Reserve what the client announced (already checked against the limit), fallibly:
+        // a client lying about its size must get an error, not abort the server.
+        let mut data: Vec<u8> = Vec::new();
+        let announced = usize::try_from(header.size_bytes).unwrap_or(usize::MAX);
+        data.try_reserve(announced)
+            .map_err(|_| Status::resource_exhausted("not enough memory for the upload"))?;
+        Ok(UploadAssembly {
+            format,
+            announced: header.size_bytes,
+            limit,
+            data,
+        })
+    }
+
+    /// Appends one later message of the stream.
+    fn push(&mut self, chunk: v1::UploadMeshChunk) -> Result<(), Status> {
+        use v1::upload_mesh_chunk::Part;
+        match chunk.part {
+            Some(Part::Data(bytes)) => {
+                if (self.data.len() as u64).saturating_add(bytes.len() as u64) > self.limit {
+                    return Err(job_error(
+                        JobError::TooLarge {
+                            what: "upload bytes",
+                            limit: self.limit,
+                        },
+                        "data",
+                    ));
+                }
+                self.data
+                    .try_reserve(bytes.len())
+                    .map_err(|_| Status::resource_exhausted("not enough memory for the upload"))?;
+                self.data.extend_from_slice(&bytes);
+                Ok(())
+            }
+            Some(Part::Header(_)) => Err(bad_request(
+                "header",
+                "only the first message of the stream may carry `header`",
+            )),
+            // An empty message carries nothing; tolerate it like an empty chunk.
+            None => Ok(()),
+        }
+    }
+
+    /// The whole file, once the stream has ended: its size must be the announced one (when
+    /// one was announced).
+    fn finish(self) -> Result<(Vec<u8>, Format), Status> {
+        if self.announced != 0 && self.data.len() as u64 != self.announced {
+            return Err(bad_request(
+                "header.size_bytes",
+                format!(
+                    "announced {} bytes but the stream carried {}",
+                    self.announced,
+                    self.data.len()
+                ),
+            ));
+        }
+        Ok((self.data, self.format))
+    }
+}
+
+/// Entry points for the fuzz targets in `fuzz/` (not an API: hidden from the docs, may change
+/// at any time). They run the same code the handlers run, minus the network and the job core.
+#[doc(hidden)]
+pub mod fuzzing {
+    use super::{spec_from_pb, v1, JobSpec, UploadAssembly};
+    use crate::api::codec;
+    use crate::jobs::Config;
+    use crate::mesh::io::Format;
+    use tonic::Status;
+
+    /// An `UploadMesh` stream whose messages arrive as the protobuf encodings in `messages`,
+    /// decoded as the server's codec decodes them and assembled under an upload limit of
+    /// `limit` bytes: the assembled file's size and format, or the status the client gets.
+    pub fn upload_mesh(messages: &[&[u8]], limit: u64) -> Result<(usize, Format), Status> {
+        let mut decoded = messages.iter().map(|m| decode::<v1::UploadMeshChunk>(m));
+        let first = decoded.next().transpose()?;
+        let mut upload = UploadAssembly::start(first, limit)?;
+        for chunk in decoded {
+            upload.push(chunk?)?;
+        }
+        let (data, format) = upload.finish()?;
+        Ok((data.len(), format))
+    }
+
+    /// A `CreateJob` request's protobuf encoding, decoded as the server's codec decodes it,
+    /// its parameters translated to a [`JobSpec`] and validated as `submit` validates them
+    /// (default server configuration).
+    pub fn create_job(bytes: &[u8]) -> Result<JobSpec, Status> {
+        let request = decode::<v1::CreateJobRequest>(bytes)?;
+        super::request_id(&request.request_id)?;
+        if let Some(v1::create_job_request::Mesh::InlineMesh(mesh)) = &request.mesh {
+            super::format_from_pb("inline_mesh.format", mesh.format)?;
+        }
+        let spec = spec_from_pb(request.params)?;
+        spec.validate(default_config())
+            .map_err(|e| super::job_error(e, "inline_mesh.data"))?;
+        Ok(spec)
+    }
+
+    /// The default server configuration (built once: it asks the OS for the core count).
+    pub(crate) fn default_config() -> &'static Config {
+        static CONFIG: std::sync::OnceLock<Config> = std::sync::OnceLock::new();
+        CONFIG.get_or_init(|| Config::new("willow-data"))
+    }
+
+    /// prost's decode, its error mapped as the codec maps it.
+    fn decode<M: prost::Message + Default>(bytes: &[u8]) -> Result<M, Status> {
+        M::decode(bytes)
+            .map_err(|e| codec::malformed(&format!("failed to decode Protobuf message: {e}")))
     }
 }
 

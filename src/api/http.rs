@@ -953,6 +953,7 @@ pub async fn delete_job(
     params(("id" = String, Path), EventsQuery,
         ("Last-Event-ID" = Option<String>, Header, description = "Resume after this step")),
     responses((status = 200, description = "text/event-stream; frame data is a FrameEvent", body = FrameEvent, content_type = "text/event-stream"),
+        (status = 400, description = "Bad parameters (`from_step`, `Last-Event-ID`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_events(
     State(st): State<AppState>,
@@ -1036,6 +1037,7 @@ fn sse_event(ev: JobEvent) -> Event {
 #[utoipa::path(get, path = "/v1/jobs/{id}/frames", tag = "jobs",
     params(("id" = String, Path), FramesQuery),
     responses((status = 200, description = "A page of step metrics", body = FrameList),
+        (status = 400, description = "Bad parameters (`page_size`, `page_token`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn list_frames(
@@ -1071,6 +1073,7 @@ pub async fn list_frames(
 #[utoipa::path(get, path = "/v1/jobs/{id}/frames/{step}", tag = "jobs",
     params(("id" = String, Path), ("step" = usize, Path), FormatQuery),
     responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
@@ -1103,6 +1106,7 @@ pub async fn frame_mesh(
 #[utoipa::path(get, path = "/v1/jobs/{id}/result", tag = "jobs",
     params(("id" = String, Path), FormatQuery),
     responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 400, description = "Bad parameters (`format`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
@@ -1433,5 +1437,45 @@ pub async fn problem_for_plain_413(
             out
         }
         _ => res,
+    }
+}
+
+/// Entry points for the fuzz targets in `fuzz/` (not an API: hidden from the docs, may change
+/// at any time). They run the same code `create_job` runs, minus the network and the job core.
+#[doc(hidden)]
+pub mod fuzzing {
+    use super::{JobParams, JobQuery, Problem};
+    use crate::jobs::JobSpec;
+
+    /// `POST /v1/jobs?{query}` with, when `params` is given, a multipart `params` part holding
+    /// those bytes: the validated job spec, or the problem the client gets. A query that does
+    /// not make a valid URI never reaches the handler (hyper refuses the request line), so it
+    /// is `Ok(None)`.
+    pub fn create_job_params(
+        query: &str,
+        params: Option<&[u8]>,
+    ) -> Result<Option<JobSpec>, Problem> {
+        let Ok(uri) = format!("/v1/jobs?{query}").parse::<axum::http::Uri>() else {
+            return Ok(None);
+        };
+        let query_params = super::query::<JobQuery>(&uri)?.into_params()?;
+        let params = match params {
+            None => query_params,
+            Some(text) => {
+                if !query.is_empty() {
+                    return Err(Problem::bad_request(
+                        "invalid_parameter",
+                        "parameters in both places",
+                    ));
+                }
+                serde_json::from_slice::<JobParams>(text).map_err(|e| {
+                    Problem::bad_request("invalid_parameter", super::clip(&e.to_string()))
+                })?
+            }
+        };
+        let spec = params.into_spec()?;
+        spec.validate(crate::api::grpc::fuzzing::default_config())
+            .map_err(Problem::from)?;
+        Ok(Some(spec))
     }
 }
