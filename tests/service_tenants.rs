@@ -4,7 +4,7 @@
 
 mod service_http_support;
 
-use service_http_support::{slow_obj, small_obj};
+use service_http_support::{slow_obj, small_obj, Capture};
 use std::time::Duration;
 use willow::jobs::{Caller, Config, JobError, JobSpec, JobState, Jobs, TenantQuotas, UploadRef};
 use willow::mesh::io::Format;
@@ -382,4 +382,50 @@ async fn concurrent_submissions_do_not_overshoot_a_quota() {
         jobs.cancel(&a, id).await.expect("cancel");
     }
     core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// Create, cancel and delete each log one audit line naming the tenant, the caller and the job.
+#[tokio::test]
+async fn audit_lines_for_create_cancel_and_delete() {
+    let capture = Capture::default();
+    let subscriber = tracing_subscriber::fmt()
+        .with_writer(capture.clone())
+        .json()
+        .finish();
+    // A current-thread runtime: the core's calls run on this thread, under this subscriber.
+    let _guard = tracing::subscriber::set_default(subscriber);
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path(), |_| {}))
+        .await
+        .expect("start");
+    let a = tenant("alpha");
+    let job = jobs
+        .submit(&a, obj(slow_obj()), spec(5000), None)
+        .await
+        .expect("submit");
+    jobs.cancel(&a, &job.id).await.expect("cancel");
+    jobs.wait(&a, &job.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    jobs.delete(&a, &job.id).await.expect("delete");
+    // Refused calls (another tenant) change nothing and are not audited as changes.
+    let _ = jobs.delete(&tenant("beta"), &job.id).await;
+    core.shutdown(Duration::from_secs(1)).await;
+
+    let audit: Vec<serde_json::Value> = capture
+        .text()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|v| v["target"] == "audit")
+        .collect();
+    let actions: Vec<&str> = audit
+        .iter()
+        .filter_map(|v| v["fields"]["action"].as_str())
+        .collect();
+    assert_eq!(actions, ["create", "cancel", "delete"], "{audit:?}");
+    for line in &audit {
+        assert_eq!(line["fields"]["tenant"], "alpha", "{line}");
+        assert_eq!(line["fields"]["subject"], "alpha-key", "{line}");
+        assert_eq!(line["fields"]["job_id"], job.id.as_str(), "{line}");
+    }
 }
