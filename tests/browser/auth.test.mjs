@@ -7,13 +7,16 @@ import assert from 'node:assert/strict';
 import { mkdtempSync, readFileSync, rmSync, writeFileSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { join } from 'node:path';
-import { ARTIFACTS, launch, newKey, sharedMesh, startServer, stats, waitStats, watchedPage } from './support.mjs';
+import { ARTIFACTS, launch, newKey, sharedMesh, startProxy, startServer, stats, waitStats, watchedPage } from './support.mjs';
 
 const spot = sharedMesh('spot_triangulated.obj');
 const spotTexture = sharedMesh('spot_texture.png');
 const skip = !spot || !spotTexture ? 'spot is not on this machine' : false;
 
+const TOKEN_TTL_S = 12;
 let server;
+let proxy;
+let BASE;
 let browser;
 let page;
 let problems;
@@ -31,9 +34,14 @@ before(async () => {
   keysDir = mkdtempSync(join(tmpdir(), 'willow-keys-'));
   const keysFile = join(keysDir, 'api-keys');
   writeFileSync(keysFile, `# browser test\n${made.line}\n`);
-  server = await startServer(['--workers', '1', '--auth', 'keys', '--api-keys-file', keysFile]);
+  // Short-lived stream tokens, so the second test sees one near its expiry.
+  server = await startServer(['--workers', '1', '--auth', 'keys', '--api-keys-file', keysFile,
+    '--stream-token-ttl-secs', String(TOKEN_TTL_S)]);
+  // The page is loaded through a proxy, so a test can drop its connections.
+  proxy = await startProxy(server.url);
+  BASE = proxy.url;
   browser = await launch();
-  ({ page, problems } = await watchedPage(browser.context, server.url));
+  ({ page, problems } = await watchedPage(browser.context, BASE));
   page.on('request', (r) => {
     const entry = { url: r.url(), method: r.method(), auth: null };
     requests.push(entry); // in the order they were made
@@ -43,6 +51,7 @@ before(async () => {
 
 after(async () => {
   await browser?.close();
+  await proxy?.close();
   await server?.stop();
   if (keysDir) rmSync(keysDir, { recursive: true, force: true });
 });
@@ -53,7 +62,7 @@ const drop401 = () => problems.splice(0, problems.length, ...problems.filter((p)
 
 test('with --auth keys: the page asks for a key, then runs a job with streamed frames; the key never goes in a URL', { skip }, async () => {
   // Before the key: the dashboard's 401 asks for it, and the key field has the focus.
-  await page.goto(server.url + '/');
+  await page.goto(BASE + '/');
   const msg = page.locator('#auth-msg');
   await msg.filter({ hasText: 'needs an API key' }).waitFor();
   assert.equal(await page.evaluate(() => document.activeElement?.id), 'api-key', 'the key field is focused');
@@ -141,5 +150,61 @@ test('with --auth keys: the page asks for a key, then runs a job with streamed f
   assert.equal(await page.evaluate(() => sessionStorage.getItem('willow.apiKey')), null);
   await msg.filter({ hasText: 'needs an API key' }).waitFor();
   drop401();
+  assert.deepEqual(problems, []);
+});
+
+test('with --auth keys: a dropped stream resumes by itself while its token is fresh (Last-Event-ID), and with a new token once it is about to expire', { skip }, async () => {
+  await page.fill('#api-key', key);
+  await page.press('#api-key', 'Enter');
+  await page.waitForFunction(() => document.getElementById('auth-msg').textContent === '');
+  await page.setInputFiles('#files', [spot, spotTexture]);
+  await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
+  await page.fill('[name="steps"]', '2000');
+  await page.fill('[name="tau"]', '0.02');
+  const streams = [];
+  const onRequest = async (r) => {
+    if (!r.url().includes('/events')) return;
+    const entry = { url: r.url(), at: Date.now(), lastEventId: undefined };
+    streams.push(entry);
+    entry.lastEventId = (await r.allHeaders())['last-event-id'];
+  };
+  page.on('request', onRequest);
+  await page.click('#submit');
+  await page.waitForFunction(() => /^#job=/.test(location.hash));
+  const id = await page.evaluate(() => location.hash.slice(5));
+  await waitStats(page, () => window.willowStats.framesApplied >= 3 && window.willowStats.state === 'running');
+  assert.equal(streams.length, 1);
+  assert.ok(streams[0].url.includes(`/v1/jobs/${id}/events?`));
+  const token = (u) => new URL(u).searchParams.get('access_token');
+
+  // Well before the token's expiry: the browser reconnects by itself, same URL, Last-Event-ID.
+  const s0 = await stats(page);
+  assert.ok(Date.now() - streams[0].at < TOKEN_TTL_S * 1000 / 3, 'the machine is too slow for this test\'s timing');
+  proxy.dropAll();
+  await page.waitForFunction(() => document.getElementById('state').textContent === 'running', null, { timeout: 15_000 });
+  await waitStats(page, (n) => window.willowStats.lastStep > n + 2, s0.lastStep);
+  assert.equal(streams.length, 2, streams.map((s) => s.url).join('\n'));
+  assert.equal(streams[1].url, streams[0].url, 'the browser\'s own reconnection');
+  assert.ok(Number(streams[1].lastEventId) >= s0.lastStep, `Last-Event-ID ${streams[1].lastEventId}`);
+
+  // In the token's last third (the page's margin): a drop re-mints and re-opens after the
+  // last step seen, instead of reconnecting with a token about to expire.
+  const wait = streams[0].at + (TOKEN_TTL_S * 2 / 3) * 1000 + 300 - Date.now();
+  if (wait > 0) await page.waitForTimeout(wait);
+  const s1 = await stats(page);
+  proxy.dropAll();
+  await waitStats(page, (n) => window.willowStats.lastStep > n + 2, s1.lastStep, 30_000);
+  assert.equal(streams.length, 3, streams.map((s) => s.url).join('\n'));
+  const reopened = new URL(streams[2].url);
+  assert.notEqual(token(streams[2].url), token(streams[0].url), 'a new stream token');
+  assert.ok(Number(reopened.searchParams.get('from_step')) > s1.lastStep - 1, `from_step ${reopened.searchParams.get('from_step')} after step ${s1.lastStep}`);
+  assert.equal(streams[2].lastEventId, undefined, 'a new stream, not the browser\'s reconnection');
+  page.off('request', onRequest);
+
+  await page.click('#cancel');
+  await waitStats(page, () => window.willowStats.state === 'cancelled', null, 60_000);
+  for (const s of streams) assert.ok(!s.url.includes(key));
+  // Requests cut by the drops are the browser's console errors, not the page's.
+  problems.splice(0, problems.length, ...problems.filter((p) => !/ERR_INCOMPLETE_CHUNKED_ENCODING|ERR_EMPTY_RESPONSE|ERR_CONNECTION|Failed to fetch|network/.test(p)));
   assert.deepEqual(problems, []);
 });
