@@ -386,9 +386,9 @@ async function loadModel(w) {
   }
 }
 
-/** The events URL from `from`: with an API key set, a stream token for this job is minted first
- * (EventSource cannot send the Authorization header; the key itself never goes in a URL).
- * Without a key, no token: exactly the URL a server without authentication expects. */
+/** Open the job's event stream from step `from`. With an API key set, a stream token for this
+ * job is minted first and goes in the URL (EventSource cannot send the Authorization header; the
+ * key itself never goes in a URL). Without a key, no token: the URL as it always was. */
 async function openStream(w, from) {
   let url = `/v1/jobs/${w.id}/events?from_step=${from}`;
   w.tokenExpires = null;
@@ -716,7 +716,8 @@ function onHash() {
 function wire() {
   $('api-key').value = apiKey();
   $('auth').addEventListener('submit', (e) => { e.preventDefault(); useKey($('api-key').value); });
-  $('api-key').addEventListener('change', (e) => useKey(e.target.value));
+  // Leaving the field with a new key uses it too (Enter or "Use" already did, if unchanged).
+  $('api-key').addEventListener('change', (e) => { if (e.target.value.trim() !== apiKey()) useKey(e.target.value); });
   $('api-key-clear').addEventListener('click', () => useKey(''));
   for (const f of ['glb', 'gltf', 'obj']) $(`dl-${f}`).addEventListener('click', downloadResult);
   const drop = $('drop');
