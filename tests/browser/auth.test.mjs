@@ -153,13 +153,14 @@ test('with --auth keys: the page asks for a key, then runs a job with streamed f
   assert.deepEqual(problems, []);
 });
 
-test('with --auth keys: a dropped stream resumes by itself while its token is fresh (Last-Event-ID), and with a new token once it is about to expire', { skip }, async () => {
+test('with --auth keys: a dropped stream resumes by itself while its token is fresh (Last-Event-ID), with a new token once it is about to expire, and asks for a key when refused', { skip }, async () => {
   await page.fill('#api-key', key);
   await page.press('#api-key', 'Enter');
   await page.waitForFunction(() => document.getElementById('auth-msg').textContent === '');
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
-  await page.fill('[name="steps"]', '2000');
+  // Long enough to run through all of this on a fast machine too; cancelled at the end.
+  await page.fill('[name="steps"]', '10000');
   await page.fill('[name="tau"]', '0.02');
   const streams = [];
   const onRequest = async (r) => {
@@ -199,6 +200,28 @@ test('with --auth keys: a dropped stream resumes by itself while its token is fr
   assert.notEqual(token(streams[2].url), token(streams[0].url), 'a new stream token');
   assert.ok(Number(reopened.searchParams.get('from_step')) > s1.lastStep - 1, `from_step ${reopened.searchParams.get('from_step')} after step ${s1.lastStep}`);
   assert.equal(streams[2].lastEventId, undefined, 'a new stream, not the browser\'s reconnection');
+
+  // The key cleared mid-run, and the stream drops once its token is old: without a key the
+  // page opens a plain stream, which the server refuses (401: the browser gives up, CLOSED);
+  // after a few refusals the page asks the API why, stops and asks for a key. The key again:
+  // the job is watched again, streamed with a new token.
+  await page.click('#api-key-clear');
+  const wait2 = streams[2].at + (TOKEN_TTL_S * 2 / 3) * 1000 + 300 - Date.now();
+  if (wait2 > 0) await page.waitForTimeout(wait2);
+  const before = streams.length;
+  proxy.dropAll();
+  await page.locator('#view-error').filter({ hasText: 'needs an API key' }).waitFor({ timeout: 20_000 });
+  const refused = streams.slice(before);
+  assert.ok(refused.length >= 3 && refused.every((s) => !token(s.url)), `plain streams, refused: ${refused.map((s) => s.url)}`);
+  await page.waitForTimeout(2500);
+  assert.equal(streams.length, before + refused.length, 'no more attempts once the page asked for a key');
+  assert.match(await page.locator('#auth-msg').textContent(), /needs an API key/);
+  problems.splice(0, problems.length, ...problems.filter((p) => !/status of 401|EventSource|ERR_INCOMPLETE_CHUNKED_ENCODING|ERR_EMPTY_RESPONSE|ERR_CONNECTION|Failed to fetch|network/.test(p)));
+  const s2 = await stats(page);
+  await page.fill('#api-key', key);
+  await page.press('#api-key', 'Enter');
+  await waitStats(page, (n) => window.willowStats.state === 'running' && window.willowStats.lastStep > n + 2, s2.lastStep, 30_000);
+  assert.ok(token(streams[streams.length - 1].url), 'streamed with a token again');
   page.off('request', onRequest);
 
   await page.click('#cancel');

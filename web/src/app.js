@@ -429,7 +429,21 @@ async function openStream(w, from) {
     stats.reconnects++;
     $('state').textContent = 'reconnecting…';
     if (es.readyState === EventSource.CLOSED) {
-      w.retry = setTimeout(() => { if (!w.closed) openStream(w, w.lastStep + 1); }, RECONNECT_MS);
+      w.refused = (w.refused || 0) + 1;
+      w.retry = setTimeout(async () => {
+        if (w.closed) return;
+        if (w.refused >= 3) {
+          // Refused again and again: ask the API why. A 401 (the key was cleared or revoked)
+          // stops here and asks for a key; a new one watches the job again.
+          try {
+            updateJob(await json(`/v1/jobs/${w.id}`));
+          } catch (e) {
+            if (e instanceof ApiError && e.status === 401) { $('view-error').textContent = e.message; return; }
+          }
+          if (w.closed || isTerminal(w.job)) return;
+        }
+        openStream(w, w.lastStep + 1);
+      }, RECONNECT_MS);
     } else if (w.tokenExpires !== null && Date.now() >= w.tokenExpires) {
       // The browser would reconnect with a token about to expire (its URL cannot change): a
       // fresh token and a new stream from the last step seen instead. An open stream is never
@@ -438,7 +452,7 @@ async function openStream(w, from) {
       w.retry = setTimeout(() => { if (!w.closed) openStream(w, w.lastStep + 1); }, 0);
     }
   };
-  es.onopen = () => { if (w.job) updateJob(w.job); };
+  es.onopen = () => { w.refused = 0; if (w.job) updateJob(w.job); };
 }
 
 function onFrame(w, f) {
