@@ -68,6 +68,8 @@ if [[ -z "$WILLOW_URL" ]]; then
     exit 1
 fi
 export WILLOW_URL
+# The auth test starts its own server (with --auth keys) from the same binary.
+export WILLOW_BIN="$willow"
 export WILLOW_ARTIFACTS="$root/target/browser-artifacts"
 mkdir -p "$WILLOW_ARTIFACTS"
 echo "browser-test.sh: willow serve at $WILLOW_URL, chromium $("$CHROMIUM" --version 2>/dev/null | tail -n1)"

@@ -2,6 +2,7 @@
 // records console errors and requests to other hosts, and where the shared meshes are.
 import { chromium } from 'playwright-core';
 import { createServer, connect } from 'node:net';
+import { execFileSync, spawn } from 'node:child_process';
 import { existsSync, mkdtempSync, rmSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { dirname, join, resolve } from 'node:path';
@@ -93,4 +94,43 @@ export async function startProxy(target = URL_BASE) {
     dropAll: () => { for (const s of sockets) s.destroy(); },
     close: () => new Promise((r) => { for (const s of sockets) s.destroy(); server.close(r); }),
   };
+}
+
+/** Another `willow serve` (the binary scripts/browser-test.sh built, `$WILLOW_BIN`) on a free
+ * loopback port with its own temporary data dir and `args` added; `stop()` ends it and removes
+ * the dir. */
+export async function startServer(args = []) {
+  const bin = process.env.WILLOW_BIN;
+  if (!bin) throw new Error('WILLOW_BIN is not set (run scripts/browser-test.sh)');
+  const dir = mkdtempSync(join(tmpdir(), 'willow-browser-'));
+  const child = spawn(bin, ['serve', '--addr', '127.0.0.1:0', '--data-dir', join(dir, 'data'),
+    '--log-format', 'text', ...args], { stdio: ['ignore', 'pipe', 'pipe'] });
+  let out = '';
+  let err = '';
+  child.stderr.on('data', (d) => { err = (err + d).slice(-20_000); });
+  const url = await new Promise((resolveUrl, reject) => {
+    const timer = setTimeout(() => reject(new Error(`willow serve did not start: ${err}`)), 20_000);
+    child.stdout.on('data', (d) => {
+      out += d;
+      const m = /^listening on (\S+)/m.exec(out);
+      if (m) { clearTimeout(timer); resolveUrl(m[1]); }
+    });
+    child.on('exit', (code) => { clearTimeout(timer); reject(new Error(`willow serve exited (${code}): ${err}`)); });
+  });
+  const stop = async () => {
+    if (child.exitCode === null) {
+      const exited = new Promise((r) => child.once('exit', r));
+      child.kill('SIGTERM');
+      await exited;
+    }
+    rmSync(dir, { recursive: true, force: true });
+  };
+  return { url, dir, stop, log: () => err };
+}
+
+/** `willow keys new`: `{ key, line }` (the key, and its line for the key file). */
+export function newKey(tenant, name) {
+  const out = execFileSync(process.env.WILLOW_BIN, ['keys', 'new', '--tenant', tenant, '--name', name], { encoding: 'utf8', stdio: ['ignore', 'pipe', 'pipe'] });
+  const [key, line] = out.split('\n');
+  return { key: key.trim(), line: line.trim() };
 }

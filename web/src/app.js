@@ -1,7 +1,7 @@
 // The page at `/`: upload a mesh, choose the job's parameters, watch the surface flow live
 // (3D view + metric plots), cancel, download, and a dashboard of all jobs. Everything talks to
 // the same server that served the page, through the public API only.
-import { ApiError, api, bytes, json } from './api.js';
+import { ApiError, api, apiKey, bytes, json, onUnauthorized, setApiKey } from './api.js';
 import { MEDIA_TYPES, decodeBase64Into, formatOf, parseMesh } from './meshio.js';
 import { Plots } from './plots.js';
 import { View } from './view.js';
@@ -33,6 +33,9 @@ const JOBS_POLL_MS = 2000;
 const JOBS_PAGE_SIZE = 10;
 /** Wait before re-opening an event stream the browser gave up on. */
 const RECONNECT_MS = 1000;
+/** A stream token this close to its expiry (or a third of its lifetime, if less) is not
+ * trusted to cover the browser's own reconnection: a fresh one is minted instead. */
+const TOKEN_MARGIN_S = 30;
 
 let config = null;
 let upload = null; // { file, format, texture: File|null, model }
@@ -383,8 +386,34 @@ async function loadModel(w) {
   }
 }
 
-function openStream(w, from) {
-  const es = new EventSource(`/v1/jobs/${w.id}/events?from_step=${from}`);
+/** Open the job's event stream from step `from`. With an API key set, a stream token for this
+ * job is minted first and goes in the URL (EventSource cannot send the Authorization header; the
+ * key itself never goes in a URL). Without a key, no token: the URL as it always was. */
+async function openStream(w, from) {
+  let url = `/v1/jobs/${w.id}/events?from_step=${from}`;
+  w.tokenExpires = null;
+  if (apiKey()) {
+    let t;
+    try {
+      t = await json(`/v1/jobs/${w.id}/stream-token`, { method: 'POST' });
+    } catch (e) {
+      if (w.closed) return;
+      if (e instanceof ApiError && e.status === 401) {
+        $('view-error').textContent = e.message; // and the key field asks for a key
+        return;
+      }
+      // The server is away for a moment (restarting): try again, as for a stream it dropped.
+      stats.reconnects++;
+      $('state').textContent = 'reconnecting…';
+      w.retry = setTimeout(() => { if (!w.closed) openStream(w, from); }, RECONNECT_MS);
+      return;
+    }
+    if (w.closed) return;
+    url += `&access_token=${encodeURIComponent(t.token)}`;
+    const margin = Math.min(TOKEN_MARGIN_S, t.expires_in / 3);
+    w.tokenExpires = Date.now() + (t.expires_in - margin) * 1000;
+  }
+  const es = new EventSource(url);
   w.es = es;
   es.addEventListener('state', (ev) => updateJob(JSON.parse(ev.data)));
   es.addEventListener('frame', (ev) => onFrame(w, JSON.parse(ev.data)));
@@ -400,10 +429,30 @@ function openStream(w, from) {
     stats.reconnects++;
     $('state').textContent = 'reconnecting…';
     if (es.readyState === EventSource.CLOSED) {
-      w.retry = setTimeout(() => { if (!w.closed) openStream(w, w.lastStep + 1); }, RECONNECT_MS);
+      w.refused = (w.refused || 0) + 1;
+      w.retry = setTimeout(async () => {
+        if (w.closed) return;
+        if (w.refused >= 3) {
+          // Refused again and again: ask the API why. A 401 (the key was cleared or revoked)
+          // stops here and asks for a key; a new one watches the job again.
+          try {
+            updateJob(await json(`/v1/jobs/${w.id}`));
+          } catch (e) {
+            if (e instanceof ApiError && e.status === 401) { $('view-error').textContent = e.message; return; }
+          }
+          if (w.closed || isTerminal(w.job)) return;
+        }
+        openStream(w, w.lastStep + 1);
+      }, RECONNECT_MS);
+    } else if (w.tokenExpires !== null && Date.now() >= w.tokenExpires) {
+      // The browser would reconnect with a token about to expire (its URL cannot change): a
+      // fresh token and a new stream from the last step seen instead. An open stream is never
+      // cut when its token expires; the token is checked when a connection opens.
+      es.close();
+      w.retry = setTimeout(() => { if (!w.closed) openStream(w, w.lastStep + 1); }, 0);
     }
   };
-  es.onopen = () => { if (w.job) updateJob(w.job); };
+  es.onopen = () => { w.refused = 0; if (w.job) updateJob(w.job); };
 }
 
 function onFrame(w, f) {
@@ -501,6 +550,31 @@ function updateJob(job) {
   updateCounter();
 }
 
+/** A result download link, clicked. Without a key it is the plain link, as ever; with one the
+ * file is fetched with the Authorization header and handed to the browser as a blob URL. */
+async function downloadResult(ev) {
+  const a = ev.currentTarget;
+  const href = a.getAttribute('href');
+  if (!href || !apiKey()) return;
+  ev.preventDefault();
+  try {
+    const res = await api(href);
+    const blob = await res.blob();
+    const m = /filename="([^"]+)"/.exec(res.headers.get('content-disposition') || '');
+    const name = m ? m[1] : `${watch?.id || 'willow'}-result.${new URL(href, location.href).searchParams.get('format')}`;
+    const url = URL.createObjectURL(blob);
+    const tmp = document.createElement('a');
+    tmp.href = url;
+    tmp.download = name;
+    document.body.append(tmp);
+    tmp.click();
+    tmp.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 60_000);
+  } catch (e) {
+    $('view-error').textContent = `cannot download the result: ${e.message}`;
+  }
+}
+
 function finishRun(w) {
   if (w.closed) return;
   for (let s = 0; s <= w.lastStep; s++) noteKept(w, s);
@@ -566,6 +640,8 @@ async function refreshJobs() {
     $('jobs-error').textContent = '';
   } catch (e) {
     $('jobs-error').textContent = e.message;
+    // No (valid) key: polling again would only repeat the 401; a new key refreshes the list.
+    if (e instanceof ApiError && e.status === 401) return;
   }
   dash.timer = setTimeout(refreshJobs, JOBS_POLL_MS);
 }
@@ -604,6 +680,45 @@ function duration(from, to) {
 const escapeHtml = (s) => s.replace(/[&<>"']/g, (c) => `&#${c.charCodeAt(0)};`);
 
 // ---------------------------------------------------------------------------------------------
+// API key: typed into the header's field, kept in sessionStorage (api.js). A 401 anywhere asks
+// for one there; a new key re-runs what the 401 stopped.
+
+let authFailed = false;
+
+onUnauthorized((e) => {
+  const msg = $('auth-msg');
+  const first = !authFailed || msg.textContent !== e.message;
+  authFailed = true;
+  msg.textContent = e.message;
+  // Focus once per message, not on every call that fails the same way (the user may be typing
+  // elsewhere).
+  if (first) $('api-key').focus();
+});
+
+function useKey(key) {
+  key = key.trim();
+  const changed = key !== apiKey();
+  if (!changed && !authFailed) return;
+  setApiKey(key);
+  $('api-key').value = key;
+  $('auth-msg').textContent = '';
+  const retry = authFailed;
+  authFailed = false;
+  if (retry || changed) {
+    $('jobs-error').textContent = '';
+    dash.tokens = [null];
+    dash.page = 0;
+    refreshJobs();
+    if ($('form-error').textContent.includes('API key')) $('form-error').textContent = '';
+    // The watched job stopped at a 401 (its details, input or stream): watch it again.
+    if (retry && watch) {
+      $('view-error').textContent = '';
+      startWatch(watch.id);
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
 // Wiring
 
 function onHash() {
@@ -613,6 +728,12 @@ function onHash() {
 }
 
 function wire() {
+  $('api-key').value = apiKey();
+  $('auth').addEventListener('submit', (e) => { e.preventDefault(); useKey($('api-key').value); });
+  // Leaving the field with a new key uses it too (Enter or "Use" already did, if unchanged).
+  $('api-key').addEventListener('change', (e) => { if (e.target.value.trim() !== apiKey()) useKey(e.target.value); });
+  $('api-key-clear').addEventListener('click', () => useKey(''));
+  for (const f of ['glb', 'gltf', 'obj']) $(`dl-${f}`).addEventListener('click', downloadResult);
   const drop = $('drop');
   drop.addEventListener('dragover', (e) => { e.preventDefault(); drop.classList.add('over'); });
   drop.addEventListener('dragleave', () => drop.classList.remove('over'));
