@@ -1119,7 +1119,7 @@ async fn auth_overhead(obj: &str) {
     println!();
     println!(
         "## 8. Authentication and tenant checks: submit latency at {CLIENTS} clients \
-         (embedded, small mesh, 1 step; {ROUNDS} alternating rounds of {} submissions each)",
+         (embedded, small mesh, 1 step; {ROUNDS} interleaved rounds of {} submissions per server)",
         CLIENTS * PER_CLIENT
     );
     println!();
@@ -1128,74 +1128,85 @@ async fn auth_overhead(obj: &str) {
         max_stored_bytes: 0,
         uploads_per_minute: 0,
     };
-    let plain = service_http_support::start_with(
-        tempfile::tempdir().expect("dir"),
-        |c| {
-            c.workers = 2;
-            c.queue_capacity = 100_000;
-            c.quotas = off;
-        },
-        willow::api::server::ServeOptions::default(),
-    )
-    .await;
     let keys_dir = tempfile::tempdir().expect("dir");
     let (key, line) = willow::api::auth::new_key("bench", "load").expect("key");
     let file = keys_dir.path().join("keys");
     std::fs::write(&file, format!("{line}\n")).expect("key file");
-    let auth = willow::api::auth::Auth::new(&willow::api::auth::AuthConfig {
-        mode: willow::api::auth::AuthMode {
-            keys: true,
-            jwt: false,
-        },
-        keys_file: Some(file),
-        ..Default::default()
-    })
-    .expect("auth");
-    let guarded = service_http_support::start_with(
-        tempfile::tempdir().expect("dir"),
-        |c| {
-            c.workers = 2;
-            c.queue_capacity = 100_000;
-            c.quotas = bench_quotas();
-        },
-        willow::api::server::ServeOptions {
-            app: willow::api::server::AppOptions {
-                auth,
+    let keys = || {
+        willow::api::auth::Auth::new(&willow::api::auth::AuthConfig {
+            mode: willow::api::auth::AuthMode {
+                keys: true,
+                jwt: false,
+            },
+            keys_file: Some(file.clone()),
+            ..Default::default()
+        })
+        .expect("auth")
+    };
+    // Auth off/on × quotas off/on, so each cost shows on its own.
+    let variants = [
+        ("`--auth none`, quotas off", false, false),
+        ("`--auth none`, quotas on", false, true),
+        ("API key, quotas off", true, false),
+        ("API key, quotas on", true, true),
+    ];
+    let mut servers = Vec::new();
+    for (_, with_key, with_quotas) in variants {
+        let auth = if with_key {
+            keys()
+        } else {
+            willow::api::auth::Auth::none()
+        };
+        let server = service_http_support::start_with(
+            tempfile::tempdir().expect("dir"),
+            |c| {
+                c.workers = 2;
+                c.queue_capacity = 100_000;
+                c.quotas = if with_quotas {
+                    bench_quotas()
+                } else {
+                    off.clone()
+                };
+            },
+            willow::api::server::ServeOptions {
+                app: willow::api::server::AppOptions {
+                    auth,
+                    ..Default::default()
+                },
                 ..Default::default()
             },
-            ..Default::default()
-        },
-    )
-    .await;
-    let (mut a, mut b) = (Vec::new(), Vec::new());
-    for _ in 0..ROUNDS {
-        a.extend(submit_burst(&plain.base, obj, CLIENTS, PER_CLIENT, None).await);
-        b.extend(submit_burst(&guarded.base, obj, CLIENTS, PER_CLIENT, Some(&key)).await);
+        )
+        .await;
+        servers.push(server);
     }
-    a.sort_by(f64::total_cmp);
-    b.sort_by(f64::total_cmp);
-    println!("| server | submissions | submit p50 ms | submit p99 ms |");
-    println!("|---|---|---|---|");
-    println!(
-        "| `--auth none`, quotas off | {} | {:.2} | {:.2} |",
-        a.len(),
-        pct(&a, 0.5),
-        pct(&a, 0.99)
-    );
-    println!(
-        "| API key, quotas on | {} | {:.2} | {:.2} |",
-        b.len(),
-        pct(&b, 0.5),
-        pct(&b, 0.99)
-    );
-    println!();
-    println!(
-        "Auth and tenant checks: p50 × {:.3} ({:+.1}%).",
-        pct(&b, 0.5) / pct(&a, 0.5),
-        (pct(&b, 0.5) / pct(&a, 0.5) - 1.0) * 100.0
-    );
-    plain.stop().await;
-    guarded.stop().await;
+    let mut samples: Vec<Vec<f64>> = vec![Vec::new(); variants.len()];
+    for _ in 0..ROUNDS {
+        for (i, (_, with_key, _)) in variants.iter().enumerate() {
+            let k = with_key.then_some(key.as_str());
+            samples[i].extend(submit_burst(&servers[i].base, obj, CLIENTS, PER_CLIENT, k).await);
+        }
+    }
+    println!("| server | submissions | submit p50 ms | submit p99 ms | p50 against the first |");
+    println!("|---|---|---|---|---|");
+    let base = {
+        let v = &mut samples[0];
+        v.sort_by(f64::total_cmp);
+        pct(v, 0.5)
+    };
+    for (i, (name, _, _)) in variants.iter().enumerate() {
+        let v = &mut samples[i];
+        v.sort_by(f64::total_cmp);
+        println!(
+            "| {name} | {} | {:.2} | {:.2} | {:+.1}% |",
+            v.len(),
+            pct(v, 0.5),
+            pct(v, 0.99),
+            (pct(v, 0.5) / base - 1.0) * 100.0
+        );
+    }
+    for server in servers {
+        server.stop().await;
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
