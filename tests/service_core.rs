@@ -4,7 +4,7 @@
 mod service_http_support;
 
 use futures::StreamExt;
-use service_http_support::{slow_obj, small_obj};
+use service_http_support::{obj, slow_obj, small_obj, spec};
 use std::time::Duration;
 use willow::jobs::{Caller, Config, JobEvent, JobSpec, JobState, Jobs, UploadRef};
 use willow::mesh::io::Format;
@@ -19,20 +19,6 @@ fn config(dir: &std::path::Path) -> Config {
     c.workers = 1;
     c.queue_capacity = 8;
     c
-}
-
-fn obj(text: String) -> UploadRef {
-    UploadRef::Bytes {
-        data: bytes::Bytes::from(text),
-        format: Format::Obj,
-    }
-}
-
-fn spec(steps: usize) -> JobSpec {
-    JobSpec {
-        steps,
-        ..JobSpec::default()
-    }
 }
 
 /// Collect a watch stream to its end; returns (frame steps, final status state).

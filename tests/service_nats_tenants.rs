@@ -6,30 +6,13 @@ mod nats_support;
 mod service_http_support;
 
 use nats_support::Nats;
-use service_http_support::{slow_obj, small_obj};
+use service_http_support::{obj, slow_obj, small_obj, spec};
 use std::time::Duration;
 use willow::jobs::nats::{connect, NatsOptions};
-use willow::jobs::{
-    Caller, Config, JobError, JobSpec, JobState, Jobs, Shutdown, TenantQuotas, UploadRef,
-};
-use willow::mesh::io::Format;
+use willow::jobs::{Caller, Config, JobError, JobState, Jobs, Shutdown, TenantQuotas};
 
 fn tenant(name: &str) -> Caller {
     Caller::new(name, "test").expect("tenant")
-}
-
-fn obj(text: String) -> UploadRef {
-    UploadRef::Bytes {
-        data: bytes::Bytes::from(text),
-        format: Format::Obj,
-    }
-}
-
-fn spec(steps: usize) -> JobSpec {
-    JobSpec {
-        steps,
-        ..JobSpec::default()
-    }
 }
 
 async fn start(nats: &Nats, dir: &std::path::Path, quotas: TenantQuotas) -> (Jobs, Shutdown) {

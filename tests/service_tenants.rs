@@ -4,9 +4,9 @@
 
 mod service_http_support;
 
-use service_http_support::{slow_obj, small_obj, Capture};
+use service_http_support::{obj, slow_obj, small_obj, spec, Capture};
 use std::time::Duration;
-use willow::jobs::{Caller, Config, JobError, JobSpec, JobState, Jobs, TenantQuotas, UploadRef};
+use willow::jobs::{Caller, Config, JobError, JobState, Jobs, TenantQuotas, UploadRef};
 use willow::mesh::io::Format;
 
 fn tenant(name: &str) -> Caller {
@@ -19,20 +19,6 @@ fn config(dir: &std::path::Path, tweak: impl FnOnce(&mut Config)) -> Config {
     c.queue_capacity = 32;
     tweak(&mut c);
     c
-}
-
-fn obj(text: String) -> UploadRef {
-    UploadRef::Bytes {
-        data: bytes::Bytes::from(text),
-        format: Format::Obj,
-    }
-}
-
-fn spec(steps: usize) -> JobSpec {
-    JobSpec {
-        steps,
-        ..JobSpec::default()
-    }
 }
 
 fn is_not_found<T: std::fmt::Debug>(r: Result<T, JobError>) -> bool {

@@ -419,3 +419,19 @@ impl Capture {
             .unwrap_or_default()
     }
 }
+
+/// An OBJ text as the job core's upload, for tests that call `Jobs` directly.
+pub fn obj(text: String) -> willow::jobs::UploadRef {
+    willow::jobs::UploadRef::Bytes {
+        data: bytes::Bytes::from(text),
+        format: willow::mesh::io::Format::Obj,
+    }
+}
+
+/// The default spec with `steps` steps.
+pub fn spec(steps: usize) -> willow::jobs::JobSpec {
+    willow::jobs::JobSpec {
+        steps,
+        ..willow::jobs::JobSpec::default()
+    }
+}
