@@ -7,14 +7,14 @@ mod service_http_support;
 
 use jsonwebtoken::{encode, Algorithm, EncodingKey, Header};
 use serde_json::{json, Value};
-use service_http_support::{read_sse, small_obj, Capture};
+use service_http_support::{read_sse, small_obj, Capture, TestServer};
 use std::path::PathBuf;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tonic::transport::Channel;
 use tonic::Code;
 use willow::api::auth::{Auth, AuthArgs, AuthConfig, AuthMode, JwtConfig};
 use willow::api::grpc::pb::willow::v1;
-use willow::jobs::{Caller, Config, Jobs};
+use willow::jobs::{Caller, Jobs};
 
 use v1::fairing_client::FairingClient;
 
@@ -26,13 +26,14 @@ const PATIENCE: Duration = Duration::from_secs(120);
 // ---------------------------------------------------------------------------------------------
 // Server
 
-struct Server {
-    base: String,
-    jobs: Jobs,
-    client: reqwest::Client,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<std::io::Result<()>>>,
-    _dir: tempfile::TempDir,
+/// The tests' server (tests/service_http_support) with an authentication layer.
+struct Server(TestServer);
+
+impl std::ops::Deref for Server {
+    type Target = TestServer;
+    fn deref(&self) -> &TestServer {
+        &self.0
+    }
 }
 
 impl Server {
@@ -43,16 +44,6 @@ impl Server {
     }
 
     async fn start_with(auth: Auth) -> Server {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let mut config = Config::new(dir.path());
-        config.workers = 1;
-        config.queue_capacity = 8;
-        let (jobs, core) = Jobs::start(config).await.expect("job core starts");
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-            .await
-            .expect("bind loopback");
-        let base = format!("http://{}", listener.local_addr().expect("local addr"));
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let options = willow::api::server::ServeOptions {
             app: willow::api::server::AppOptions {
                 auth,
@@ -60,37 +51,12 @@ impl Server {
             },
             ..Default::default()
         };
-        let task = tokio::spawn(willow::api::server::serve_with(
-            listener,
-            jobs.clone(),
-            core,
-            async move {
-                let _ = rx.await;
-            },
-            Duration::from_secs(2),
-            options,
-        ));
-        Server {
-            base,
-            jobs,
-            client: reqwest::Client::new(),
-            stop: Some(tx),
-            task: Some(task),
-            _dir: dir,
-        }
+        let dir = tempfile::tempdir().expect("temp dir");
+        Server(service_http_support::start_with(dir, |_| {}, options).await)
     }
 
-    fn url(&self, path: &str) -> String {
-        format!("{}{path}", self.base)
-    }
-
-    async fn stop(mut self) {
-        if let Some(tx) = self.stop.take() {
-            let _ = tx.send(());
-        }
-        if let Some(t) = self.task.take() {
-            let _ = tokio::time::timeout(Duration::from_secs(20), t).await;
-        }
+    async fn stop(self) {
+        self.0.stop().await;
     }
 
     /// POST a small OBJ (2 steps) with `auth` as the Authorization header (if any).
