@@ -204,8 +204,17 @@ pub fn minimum_degree(
     Ok((fwd, inv))
 }
 
+/// METIS keeps its random-number state (GKlib's Mersenne twister, `random.c`) in plain
+/// process-wide statics, not thread-locals: two concurrent `METIS_NodeND` calls race on it,
+/// so each gets a different sequence (a different ordering, different rounding in every
+/// factorization) and the race itself is undefined behaviour (its index can step past the
+/// state array). Every call holds this lock; it serializes only the ordering, which is a few
+/// seconds at the largest meshes, while the factorizations of concurrent jobs still overlap.
+static METIS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// METIS nested dissection (`METIS_NodeND`) with its default options and a fixed seed, so the
-/// same mesh always gets the same ordering (and the same rounding in every factorization).
+/// same mesh always gets the same ordering (and the same rounding in every factorization),
+/// whatever other threads order at the same time ([`METIS`]).
 pub fn nested_dissection(
     col_ptr: &[usize],
     row_idx: &[usize],
@@ -232,6 +241,11 @@ pub fn nested_dissection(
     let mut options = [0 as m::idx_t; m::METIS_NOPTIONS as usize];
     let mut perm: Vec<m::idx_t> = vec![0; n];
     let mut iperm: Vec<m::idx_t> = vec![0; n];
+    // A panic elsewhere while holding the lock leaves no METIS state half-written that the
+    // next call reads before reseeding, so a poisoned lock is still usable.
+    let _only_caller = METIS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     // SAFETY: `options` has METIS_NOPTIONS entries; `xadj` has n + 1 entries ending at
     // `adjncy.len()`, every `adjncy` entry is a vertex index below n (taken from a pattern of
     // n columns), and `perm`/`iperm` have n entries each, as METIS_NodeND requires. vwgt is
@@ -320,6 +334,30 @@ mod tests {
             let (fwd, inv) = order(ordering, &col_ptr, &row_idx).expect("ordering");
             assert!(is_permutation(&fwd, &inv), "{ordering:?}");
         }
+    }
+
+    /// Threads ordering at the same time get the ordering one thread alone gets (METIS's
+    /// random state is process-wide; without the lock this failed within a few rounds).
+    #[test]
+    fn concurrent_nested_dissections_give_the_sequential_ordering() {
+        let (col_ptr, row_idx) = grid(60);
+        let (alone, _) = nested_dissection(&col_ptr, &row_idx).expect("ordering");
+        std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..4)
+                .map(|_| {
+                    scope.spawn(|| {
+                        (0..10)
+                            .map(|_| nested_dissection(&col_ptr, &row_idx).expect("ordering").0)
+                            .collect::<Vec<_>>()
+                    })
+                })
+                .collect();
+            for handle in handles {
+                for fwd in handle.join().expect("thread") {
+                    assert!(fwd == alone, "a concurrent ordering differs");
+                }
+            }
+        });
     }
 
     /// Nested dissection of a grid puts a separator last: the last vertices in the order split
