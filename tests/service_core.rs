@@ -332,15 +332,21 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
     // And without tenants (issue 12): no tenant column, keys unscoped. The upgrade gives the
     // rows to the default tenant and scopes their keys to it.
     db.execute_batch(
-        "DROP TRIGGER tenant_bytes_job_in; DROP TRIGGER tenant_bytes_job_expired;
-         DROP TRIGGER tenant_bytes_job_out; DROP TRIGGER tenant_bytes_upload_in;
-         DROP TRIGGER tenant_bytes_upload_out; DROP TABLE tenant_bytes;
+        "DROP TRIGGER tenant_usage_job_in; DROP TRIGGER tenant_usage_job_state;
+         DROP TRIGGER tenant_usage_job_expired; DROP TRIGGER tenant_usage_job_out;
+         DROP TRIGGER tenant_usage_upload_in; DROP TRIGGER tenant_usage_upload_out;
+         DROP TABLE tenant_usage;
          DROP INDEX jobs_by_tenant; DROP INDEX jobs_by_tenant_state;
          DROP INDEX jobs_by_tenant_created; DROP INDEX uploads_by_tenant;
          ALTER TABLE jobs DROP COLUMN tenant; ALTER TABLE jobs DROP COLUMN input_bytes;
          ALTER TABLE uploads DROP COLUMN tenant;",
     )
     .expect("drop the tenant columns");
+    // The per-tenant bytes table of the first release with tenants, which the open replaces.
+    db.execute_batch(
+        "CREATE TABLE tenant_bytes (tenant TEXT PRIMARY KEY, bytes INTEGER NOT NULL);",
+    )
+    .expect("an older usage table");
     drop(db);
 
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");

@@ -248,8 +248,7 @@ impl Jobs {
         if !quotas.any() {
             return Ok(());
         }
-        let since = now_ms().saturating_sub(60_000);
-        let usage = self.inner.backend.store.usage(tenant, since).await?;
+        let usage = self.inner.backend.store.usage(tenant, now_ms()).await?;
         match over_quota(quotas, &usage, bytes, false) {
             Some(over) => Err(self.over_quota(tenant, over)),
             None => Ok(()),

@@ -75,11 +75,11 @@ pub fn over_quota(q: &TenantQuotas, usage: &Usage, bytes: u64, job: bool) -> Opt
     if job && q.max_live_jobs > 0 && usage.live_jobs >= q.max_live_jobs {
         return over("live_jobs", q.max_live_jobs as u64, usage.live_jobs as u64);
     }
-    if q.uploads_per_minute > 0 && usage.uploads_since >= q.uploads_per_minute {
+    if q.uploads_per_minute > 0 && usage.uploads_last_minute >= q.uploads_per_minute {
         return over(
             "uploads_per_minute",
             q.uploads_per_minute as u64,
-            usage.uploads_since as u64,
+            usage.uploads_last_minute as u64,
         );
     }
     if q.max_stored_bytes > 0 && usage.stored_bytes.saturating_add(bytes) > q.max_stored_bytes {
@@ -110,8 +110,9 @@ pub struct Usage {
     pub live_jobs: usize,
     /// Bytes of uploaded meshes kept: inputs of unexpired jobs and unexpired uploads.
     pub stored_bytes: u64,
-    /// Meshes received (jobs and uploads) since the `since` of [`JobStore::usage`].
-    pub uploads_since: usize,
+    /// Meshes received (jobs and uploads) in the minute before the `now` of
+    /// [`JobStore::usage`] (the SQLite store estimates the sliding minute from two fixed ones).
+    pub uploads_last_minute: usize,
 }
 
 /// A job found queued or running at start ([`JobStore::recover`]).
@@ -210,8 +211,8 @@ pub trait JobStore: Send + Sync + 'static {
     ) -> Result<(), JobError>;
     /// `tenant`'s upload's format; `UploadNotFound` if unknown, expired or another tenant's.
     async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError>;
-    /// What `tenant` holds now, counting uploads received at or after `since` (unix ms).
-    async fn usage(&self, tenant: &str, since: u64) -> Result<Usage, JobError>;
+    /// What `tenant` holds at `now` (unix ms), with the meshes it sent in the minute before.
+    async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError>;
 }
 
 /// What a blob holds; the backend names it (file path, object name).

@@ -281,8 +281,7 @@ impl JobStore for KvStore {
             }
         }
         if job.quotas.any() {
-            let since = now_ms().saturating_sub(60_000);
-            let usage = self.usage(&job.tenant, since).await?;
+            let usage = self.usage(&job.tenant, now_ms()).await?;
             if let Some(over) = over_quota(&job.quotas, &usage, job.input_bytes, true) {
                 return Ok(Inserted::OverQuota(over));
             }
@@ -676,7 +675,8 @@ impl JobStore for KvStore {
     /// A scan of the tenant's records, like [`JobStore::list`]: O(jobs kept) per admission.
     /// Fine for the thousands of jobs a TTL keeps; a busier cluster wants per-tenant
     /// counters (KV entries updated with compare-and-set), a change inside this method.
-    async fn usage(&self, tenant: &str, since: u64) -> Result<Usage, JobError> {
+    async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError> {
+        let since = now.saturating_sub(60_000);
         let mut usage = Usage::default();
         for rec in self.list_records().await? {
             if rec.status.tenant != tenant || Self::live(&rec.status.id, &rec).is_err() {
@@ -688,10 +688,9 @@ impl JobStore for KvStore {
             }
             usage.stored_bytes = usage.stored_bytes.saturating_add(s.input_bytes);
             if s.created_at >= since {
-                usage.uploads_since += 1;
+                usage.uploads_last_minute += 1;
             }
         }
-        let now = now_ms();
         for k in self.keys("upload.").await? {
             let Some(b) = self
                 .nats
@@ -708,7 +707,7 @@ impl JobStore for KvStore {
             }
             usage.stored_bytes = usage.stored_bytes.saturating_add(entry.size);
             if entry.created_at >= since {
-                usage.uploads_since += 1;
+                usage.uploads_last_minute += 1;
             }
         }
         Ok(usage)
