@@ -331,11 +331,8 @@ impl SqliteStore {
         check_id(id)?;
         let conn = self.conn()?;
         let row = conn
-            .query_row(
-                &format!("SELECT {STATUS_COLUMNS} FROM jobs WHERE id = ?1"),
-                params![id],
-                row_to_status,
-            )
+            .prepare_cached(&format!("SELECT {STATUS_COLUMNS} FROM jobs WHERE id = ?1"))?
+            .query_row(params![id], row_to_status)
             .optional()?;
         match row {
             None => Err(JobError::NotFound(id.to_string())),
@@ -365,11 +362,10 @@ impl SqliteStore {
     ) -> Result<Option<JobStatus>, JobError> {
         let found: Option<(String, String)> = self
             .conn()?
-            .query_row(
-                "SELECT request_hash, job_id FROM idempotency WHERE key = ?1",
-                params![scoped_key(tenant, key)],
-                |r| Ok((r.get(0)?, r.get(1)?)),
-            )
+            .prepare_cached("SELECT request_hash, job_id FROM idempotency WHERE key = ?1")?
+            .query_row(params![scoped_key(tenant, key)], |r| {
+                Ok((r.get(0)?, r.get(1)?))
+            })
             .optional()?;
         match found {
             None => Ok(None),
@@ -388,11 +384,10 @@ impl SqliteStore {
             let tx = conn.transaction()?;
             if let Some((key, hash)) = &job.idempotency {
                 let found: Option<(String, String)> = tx
-                    .query_row(
-                        "SELECT request_hash, job_id FROM idempotency WHERE key = ?1",
-                        params![scoped_key(&job.tenant, key)],
-                        |r| Ok((r.get(0)?, r.get(1)?)),
-                    )
+                    .prepare_cached("SELECT request_hash, job_id FROM idempotency WHERE key = ?1")?
+                    .query_row(params![scoped_key(&job.tenant, key)], |r| {
+                        Ok((r.get(0)?, r.get(1)?))
+                    })
                     .optional()?;
                 if let Some((stored, existing)) = found {
                     drop(tx);
@@ -415,11 +410,12 @@ impl SqliteStore {
                     return Ok(Inserted::OverQuota(over));
                 }
             }
-            tx.execute(
+            tx.prepare_cached(
                 "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at,
                                    tenant, input_bytes)
                  VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
-                params![
+            )?
+            .execute(params![
                     job.id,
                     spec,
                     format_name(job.format),
@@ -431,10 +427,10 @@ impl SqliteStore {
                 ],
             )?;
             if let Some((key, hash)) = &job.idempotency {
-                tx.execute(
+                tx.prepare_cached(
                     "INSERT INTO idempotency (key, request_hash, job_id) VALUES (?1, ?2, ?3)",
-                    params![scoped_key(&job.tenant, key), hash, job.id],
-                )?;
+                )?
+                .execute(params![scoped_key(&job.tenant, key), hash, job.id])?;
             }
             tx.commit()?;
         }
@@ -524,12 +520,13 @@ const MINUTE_MS: u64 = 60_000;
 /// in the admission's transaction.
 fn usage_on(conn: &Connection, tenant: &str, now: u64) -> Result<Usage, JobError> {
     let row: Option<(i64, i64, i64, i64, i64)> = conn
-        .query_row(
+        .prepare_cached(
             "SELECT bytes, live, window_start, window_count, previous_count
              FROM tenant_usage WHERE tenant = ?1",
-            params![tenant],
-            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?)),
-        )
+        )?
+        .query_row(params![tenant], |r| {
+            Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?))
+        })
         .optional()?;
     let Some((bytes, live, window_start, current, previous)) = row else {
         return Ok(Usage::default());
