@@ -115,6 +115,65 @@ pub struct Usage {
     pub uploads_last_minute: usize,
 }
 
+/// A minute, in unix ms.
+pub const MINUTE_MS: u64 = 60_000;
+
+/// The meshes a tenant sent (jobs and uploads), counted in fixed minutes: O(1) to keep and to
+/// read, for the `uploads_per_minute` quota. [`MinuteWindows::last_minute`] is the usual
+/// sliding-window estimate of rate limiters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct MinuteWindows {
+    /// Start (unix ms, a whole minute) of the minute `current` counts.
+    pub start: u64,
+    pub current: u64,
+    /// The count of the minute before `start`.
+    pub previous: u64,
+}
+
+impl MinuteWindows {
+    /// Count a mesh received at `at`: the windows move on to its minute (the current count
+    /// becomes the previous one when the next minute starts; both reset after a quiet
+    /// minute), and a mesh stamped in the previous minute but counted late counts there.
+    pub fn receive(&mut self, at: u64) {
+        let minute = at - at % MINUTE_MS;
+        if minute == self.start {
+            self.current += 1;
+        } else if minute + MINUTE_MS == self.start {
+            self.previous += 1;
+        } else if minute > self.start {
+            self.previous = if minute == self.start + MINUTE_MS {
+                self.current
+            } else {
+                0
+            };
+            self.current = 1;
+            self.start = minute;
+        }
+    }
+
+    /// Meshes received in the minute before `now`: the part of the previous minute still
+    /// inside the sliding one taken as evenly filled, rounded up so that a burst just before
+    /// a minute boundary still counts in full right after it. Exact while all the counted
+    /// meshes are in one fixed minute; otherwise off by less than the previous minute's count
+    /// times the fraction of this minute elapsed.
+    pub fn last_minute(&self, now: u64) -> usize {
+        let this_minute = now - now % MINUTE_MS;
+        let elapsed = (now - this_minute) as f64 / MINUTE_MS as f64;
+        let weighted = |count: u64| (count as f64 * (1.0 - elapsed)).ceil() as u64;
+        let count = if self.start > this_minute {
+            // Windows ahead of `now` (the clock stepped back): all of it is recent.
+            self.current + self.previous
+        } else if self.start == this_minute {
+            weighted(self.previous) + self.current
+        } else if self.start + MINUTE_MS == this_minute {
+            weighted(self.current)
+        } else {
+            0
+        };
+        usize::try_from(count).unwrap_or(usize::MAX)
+    }
+}
+
 /// A job found queued or running at start ([`JobStore::recover`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Recovered {
@@ -361,4 +420,58 @@ pub struct Backend {
     pub cancels: std::sync::Arc<dyn CancelBus>,
     /// For logs and `/readyz`: `embedded` or `nats://…`.
     pub name: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: u64 = MINUTE_MS;
+
+    fn windows(start: u64, current: u64, previous: u64) -> MinuteWindows {
+        MinuteWindows {
+            start,
+            current,
+            previous,
+        }
+    }
+
+    /// The estimate on cases worked by hand: exact within one fixed minute, the previous
+    /// minute weighted by the part of it still inside the sliding one (rounded up), nothing
+    /// older.
+    #[test]
+    fn last_minute_weights_the_previous_minute() {
+        let t = 1_000 * MIN;
+        // All in the current minute: exact.
+        assert_eq!(windows(t, 5, 0).last_minute(t + 30_000), 5);
+        // A quarter into the minute: 3/4 of the previous minute's 8, plus this minute's 2.
+        assert_eq!(windows(t, 2, 8).last_minute(t + MIN / 4), 6 + 2);
+        // Rounded up: a burst of 3 just before the boundary still counts 3 right after it.
+        assert_eq!(windows(t, 0, 3).last_minute(t + 100), 3);
+        // The windows are a minute behind `now`: their current minute is now the previous.
+        assert_eq!(windows(t - MIN, 10, 99).last_minute(t + MIN / 2), 5);
+        // Older windows count nothing.
+        assert_eq!(windows(t - 2 * MIN, 10, 10).last_minute(t + 1), 0);
+        // Windows ahead of `now` (the clock stepped back) count in full.
+        assert_eq!(windows(t + MIN, 4, 1).last_minute(t), 5);
+    }
+
+    /// Receiving moves the windows on minute by minute, resets them after a quiet minute,
+    /// and counts a late mesh of the previous minute there (and an older one nowhere).
+    #[test]
+    fn receive_moves_the_windows_on() {
+        let t = 1_000 * MIN;
+        let mut w = MinuteWindows::default();
+        w.receive(t + 5);
+        w.receive(t + 59_999);
+        assert_eq!(w, windows(t, 2, 0));
+        w.receive(t + MIN);
+        assert_eq!(w, windows(t + MIN, 1, 2));
+        w.receive(t + 10);
+        assert_eq!(w, windows(t + MIN, 1, 3), "late, in the previous minute");
+        w.receive(t - MIN);
+        assert_eq!(w, windows(t + MIN, 1, 3), "older than the windows");
+        w.receive(t + 3 * MIN + 1);
+        assert_eq!(w, windows(t + 3 * MIN, 1, 0), "after a quiet minute");
+    }
 }

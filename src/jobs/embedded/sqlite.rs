@@ -6,7 +6,9 @@
 //! microseconds, so a single connection is not the bottleneck the flow step is.
 
 use super::super::codec::{decode_metrics, encode_metrics};
-use super::super::ports::{over_quota, Inserted, JobStore, NewJob, Recovered, Swept, Usage};
+use super::super::ports::{
+    over_quota, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage, MINUTE_MS,
+};
 use super::super::{
     format_name, join_err, now_ms, parse_format, poisoned, JobError, JobSpec, JobState, JobStatus,
 };
@@ -88,7 +90,8 @@ const ADDED_COLUMNS: [(&str, &str, &str); 4] = [
 /// - `live`: queued and running jobs;
 /// - `window_start`, `window_count`, `previous_count`: meshes received (jobs and uploads) in
 ///   the fixed minute starting at `window_start` and in the minute before it, from which
-///   [`received_last_minute`] estimates the sliding minute.
+///   [`MinuteWindows`] estimates the sliding minute (the triggers do what
+///   [`MinuteWindows::receive`] does).
 ///
 /// A mesh received moves its tenant's windows on to the minute of its `created_at`: the
 /// current window becomes the previous one when the next minute starts, both reset after a
@@ -514,8 +517,6 @@ impl SqliteStore {
     }
 }
 
-const MINUTE_MS: u64 = 60_000;
-
 /// What `tenant` holds at `now` (see [`JobStore::usage`]): one row of `tenant_usage`, read
 /// in the admission's transaction.
 fn usage_on(conn: &Connection, tenant: &str, now: u64) -> Result<Usage, JobError> {
@@ -535,36 +536,13 @@ fn usage_on(conn: &Connection, tenant: &str, now: u64) -> Result<Usage, JobError
     Ok(Usage {
         live_jobs: usize::try_from(n(live)).unwrap_or(usize::MAX),
         stored_bytes: n(bytes),
-        uploads_last_minute: received_last_minute(now, n(window_start), n(current), n(previous)),
+        uploads_last_minute: MinuteWindows {
+            start: n(window_start),
+            current: n(current),
+            previous: n(previous),
+        }
+        .last_minute(now),
     })
-}
-
-/// Meshes received in the minute before `now`, from the counts of the fixed minute starting
-/// at `window_start` (`current`) and of the minute before it (`previous`): the sliding-window
-/// estimate of rate limiters, which takes the part of the previous minute still inside the
-/// sliding one as evenly filled, rounded up so that a burst just before a minute boundary
-/// still counts in full right after it. Exact while all the counted meshes are in one fixed
-/// minute; otherwise off by less than `previous` times the fraction of the minute elapsed.
-pub(crate) fn received_last_minute(
-    now: u64,
-    window_start: u64,
-    current: u64,
-    previous: u64,
-) -> usize {
-    let this_minute = now - now % MINUTE_MS;
-    let elapsed = (now - this_minute) as f64 / MINUTE_MS as f64;
-    let weighted = |count: u64| (count as f64 * (1.0 - elapsed)).ceil() as u64;
-    let count = if window_start > this_minute {
-        // A window ahead of `now` (the clock stepped back): all of it is recent.
-        current + previous
-    } else if window_start == this_minute {
-        weighted(previous) + current
-    } else if window_start + MINUTE_MS == this_minute {
-        weighted(current)
-    } else {
-        0
-    };
-    usize::try_from(count).unwrap_or(usize::MAX)
 }
 
 /// Idempotency keys are per tenant: the stored key is the tenant, a `/` (which no tenant id
@@ -889,26 +867,6 @@ mod tests {
 
     const MIN: u64 = MINUTE_MS;
 
-    /// The estimate on cases worked by hand: exact within one fixed minute, the previous
-    /// minute weighted by the part of it still inside the sliding one (rounded up), nothing
-    /// older.
-    #[test]
-    fn received_last_minute_weights_the_previous_minute() {
-        let t = 1_000 * MIN;
-        // All in the current minute: exact.
-        assert_eq!(received_last_minute(t + 30_000, t, 5, 0), 5);
-        // A quarter into the minute: 3/4 of the previous minute's 8, plus this minute's 2.
-        assert_eq!(received_last_minute(t + MIN / 4, t, 2, 8), 6 + 2);
-        // Rounded up: a burst of 3 just before the boundary still counts 3 right after it.
-        assert_eq!(received_last_minute(t + 100, t, 0, 3), 3);
-        // The windows are a minute behind `now`: their current minute is now the previous.
-        assert_eq!(received_last_minute(t + MIN / 2, t - MIN, 10, 99), 5);
-        // Older windows count nothing.
-        assert_eq!(received_last_minute(t + 1, t - 2 * MIN, 10, 10), 0);
-        // A window ahead of `now` (the clock stepped back) counts in full.
-        assert_eq!(received_last_minute(t, t + MIN, 4, 1), 5);
-    }
-
     fn job(tenant: &str, bytes: u64, at: u64) -> NewJob {
         NewJob {
             id: uuid::Uuid::new_v4().to_string(),
@@ -1007,7 +965,12 @@ mod tests {
         assert_eq!(usage.stored_bytes, 600);
         assert_eq!(
             usage.uploads_last_minute,
-            received_last_minute(now, this_minute, 1, 2)
+            MinuteWindows {
+                start: this_minute,
+                current: 1,
+                previous: 2
+            }
+            .last_minute(now)
         );
         {
             let conn = store.conn().expect("conn");
@@ -1028,6 +991,13 @@ mod tests {
         // jobs frees no rate): a got 2 in the previous minute and 1 in this one, b 3 in this
         // one. A recount sees only the rows still there (a[2] deleted, u1 swept).
         assert_eq!((kept[0].3, kept[0].4, kept[0].5), (ms(this_minute), 1, 2));
+        // The triggers move the windows as `MinuteWindows::receive` does (the NATS store's).
+        let mut expected = MinuteWindows::default();
+        for at in [earlier, previous, previous, now] {
+            expected.receive(at);
+        }
+        let as_row = |w: MinuteWindows| (ms(w.start), ms(w.current), ms(w.previous));
+        assert_eq!((kept[0].3, kept[0].4, kept[0].5), as_row(expected));
         // (b's uploads take the clock's time: if a minute started during the test, b's windows
         // moved on and its 3 are split over them.)
         let b_received = match kept[1].3 - ms(this_minute) {
