@@ -16,10 +16,20 @@ fn tenant(name: &str) -> Caller {
 }
 
 async fn start(nats: &Nats, dir: &std::path::Path, quotas: TenantQuotas) -> (Jobs, Shutdown) {
+    start_with(nats, dir, quotas, |_| {}).await
+}
+
+async fn start_with(
+    nats: &Nats,
+    dir: &std::path::Path,
+    quotas: TenantQuotas,
+    tweak: impl FnOnce(&mut Config),
+) -> (Jobs, Shutdown) {
     let mut config = Config::new(dir);
     config.workers = 1;
     config.queue_capacity = 32;
     config.quotas = quotas;
+    tweak(&mut config);
     let backend = connect(&config, &NatsOptions::new(nats.url()))
         .await
         .expect("connect");
@@ -129,4 +139,172 @@ async fn nats_tenants_are_isolated_and_the_queue_is_fair() {
     ));
     jobs.delete(&a, &burst[0]).await.expect("A deletes its job");
     core.shutdown(Duration::from_secs(2)).await;
+}
+
+/// Quotas hold across API nodes: 16 submissions at once, half on each of two nodes, of jobs
+/// that outlast the test, against a quota of 5 live jobs: exactly 5 are admitted (the check
+/// and the count are one compare-and-set on the tenant's usage entry). A finished job frees
+/// its unit. With the counters wiped, a restarted node recounts them from the records at
+/// connect, and the quota holds again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_quotas_hold_across_nodes_and_are_recounted_at_connect() {
+    use futures::StreamExt as _;
+    let dir = tempfile::tempdir().expect("dir");
+    let nats = Nats::start(dir.path());
+    let quotas = TenantQuotas {
+        max_live_jobs: 5,
+        max_stored_bytes: 0,
+        uploads_per_minute: 0,
+    };
+    let (one, core_one) = start(&nats, &dir.path().join("one"), quotas.clone()).await;
+    let (two, core_two) = start(&nats, &dir.path().join("two"), quotas.clone()).await;
+    let a = tenant("alpha");
+    let tasks: Vec<_> = (0..16)
+        .map(|i| {
+            let (jobs, a) = (if i % 2 == 0 { &one } else { &two }.clone(), a.clone());
+            tokio::spawn(async move { jobs.submit(&a, obj(slow_obj()), spec(5000), None).await })
+        })
+        .collect();
+    let (mut admitted, mut refused) = (Vec::new(), 0);
+    for t in tasks {
+        match t.await.expect("task") {
+            Ok(s) => admitted.push(s.id),
+            Err(JobError::QuotaExceeded {
+                quota: "live_jobs", ..
+            }) => refused += 1,
+            Err(e) => panic!("expected admission or the live_jobs quota, got {e:?}"),
+        }
+    }
+    assert_eq!((admitted.len(), refused), (5, 11), "{admitted:?}");
+    let refused_now = |r: Result<willow::jobs::JobStatus, JobError>| {
+        matches!(
+            r,
+            Err(JobError::QuotaExceeded {
+                quota: "live_jobs",
+                limit: 5,
+                ..
+            })
+        )
+    };
+
+    // A finished job frees its unit, on either node.
+    one.cancel(&a, &admitted[0]).await.expect("cancel");
+    let done = one
+        .wait(&a, &admitted[0], Duration::from_secs(60))
+        .await
+        .expect("wait");
+    assert_eq!(done.state, JobState::Cancelled);
+    let sixth = two
+        .submit(&a, obj(slow_obj()), spec(5000), None)
+        .await
+        .expect("room after the cancel");
+    admitted.push(sixth.id);
+    assert!(refused_now(
+        one.submit(&a, obj(slow_obj()), spec(5000), None).await
+    ));
+
+    // Wipe the counters: the nodes running now would admit again; a node connecting recounts.
+    let client = async_nats::connect(nats.url()).await.expect("client");
+    let kv = async_nats::jetstream::new(client)
+        .get_key_value(willow::jobs::nats::KV_BUCKET)
+        .await
+        .expect("bucket");
+    let mut keys = kv.keys().await.expect("keys");
+    let mut wiped = 0;
+    while let Some(k) = keys.next().await {
+        let k = k.expect("key");
+        if k.starts_with("usage.") {
+            kv.purge(&k).await.expect("purge");
+            wiped += 1;
+        }
+    }
+    assert_eq!(wiped, 1, "one tenant, one usage entry");
+    core_two.shutdown(Duration::from_secs(2)).await;
+    let (two, core_two) = start(&nats, &dir.path().join("two"), quotas).await;
+    assert!(refused_now(
+        two.submit(&a, obj(slow_obj()), spec(5000), None).await
+    ));
+    for id in &admitted[1..] {
+        let _ = two.cancel(&a, id).await;
+    }
+    core_one.shutdown(Duration::from_secs(2)).await;
+    core_two.shutdown(Duration::from_secs(2)).await;
+}
+
+/// The stored-bytes quota on NATS counts uploads and job inputs, and gets them back when a
+/// job is deleted and when the sweeper retires expired jobs and uploads (on a node other
+/// than the one that admitted them).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_stored_bytes_are_counted_and_given_back() {
+    let dir = tempfile::tempdir().expect("dir");
+    let nats = Nats::start(dir.path());
+    let size = small_obj().len() as u64;
+    let quotas = TenantQuotas {
+        max_live_jobs: 0,
+        max_stored_bytes: 2 * size + size / 2,
+        uploads_per_minute: 0,
+    };
+    // Node one's results and uploads expire 2 s after they finish or arrive; its own
+    // sweeper (first run after a minute) never retires them here.
+    let (one, core_one) = start_with(&nats, &dir.path().join("one"), quotas.clone(), |c| {
+        c.result_ttl = Duration::from_secs(2);
+    })
+    .await;
+    let a = tenant("alpha");
+    let bytes_refused = |r: Result<willow::jobs::JobStatus, JobError>, used: u64| match r {
+        Err(JobError::QuotaExceeded {
+            quota: "stored_bytes",
+            used: Some(u),
+            ..
+        }) => assert_eq!(u, used),
+        other => panic!("expected the stored_bytes quota at {used}, got {other:?}"),
+    };
+    one.store_upload(&a, small_obj().into(), willow::mesh::io::Format::Obj)
+        .await
+        .expect("upload");
+    let first = one
+        .submit(&a, obj(small_obj()), spec(1), None)
+        .await
+        .expect("within the bytes");
+    bytes_refused(
+        one.submit(&a, obj(small_obj()), spec(1), None).await,
+        2 * size,
+    );
+    one.wait(&a, &first.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    one.delete(&a, &first.id).await.expect("delete");
+    let second = one
+        .submit(&a, obj(small_obj()), spec(1), None)
+        .await
+        .expect("room after the delete");
+    one.wait(&a, &second.id, Duration::from_secs(60))
+        .await
+        .expect("wait");
+    bytes_refused(
+        one.submit(&a, obj(small_obj()), spec(1), None).await,
+        2 * size,
+    );
+    core_one.shutdown(Duration::from_secs(2)).await;
+
+    // Another node, whose sweeper retires the finished job and the upload once expired.
+    let (two, core_two) = start_with(&nats, &dir.path().join("two"), quotas, |c| {
+        c.sweep_interval = Duration::from_millis(200);
+    })
+    .await;
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let mut admitted = Vec::new();
+    while admitted.len() < 2 {
+        match two.submit(&a, obj(small_obj()), spec(1), None).await {
+            Ok(s) => admitted.push(s.id),
+            Err(JobError::QuotaExceeded {
+                quota: "stored_bytes",
+                ..
+            }) if std::time::Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            Err(e) => panic!("room after the sweep: {e:?}"),
+        }
+    }
+    core_two.shutdown(Duration::from_secs(2)).await;
 }

@@ -1,9 +1,10 @@
 //! The NATS [`JobStore`]: job records in the KV bucket, per-step metrics in the frames stream.
 //!
 //! Keys: `job.{id}` (the [`Record`], JSON), `idem.{sha256(key)}` (an idempotency key's request
-//! hash and job), `upload.{id}`, `qseq.{id}` (the job's sequence in the work-queue stream, for
-//! withdrawing it) and `cancel.{id}`. Every change of a record is a compare-and-set on its
-//! revision, so two nodes never overwrite each other's transitions.
+//! hash and job), `upload.{id}`, `usage.{sha256(tenant)}` (a tenant's [`UsageEntry`]),
+//! `qseq.{id}` (the job's sequence in the work-queue stream, for withdrawing it) and
+//! `cancel.{id}`. Every change of a record is a compare-and-set on its revision, so two nodes
+//! never overwrite each other's transitions.
 //!
 //! A step's metrics are a message on `willow.frames.{id}.{step}`: one byte (positions kept or
 //! not) and the metrics in [`codec`](super::super::codec) form (JSON cannot carry NaN). The
@@ -12,7 +13,9 @@
 //! means here.
 
 use super::super::codec::{decode_metrics, encode_metrics};
-use super::super::ports::{over_quota, Inserted, JobStore, NewJob, Recovered, Swept, Usage};
+use super::super::ports::{
+    over_quota, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage,
+};
 use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
 use super::{nats_err, retry, Nats};
 use crate::jobs::embedded::sqlite::check_id;
@@ -79,6 +82,44 @@ struct UploadEntry {
     size: u64,
     #[serde(default)]
     created_at: u64,
+    /// Taken off its tenant's usage by the sweeper that won it (compare-and-set), so that two
+    /// nodes sweeping at once count it off once; purged next.
+    #[serde(default)]
+    swept: bool,
+}
+
+/// What a tenant's quotas check, under `usage.{sha256(tenant)}`: one KV read per admission
+/// (the scan of every record it replaces was O(jobs kept) per submission). Changed only with
+/// compare-and-set, by the node that won the transition counted (a job's admission, finish or
+/// retirement, an upload stored or swept), so each counts once. An admission reserves its
+/// room here before its record exists, so two nodes cannot both take a tenant's last unit.
+/// The sweeper recounts `live` and `bytes` from the records ([`KvStore::heal_usage`]): a node
+/// that died between a transition and its count leaves the counts off until the next sweep.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+struct UsageEntry {
+    tenant: String,
+    /// Queued and running jobs.
+    live: u64,
+    /// Inputs of unretired jobs and unswept uploads.
+    bytes: u64,
+    /// Meshes received (jobs and uploads).
+    windows: MinuteWindows,
+}
+
+impl UsageEntry {
+    fn usage(&self, now: u64) -> Usage {
+        Usage {
+            live_jobs: usize::try_from(self.live).unwrap_or(usize::MAX),
+            stored_bytes: self.bytes,
+            uploads_last_minute: self.windows.last_minute(now),
+        }
+    }
+}
+
+fn usage_key(tenant: &str) -> String {
+    let h = Sha256::digest(tenant.as_bytes());
+    let hex: String = h[..16].iter().map(|b| format!("{b:02x}")).collect();
+    format!("usage.{hex}")
 }
 
 fn default_tenant() -> String {
@@ -254,38 +295,156 @@ impl KvStore {
         Ok(out)
     }
 
-    async fn list_records(&self) -> Result<Vec<Record>, JobError> {
-        let mut out = Vec::new();
-        for k in self.keys("job.").await? {
-            let Some(id) = k.strip_prefix("job.") else {
+    /// `tenant`'s usage entry and its revision (`None`: no entry yet).
+    async fn usage_entry(&self, tenant: &str) -> Result<(UsageEntry, Option<u64>), JobError> {
+        let entry = retry(|| async {
+            self.nats
+                .kv
+                .entry(usage_key(tenant))
+                .await
+                .map_err(|e| nats_err("reading a tenant's usage", e))
+        })
+        .await?;
+        match entry {
+            Some(e) if !e.value.is_empty() => Ok((from_json(&e.value)?, Some(e.revision))),
+            // Absent, or deleted/purged (a create succeeds on those).
+            _ => Ok((
+                UsageEntry {
+                    tenant: tenant.to_string(),
+                    ..UsageEntry::default()
+                },
+                None,
+            )),
+        }
+    }
+
+    /// Write `entry` over `revision` (`None`: create it); `false` when another node wrote
+    /// first.
+    async fn put_usage(&self, entry: &UsageEntry, revision: Option<u64>) -> Result<bool, JobError> {
+        let (key, value) = (usage_key(&entry.tenant), to_json(entry)?);
+        retry(|| async {
+            let kv = &self.nats.kv;
+            match revision {
+                Some(r) => match kv.update(&key, value.clone(), r).await {
+                    Ok(_) => Ok(true),
+                    Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => Ok(false),
+                    Err(e) => Err(nats_err("updating a tenant's usage", e)),
+                },
+                None => match kv.create(&key, value.clone()).await {
+                    Ok(_) => Ok(true),
+                    Err(e) if e.kind() == CreateErrorKind::AlreadyExists => Ok(false),
+                    Err(e) => Err(nats_err("storing a tenant's usage", e)),
+                },
+            }
+        })
+        .await
+    }
+
+    /// Apply `change` to `tenant`'s usage with compare-and-set, retrying on a concurrent
+    /// write; `change` returns `false` to leave it as it is (then so does this).
+    async fn update_usage(
+        &self,
+        tenant: &str,
+        mut change: impl FnMut(&mut UsageEntry) -> bool,
+    ) -> Result<bool, JobError> {
+        for _ in 0..64 {
+            let (mut entry, revision) = self.usage_entry(tenant).await?;
+            if !change(&mut entry) {
+                return Ok(false);
+            }
+            if self.put_usage(&entry, revision).await? {
+                return Ok(true);
+            }
+        }
+        Err(JobError::Unavailable(format!(
+            "the usage of tenant `{tenant}` kept changing under 64 updates"
+        )))
+    }
+
+    /// Give back what an admission reserved and did not use.
+    async fn release(&self, tenant: &str, bytes: u64) -> Result<(), JobError> {
+        self.update_usage(tenant, |u| {
+            u.live = u.live.saturating_sub(1);
+            u.bytes = u.bytes.saturating_sub(bytes);
+            true
+        })
+        .await
+        .map(drop)
+    }
+
+    /// Recount every tenant's live jobs and bytes from the records and uploads, and write
+    /// those that differ. An entry that changed during the scan (its revision moved) is left
+    /// for the next recount. Run at connect (entries from before counters existed) and by
+    /// every sweep. O(records): the sweep scans them anyway.
+    pub(crate) async fn heal_usage(&self) -> Result<usize, JobError> {
+        use std::collections::BTreeMap;
+        let mut before: BTreeMap<String, (UsageEntry, Option<u64>)> = BTreeMap::new();
+        for k in self.keys("usage.").await? {
+            let entry = self
+                .nats
+                .kv
+                .entry(&k)
+                .await
+                .map_err(|e| nats_err("reading a tenant's usage", e))?;
+            if let Some(e) = entry.filter(|e| !e.value.is_empty()) {
+                let u: UsageEntry = from_json(&e.value)?;
+                before.insert(u.tenant.clone(), (u, Some(e.revision)));
+            }
+        }
+        let mut counted: BTreeMap<String, (u64, u64)> = BTreeMap::new();
+        for rec in self.list_records().await? {
+            if rec.expired {
+                continue;
+            }
+            let c = counted.entry(rec.status.tenant.clone()).or_default();
+            c.0 += u64::from(!rec.status.state.is_terminal());
+            c.1 = c.1.saturating_add(rec.status.input_bytes);
+        }
+        for k in self.keys("upload.").await? {
+            let Some(b) = self
+                .nats
+                .kv
+                .get(&k)
+                .await
+                .map_err(|e| nats_err("reading an upload", e))?
+            else {
                 continue;
             };
-            match self.record(id).await {
-                Ok((r, _)) => out.push(r),
-                Err(JobError::NotFound(_)) => {}
-                Err(e) => return Err(e),
+            let entry: UploadEntry = from_json(&b)?;
+            if !entry.swept {
+                let c = counted.entry(entry.tenant).or_default();
+                c.1 = c.1.saturating_add(entry.size);
             }
         }
-        Ok(out)
+        let mut healed = 0;
+        let tenants: std::collections::BTreeSet<String> =
+            before.keys().chain(counted.keys()).cloned().collect();
+        for tenant in tenants {
+            let (live, bytes) = counted.get(&tenant).copied().unwrap_or_default();
+            let (mut entry, revision) = before.remove(&tenant).unwrap_or_else(|| {
+                (
+                    UsageEntry {
+                        tenant: tenant.clone(),
+                        ..UsageEntry::default()
+                    },
+                    None,
+                )
+            });
+            if (entry.live, entry.bytes) == (live, bytes) {
+                continue;
+            }
+            (entry.live, entry.bytes) = (live, bytes);
+            if self.put_usage(&entry, revision).await? {
+                healed += 1;
+            }
+        }
+        Ok(healed)
     }
-}
 
-#[async_trait]
-impl JobStore for KvStore {
-    async fn insert(&self, job: NewJob) -> Result<Inserted, JobError> {
+    /// Store `job`'s idempotency key (if any) and record: `Existing` when its key already
+    /// names a job.
+    async fn create_job(&self, job: &NewJob) -> Result<Inserted, JobError> {
         let kv = &self.nats.kv;
-        // A repeat is answered before the quota is counted (it adds nothing).
-        if let Some((key, hash)) = &job.idempotency {
-            if let Some(status) = self.idempotent(&job.tenant, key, hash).await? {
-                return Ok(Inserted::Existing(status));
-            }
-        }
-        if job.quotas.any() {
-            let usage = self.usage(&job.tenant, now_ms()).await?;
-            if let Some(over) = over_quota(&job.quotas, &usage, job.input_bytes, true) {
-                return Ok(Inserted::OverQuota(over));
-            }
-        }
         let mut idem = None;
         if let Some((key, hash)) = &job.idempotency {
             let k = idem_key(&job.tenant, key);
@@ -312,7 +471,7 @@ impl JobStore for KvStore {
             state: JobState::Queued,
             step: 0,
             total_steps: job.spec.steps,
-            spec: job.spec,
+            spec: job.spec.clone(),
             input_format: job.format,
             vertex_count: job.vertex_count,
             face_count: job.face_count,
@@ -335,6 +494,62 @@ impl JobStore for KvStore {
             .await
             .map_err(|e| nats_err("storing a job", e))?;
         Ok(Inserted::New(status))
+    }
+
+    async fn list_records(&self) -> Result<Vec<Record>, JobError> {
+        let mut out = Vec::new();
+        for k in self.keys("job.").await? {
+            let Some(id) = k.strip_prefix("job.") else {
+                continue;
+            };
+            match self.record(id).await {
+                Ok((r, _)) => out.push(r),
+                Err(JobError::NotFound(_)) => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(out)
+    }
+}
+
+#[async_trait]
+impl JobStore for KvStore {
+    async fn insert(&self, job: NewJob) -> Result<Inserted, JobError> {
+        // A repeat is answered before the quota is counted (it adds nothing).
+        if let Some((key, hash)) = &job.idempotency {
+            if let Some(status) = self.idempotent(&job.tenant, key, hash).await? {
+                return Ok(Inserted::Existing(status));
+            }
+        }
+        // Reserve the job's room in its tenant's usage first: the quota check and the count
+        // are one compare-and-set, so concurrent admissions on any nodes cannot overshoot.
+        let mut over = None;
+        let now = now_ms();
+        self.update_usage(&job.tenant, |u| {
+            over = job
+                .quotas
+                .any()
+                .then(|| over_quota(&job.quotas, &u.usage(now), job.input_bytes, true))
+                .flatten();
+            if over.is_some() {
+                return false;
+            }
+            u.live += 1;
+            u.bytes = u.bytes.saturating_add(job.input_bytes);
+            u.windows.receive(job.created_at);
+            true
+        })
+        .await?;
+        if let Some(over) = over {
+            return Ok(Inserted::OverQuota(over));
+        }
+        match self.create_job(&job).await {
+            Ok(inserted @ Inserted::New(_)) => Ok(inserted),
+            other => {
+                self.release(&job.tenant, job.input_bytes).await?;
+                other
+            }
+        }
     }
 
     async fn idempotent(
@@ -530,6 +745,14 @@ impl JobStore for KvStore {
                 Ok(true)
             })
             .await?;
+        if let Some(r) = &rec {
+            // This node made the job terminal: it alone counts it off.
+            self.update_usage(&r.status.tenant, |u| {
+                u.live = u.live.saturating_sub(1);
+                true
+            })
+            .await?;
+        }
         rec.map(|r| r.status()).transpose()
     }
 
@@ -555,6 +778,24 @@ impl JobStore for KvStore {
                 "job `{id}` is {}: cancel it first, only finished jobs can be deleted",
                 rec.status.state.as_str()
             )));
+        }
+        // Retire it before purging: the node whose compare-and-set retires it counts its
+        // bytes off (a job the sweeper retired was counted off then).
+        let retired = self
+            .update(id, |r| {
+                if r.expired {
+                    return Ok(false);
+                }
+                r.expired = true;
+                Ok(true)
+            })
+            .await?;
+        if let Some(r) = retired {
+            self.update_usage(tenant, |u| {
+                u.bytes = u.bytes.saturating_sub(r.status.input_bytes);
+                true
+            })
+            .await?;
         }
         let kv = &self.nats.kv;
         if let Some(k) = &rec.idem {
@@ -582,9 +823,22 @@ impl JobStore for KvStore {
             if rec.expired || rec.status.expires_at.is_none_or(|t| t > now) {
                 continue;
             }
-            self.update(&id, |r| {
-                r.expired = true;
-                Ok(true)
+            let retired = self
+                .update(&id, |r| {
+                    if r.expired {
+                        return Ok(false);
+                    }
+                    r.expired = true;
+                    Ok(true)
+                })
+                .await?;
+            let Some(r) = retired else {
+                // Another node's sweep (or a delete) retired it first.
+                continue;
+            };
+            self.update_usage(&r.status.tenant, |u| {
+                u.bytes = u.bytes.saturating_sub(r.status.input_bytes);
+                true
             })
             .await?;
             self.frames
@@ -602,17 +856,38 @@ impl JobStore for KvStore {
             .collect();
         for id in uploads {
             let key = format!("upload.{id}");
-            let Some(b) = self
+            let Some(e) = self
                 .nats
                 .kv
-                .get(&key)
+                .entry(&key)
                 .await
                 .map_err(|e| nats_err("reading an upload", e))?
+                .filter(|e| !e.value.is_empty())
             else {
                 continue;
             };
-            let entry: UploadEntry = from_json(&b)?;
+            let mut entry: UploadEntry = from_json(&e.value)?;
             if entry.expires_at <= now {
+                if !entry.swept {
+                    // Mark it swept with compare-and-set: the node that wins counts it off.
+                    entry.swept = true;
+                    match self
+                        .nats
+                        .kv
+                        .update(&key, to_json(&entry)?, e.revision)
+                        .await
+                    {
+                        Ok(_) => {
+                            self.update_usage(&entry.tenant, |u| {
+                                u.bytes = u.bytes.saturating_sub(entry.size);
+                                true
+                            })
+                            .await?;
+                        }
+                        Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => continue,
+                        Err(e) => return Err(nats_err("sweeping an upload", e)),
+                    }
+                }
                 self.nats
                     .kv
                     .purge(&key)
@@ -622,6 +897,10 @@ impl JobStore for KvStore {
                     swept.uploads.push((id, f));
                 }
             }
+        }
+        let healed = self.heal_usage().await?;
+        if healed > 0 {
+            tracing::info!(tenants = healed, "tenant usage recounted");
         }
         Ok(swept)
     }
@@ -646,13 +925,20 @@ impl JobStore for KvStore {
             tenant: tenant.to_string(),
             size,
             created_at: now_ms(),
+            swept: false,
         };
         self.nats
             .kv
             .put(format!("upload.{id}"), to_json(&entry)?)
             .await
             .map_err(|e| nats_err("storing an upload", e))?;
-        Ok(())
+        self.update_usage(tenant, |u| {
+            u.bytes = u.bytes.saturating_add(size);
+            u.windows.receive(entry.created_at);
+            true
+        })
+        .await
+        .map(drop)
     }
 
     async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError> {
@@ -672,44 +958,7 @@ impl JobStore for KvStore {
             .ok_or_else(|| JobError::Internal(format!("unknown stored format `{}`", entry.format)))
     }
 
-    /// A scan of the tenant's records, like [`JobStore::list`]: O(jobs kept) per admission.
-    /// Fine for the thousands of jobs a TTL keeps; a busier cluster wants per-tenant
-    /// counters (KV entries updated with compare-and-set), a change inside this method.
     async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError> {
-        let since = now.saturating_sub(60_000);
-        let mut usage = Usage::default();
-        for rec in self.list_records().await? {
-            if rec.status.tenant != tenant || Self::live(&rec.status.id, &rec).is_err() {
-                continue;
-            }
-            let s = &rec.status;
-            if !s.state.is_terminal() {
-                usage.live_jobs += 1;
-            }
-            usage.stored_bytes = usage.stored_bytes.saturating_add(s.input_bytes);
-            if s.created_at >= since {
-                usage.uploads_last_minute += 1;
-            }
-        }
-        for k in self.keys("upload.").await? {
-            let Some(b) = self
-                .nats
-                .kv
-                .get(&k)
-                .await
-                .map_err(|e| nats_err("reading an upload", e))?
-            else {
-                continue;
-            };
-            let entry: UploadEntry = from_json(&b)?;
-            if entry.tenant != tenant || entry.expires_at <= now {
-                continue;
-            }
-            usage.stored_bytes = usage.stored_bytes.saturating_add(entry.size);
-            if entry.created_at >= since {
-                usage.uploads_last_minute += 1;
-            }
-        }
-        Ok(usage)
+        Ok(self.usage_entry(tenant).await?.0.usage(now))
     }
 }

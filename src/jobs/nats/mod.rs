@@ -243,8 +243,12 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
     );
     let cancels = bus::NatsCancels::start(nats.clone()).await?;
     tracing::info!(url = %options.url, "connected to NATS JetStream");
+    let store = kv::KvStore::new(nats.clone(), frames, kv_stream);
+    // Tenants' usage counters from the records: entries from before they existed, or left off
+    // by a node that died mid-transition.
+    store.heal_usage().await?;
     Ok(Backend {
-        store: Arc::new(kv::KvStore::new(nats.clone(), frames, kv_stream)),
+        store: Arc::new(store),
         blobs: Arc::new(objects::ObjectBlobs::new(objects)),
         queue: Arc::new(queue),
         events: Arc::new(bus::NatsBus::new(nats)),
