@@ -94,7 +94,9 @@ struct UploadEntry {
 /// retirement, an upload stored or swept), so each counts once. An admission reserves its
 /// room here before its record exists, so two nodes cannot both take a tenant's last unit.
 /// The sweeper recounts `live` and `bytes` from the records ([`KvStore::heal_usage`]): a node
-/// that died between a transition and its count leaves the counts off until the next sweep.
+/// that died between a transition and its count leaves the counts off until the next sweep,
+/// and so can a transition caught half done by the recount's scan (by one unit, for one sweep
+/// interval).
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 struct UsageEntry {
     tenant: String,
