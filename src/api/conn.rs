@@ -19,7 +19,7 @@
 //!   of the two. HTTP/2 connections are also pinged every `--keepalive-interval-secs` and
 //!   closed when a ping is not answered within [`KEEPALIVE_TIMEOUT`] (a vanished peer, even
 //!   with streams open).
-//! - **Request bodies** (`--body-timeout-secs`, `--body-min-rate-kib`): see [`TimedBody`].
+//! - **Request bodies** (`--body-timeout-secs`, `--body-min-rate-kib`): see `TimedBody`.
 //!   A body that stalls for the timeout, or whose average rate falls below the minimum once
 //!   the timeout has passed, ends with an error: REST answers 408 (problem+json) and, on
 //!   HTTP/1, closes the connection; gRPC answers DEADLINE_EXCEEDED on that stream only.

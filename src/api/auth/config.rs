@@ -127,7 +127,7 @@ pub struct JwtConfig {
     pub leeway_secs: u64,
 }
 
-/// Everything [`Auth::new`] needs, validated; built from the flags by [`AuthConfig::from_args`]
+/// Everything [`Auth::new`](super::Auth::new) needs, validated; built from the flags by [`AuthConfig::from_args`]
 /// or directly (tests).
 #[derive(Debug, Clone, Default)]
 pub struct AuthConfig {

@@ -20,7 +20,7 @@
 //! [`Caller::anonymous`]. Probes, docs, the web page, gRPC health and reflection are open;
 //! `/metrics` too unless `--protect-metrics`.
 //!
-//! One file per part: [`config`] (flags, the bind rule), [`keys`], [`jwt`], [`tokens`] (stream
+//! One file per part: `config.rs` (flags, the bind rule), `keys.rs`, `jwt.rs`, `tokens.rs` (stream
 //! tokens and their minting route); this one holds the layer itself.
 //!
 //! Secrets never reach a log line: `access_token` is removed from the URI before anything
