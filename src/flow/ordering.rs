@@ -214,7 +214,7 @@ static METIS: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// METIS nested dissection (`METIS_NodeND`) with its default options and a fixed seed, so the
 /// same mesh always gets the same ordering (and the same rounding in every factorization),
-/// whatever other threads order at the same time ([`METIS`]).
+/// whatever other threads order at the same time (see the `METIS` lock).
 pub fn nested_dissection(
     col_ptr: &[usize],
     row_idx: &[usize],
