@@ -408,6 +408,66 @@ async fn es256_jwt() {
     server.stop().await;
 }
 
+/// RS256 (JWT only), with the identity provider's public key as a PEM file: its tokens work;
+/// one signed by another RSA key is refused, and so is the algorithm-confusion forgery (an
+/// HS256 token whose HMAC secret is the public key the server holds).
+#[tokio::test]
+async fn rs256_jwt() {
+    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/jwt");
+    let read = |name: &str| std::fs::read(data.join(name)).expect("test key");
+    let public_pem = read("rs256-idp.pub.pem");
+    let signing = EncodingKey::from_rsa_pem(&read("rs256-idp.key.pem")).expect("RSA key");
+    let other = EncodingKey::from_rsa_pem(&read("rs256-other.key.pem")).expect("RSA key");
+    let config = AuthConfig {
+        mode: AuthMode {
+            keys: false,
+            jwt: true,
+        },
+        jwt: Some(JwtConfig {
+            algorithm: Algorithm::RS256,
+            key: public_pem.clone(),
+            ..hs_jwt()
+        }),
+        stream_ttl: Duration::from_secs(300),
+        ..AuthConfig::default()
+    };
+    let server = Server::start(config).await;
+    let rs = |key: &EncodingKey, c: &Value| {
+        encode(&Header::new(Algorithm::RS256), c, key).expect("sign RS256")
+    };
+    let good = rs(&signing, &claims(|_| {}));
+    let res = server.submit(Some(&bearer(&good))).await;
+    assert_eq!(res.status(), 202);
+    let forged = rs(&other, &claims(|_| {}));
+    assert_401(
+        server.submit(Some(&bearer(&forged))).await,
+        "invalid_token",
+        &forged,
+    )
+    .await;
+    let confused = encode(
+        &Header::new(Algorithm::HS256),
+        &claims(|_| {}),
+        &EncodingKey::from_secret(&public_pem),
+    )
+    .expect("sign HS256");
+    assert_401(
+        server.submit(Some(&bearer(&confused))).await,
+        "invalid_token",
+        &confused,
+    )
+    .await;
+    let expired = rs(&signing, &claims(|c| c["exp"] = json!(now() - 600)));
+    assert_401(
+        server.submit(Some(&bearer(&expired))).await,
+        "expired_token",
+        &expired,
+    )
+    .await;
+    assert_eq!(server.job_count(&bearer(&good)).await, 1);
+    server.stop().await;
+}
+
 /// The key file is re-read without a restart: a new key works, a removed one is refused, and a
 /// broken file keeps the keys there were.
 #[tokio::test]
