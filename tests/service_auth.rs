@@ -170,6 +170,7 @@ fn hs_jwt() -> JwtConfig {
         audience: AUDIENCE.into(),
         tenant_claim: "tenant".into(),
         leeway_secs: 5,
+        key_file: None,
     }
 }
 
@@ -465,6 +466,61 @@ async fn rs256_jwt() {
     )
     .await;
     assert_eq!(server.job_count(&bearer(&good)).await, 1);
+    server.stop().await;
+}
+
+/// The JWT key file is re-read without a restart, as the identity provider rotates its key:
+/// after the file changes, tokens of the new key work and those of the old one are refused;
+/// a file that holds no valid key keeps the key in use.
+#[tokio::test]
+async fn jwt_key_file_reloads() {
+    let (old, old_pem) = es256_pair();
+    let (new, new_pem) = es256_pair();
+    let dir = tempfile::tempdir().expect("dir");
+    let file = dir.path().join("idp.pem");
+    std::fs::write(&file, &old_pem).expect("write");
+    let config = AuthConfig {
+        mode: AuthMode {
+            keys: false,
+            jwt: true,
+        },
+        jwt: Some(JwtConfig {
+            algorithm: Algorithm::ES256,
+            key: old_pem,
+            key_file: Some(file.clone()),
+            ..hs_jwt()
+        }),
+        keys_poll: Duration::from_millis(100),
+        stream_ttl: Duration::from_secs(300),
+        ..AuthConfig::default()
+    };
+    let server = Server::start(config).await;
+    let es = |key: &EncodingKey| {
+        encode(&Header::new(Algorithm::ES256), &claims(|_| {}), key).expect("sign ES256")
+    };
+    let (old_token, new_token) = (es(&old), es(&new));
+    let status = |token: String| {
+        let server = &server;
+        async move { server.get("/v1/jobs", Some(&bearer(&token))).await.status() }
+    };
+    assert_eq!(status(old_token.clone()).await, 200);
+    assert_eq!(status(new_token.clone()).await, 401);
+
+    std::fs::write(&file, &new_pem).expect("rotate");
+    let mut rotated = false;
+    for _ in 0..100 {
+        if status(new_token.clone()).await == 200 {
+            rotated = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert!(rotated, "the new key was never picked up");
+    assert_eq!(status(old_token.clone()).await, 401, "the old key is gone");
+
+    std::fs::write(&file, "not a key").expect("break");
+    tokio::time::sleep(Duration::from_millis(800)).await;
+    assert_eq!(status(new_token).await, 200, "a broken file keeps the key");
     server.stop().await;
 }
 

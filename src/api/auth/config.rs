@@ -33,7 +33,7 @@ pub struct AuthArgs {
     #[arg(long)]
     pub jwt_algorithm: Option<String>,
     /// JWT verification key: the shared secret (HS256; the file's bytes, a final newline
-    /// dropped) or the PEM public key (RS256, ES256).
+    /// dropped) or the PEM public key (RS256, ES256). Re-read when it changes and on SIGHUP.
     #[arg(long)]
     pub jwt_key_file: Option<PathBuf>,
     /// Required `iss` of JWTs.
@@ -125,6 +125,24 @@ pub struct JwtConfig {
     pub audience: String,
     pub tenant_claim: String,
     pub leeway_secs: u64,
+    /// Where `key` was read from: re-read when its content changes (every
+    /// `--api-keys-poll-secs`) and on SIGHUP, so the identity provider's key can rotate
+    /// without a restart; a file that does not hold a valid key keeps the old one. `None`:
+    /// `key` is fixed.
+    pub key_file: Option<PathBuf>,
+}
+
+/// The JWT key in `path`: the HS256 secret without a final newline, or the PEM as it is.
+pub(super) fn read_jwt_key(
+    path: &std::path::Path,
+    algorithm: jsonwebtoken::Algorithm,
+) -> Result<Vec<u8>, String> {
+    let mut key = std::fs::read(path)
+        .map_err(|e| format!("cannot read --jwt-key-file {}: {e}", path.display()))?;
+    if algorithm == jsonwebtoken::Algorithm::HS256 {
+        strip_final_newline(&mut key);
+    }
+    Ok(key)
 }
 
 /// Everything [`Auth::new`](super::Auth::new) needs, validated; built from the flags by [`AuthConfig::from_args`]
@@ -181,14 +199,10 @@ impl AuthConfig {
                 .jwt_key_file
                 .as_ref()
                 .ok_or("--auth jwt needs --jwt-key-file")?;
-            let mut key = std::fs::read(path)
-                .map_err(|e| format!("cannot read --jwt-key-file {}: {e}", path.display()))?;
-            if algorithm == jsonwebtoken::Algorithm::HS256 {
-                strip_final_newline(&mut key);
-            }
             Some(JwtConfig {
                 algorithm,
-                key,
+                key: read_jwt_key(path, algorithm)?,
+                key_file: Some(path.clone()),
                 issuer: need(&args.jwt_issuer, "--jwt-issuer")?,
                 audience: need(&args.jwt_audience, "--jwt-audience")?,
                 tenant_claim: args.jwt_tenant_claim.clone(),

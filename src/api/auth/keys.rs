@@ -8,7 +8,6 @@ use sha2::{Digest, Sha256};
 use std::collections::{BTreeSet, HashMap};
 use std::path::PathBuf;
 use std::sync::{Arc, RwLock};
-use std::time::Duration;
 
 /// A listed key: who it authenticates.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -97,7 +96,6 @@ pub(super) fn random_bytes(out: &mut [u8]) -> Result<(), String> {
 pub(super) struct KeyStore {
     pub(super) file: Option<PathBuf>,
     pub(super) env: Option<String>,
-    pub(super) poll: Duration,
     pub(super) keys: RwLock<Arc<KeyMap>>,
     /// SHA-256 of the file content last looked at (loaded or refused), so a bad file is
     /// reported once, not at every poll.
@@ -105,15 +103,10 @@ pub(super) struct KeyStore {
 }
 
 impl KeyStore {
-    pub(super) fn load(
-        file: Option<PathBuf>,
-        env: Option<String>,
-        poll: Duration,
-    ) -> Result<Self, String> {
+    pub(super) fn load(file: Option<PathBuf>, env: Option<String>) -> Result<Self, String> {
         let store = KeyStore {
             file,
             env,
-            poll,
             keys: RwLock::new(Arc::new(KeyMap::new())),
             seen: RwLock::new(None),
         };

@@ -39,7 +39,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::Router;
 use std::collections::HashMap;
-use std::sync::{Arc, Weak};
+use std::sync::{Arc, Mutex, RwLock, Weak};
 use std::time::Duration;
 
 mod config;
@@ -52,6 +52,7 @@ pub use keys::new_key;
 // utoipa's path item for the OpenAPI document, beside its handler.
 use jwt::JwtVerifier;
 use keys::{read, KeyStore};
+use sha2::{Digest, Sha256};
 pub use tokens::__path_mint_stream_token;
 use tokens::StreamTokens;
 pub use tokens::{mint_stream_token, routes, MintState, StreamToken};
@@ -81,9 +82,63 @@ pub struct Auth {
 
 struct Inner {
     keys: Option<KeyStore>,
-    jwt: Option<JwtVerifier>,
+    jwt: Option<JwtKey>,
     stream: StreamTokens,
     protect_metrics: bool,
+    /// How often the reloader looks at the key files.
+    poll: Duration,
+}
+
+/// The JWT verifier, rebuilt when its key file changes.
+struct JwtKey {
+    config: JwtConfig,
+    verifier: RwLock<JwtVerifier>,
+    /// SHA-256 of the key in use, to tell a changed file from a touched one.
+    digest: Mutex<[u8; 32]>,
+}
+
+impl JwtKey {
+    fn new(config: &JwtConfig) -> Result<JwtKey, String> {
+        Ok(JwtKey {
+            verifier: RwLock::new(JwtVerifier::new(config)?),
+            digest: Mutex::new(Sha256::digest(&config.key).into()),
+            config: config.clone(),
+        })
+    }
+
+    /// Re-read the key file; a key that is the same (unless `forced`), unreadable or invalid
+    /// keeps the one in use.
+    fn reload(&self, forced: bool) {
+        let Some(path) = &self.config.key_file else {
+            return;
+        };
+        let key = match config::read_jwt_key(path, self.config.algorithm) {
+            Ok(k) => k,
+            Err(e) => {
+                tracing::warn!(error = %e, "JWT key not reloaded; keeping the one in use");
+                return;
+            }
+        };
+        let digest: [u8; 32] = Sha256::digest(&key).into();
+        let mut current = self.digest.lock().unwrap_or_else(|e| e.into_inner());
+        if digest == *current && !forced {
+            return;
+        }
+        let config = JwtConfig {
+            key,
+            ..self.config.clone()
+        };
+        match JwtVerifier::new(&config) {
+            Ok(v) => {
+                *keys::write(&self.verifier) = v;
+                *current = digest;
+                tracing::info!(file = %path.display(), "JWT key reloaded");
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "JWT key file changed but holds no valid key; keeping the one in use");
+            }
+        }
+    }
 }
 
 impl std::fmt::Debug for Auth {
@@ -113,6 +168,7 @@ impl Auth {
                     ttl: Duration::ZERO,
                 },
                 protect_metrics: false,
+                poll: Duration::from_secs(5),
             }),
         })
     }
@@ -121,11 +177,7 @@ impl Auth {
     /// stream-token secret. Call [`Auth::spawn_reloader`] to follow key file changes.
     pub fn new(config: &AuthConfig) -> Result<Auth, String> {
         let keys = if config.mode.keys {
-            let store = KeyStore::load(
-                config.keys_file.clone(),
-                config.keys_env.clone(),
-                config.keys_poll,
-            )?;
+            let store = KeyStore::load(config.keys_file.clone(), config.keys_env.clone())?;
             let n = read(&store.keys).len();
             tracing::info!(keys = n, "API keys loaded");
             Some(store)
@@ -133,7 +185,7 @@ impl Auth {
             None
         };
         let jwt = match (&config.jwt, config.mode.jwt) {
-            (Some(c), true) => Some(JwtVerifier::new(c)?),
+            (Some(c), true) => Some(JwtKey::new(c)?),
             (None, true) => return Err("--auth jwt needs the --jwt-* settings".into()),
             _ => None,
         };
@@ -143,6 +195,7 @@ impl Auth {
                 jwt,
                 stream: StreamTokens::new(config.stream_secret.as_deref(), config.stream_ttl)?,
                 protect_metrics: config.protect_metrics,
+                poll: config.keys_poll.max(Duration::from_millis(100)),
             }),
         })
     }
@@ -152,17 +205,20 @@ impl Auth {
         self.inner.keys.is_some() || self.inner.jwt.is_some()
     }
 
-    /// Follow the key file: re-read it when its content changes (checked every
-    /// `--api-keys-poll-secs`) and on SIGHUP. The task ends when the last `Auth` clone is
-    /// dropped. Needs a tokio runtime; a no-op without a key file.
+    /// Follow the key files (API keys, the JWT key): re-read each when its content changes
+    /// (checked every `--api-keys-poll-secs`) and on SIGHUP. The task ends when the last
+    /// `Auth` clone is dropped. Needs a tokio runtime; a no-op without a key file.
     pub fn spawn_reloader(&self) {
-        let Some(store) = &self.inner.keys else {
-            return;
-        };
-        if store.file.is_none() {
+        let keys_file = self.inner.keys.as_ref().is_some_and(|k| k.file.is_some());
+        let jwt_file = self
+            .inner
+            .jwt
+            .as_ref()
+            .is_some_and(|j| j.config.key_file.is_some());
+        if !keys_file && !jwt_file {
             return;
         }
-        let poll = store.poll;
+        let poll = self.inner.poll;
         let weak: Weak<Inner> = Arc::downgrade(&self.inner);
         tokio::spawn(async move {
             #[cfg(unix)]
@@ -189,9 +245,12 @@ impl Auth {
                     false
                 };
                 let Some(inner) = weak.upgrade() else { return };
+                // File reads are small and rare: not worth a blocking thread.
                 if let Some(store) = &inner.keys {
-                    // File reads are small and rare: not worth a blocking thread.
                     store.reload(forced);
+                }
+                if let Some(jwt) = &inner.jwt {
+                    jwt.reload(forced);
                 }
             }
         });
@@ -201,7 +260,9 @@ impl Auth {
     fn verify_bearer(&self, bearer: &str) -> Result<Caller, Refusal> {
         let looks_jwt = bearer.split('.').count() == 3;
         match (&self.inner.jwt, &self.inner.keys) {
-            (Some(jwt), _) if looks_jwt || self.inner.keys.is_none() => jwt.verify(bearer),
+            (Some(jwt), _) if looks_jwt || self.inner.keys.is_none() => {
+                read(&jwt.verifier).verify(bearer)
+            }
             (_, Some(keys)) => keys.lookup(bearer).ok_or_else(|| {
                 Refusal::invalid(
                     "invalid_token",
