@@ -415,6 +415,11 @@ impl<T: Scalar> Cholesky<T> {
         &mut self,
         a: SparseColMatRef<'_, usize, T>,
     ) -> Result<(), SolverError> {
+        if self.gather.len() != self.triangle_values.len() {
+            return Err(SolverError::Symbolic(
+                "the gather table was released: assemble into the triangle instead".into(),
+            ));
+        }
         let values = a.val();
         for (t, &k) in self.triangle_values.iter_mut().zip(&self.gather) {
             let v = &values[k & !CONJ];
@@ -485,6 +490,15 @@ impl<T: Scalar> Cholesky<T> {
             slots[k & !CONJ] = u32::try_from(t).ok().map(|t| (t, k & CONJ != 0));
         }
         slots
+    }
+
+    /// For a caller that assembles straight into [`Cholesky::triangle_values_mut`] (after
+    /// taking [`Cholesky::triangle_slots`]) and only calls [`Cholesky::factorize_triangle`]:
+    /// frees the gather table, one index per entry of the triangle (6 MB for X at 100k
+    /// triangles). [`Cholesky::factorize`] fails afterwards, and [`Cholesky::triangle_slots`]
+    /// maps no entry.
+    pub fn release_gather(&mut self) {
+        self.gather = Vec::new();
     }
 
     /// The values of the triangle [`Cholesky::factorize_triangle`] factors, in the order of
@@ -691,6 +705,12 @@ impl Mixed {
     /// See [`Cholesky::triangle_slots`].
     pub fn triangle_slots(&self, nnz: usize) -> Vec<Option<(u32, bool)>> {
         self.single.triangle_slots(nnz)
+    }
+
+    /// See [`Cholesky::release_gather`] (the matrix is only ever assembled into
+    /// [`Mixed::triangle_values_mut`]).
+    pub fn release_gather(&mut self) {
+        self.single.release_gather();
     }
 
     /// The matrix (double precision) in the layout of [`Mixed::triangle_slots`].
