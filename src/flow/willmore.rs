@@ -146,6 +146,11 @@ fn mixed_precision_for(n: usize, precision: Precision) -> bool {
 /// vertices, 5 of 9 steps retried) 273 ms mixed against 240 ms double (retried steps move X
 /// too far for a kept factor, and a double factor costs only about 4 solves there); the bumpy
 /// icosphere of 164k vertices 0.82 s against 2.6 s, of 655k 3.2 s against 20 s.
+/// Re-measured at nefertiti with the give-up limits lifted: a factor kept for one step needs
+/// 9 or 17 CG iterations (about 24 ms each; over 40 after a rejected try), 14–30 later,
+/// against 1–3 for a fresh one, where the single-precision factorization costs about 100 ms;
+/// so keeping never pays there, and the fresh mixed step (103 ms factor + 81 ms λ solve)
+/// loses to the double one (135 + 34 ms).
 pub const MIXED_MIN_VERTICES: usize = 100_000;
 
 /// Diagonal shift of X relative to its mean diagonal, scaled per vertex by relative area:
