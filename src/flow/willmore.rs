@@ -67,6 +67,14 @@ impl DiracFactor {
         }
     }
 
+    /// Once the assembly has its slots: see [`Cholesky::release_gather`].
+    fn release_gather(&mut self) {
+        match self {
+            DiracFactor::Double(d) => d.release_gather(),
+            DiracFactor::Mixed(m) => m.release_gather(),
+        }
+    }
+
     fn factorize_triangle(&mut self) -> Result<(), SolverError> {
         match self {
             DiracFactor::Double(d) => d.factorize_triangle(),
@@ -138,6 +146,11 @@ fn mixed_precision_for(n: usize, precision: Precision) -> bool {
 /// vertices, 5 of 9 steps retried) 273 ms mixed against 240 ms double (retried steps move X
 /// too far for a kept factor, and a double factor costs only about 4 solves there); the bumpy
 /// icosphere of 164k vertices 0.82 s against 2.6 s, of 655k 3.2 s against 20 s.
+/// Re-measured at nefertiti with the give-up limits lifted: a factor kept for one step needs
+/// 9 or 17 CG iterations (about 24 ms each; over 40 after a rejected try), 14–30 later,
+/// against 1–3 for a fresh one, where the single-precision factorization costs about 100 ms;
+/// so keeping never pays there, and the fresh mixed step (103 ms factor + 81 ms λ solve)
+/// loses to the double one (135 + 34 ms).
 pub const MIXED_MIN_VERTICES: usize = 100_000;
 
 /// Diagonal shift of X relative to its mean diagonal, scaled per vertex by relative area:
@@ -161,7 +174,9 @@ pub struct ConformalFlow {
     step: usize,
     vertex_component: Vec<usize>,
 
-    topology: Topology,
+    /// The mesh's topology, for the exactness constraints (the only step-time user; dropped
+    /// after the setup otherwise: 11 MB at 100k triangles).
+    topology: Option<Topology>,
     /// Exactness constraints and period projection (App. C); `None` for genus 0 or when
     /// switched off.
     exactness: Option<Exactness>,
@@ -188,7 +203,11 @@ pub struct ConformalFlow {
     constraints: ConstraintBasis,
     initial: StepMetrics,
 
-    dirac_pattern: BlockPattern,
+    /// X's full block pattern, kept only for a fixed boundary, which assembles into it: every
+    /// other step assembles straight into the factor's triangle, so the pattern (23 MB at
+    /// 100k triangles) goes after the setup (the rare fall-back from the mixed factor
+    /// rebuilds it).
+    dirac_pattern: Option<BlockPattern>,
     /// X on the full pattern, for the Dirichlet solve of a fixed boundary only; every other
     /// solve assembles X straight into the factor's triangle through `dirac_assembly`.
     dirac_values: Vec<c64>,
@@ -288,6 +307,7 @@ impl ConformalFlow {
             ),
             None => None,
         };
+        let topology = exactness.is_some().then_some(topology);
         let reporter = StepReporter::new(&mesh.positions, &mesh.triangles);
         let scale = ScalePolicy::new(
             vertex_component.clone(),
@@ -315,14 +335,20 @@ impl ConformalFlow {
             && fixed.is_none()
             && prescribed.is_none()
             && mixed_precision_for(n, params.precision);
-        let analyze_dirac = || -> Result<(DiracFactor, TriangleAssembly), SolverError> {
+        // X's full pattern serves the analysis and the assembly's slots; only a fixed boundary
+        // assembles into it later, so elsewhere it (and the factor's gather table) goes as
+        // soon as the assembly is built, before L's analysis on one thread.
+        let keep_pattern = fixed.is_some();
+        let vertex_fwd_ref = &vertex_fwd;
+        let analyze_dirac = move || -> Result<_, SolverError> {
+            let vertex_fwd = vertex_fwd_ref;
             let mut dirac = if mixed {
-                DiracFactor::Mixed(Box::new(Mixed::analyze(&dirac_pattern, &vertex_fwd)?))
+                DiracFactor::Mixed(Box::new(Mixed::analyze(&dirac_pattern, vertex_fwd)?))
             } else {
                 DiracFactor::Double(Box::new(Cholesky::<c64>::analyze_with_vertex_order(
                     &dirac_pattern,
                     form_count.max(1),
-                    &vertex_fwd,
+                    vertex_fwd,
                 )?))
             };
             dirac.set_threads(params.threads);
@@ -331,7 +357,10 @@ impl ConformalFlow {
                 &mesh.triangles,
                 &dirac.triangle_slots(dirac_pattern.nnz()),
             )?;
-            Ok((dirac, assembly))
+            if !keep_pattern {
+                dirac.release_gather();
+            }
+            Ok((dirac, assembly, keep_pattern.then_some(dirac_pattern)))
         };
         let analyze_laplace = || -> Result<Cholesky<f64>, SolverError> {
             let mut laplace =
@@ -340,12 +369,11 @@ impl ConformalFlow {
             Ok(laplace)
         };
         let (dirac_parts, laplace) = join(parallel, analyze_dirac, analyze_laplace);
-        let (dirac, dirac_assembly) = dirac_parts.map_err(numerical)?;
+        let (dirac, dirac_assembly, dirac_pattern) = dirac_parts.map_err(numerical)?;
         let laplace = laplace.map_err(numerical)?;
-        let dirac_values = if fixed.is_some() {
-            vec![c64::new(0.0, 0.0); dirac_pattern.nnz()]
-        } else {
-            Vec::new()
+        let dirac_values = match &dirac_pattern {
+            Some(pattern) => vec![c64::new(0.0, 0.0); pattern.nnz()],
+            None => Vec::new(),
         };
         setup.lap("X and L analysis");
         let filter = match params.filter {
@@ -549,7 +577,10 @@ impl ConformalFlow {
                 .push_constraints(
                     &self.positions,
                     &self.triangles,
-                    &self.topology,
+                    self.topology.as_ref().ok_or_else(|| FlowError::Numerical {
+                        step,
+                        reason: "the exactness constraints need the topology".into(),
+                    })?,
                     &g.face_areas,
                     &g.vertex_areas,
                     self.dirac
@@ -576,10 +607,18 @@ impl ConformalFlow {
         let n = self.positions.len();
         let mean_area = g.total_area() / n as f64;
         self.shift.fill(0.0);
-        let fixed = if dirichlet {
-            self.fixed.as_deref()
-        } else {
-            None
+        // A fixed boundary: its mask, and X's full pattern (kept for it).
+        let fixed = match (dirichlet, self.fixed.as_deref()) {
+            (true, Some(fixed)) => Some((
+                fixed,
+                self.dirac_pattern
+                    .as_ref()
+                    .ok_or_else(|| FlowError::Numerical {
+                        step: self.step + 1,
+                        reason: "a fixed boundary needs the full pattern of X".into(),
+                    })?,
+            )),
+            _ => None,
         };
         let mean_diagonal = match fixed {
             None => self.dirac_assembly.assemble(
@@ -589,9 +628,9 @@ impl ConformalFlow {
                 &self.rho,
                 self.dirac.triangle_values_mut(),
             ),
-            Some(fixed) => {
+            Some((fixed, pattern)) => {
                 let mean_diagonal = assemble_dirac_into(
-                    &self.dirac_pattern,
+                    pattern,
                     &self.positions,
                     &self.triangles,
                     &g.face_areas,
@@ -603,7 +642,7 @@ impl ConformalFlow {
                 // input boundary as target).
                 self.solve_rhs.fill(c64::new(0.0, 0.0));
                 dirichlet::apply_complex(
-                    &self.dirac_pattern,
+                    pattern,
                     &mut self.dirac_values,
                     fixed,
                     |_| Quaternion::ONE.to_complex_column(),
@@ -630,11 +669,11 @@ impl ConformalFlow {
                             self.dirac.triangle_values_mut(),
                         );
                     }
-                    Some(fixed) if !fixed[v] => {
-                        let slot = self.dirac_pattern.diagonal_slot(v);
+                    Some((fixed, pattern)) if !fixed[v] => {
+                        let slot = pattern.diagonal_slot(v);
                         let add = c64::new(add, 0.0);
-                        self.dirac_values[self.dirac_pattern.entry(slot, v, 0, 0)] += add;
-                        self.dirac_values[self.dirac_pattern.entry(slot, v, 1, 1)] += add;
+                        self.dirac_values[pattern.entry(slot, v, 0, 0)] += add;
+                        self.dirac_values[pattern.entry(slot, v, 1, 1)] += add;
                     }
                     Some(_) => continue,
                 }
@@ -642,9 +681,7 @@ impl ConformalFlow {
             }
             let factored = match (fixed, self.dirac.double_mut()) {
                 (None, _) => self.dirac.factorize_triangle(),
-                (Some(_), Some(double)) => {
-                    double.factorize(&self.dirac_pattern, &self.dirac_values)
-                }
+                (Some((_, pattern)), Some(double)) => double.factorize(pattern, &self.dirac_values),
                 (Some(_), None) => Err(SolverError::Symbolic(
                     "a fixed boundary needs the double-precision factor".into(),
                 )),
@@ -678,21 +715,34 @@ impl ConformalFlow {
             step: self.step + 1,
             reason: e.to_string(),
         };
+        // Rebuilt where the setup did not keep it (once a flow at most: tens of milliseconds
+        // at 100k triangles).
+        let rebuilt;
+        let pattern = match &self.dirac_pattern {
+            Some(pattern) => pattern,
+            None => {
+                rebuilt = BlockPattern::new(self.positions.len(), &self.triangles, 2);
+                &rebuilt
+            }
+        };
         if let DiracFactor::Mixed(m) = &mut self.dirac {
             m.release();
         }
         let threads = self.threads;
         self.dirac = DiracFactor::Double(Box::new(
-            Cholesky::<c64>::analyze_with_vertex_order(&self.dirac_pattern, 1, &self.vertex_fwd)
+            Cholesky::<c64>::analyze_with_vertex_order(pattern, 1, &self.vertex_fwd)
                 .map_err(numerical)?,
         ));
         self.dirac.set_threads(threads);
         self.dirac_assembly = TriangleAssembly::new(
-            &self.dirac_pattern,
+            pattern,
             &self.triangles,
-            &self.dirac.triangle_slots(self.dirac_pattern.nnz()),
+            &self.dirac.triangle_slots(pattern.nnz()),
         )
         .map_err(numerical)?;
+        if self.fixed.is_none() {
+            self.dirac.release_gather();
+        }
         self.profile.count("fell back to double", 1.0);
         Ok(())
     }
@@ -843,12 +893,14 @@ impl ConformalFlow {
                 reason: "the boundary-value solve for λ is not finite".into(),
             });
         }
-        sparse_matvec(
-            &self.dirac_pattern,
-            &self.dirac_values,
-            &self.rhs,
-            &mut self.product,
-        );
+        let pattern = self
+            .dirac_pattern
+            .as_ref()
+            .ok_or_else(|| FlowError::Numerical {
+                step: self.step + 1,
+                reason: "a fixed boundary needs the full pattern of X".into(),
+            })?;
+        sparse_matvec(pattern, &self.dirac_values, &self.rhs, &mut self.product);
         let (mut res, mut norm) = (0.0, 0.0);
         for (p, b) in self.product.iter().zip(&self.solve_rhs) {
             res += (p - b).norm_sqr();
