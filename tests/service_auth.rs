@@ -60,6 +60,11 @@ impl Server {
     }
 
     /// POST a small OBJ (2 steps) with `auth` as the Authorization header (if any).
+    /// A submission with bearer `token` is refused with 401 `reason`, not echoing it.
+    async fn refuses(&self, token: &str, reason: &str) {
+        assert_401(self.submit(Some(&bearer(token))).await, reason, token).await;
+    }
+
     async fn submit(&self, auth: Option<&str>) -> reqwest::Response {
         let mut req = self
             .client
@@ -189,6 +194,19 @@ fn keys_and_jwt(file: &std::path::Path) -> AuthConfig {
     }
 }
 
+/// JWT only, with `jwt`'s settings (stream tokens of 5 minutes).
+fn jwt_only(jwt: JwtConfig) -> AuthConfig {
+    AuthConfig {
+        mode: AuthMode {
+            keys: false,
+            jwt: true,
+        },
+        jwt: Some(jwt),
+        stream_ttl: Duration::from_secs(300),
+        ..AuthConfig::default()
+    }
+}
+
 /// An ES256 key pair: (signing key, the public key as SPKI PEM).
 fn es256_pair() -> (EncodingKey, Vec<u8>) {
     use base64::Engine as _;
@@ -260,47 +278,22 @@ async fn http_refusals_have_no_side_effects() {
         c["exp"] = json!(now() - 3600);
         c["iat"] = json!(now() - 7200);
     }));
-    assert_401(
-        server.submit(Some(&bearer(&expired))).await,
-        "expired_token",
-        &expired,
-    )
-    .await;
+    server.refuses(&expired, "expired_token").await;
     let wrong_aud = hs256(&claims(|c| c["aud"] = json!("someone-else")));
-    assert_401(
-        server.submit(Some(&bearer(&wrong_aud))).await,
-        "invalid_token",
-        &wrong_aud,
-    )
-    .await;
+    server.refuses(&wrong_aud, "invalid_token").await;
     let wrong_iss = hs256(&claims(|c| c["iss"] = json!("https://evil.example")));
-    assert_401(
-        server.submit(Some(&bearer(&wrong_iss))).await,
-        "invalid_token",
-        &wrong_iss,
-    )
-    .await;
+    server.refuses(&wrong_iss, "invalid_token").await;
     let forged = encode(
         &Header::new(Algorithm::HS256),
         &claims(|_| {}),
         &EncodingKey::from_secret(b"another secret of more than 32 bytes!!"),
     )
     .expect("sign");
-    assert_401(
-        server.submit(Some(&bearer(&forged))).await,
-        "invalid_token",
-        &forged,
-    )
-    .await;
+    server.refuses(&forged, "invalid_token").await;
     let no_tenant = hs256(&claims(|c| {
         c.as_object_mut().map(|o| o.remove("tenant"));
     }));
-    assert_401(
-        server.submit(Some(&bearer(&no_tenant))).await,
-        "invalid_token",
-        &no_tenant,
-    )
-    .await;
+    server.refuses(&no_tenant, "invalid_token").await;
     // Another scheme.
     let res = server
         .client
@@ -343,19 +336,11 @@ async fn http_refusals_have_no_side_effects() {
 async fn es256_jwt() {
     let (signing, public_pem) = es256_pair();
     let (other, _) = es256_pair();
-    let config = AuthConfig {
-        mode: AuthMode {
-            keys: false,
-            jwt: true,
-        },
-        jwt: Some(JwtConfig {
-            algorithm: Algorithm::ES256,
-            key: public_pem,
-            ..hs_jwt()
-        }),
-        stream_ttl: Duration::from_secs(300),
-        ..AuthConfig::default()
-    };
+    let config = jwt_only(JwtConfig {
+        algorithm: Algorithm::ES256,
+        key: public_pem,
+        ..hs_jwt()
+    });
     let server = Server::start(config).await;
     let es = |key: &EncodingKey, c: &Value| {
         encode(&Header::new(Algorithm::ES256), c, key).expect("sign ES256")
@@ -365,46 +350,21 @@ async fn es256_jwt() {
     let res = server.submit(Some(&bearer(&good))).await;
     assert_eq!(res.status(), 202);
     let forged = es(&other, &claims(|_| {}));
-    assert_401(
-        server.submit(Some(&bearer(&forged))).await,
-        "invalid_token",
-        &forged,
-    )
-    .await;
+    server.refuses(&forged, "invalid_token").await;
     let hs = hs256(&claims(|_| {}));
-    assert_401(
-        server.submit(Some(&bearer(&hs))).await,
-        "invalid_token",
-        &hs,
-    )
-    .await;
+    server.refuses(&hs, "invalid_token").await;
     let expired = es(
         &signing,
         &claims(|c| {
             c["exp"] = json!(now() - 600);
         }),
     );
-    assert_401(
-        server.submit(Some(&bearer(&expired))).await,
-        "expired_token",
-        &expired,
-    )
-    .await;
+    server.refuses(&expired, "expired_token").await;
     let wrong_aud = es(&signing, &claims(|c| c["aud"] = json!("other")));
-    assert_401(
-        server.submit(Some(&bearer(&wrong_aud))).await,
-        "invalid_token",
-        &wrong_aud,
-    )
-    .await;
+    server.refuses(&wrong_aud, "invalid_token").await;
     // An API key is nothing to a JWT-only server.
     let (key, _) = willow::api::auth::new_key("acme", "ci").expect("key");
-    assert_401(
-        server.submit(Some(&bearer(&key))).await,
-        "invalid_token",
-        &key,
-    )
-    .await;
+    server.refuses(&key, "invalid_token").await;
     assert_eq!(server.job_count(&bearer(&good)).await, 1);
     server.stop().await;
 }
@@ -419,19 +379,11 @@ async fn rs256_jwt() {
     let public_pem = read("rs256-idp.pub.pem");
     let signing = EncodingKey::from_rsa_pem(&read("rs256-idp.key.pem")).expect("RSA key");
     let other = EncodingKey::from_rsa_pem(&read("rs256-other.key.pem")).expect("RSA key");
-    let config = AuthConfig {
-        mode: AuthMode {
-            keys: false,
-            jwt: true,
-        },
-        jwt: Some(JwtConfig {
-            algorithm: Algorithm::RS256,
-            key: public_pem.clone(),
-            ..hs_jwt()
-        }),
-        stream_ttl: Duration::from_secs(300),
-        ..AuthConfig::default()
-    };
+    let config = jwt_only(JwtConfig {
+        algorithm: Algorithm::RS256,
+        key: public_pem.clone(),
+        ..hs_jwt()
+    });
     let server = Server::start(config).await;
     let rs = |key: &EncodingKey, c: &Value| {
         encode(&Header::new(Algorithm::RS256), c, key).expect("sign RS256")
@@ -440,31 +392,16 @@ async fn rs256_jwt() {
     let res = server.submit(Some(&bearer(&good))).await;
     assert_eq!(res.status(), 202);
     let forged = rs(&other, &claims(|_| {}));
-    assert_401(
-        server.submit(Some(&bearer(&forged))).await,
-        "invalid_token",
-        &forged,
-    )
-    .await;
+    server.refuses(&forged, "invalid_token").await;
     let confused = encode(
         &Header::new(Algorithm::HS256),
         &claims(|_| {}),
         &EncodingKey::from_secret(&public_pem),
     )
     .expect("sign HS256");
-    assert_401(
-        server.submit(Some(&bearer(&confused))).await,
-        "invalid_token",
-        &confused,
-    )
-    .await;
+    server.refuses(&confused, "invalid_token").await;
     let expired = rs(&signing, &claims(|c| c["exp"] = json!(now() - 600)));
-    assert_401(
-        server.submit(Some(&bearer(&expired))).await,
-        "expired_token",
-        &expired,
-    )
-    .await;
+    server.refuses(&expired, "expired_token").await;
     assert_eq!(server.job_count(&bearer(&good)).await, 1);
     server.stop().await;
 }
@@ -480,19 +417,13 @@ async fn jwt_key_file_reloads() {
     let file = dir.path().join("idp.pem");
     std::fs::write(&file, &old_pem).expect("write");
     let config = AuthConfig {
-        mode: AuthMode {
-            keys: false,
-            jwt: true,
-        },
-        jwt: Some(JwtConfig {
+        keys_poll: Duration::from_millis(100),
+        ..jwt_only(JwtConfig {
             algorithm: Algorithm::ES256,
             key: old_pem,
             key_file: Some(file.clone()),
             ..hs_jwt()
-        }),
-        keys_poll: Duration::from_millis(100),
-        stream_ttl: Duration::from_secs(300),
-        ..AuthConfig::default()
+        })
     };
     let server = Server::start(config).await;
     let es = |key: &EncodingKey| {
