@@ -81,6 +81,27 @@ const ADDED_COLUMNS: [(&str, &str, &str); 4] = [
     ("uploads", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
 ];
 
+/// The statement a trigger runs for a mesh received (a job or an upload row `NEW`): what
+/// [`MinuteWindows::receive`] does, on the tenant's `tenant_usage` row.
+macro_rules! receive_into_windows {
+    () => {
+        "
+    UPDATE tenant_usage SET
+        previous_count = CASE
+            WHEN NEW.created_at - NEW.created_at % 60000 <= window_start
+                THEN previous_count + (NEW.created_at - NEW.created_at % 60000 = window_start - 60000)
+            WHEN NEW.created_at - NEW.created_at % 60000 = window_start + 60000 THEN window_count
+            ELSE 0 END,
+        window_count = CASE
+            WHEN NEW.created_at - NEW.created_at % 60000 = window_start THEN window_count + 1
+            WHEN NEW.created_at - NEW.created_at % 60000 < window_start THEN window_count
+            ELSE 1 END,
+        window_start = MAX(window_start, NEW.created_at - NEW.created_at % 60000)
+    WHERE tenant = NEW.tenant;
+"
+    };
+}
+
 /// Created after the columns they index exist.
 ///
 /// `tenant_usage` is what each tenant's quotas check, one row per tenant so that an
@@ -102,7 +123,8 @@ const ADDED_COLUMNS: [(&str, &str, &str); 4] = [
 /// Triggers keep it on every path that adds, finishes, expires or removes a row, and it is
 /// recomputed at every open ([`RECOUNT_USAGE`]), so it also heals from anything older. It
 /// replaces `tenant_bytes`, which kept the bytes alone.
-const INDEXES: &str = "
+const INDEXES: &str = concat!(
+    "
 CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant_state ON jobs(tenant, state);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant_created ON jobs(tenant, created_at);
@@ -129,19 +151,9 @@ BEGIN
         bytes = bytes + (CASE WHEN NEW.expired = 0 THEN NEW.input_bytes ELSE 0 END),
         live = live + (NEW.state IN ('queued', 'running'))
     WHERE tenant = NEW.tenant;
-    UPDATE tenant_usage SET
-        previous_count = CASE
-            WHEN NEW.created_at - NEW.created_at % 60000 <= window_start
-                THEN previous_count + (NEW.created_at - NEW.created_at % 60000 = window_start - 60000)
-            WHEN NEW.created_at - NEW.created_at % 60000 = window_start + 60000 THEN window_count
-            ELSE 0 END,
-        window_count = CASE
-            WHEN NEW.created_at - NEW.created_at % 60000 = window_start THEN window_count + 1
-            WHEN NEW.created_at - NEW.created_at % 60000 < window_start THEN window_count
-            ELSE 1 END,
-        window_start = MAX(window_start, NEW.created_at - NEW.created_at % 60000)
-    WHERE tenant = NEW.tenant;
-END;
+",
+    receive_into_windows!(),
+    "END;
 DROP TRIGGER IF EXISTS tenant_usage_job_state;
 CREATE TRIGGER tenant_usage_job_state AFTER UPDATE OF state ON jobs
 WHEN (OLD.state IN ('queued', 'running')) != (NEW.state IN ('queued', 'running'))
@@ -169,25 +181,16 @@ CREATE TRIGGER tenant_usage_upload_in AFTER INSERT ON uploads
 BEGIN
     INSERT INTO tenant_usage (tenant) VALUES (NEW.tenant) ON CONFLICT (tenant) DO NOTHING;
     UPDATE tenant_usage SET bytes = bytes + NEW.size WHERE tenant = NEW.tenant;
-    UPDATE tenant_usage SET
-        previous_count = CASE
-            WHEN NEW.created_at - NEW.created_at % 60000 <= window_start
-                THEN previous_count + (NEW.created_at - NEW.created_at % 60000 = window_start - 60000)
-            WHEN NEW.created_at - NEW.created_at % 60000 = window_start + 60000 THEN window_count
-            ELSE 0 END,
-        window_count = CASE
-            WHEN NEW.created_at - NEW.created_at % 60000 = window_start THEN window_count + 1
-            WHEN NEW.created_at - NEW.created_at % 60000 < window_start THEN window_count
-            ELSE 1 END,
-        window_start = MAX(window_start, NEW.created_at - NEW.created_at % 60000)
-    WHERE tenant = NEW.tenant;
-END;
+",
+    receive_into_windows!(),
+    "END;
 DROP TRIGGER IF EXISTS tenant_usage_upload_out;
 CREATE TRIGGER tenant_usage_upload_out AFTER DELETE ON uploads
 BEGIN
     UPDATE tenant_usage SET bytes = bytes - OLD.size WHERE tenant = OLD.tenant;
 END;
-";
+"
+);
 
 /// `tenant_usage` from the rows themselves, with the minute windows of `?1` (unix ms, the
 /// start of the current minute): run at every open, on an emptied table.
