@@ -111,8 +111,22 @@ run_target() {
 }
 
 if [[ "$mode" == smoke ]]; then
+    # libFuzzer prints a line per new input, thousands in a smoke run: each target's output goes
+    # to target/fuzz-work/logs/TARGET.log and the run prints one line of its final stats, or
+    # the log's tail and the crash artifacts when it fails.
+    logs="$work/logs"
+    mkdir -p "$logs"
+    final_stat() { sed -n "s/^stat::$1: *//p" "$log" | tail -n1; }
     for t in "${targets[@]}"; do
-        run_target "$t" -max_total_time="${WILLOW_FUZZ_SMOKE_SECS:-20}"
+        log="$logs/$t.log"
+        if ! run_target "$t" -max_total_time="${WILLOW_FUZZ_SMOKE_SECS:-20}" >"$log" 2>&1; then
+            echo "fuzz.sh: $t FAILED; the last 60 lines of $log:" >&2
+            tail -n 60 "$log" >&2
+            ls -l "$work/artifacts/$t/" >&2 || true
+            exit 1
+        fi
+        echo "fuzz.sh: $t: $(final_stat number_of_executed_units) runs, $(final_stat average_exec_per_sec)/s," \
+            "$(final_stat new_units_added) new units, peak RSS $(final_stat peak_rss_mb) MB, no crash"
     done
     echo "fuzz.sh: smoke runs found nothing"
 else

@@ -36,8 +36,31 @@ fi
 
 # Unit, integration and doc tests. Benchmarks are compiled by clippy in .ci/run and run by
 # `cargo bench`; they are not tests, so they stay out of this run.
-cargo test --lib --bins --tests "$@"
-cargo test --doc "$@"
+# Their output is also kept in target/test-logs/ for the summary printed at the end: the
+# browser, fuzz and schemathesis stages print a lot after it.
+logs="$root/target/test-logs"
+mkdir -p "$logs"
+rm -f "$logs/cargo-test.log" "$logs/cargo-test-doc.log"
+# One line per test binary (`Running X` paired with its `test result:`), and the totals.
+summary() {
+    awk '
+        /^ *Running / { name = $2 }
+        /^ *Doc-tests / { name = "doc-tests " $2 }
+        /^test result: / {
+            printf "test.sh:   %-44s %s\n", name, $0
+            sub(/^test result: [a-zA-Z]+\. /, "")
+            split($0, f, /; /)
+            for (i in f) { split(f[i], kv, " "); total[kv[2]] += kv[1] }
+            binaries++
+        }
+        END {
+            printf "test.sh: cargo test: %d binaries, %d passed, %d failed, %d ignored\n",
+                binaries, total["passed"], total["failed"], total["ignored"]
+        }' "$logs/cargo-test.log" "$logs/cargo-test-doc.log" 2>/dev/null
+}
+trap 'status=$?; echo "test.sh: the cargo tests, per binary:"; summary; exit $status' EXIT
+cargo test --lib --bins --tests "$@" 2>&1 | tee "$logs/cargo-test.log"
+cargo test --doc "$@" 2>&1 | tee "$logs/cargo-test-doc.log"
 
 # docker/ and deploy/: hadolint, `docker compose config`, `kubectl kustomize` of every overlay
 # and schema validation of the renders (a few seconds once its tools are installed).
