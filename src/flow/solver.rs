@@ -430,6 +430,20 @@ impl<T: Scalar> Cholesky<T> {
         self.threads = threads.max(1);
     }
 
+    /// The matrices factored from now on are complex forms of quaternion Hermitian ones, as
+    /// the Dirac matrix X is: the factorization then updates only the even columns and copies
+    /// the odd ones, half the work ([`SupernodalLlt::set_quaternionic`]). Returns whether it
+    /// does; where the structure or the kernel does not allow it, the factorization stays the
+    /// full one. Debug builds check every factored matrix for the structure.
+    pub fn set_quaternionic(&mut self) -> bool {
+        match (&mut self.supernodal, self.symbolic.raw()) {
+            (Some(kernel), SymbolicCholeskyRaw::Supernodal(symbolic)) => {
+                kernel.set_quaternionic(symbolic)
+            }
+            _ => false,
+        }
+    }
+
     /// Numeric refactorization in place with new `values` on the fixed pattern.
     pub fn factorize(&mut self, pattern: &BlockPattern, values: &[T]) -> Result<(), SolverError> {
         self.factorize_matrix(SparseColMatRef::new(pattern.symbolic.as_ref(), values))
@@ -691,6 +705,12 @@ pub const REUSE_GIVE_UP_ITERATIONS: usize = 6;
 pub const REUSE_MAX_AGE: usize = 8;
 
 impl Mixed {
+    /// See [`Cholesky::set_quaternionic`]: the single-precision factor keeps the structure
+    /// (rounding commutes with negation and conjugation).
+    pub fn set_quaternionic(&mut self) -> bool {
+        self.single.set_quaternionic()
+    }
+
     pub fn analyze(pattern: &BlockPattern, vertex_fwd: &[usize]) -> Result<Self, SolverError> {
         let single = Cholesky::<c32>::analyze_with_vertex_order(pattern, 1, vertex_fwd)?;
         let n = pattern.dim();

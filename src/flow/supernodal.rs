@@ -144,6 +144,9 @@ pub struct SupernodalLlt {
     max_width: usize,
     /// Subtrees the last factorization ran concurrently (1: sequential).
     last_pieces: usize,
+    /// The matrices are complex forms of quaternion Hermitian ones, on a structure that keeps
+    /// each vertex's two columns together ([`SupernodalLlt::set_quaternionic`]).
+    quaternionic: bool,
 }
 
 /// The scratch of one thread of the numeric factorization.
@@ -199,6 +202,7 @@ struct Shared<'a> {
     children: &'a [usize],
     first: &'a [usize],
     subtree_cost: &'a [f64],
+    quaternionic: bool,
 }
 
 /// A pivot that was not positive, by column of the permuted matrix.
@@ -370,7 +374,44 @@ impl SupernodalLlt {
             max_pattern,
             max_width,
             last_pieces: 1,
+            quaternionic: false,
         })
+    }
+
+    /// Declares that every matrix factored from now on is the complex form of a quaternion
+    /// Hermitian matrix: vertex `u`'s rows `2u, 2u + 1` and vertex `w`'s columns `2w, 2w + 1`
+    /// hold `[[a, b], [−b̄, ā]]` ([`crate::geometry::Quaternion::to_complex`]), as the Dirac
+    /// matrix X of Appendix G does. Its Cholesky factor is then the complex form of the
+    /// quaternionic factor `X = R Rᴴ` (R lower triangular with a real diagonal: unique, as the
+    /// complex factor is), so each odd column is a copy of the even one before it, conjugated
+    /// and with its row pairs swapped. The descendant updates — most of the work — then run on
+    /// the even columns only, half the multiply-adds, and each supernode's odd columns are
+    /// copied from its even ones before its diagonal block is factored. The copy is exact, the
+    /// factor equal to the full update's up to rounding.
+    ///
+    /// Returns whether the structure allows it: every supernode must start and end on a vertex
+    /// boundary and its rows come in vertex pairs (what [`BlockPattern::expand_order`] and
+    /// faer's fundamental supernodes give); otherwise nothing changes.
+    ///
+    /// [`BlockPattern::expand_order`]: super::solver::BlockPattern::expand_order
+    pub fn set_quaternionic(&mut self, symbolic: &SymbolicSupernodalCholesky<usize>) -> bool {
+        let begin = symbolic.supernode_begin();
+        let end = symbolic.supernode_end();
+        let row_ptr = symbolic.col_ptr_for_row_idx();
+        let row_idx = symbolic.row_idx();
+        let paired = |rows: &[usize]| {
+            rows.len().is_multiple_of(2)
+                && rows
+                    .chunks_exact(2)
+                    .all(|pair| pair[0].is_multiple_of(2) && pair[1] == pair[0] + 1)
+        };
+        self.quaternionic = symbolic.nrows().is_multiple_of(2)
+            && (0..symbolic.n_supernodes()).all(|s| {
+                begin[s].is_multiple_of(2)
+                    && end[s].is_multiple_of(2)
+                    && paired(&row_idx[row_ptr[s]..row_ptr[s + 1]])
+            });
+        self.quaternionic
     }
 
     /// Whether the factorization can run subtrees on threads of their own (the supernodes
@@ -417,6 +458,7 @@ impl SupernodalLlt {
             children: &self.children,
             first: &self.first,
             subtree_cost: &self.subtree_cost,
+            quaternionic: self.quaternionic,
         };
         let job = Job {
             kernel: &shared,
@@ -572,6 +614,10 @@ impl<T: Scalar> Job<'_, T> {
             {
                 block[position as usize] = value;
             }
+            debug_assert!(
+                !k.quaternionic || odd_columns_are_copies(block, s_nrows, s_ncols),
+                "supernode {s}: the matrix is not quaternionic, set_quaternionic does not apply"
+            );
 
             for &d in &k.descendants[k.descendant_ptr[s]..k.descendant_ptr[s + 1]] {
                 let d_pattern = pattern(d);
@@ -590,8 +636,11 @@ impl<T: Scalar> Job<'_, T> {
                         ws.global_to_local[row]
                     };
                 }
-                let cols = &mut ws.update_cols[..mid];
-                for (local, &row) in cols.iter_mut().zip(below) {
+                // Quaternionic: the even columns only (every other row of `below[..mid]`,
+                // which comes in vertex pairs), the odd ones are copied below.
+                let step = if k.quaternionic { 2 } else { 1 };
+                let cols = &mut ws.update_cols[..mid.div_ceil(step)];
+                for (local, &row) in cols.iter_mut().zip(below.iter().step_by(step)) {
                     *local = row - s_start;
                 }
                 // L_s[rows, cols] −= L_d[below] · L_d[below[..mid]]ᴴ, lower part only.
@@ -618,17 +667,20 @@ impl<T: Scalar> Job<'_, T> {
                         col_stride: d_nrows,
                         conj: false,
                     },
-                    // L_d[below[..mid]]ᴴ: entry (p, j) is conj(L_d[below[j], p]).
+                    // L_d[below[..mid]]ᴴ: entry (p, j) is conj(L_d[below[step·j], p]).
                     View {
                         data: ld_below,
                         nrows: d_ncols,
-                        ncols: mid,
+                        ncols: cols.len(),
                         row_stride: d_nrows,
-                        col_stride: 1,
+                        col_stride: step,
                         conj: true,
                     },
                     T::zero_impl() - T::one_impl(),
                 );
+            }
+            if k.quaternionic {
+                copy_odd_columns(block, s_nrows, s_ncols);
             }
 
             let ls = MatMut::from_column_major_slice_mut(block, s_nrows, s_ncols);
@@ -646,13 +698,53 @@ impl<T: Scalar> Job<'_, T> {
                 }
             })?;
             #[cfg(target_arch = "x86_64")]
-            solve_right_lower_adjoint(k.instructions, block, s_nrows, s_ncols, &mut ws.narrow);
+            solve_right_lower_adjoint(
+                k.instructions,
+                block,
+                s_nrows,
+                s_ncols,
+                k.quaternionic,
+                &mut ws.narrow,
+            );
             for &row in s_pattern {
                 ws.global_to_local[row] = UNMAPPED;
             }
         }
         Ok(())
     }
+}
+
+/// The entry of odd column `2w + 1` at row `i` of a quaternionic supernode block, from the even
+/// column `2w` (`even`): `[[a, b], [−b̄, ā]]` puts `b = −conj(L[2u + 1, 2w])` at row `2u`
+/// and `ā = conj(L[2u, 2w])` at row `2u + 1`. Local rows have their global rows' parity
+/// (supernodes start on even columns, their row lists come in pairs).
+fn quaternion_partner<T: Scalar>(even: &[T], i: usize) -> T {
+    if i.is_multiple_of(2) {
+        T::zero_impl() - T::conj_impl(&even[i + 1])
+    } else {
+        T::conj_impl(&even[i - 1])
+    }
+}
+
+/// Writes each odd column of the column-major `nrows × ncols` block, on and below the
+/// diagonal, as the copy of the even column before it ([`SupernodalLlt::set_quaternionic`]).
+fn copy_odd_columns<T: Scalar>(block: &mut [T], nrows: usize, ncols: usize) {
+    for c in (1..ncols).step_by(2) {
+        let (before, from_c) = block.split_at_mut(c * nrows);
+        let even = &before[(c - 1) * nrows..];
+        for (i, x) in from_c[..nrows].iter_mut().enumerate().skip(c) {
+            *x = quaternion_partner(even, i);
+        }
+    }
+}
+
+/// Whether the odd columns of a block of `A` (on and below the diagonal) are already the
+/// copies [`copy_odd_columns`] would write, bit for bit.
+fn odd_columns_are_copies<T: Scalar>(block: &[T], nrows: usize, ncols: usize) -> bool {
+    (1..ncols).step_by(2).all(|c| {
+        let even = &block[(c - 1) * nrows..c * nrows];
+        (c..nrows).all(|i| block[c * nrows + i] == quaternion_partner(even, i))
+    })
 }
 
 /// A column-major or transposed view into a slice for [`gemm`]: entry `(i, j)` is
@@ -792,12 +884,16 @@ fn solve_right_lower_adjoint<T: Scalar>(
     block: &mut [T],
     nrows: usize,
     width: usize,
+    quaternionic: bool,
     narrow: &mut NarrowScratch,
 ) {
     let rows = nrows - width;
     if rows == 0 || width == 0 {
         return;
     }
+    // Quaternionic (see `SupernodalLlt::set_quaternionic`): `X L⁻ᴴ` is quaternionic too, so
+    // only the even columns are computed (column stride 2) and the odd ones copied.
+    let step = if quaternionic { 2 } else { 1 };
     for first in (0..width).step_by(NARROW) {
         let panel = NARROW.min(width - first);
         let (done, rest) = block.split_at_mut(first * nrows);
@@ -805,9 +901,9 @@ fn solve_right_lower_adjoint<T: Scalar>(
             gemm(
                 instructions,
                 &mut rest[width..],
-                nrows,
+                step * nrows,
                 rows,
-                panel,
+                panel.div_ceil(step),
                 None,
                 None,
                 false,
@@ -821,20 +917,21 @@ fn solve_right_lower_adjoint<T: Scalar>(
                     col_stride: nrows,
                     conj: false,
                 },
-                // L[first..first + panel, ..first]ᴴ: entry (k, j) is conj(L[first + j, k]).
+                // L[first..first + panel, ..first]ᴴ: entry (k, j) is
+                // conj(L[first + step·j, k]).
                 View {
                     data: &done[first..],
                     nrows: first,
-                    ncols: panel,
+                    ncols: panel.div_ceil(step),
                     row_stride: nrows,
-                    col_stride: 1,
+                    col_stride: step,
                     conj: true,
                 },
                 T::zero_impl() - T::one_impl(),
             );
         }
         // SAFETY: `SupernodalLlt::new` only builds this kernel on CPUs with AVX2 and FMA.
-        unsafe { solve_narrow(rest, nrows, first, panel, width, narrow) };
+        unsafe { solve_narrow(rest, nrows, first, panel, width, quaternionic, narrow) };
     }
 }
 
@@ -872,7 +969,9 @@ impl NarrowScratch {
 /// `diagonal..diagonal + width`, `X` their rows `below..nrows`. The substitution is
 /// `X[:, j] = (X[:, j] − Σ_{k<j} X[:, k] conj(L[j, k])) / L[j, j]`, on tiles of [`TILE_ROWS`] rows held in split real/imaginary form: every operation is then a plain
 /// vertical multiply-add the compiler vectorizes (compiled for AVX2 and FMA, which every
-/// caller has checked), and `X` is read and written once.
+/// caller has checked), and `X` is read and written once. `quaternionic`: each odd column
+/// is the copy of the even one before it ([`quaternion_partner`]); tiles start on even rows,
+/// whose parity is their global rows'.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn solve_narrow<T: Scalar>(
@@ -881,9 +980,14 @@ fn solve_narrow<T: Scalar>(
     diagonal: usize,
     width: usize,
     below: usize,
+    quaternionic: bool,
     scratch: &mut NarrowScratch,
 ) {
     assert!(width <= NARROW && diagonal + width <= below && below <= nrows);
+    assert!(
+        !quaternionic
+            || (width.is_multiple_of(2) && below.is_multiple_of(2) && nrows.is_multiple_of(2))
+    );
     assert!(width == 0 || block.len() >= (width - 1) * nrows + nrows);
     let rows = nrows - below;
     let NarrowScratch {
@@ -912,6 +1016,17 @@ fn solve_narrow<T: Scalar>(
         }
         // Lanes past `count` hold an earlier tile's (finite) values: computed, never stored.
         for j in 0..width {
+            if quaternionic && j % 2 == 1 {
+                // Row pair (2u, 2u + 1) of the even column holds (a, −b̄): the odd column
+                // holds (b, ā).
+                for i in (0..TILE_ROWS).step_by(2) {
+                    t_re[j][i] = -t_re[j - 1][i + 1];
+                    t_im[j][i] = t_im[j - 1][i + 1];
+                    t_re[j][i + 1] = t_re[j - 1][i];
+                    t_im[j][i + 1] = -t_im[j - 1][i];
+                }
+                continue;
+            }
             let (mut x_re, mut x_im) = (t_re[j], t_im[j]);
             for k in 0..j {
                 let (cr, ci) = (c_re[j][k], c_im[j][k]);
@@ -988,7 +1103,14 @@ mod tests {
                         block[j * nrows + width + i] = x[(i, j)];
                     }
                 }
-                solve_right_lower_adjoint(instructions, &mut block, nrows, width, &mut narrow);
+                solve_right_lower_adjoint(
+                    instructions,
+                    &mut block,
+                    nrows,
+                    width,
+                    false,
+                    &mut narrow,
+                );
                 let solved = Mat::from_fn(rows, width, |i, j| block[j * nrows + width + i]);
                 let mut product = Mat::zeros(rows, width);
                 matmul(
@@ -1054,6 +1176,82 @@ mod tests {
     /// The factor is bitwise the same on two threads as on one: only independent subtrees
     /// run concurrently, each supernode in the same order. Nested dissection (postordered)
     /// gives the threads separate subtrees; the test checks that they were used.
+    #[test]
+    fn quaternionic_factor_of_the_dirac_matrix_matches_the_full_factor() {
+        use crate::flow::dirac::assemble_dirac_into;
+        use crate::flow::ordering::Ordering;
+        use crate::mesh::generate::bumpy_sphere;
+        // X(ρ) of Appendix G with a potential and a diagonal shift that keep it definite.
+        let mesh = bumpy_sphere(4, 0.2);
+        let n = mesh.vertex_count();
+        let pattern = BlockPattern::new(n, &mesh.triangles, 2);
+        let areas = crate::geometry::face_areas(&mesh);
+        let rho: Vec<f64> = (0..n).map(|i| 0.3 * (i as f64 * 0.7).sin()).collect();
+        let mut values = vec![c64::new(0.0, 0.0); pattern.nnz()];
+        assemble_dirac_into(
+            &pattern,
+            &mesh.positions,
+            &mesh.triangles,
+            &areas,
+            &rho,
+            &vec![2.0; n],
+            &mut values,
+        );
+        for ordering in [Ordering::NestedDissection, Ordering::Amd] {
+            let mut full = Cholesky::<c64>::analyze_with(&pattern, 1, ordering).expect("analyze");
+            let mut quaternionic =
+                Cholesky::<c64>::analyze_with(&pattern, 1, ordering).expect("analyze");
+            assert_eq!(quaternionic.set_quaternionic(), kernel_available());
+            full.factorize(&pattern, &values).expect("factorize");
+            quaternionic
+                .factorize(&pattern, &values)
+                .expect("factorize");
+            // And it solves X: x from X x = b, against the x that made b.
+            let x: Vec<c64> = (0..2 * n)
+                .map(|i| c64::new((i as f64).sin(), (0.3 * i as f64).cos()))
+                .collect();
+            let mut b = vec![c64::new(0.0, 0.0); 2 * n];
+            crate::flow::dirac::sparse_matvec(&pattern, &values, &x, &mut b);
+            let mut by_full = b.clone();
+            quaternionic.solve_in_place(&mut b, 1);
+            full.solve_in_place(&mut by_full, 1);
+            let error = x
+                .iter()
+                .zip(&b)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).norm()));
+            assert!(error < 1e-9, "{ordering:?}: solve error {error:e}");
+            // The same factor up to rounding: the two solves agree far below that error.
+            let apart = by_full
+                .iter()
+                .zip(&b)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).norm()));
+            assert!(apart < 1e-12, "{ordering:?}: solves differ by {apart:e}");
+        }
+    }
+
+    #[test]
+    fn set_quaternionic_needs_vertex_pairs() {
+        // Scalar columns (an odd dimension among them) cannot be paired.
+        let mesh = icosphere(2);
+        let pattern = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 1);
+        let mut scalar = Cholesky::<c64>::analyze(&pattern, 1).expect("analyze");
+        assert!(!scalar.set_quaternionic());
+    }
+
+    #[test]
+    fn a_matrix_without_quaternion_blocks_fails_the_debug_check() {
+        // hermitian_block_values' 2×2 blocks are Hermitian but not of the form [[a, b], [−b̄, ā]].
+        let (_, pattern, values) = hermitian_system(3);
+        let mut chol = Cholesky::<c64>::analyze(&pattern, 1).expect("analyze");
+        if !chol.set_quaternionic() || !cfg!(debug_assertions) {
+            return;
+        }
+        let refused = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            chol.factorize(&pattern, &values)
+        }));
+        assert!(refused.is_err(), "a non-quaternionic matrix was factored");
+    }
+
     #[test]
     fn threads_give_the_same_factor_bit_for_bit() {
         use crate::flow::ordering::Ordering;

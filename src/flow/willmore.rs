@@ -343,13 +343,17 @@ impl ConformalFlow {
         let analyze_dirac = move || -> Result<_, SolverError> {
             let vertex_fwd = vertex_fwd_ref;
             let mut dirac = if mixed {
-                DiracFactor::Mixed(Box::new(Mixed::analyze(&dirac_pattern, vertex_fwd)?))
+                let mut mixed = Mixed::analyze(&dirac_pattern, vertex_fwd)?;
+                mixed.set_quaternionic();
+                DiracFactor::Mixed(Box::new(mixed))
             } else {
-                DiracFactor::Double(Box::new(Cholesky::<c64>::analyze_with_vertex_order(
+                let mut double = Cholesky::<c64>::analyze_with_vertex_order(
                     &dirac_pattern,
                     form_count.max(1),
                     vertex_fwd,
-                )?))
+                )?;
+                double.set_quaternionic();
+                DiracFactor::Double(Box::new(double))
             };
             dirac.set_threads(params.threads);
             let assembly = TriangleAssembly::new(
@@ -729,10 +733,10 @@ impl ConformalFlow {
             m.release();
         }
         let threads = self.threads;
-        self.dirac = DiracFactor::Double(Box::new(
-            Cholesky::<c64>::analyze_with_vertex_order(pattern, 1, &self.vertex_fwd)
-                .map_err(numerical)?,
-        ));
+        let mut double = Cholesky::<c64>::analyze_with_vertex_order(pattern, 1, &self.vertex_fwd)
+            .map_err(numerical)?;
+        double.set_quaternionic();
+        self.dirac = DiracFactor::Double(Box::new(double));
         self.dirac.set_threads(threads);
         self.dirac_assembly = TriangleAssembly::new(
             pattern,
