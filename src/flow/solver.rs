@@ -291,6 +291,9 @@ pub struct Cholesky<T> {
     supernodal: Option<SupernodalLlt>,
     /// Threads the numeric factorization may use (independent subtrees run concurrently).
     threads: usize,
+    /// Scratch of the quaternionic solve ([`SupernodalLlt::solve_quaternionic`]), sized by
+    /// [`Cholesky::set_quaternionic`].
+    solve_scratch: Vec<[f64; 4]>,
 }
 
 impl<T: Scalar> Cholesky<T> {
@@ -408,6 +411,7 @@ impl<T: Scalar> Cholesky<T> {
         Ok(Cholesky {
             supernodal,
             threads: 1,
+            solve_scratch: Vec::new(),
             factor: zeros(symbolic.len_val())?,
             triangle_values: zeros(gather.len())?,
             permuted_rhs: zeros(n * nrhs)?,
@@ -434,11 +438,16 @@ impl<T: Scalar> Cholesky<T> {
     /// the Dirac matrix X is: the factorization then updates only the even columns and copies
     /// the odd ones, half the work ([`SupernodalLlt::set_quaternionic`]). Returns whether it
     /// does; where the structure or the kernel does not allow it, the factorization stays the
-    /// full one. Debug builds check every factored matrix for the structure.
+    /// full one. Debug builds check every factored matrix for the structure. Solves with one
+    /// right-hand side then read the even columns only ([`SupernodalLlt::solve_quaternionic`]).
     pub fn set_quaternionic(&mut self) -> bool {
         match (&mut self.supernodal, self.symbolic.raw()) {
             (Some(kernel), SymbolicCholeskyRaw::Supernodal(symbolic)) => {
-                kernel.set_quaternionic(symbolic)
+                let quaternionic = kernel.set_quaternionic(symbolic);
+                if quaternionic {
+                    self.solve_scratch = vec![[0.0; 4]; kernel.solve_scratch_len()];
+                }
+                quaternionic
             }
             _ => false,
         }
@@ -476,6 +485,25 @@ impl<T: Scalar> Cholesky<T> {
         for (p, r) in permuted.chunks_exact_mut(n).zip(rhs.chunks_exact(n)) {
             for (p, &old) in p.iter_mut().zip(&self.fwd) {
                 *p = r[old];
+            }
+        }
+        // One right-hand side of a quaternionic factor: the solve that reads half of it.
+        if k == 1 {
+            if let (Some(kernel), SymbolicCholeskyRaw::Supernodal(symbolic)) =
+                (&self.supernodal, self.symbolic.raw())
+            {
+                if kernel.quaternionic() {
+                    kernel.solve_quaternionic(
+                        symbolic,
+                        &self.factor,
+                        permuted,
+                        &mut self.solve_scratch,
+                    );
+                    for (r, &new) in rhs.iter_mut().zip(&self.inv) {
+                        *r = self.permuted_rhs[new];
+                    }
+                    return;
+                }
             }
         }
         let llt = LltRef::new(&self.symbolic, &self.factor);
