@@ -767,8 +767,21 @@ impl<T: Scalar> Job<'_, T> {
                     T::zero_impl() - T::one_impl(),
                 );
             }
+            #[cfg(target_arch = "x86_64")]
             if k.quaternionic {
-                copy_odd_columns(block, s_nrows, s_ncols);
+                factor_quaternionic_supernode(
+                    k.instructions,
+                    block,
+                    s_nrows,
+                    s_ncols,
+                    &mut ws.dense_mem,
+                    &mut ws.narrow,
+                )
+                .map_err(|column| NotPositive(column + s_start))?;
+                for &row in s_pattern {
+                    ws.global_to_local[row] = UNMAPPED;
+                }
+                continue;
             }
 
             let ls = MatMut::from_column_major_slice_mut(block, s_nrows, s_ncols);
@@ -786,14 +799,7 @@ impl<T: Scalar> Job<'_, T> {
                 }
             })?;
             #[cfg(target_arch = "x86_64")]
-            solve_right_lower_adjoint(
-                k.instructions,
-                block,
-                s_nrows,
-                s_ncols,
-                k.quaternionic,
-                &mut ws.narrow,
-            );
+            solve_right_lower_adjoint(k.instructions, block, s_nrows, s_ncols, &mut ws.narrow);
             for &row in s_pattern {
                 ws.global_to_local[row] = UNMAPPED;
             }
@@ -814,13 +820,91 @@ fn quaternion_partner<T: Scalar>(even: &[T], i: usize) -> T {
     }
 }
 
-/// Writes each odd column of the column-major `nrows × ncols` block, on and below the
-/// diagonal, as the copy of the even column before it ([`SupernodalLlt::set_quaternionic`]).
-fn copy_odd_columns<T: Scalar>(block: &mut [T], nrows: usize, ncols: usize) {
+/// Factors a quaternionic supernode whose even columns hold `A − Σ L_d L_dᴴ` (the descendant
+/// updates done): left-looking over panels of [`NARROW`] columns, each panel's even columns
+/// take the earlier panels' product (`L[first.., ..first] L[panel, ..first]ᴴ`, half the
+/// multiply-adds of the full panel), its odd columns are copied, its diagonal block is
+/// factored densely and the rows below it are solved by [`solve_narrow`], odd columns again
+/// copied. This replaces the dense Cholesky of the whole diagonal block and the off-diagonal
+/// solve of the general path, which would spend the full count on the diagonal block.
+/// Returns the column (in the supernode) of a pivot that is not positive.
+#[cfg(target_arch = "x86_64")]
+fn factor_quaternionic_supernode<T: Scalar>(
+    instructions: private_gemm_x86::InstrSet,
+    block: &mut [T],
+    nrows: usize,
+    width: usize,
+    dense_mem: &mut MemBuffer,
+    narrow: &mut NarrowScratch,
+) -> Result<(), usize> {
+    for first in (0..width).step_by(NARROW) {
+        let panel = NARROW.min(width - first);
+        let (done, rest) = block.split_at_mut(first * nrows);
+        if first > 0 {
+            gemm(
+                instructions,
+                &mut rest[first..],
+                2 * nrows,
+                nrows - first,
+                panel / 2,
+                None,
+                None,
+                false,
+                true,
+                // L[first.., ..first]
+                View {
+                    data: &done[first..],
+                    nrows: nrows - first,
+                    ncols: first,
+                    row_stride: 1,
+                    col_stride: nrows,
+                    conj: false,
+                },
+                // L[first + 2j, ..first]ᴴ: entry (k, j) is conj(L[first + 2j, k]).
+                View {
+                    data: &done[first..],
+                    nrows: first,
+                    ncols: panel / 2,
+                    row_stride: nrows,
+                    col_stride: 2,
+                    conj: true,
+                },
+                T::zero_impl() - T::one_impl(),
+            );
+        }
+        copy_odd_columns(rest, nrows, first, panel);
+        let diagonal = MatMut::from_column_major_slice_with_stride_mut(
+            &mut rest[first..],
+            panel,
+            panel,
+            nrows,
+        );
+        cholesky_in_place(
+            diagonal,
+            Default::default(),
+            Par::Seq,
+            MemStack::new(dense_mem),
+            Default::default(),
+        )
+        .map_err(|e| match e {
+            faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index } => {
+                first + index
+            }
+        })?;
+        // SAFETY: `SupernodalLlt::new` only builds this kernel on CPUs with AVX2 and FMA.
+        unsafe { solve_narrow(rest, nrows, first, panel, first + panel, true, narrow) };
+    }
+    Ok(())
+}
+
+/// Writes each odd column of the `ncols` columns of `block` (column-major, `nrows` rows,
+/// the first of them column `diagonal` of its supernode), on and below the diagonal, as the
+/// copy of the even column before it ([`SupernodalLlt::set_quaternionic`]).
+fn copy_odd_columns<T: Scalar>(block: &mut [T], nrows: usize, diagonal: usize, ncols: usize) {
     for c in (1..ncols).step_by(2) {
         let (before, from_c) = block.split_at_mut(c * nrows);
         let even = &before[(c - 1) * nrows..];
-        for (i, x) in from_c[..nrows].iter_mut().enumerate().skip(c) {
+        for (i, x) in from_c[..nrows].iter_mut().enumerate().skip(diagonal + c) {
             *x = quaternion_partner(even, i);
         }
     }
@@ -1059,16 +1143,12 @@ fn solve_right_lower_adjoint<T: Scalar>(
     block: &mut [T],
     nrows: usize,
     width: usize,
-    quaternionic: bool,
     narrow: &mut NarrowScratch,
 ) {
     let rows = nrows - width;
     if rows == 0 || width == 0 {
         return;
     }
-    // Quaternionic (see `SupernodalLlt::set_quaternionic`): `X L⁻ᴴ` is quaternionic too, so
-    // only the even columns are computed (column stride 2) and the odd ones copied.
-    let step = if quaternionic { 2 } else { 1 };
     for first in (0..width).step_by(NARROW) {
         let panel = NARROW.min(width - first);
         let (done, rest) = block.split_at_mut(first * nrows);
@@ -1076,9 +1156,9 @@ fn solve_right_lower_adjoint<T: Scalar>(
             gemm(
                 instructions,
                 &mut rest[width..],
-                step * nrows,
+                nrows,
                 rows,
-                panel.div_ceil(step),
+                panel,
                 None,
                 None,
                 false,
@@ -1092,21 +1172,20 @@ fn solve_right_lower_adjoint<T: Scalar>(
                     col_stride: nrows,
                     conj: false,
                 },
-                // L[first..first + panel, ..first]ᴴ: entry (k, j) is
-                // conj(L[first + step·j, k]).
+                // L[first..first + panel, ..first]ᴴ: entry (k, j) is conj(L[first + j, k]).
                 View {
                     data: &done[first..],
                     nrows: first,
-                    ncols: panel.div_ceil(step),
+                    ncols: panel,
                     row_stride: nrows,
-                    col_stride: step,
+                    col_stride: 1,
                     conj: true,
                 },
                 T::zero_impl() - T::one_impl(),
             );
         }
         // SAFETY: `SupernodalLlt::new` only builds this kernel on CPUs with AVX2 and FMA.
-        unsafe { solve_narrow(rest, nrows, first, panel, width, quaternionic, narrow) };
+        unsafe { solve_narrow(rest, nrows, first, panel, width, false, narrow) };
     }
 }
 
@@ -1278,14 +1357,7 @@ mod tests {
                         block[j * nrows + width + i] = x[(i, j)];
                     }
                 }
-                solve_right_lower_adjoint(
-                    instructions,
-                    &mut block,
-                    nrows,
-                    width,
-                    false,
-                    &mut narrow,
-                );
+                solve_right_lower_adjoint(instructions, &mut block, nrows, width, &mut narrow);
                 let solved = Mat::from_fn(rows, width, |i, j| block[j * nrows + width + i]);
                 let mut product = Mat::zeros(rows, width);
                 matmul(
