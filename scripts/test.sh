@@ -44,7 +44,7 @@ rm -f "$logs/cargo-test.log" "$logs/cargo-test-doc.log"
 # One line per test binary (`Running X` paired with its `test result:`), and the totals.
 summary() {
     awk '
-        /^ *Running / { name = $2 }
+        /^ *Running / { name = ($2 == "unittests") ? $3 : $2 }
         /^ *Doc-tests / { name = "doc-tests " $2 }
         /^test result: / {
             printf "test.sh:   %-44s %s\n", name, $0
