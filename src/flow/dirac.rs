@@ -290,7 +290,7 @@ pub fn sparse_matvec(pattern: &BlockPattern, values: &[c64], x: &[c64], y: &mut 
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::mesh::generate::bumpy_sphere;
 
@@ -308,7 +308,17 @@ mod tests {
     }
 
     fn assembled(rho_scale: f64) -> (crate::mesh::Mesh, BlockPattern, Vec<c64>) {
-        let mesh = bumpy_sphere(1, 0.2);
+        assembled_dirac(1, rho_scale, 0.0)
+    }
+
+    /// X(ρ) on a bumpy sphere of `subdivisions`, with `ρ_i = rho_scale · sin(0.7 i)` and the
+    /// diagonal shift `shift` on every vertex.
+    pub(crate) fn assembled_dirac(
+        subdivisions: usize,
+        rho_scale: f64,
+        shift: f64,
+    ) -> (crate::mesh::Mesh, BlockPattern, Vec<c64>) {
+        let mesh = bumpy_sphere(subdivisions, 0.2);
         let n = mesh.vertex_count();
         let pattern = BlockPattern::new(n, &mesh.triangles, 2);
         let areas = crate::geometry::face_areas(&mesh);
@@ -320,7 +330,7 @@ mod tests {
             &mesh.triangles,
             &areas,
             &rho,
-            &vec![0.0; n],
+            &vec![shift; n],
             &mut values,
         );
         (mesh, pattern, values)
