@@ -841,36 +841,9 @@ fn factor_quaternionic_supernode<T: Scalar>(
         let panel = NARROW.min(width - first);
         let (done, rest) = block.split_at_mut(first * nrows);
         if first > 0 {
-            gemm(
-                instructions,
-                &mut rest[first..],
-                2 * nrows,
-                nrows - first,
-                panel / 2,
-                None,
-                None,
-                false,
-                true,
-                // L[first.., ..first]
-                View {
-                    data: &done[first..],
-                    nrows: nrows - first,
-                    ncols: first,
-                    row_stride: 1,
-                    col_stride: nrows,
-                    conj: false,
-                },
-                // L[first + 2j, ..first]ᴴ: entry (k, j) is conj(L[first + 2j, k]).
-                View {
-                    data: &done[first..],
-                    nrows: first,
-                    ncols: panel / 2,
-                    row_stride: nrows,
-                    col_stride: 2,
-                    conj: true,
-                },
-                T::zero_impl() - T::one_impl(),
-            );
+            // L[first.., even panel columns] −= L[first.., ..first] L[first + 2j, ..first]ᴴ
+            let (rows, c) = (nrows - first, &mut rest[first..]);
+            panel_product(instructions, c, done, nrows, first, rows, first, panel, 2);
         }
         copy_odd_columns(rest, nrows, first, panel);
         let diagonal = MatMut::from_column_major_slice_with_stride_mut(
@@ -895,6 +868,56 @@ fn factor_quaternionic_supernode<T: Scalar>(
         unsafe { solve_narrow(rest, nrows, first, panel, first + panel, true, narrow) };
     }
     Ok(())
+}
+
+/// The earlier columns' product on one panel of a supernode's own factorization (the block
+/// is column-major with `nrows` rows; `done` holds its columns `..first`):
+/// `C[:, j] −= L[x_start..x_start + x_rows, ..first] · conj(L[first + step·j, ..first])ᵀ`
+/// for the panel's columns `first + step·j` (`step` 2: its even columns only), into `c` with
+/// column stride `step · nrows`.
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+fn panel_product<T: Scalar>(
+    instructions: private_gemm_x86::InstrSet,
+    c: &mut [T],
+    done: &[T],
+    nrows: usize,
+    x_start: usize,
+    x_rows: usize,
+    first: usize,
+    panel: usize,
+    step: usize,
+) {
+    let ncols = panel.div_ceil(step);
+    gemm(
+        instructions,
+        c,
+        step * nrows,
+        x_rows,
+        ncols,
+        None,
+        None,
+        false,
+        true,
+        View {
+            data: &done[x_start..],
+            nrows: x_rows,
+            ncols: first,
+            row_stride: 1,
+            col_stride: nrows,
+            conj: false,
+        },
+        // Entry (k, j) is conj(L[first + step·j, k]).
+        View {
+            data: &done[first..],
+            nrows: first,
+            ncols,
+            row_stride: nrows,
+            col_stride: step,
+            conj: true,
+        },
+        T::zero_impl() - T::one_impl(),
+    );
 }
 
 /// Writes each odd column of the `ncols` columns of `block` (column-major, `nrows` rows,
@@ -1153,35 +1176,17 @@ fn solve_right_lower_adjoint<T: Scalar>(
         let panel = NARROW.min(width - first);
         let (done, rest) = block.split_at_mut(first * nrows);
         if first > 0 {
-            gemm(
+            // X[:, panel] −= X[:, ..first] L[first..first + panel, ..first]ᴴ
+            panel_product(
                 instructions,
                 &mut rest[width..],
+                done,
                 nrows,
+                width,
                 rows,
+                first,
                 panel,
-                None,
-                None,
-                false,
-                true,
-                // X[:, ..first]
-                View {
-                    data: &done[width..],
-                    nrows: rows,
-                    ncols: first,
-                    row_stride: 1,
-                    col_stride: nrows,
-                    conj: false,
-                },
-                // L[first..first + panel, ..first]ᴴ: entry (k, j) is conj(L[first + j, k]).
-                View {
-                    data: &done[first..],
-                    nrows: first,
-                    ncols: panel,
-                    row_stride: nrows,
-                    col_stride: 1,
-                    conj: true,
-                },
-                T::zero_impl() - T::one_impl(),
+                1,
             );
         }
         // SAFETY: `SupernodalLlt::new` only builds this kernel on CPUs with AVX2 and FMA.
@@ -1425,25 +1430,10 @@ mod tests {
     /// gives the threads separate subtrees; the test checks that they were used.
     #[test]
     fn quaternionic_factor_of_the_dirac_matrix_matches_the_full_factor() {
-        use crate::flow::dirac::assemble_dirac_into;
         use crate::flow::ordering::Ordering;
-        use crate::mesh::generate::bumpy_sphere;
         // X(ρ) of Appendix G with a potential and a diagonal shift that keep it definite.
-        let mesh = bumpy_sphere(4, 0.2);
+        let (mesh, pattern, values) = crate::flow::dirac::tests::assembled_dirac(4, 0.3, 2.0);
         let n = mesh.vertex_count();
-        let pattern = BlockPattern::new(n, &mesh.triangles, 2);
-        let areas = crate::geometry::face_areas(&mesh);
-        let rho: Vec<f64> = (0..n).map(|i| 0.3 * (i as f64 * 0.7).sin()).collect();
-        let mut values = vec![c64::new(0.0, 0.0); pattern.nnz()];
-        assemble_dirac_into(
-            &pattern,
-            &mesh.positions,
-            &mesh.triangles,
-            &areas,
-            &rho,
-            &vec![2.0; n],
-            &mut values,
-        );
         for ordering in [Ordering::NestedDissection, Ordering::Amd] {
             let mut full = Cholesky::<c64>::analyze_with(&pattern, 1, ordering).expect("analyze");
             let mut quaternionic =
