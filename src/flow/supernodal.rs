@@ -455,56 +455,71 @@ impl SupernodalLlt {
         // even column (and with it the odd one) is taken off the rows below, in the
         // supernode and under it. The diagonal blocks' (2w + 1, 2w) entries are the zeros
         // of the quaternionic factor (rounding in the computed one) and are not read.
-        for s in 0..symbolic.n_supernodes() {
+        let n_supernodes = symbolic.n_supernodes();
+        for s in 0..n_supernodes {
             let (start, width) = (begin[s], end[s] - begin[s]);
             let rows = &row_idx[row_ptr[s]..row_ptr[s + 1]];
             let nrows = width + rows.len();
             let block = &l[val_ptr[s]..val_ptr[s + 1]];
-            let (own, below) = scratch[..(width + rows.len()) / 2].split_at_mut(width / 2);
-            gather_lanes(x, start..start + width, own);
-            gather_lanes(x, rows.iter().copied(), below);
+            if s + 1 < n_supernodes {
+                prefetch_even_columns(
+                    &l[val_ptr[s + 1]..val_ptr[s + 2]],
+                    end[s + 1] - begin[s + 1],
+                );
+                prefetch_rows(x, &row_idx[row_ptr[s + 1]..row_ptr[s + 2]]);
+            }
+            // The supernode's own pairs, then the pairs below it: the rows of its columns.
+            let lanes = &mut scratch[..nrows / 2];
+            gather_lanes(x, start..start + width, &mut lanes[..width / 2]);
+            gather_lanes(x, rows.iter().copied(), &mut lanes[width / 2..]);
             for w in 0..width / 2 {
                 let column = &block[2 * w * nrows..][..nrows];
                 let inverse = 1.0 / column[2 * w].diagonal();
-                let lane = own[w].map(|v| v * inverse);
-                own[w] = lane;
-                let (x0, x1) = ((lane[0], lane[1]), (lane[2], lane[3]));
+                let (lane, after_w) = lanes[w..].split_at_mut(1);
+                let lane = lane[0].map(|v| v * inverse);
                 // SAFETY: the kernel is only built on CPUs with AVX2 and FMA.
                 unsafe {
-                    quaternion_column_product(&column[2 * w + 2..width], x0, x1, &mut own[w + 1..]);
-                    quaternion_column_product(&column[width..], x0, x1, below);
+                    quaternion_column_product(
+                        &column[2 * w + 2..],
+                        (lane[0], lane[1]),
+                        (lane[2], lane[3]),
+                        after_w,
+                    );
                 }
+                lanes[w] = lane;
             }
-            scatter_lanes(x, start..start + width, own);
-            scatter_lanes(x, rows.iter().copied(), below);
+            scatter_lanes(x, start..start + width, &lanes[..width / 2]);
+            scatter_lanes(x, rows.iter().copied(), &lanes[width / 2..]);
         }
         // Lᴴ x = y, in reverse: each pair takes the adjoint products of its even column with
         // the rows below, then is divided by its diagonal.
-        for s in (0..symbolic.n_supernodes()).rev() {
+        for s in (0..n_supernodes).rev() {
             let (start, width) = (begin[s], end[s] - begin[s]);
             let rows = &row_idx[row_ptr[s]..row_ptr[s + 1]];
             let nrows = width + rows.len();
             let block = &l[val_ptr[s]..val_ptr[s + 1]];
-            let (own, below) = scratch[..(width + rows.len()) / 2].split_at_mut(width / 2);
-            gather_lanes(x, start..start + width, own);
-            gather_lanes(x, rows.iter().copied(), below);
+            if s > 0 {
+                prefetch_even_columns(&l[val_ptr[s - 1]..val_ptr[s]], end[s - 1] - begin[s - 1]);
+                prefetch_rows(x, &row_idx[row_ptr[s - 1]..row_ptr[s]]);
+            }
+            let lanes = &mut scratch[..nrows / 2];
+            gather_lanes(x, start..start + width, &mut lanes[..width / 2]);
+            gather_lanes(x, rows.iter().copied(), &mut lanes[width / 2..]);
             for w in (0..width / 2).rev() {
                 let column = &block[2 * w * nrows..][..nrows];
-                let (to_w, after_w) = own.split_at_mut(w + 1);
+                let (to_w, after_w) = lanes.split_at_mut(w + 1);
                 // SAFETY: as above.
-                let (a0, a1) = unsafe { quaternion_column_adjoint(&column[width..], below) };
-                let (b0, b1) =
-                    unsafe { quaternion_column_adjoint(&column[2 * w + 2..width], after_w) };
+                let (a0, a1) = unsafe { quaternion_column_adjoint(&column[2 * w + 2..], after_w) };
                 let inverse = 1.0 / column[2 * w].diagonal();
                 let lane = &mut to_w[w];
                 *lane = [
-                    (lane[0] - a0.0 - b0.0) * inverse,
-                    (lane[1] - a0.1 - b0.1) * inverse,
-                    (lane[2] - a1.0 - b1.0) * inverse,
-                    (lane[3] - a1.1 - b1.1) * inverse,
+                    (lane[0] - a0.0) * inverse,
+                    (lane[1] - a0.1) * inverse,
+                    (lane[2] - a1.0) * inverse,
+                    (lane[3] - a1.1) * inverse,
                 ];
             }
-            scatter_lanes(x, start..start + width, own);
+            scatter_lanes(x, start..start + width, &lanes[..width / 2]);
         }
     }
 
@@ -942,6 +957,40 @@ fn odd_columns_are_copies<T: Scalar>(block: &[T], nrows: usize, ncols: usize) ->
     })
 }
 
+/// Asks the CPU to bring the even columns of a supernode's `block` (`width` columns) into
+/// cache before a quaternionic solve reads them: the solves visit the factor in runs of a few
+/// cache lines, one run a column, too short for the hardware prefetcher to follow.
+#[inline(always)]
+fn prefetch_even_columns<T>(block: &[T], width: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let nrows = block.len() / width.max(1);
+        for w in (0..width).step_by(2) {
+            let column = &block[w * nrows..(w + 1) * nrows];
+            let ptr = column.as_ptr().cast::<i8>();
+            for offset in (0..std::mem::size_of_val(column)).step_by(64) {
+                // SAFETY: SSE is part of the x86_64 baseline, and a prefetch never faults.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(ptr.wrapping_add(offset)) };
+            }
+        }
+    }
+}
+
+/// Asks the CPU to bring the vertex pairs `x[rows]` of the next supernode into cache: they are
+/// scattered over the whole right-hand side.
+#[inline(always)]
+fn prefetch_rows<T>(x: &[T], rows: &[usize]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        for &r in rows.iter().step_by(2) {
+            // SAFETY: SSE is part of the x86_64 baseline, and a prefetch never faults.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(x.as_ptr().wrapping_add(r).cast::<i8>()) };
+        }
+    }
+}
+
 /// `x[rows]` by vertex pairs as lanes `[x₀.re, x₀.im, x₁.re, x₁.im]`.
 fn gather_lanes<T: Scalar>(x: &[T], mut rows: impl Iterator<Item = usize>, lanes: &mut [[f64; 4]]) {
     for lane in lanes {
@@ -1010,14 +1059,18 @@ fn quaternion_column_product<T: Scalar>(
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn quaternion_column_adjoint<T: Scalar>(column: &[T], t: &[[f64; 4]]) -> ((f64, f64), (f64, f64)) {
+    // With v = [p.re, p.im, q.re, q.im] and t = [t₀.re, t₀.im, t₁.re, t₁.im], each part of
+    // the result is a signed sum of the lanes of v ⊙ t, of v ⊙ t with the parts of each
+    // complex number swapped, with its halves swapped, and reversed: four fused multiply-adds
+    // and three permutes a pair, the signs once at the end.
     let mut acc = [[0.0f64; 4]; 4];
     for (pair, w) in column.chunks_exact(2).zip(t) {
         let v = pair_lanes(pair);
         let ws = [
             *w,
-            [w[1], -w[0], w[3], -w[2]],
-            [w[2], -w[3], -w[0], w[1]],
-            [w[3], w[2], -w[1], -w[0]],
+            [w[1], w[0], w[3], w[2]],
+            [w[2], w[3], w[0], w[1]],
+            [w[3], w[2], w[1], w[0]],
         ];
         for (acc, w) in acc.iter_mut().zip(&ws) {
             for l in 0..4 {
@@ -1025,8 +1078,11 @@ fn quaternion_column_adjoint<T: Scalar>(column: &[T], t: &[[f64; 4]]) -> ((f64, 
             }
         }
     }
-    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
-    ((sum(acc[0]), sum(acc[1])), (sum(acc[2]), sum(acc[3])))
+    let [a, b, c, d] = acc;
+    (
+        ((a[0] + a[1]) + (a[2] + a[3]), (b[0] - b[1]) + (b[2] - b[3])),
+        ((c[0] - c[1]) - (c[2] - c[3]), (d[0] + d[1]) - (d[2] + d[3])),
+    )
 }
 
 /// A column-major or transposed view into a slice for [`gemm`]: entry `(i, j)` is
