@@ -391,13 +391,7 @@ impl<T: Scalar> Cholesky<T> {
         };
         let solve_mem = MemBuffer::try_new(symbolic.solve_in_place_scratch::<T>(nrhs, Par::Seq))
             .map_err(|_| SolverError::OutOfMemory)?;
-        let zeros = |len: usize| -> Result<Vec<T>, SolverError> {
-            let mut v = Vec::new();
-            v.try_reserve_exact(len)
-                .map_err(|_| SolverError::OutOfMemory)?;
-            v.resize(len, T::zero_impl());
-            Ok(v)
-        };
+        let zeros = zeroed::<T>;
         let supernodal = match symbolic.raw() {
             SymbolicCholeskyRaw::Supernodal(supernodal) => {
                 SupernodalLlt::new::<T>(supernodal, triangle.as_ref())
@@ -627,6 +621,54 @@ impl<T: Scalar> Cholesky<T> {
     }
 }
 
+/// `len` zeros, or [`SolverError::OutOfMemory`], from the allocator's zeroed memory: a
+/// factor of a million vertices is gigabytes, which the kernel hands out as zero pages on
+/// first touch, so filling them with zeros here would touch (commit) every page in the setup
+/// and write it twice. The factorization commits the pages as it first writes them. A
+/// buffer of megabytes is also advised to the kernel for transparent huge pages: the
+/// factorization and the solves visit it in short runs all over.
+pub(crate) fn zeroed<T: Scalar>(len: usize) -> Result<Vec<T>, SolverError> {
+    let layout = std::alloc::Layout::array::<T>(len).map_err(|_| SolverError::OutOfMemory)?;
+    if layout.size() == 0 {
+        return Ok(Vec::new());
+    }
+    // SAFETY: the layout has a non-zero size.
+    let ptr = unsafe { std::alloc::alloc_zeroed(layout) }.cast::<T>();
+    if ptr.is_null() {
+        return Err(SolverError::OutOfMemory);
+    }
+    advise_huge_pages(ptr.cast(), layout.size());
+    // SAFETY: `ptr` was allocated by the global allocator with the layout of `len` values of
+    // T, and all-zero bits are a valid T (`Scalar` is sealed to the `ZeroBits` floats).
+    Ok(unsafe { Vec::from_raw_parts(ptr, len, len) })
+}
+
+/// `madvise(MADV_HUGEPAGE)` on the whole 4 KiB pages of `bytes` bytes at `ptr` (on Linux, and
+/// from 4 MiB up: a smaller buffer holds at most one huge page). Advice only: where the
+/// kernel has transparent huge pages off, it is refused and nothing changes.
+fn advise_huge_pages(ptr: *mut u8, bytes: usize) {
+    #[cfg(target_os = "linux")]
+    {
+        const PAGE: usize = 4096;
+        if bytes < 4 << 20 {
+            return;
+        }
+        let start = (ptr as usize).next_multiple_of(PAGE);
+        let end = (ptr as usize + bytes) / PAGE * PAGE;
+        // SAFETY: the range lies within an allocation this process owns, and MADV_HUGEPAGE
+        // only changes how the kernel backs it, never its contents.
+        unsafe {
+            libc::madvise(
+                ptr.wrapping_add(start - ptr as usize).cast(),
+                end - start,
+                libc::MADV_HUGEPAGE,
+            );
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (ptr, bytes);
+}
+
 /// The same error from either numeric kernel.
 fn not_positive(column: usize) -> SolverError {
     SolverError::NotPositiveDefinite(format!("non-positive pivot at column {column}"))
@@ -744,18 +786,8 @@ impl Mixed {
     pub fn analyze(pattern: &BlockPattern, vertex_fwd: &[usize]) -> Result<Self, SolverError> {
         let single = Cholesky::<c32>::analyze_with_vertex_order(pattern, 1, vertex_fwd)?;
         let n = pattern.dim();
-        let zeros = |len: usize| -> Result<Vec<c64>, SolverError> {
-            let mut v = Vec::new();
-            v.try_reserve_exact(len)
-                .map_err(|_| SolverError::OutOfMemory)?;
-            v.resize(len, c64::new(0.0, 0.0));
-            Ok(v)
-        };
-        let mut single_rhs = Vec::new();
-        single_rhs
-            .try_reserve_exact(n)
-            .map_err(|_| SolverError::OutOfMemory)?;
-        single_rhs.resize(n, c32::new(0.0, 0.0));
+        let zeros = zeroed::<c64>;
+        let single_rhs = zeroed::<c32>(n)?;
         Ok(Mixed {
             values: zeros(single.gather.len())?,
             single,
@@ -1410,5 +1442,30 @@ pub(crate) mod tests {
         assemble_cotan_laplacian_into(&p1, &mesh.triangles, &cot, 1.0, &mut values);
         add_diagonal(&p1, (0..nv).map(|_| 0.1), &mut values);
         same_factor_as_faer_ordering(&p1, &values);
+    }
+
+    #[test]
+    fn zeroed_buffers_are_zero_and_writable_at_every_size() {
+        // Empty, one heap chunk, and 64 MiB: a fresh mapping, advised for huge pages.
+        for len in [0, 3, 4 << 20] {
+            let mut v = zeroed::<c64>(len).expect("allocates");
+            assert_eq!(v.len(), len);
+            assert!(v.iter().all(|z| z.re.to_bits() == 0 && z.im.to_bits() == 0));
+            for (i, z) in v.iter_mut().enumerate().step_by(4096) {
+                *z = c64::new(i as f64, 1.0);
+            }
+            assert!(v
+                .iter()
+                .step_by(4096)
+                .enumerate()
+                .all(|(k, z)| z.re == (4096 * k) as f64));
+        }
+        let reals = zeroed::<f64>(1 << 20).expect("allocates");
+        assert!(reals.iter().all(|x| x.to_bits() == 0));
+        // A length whose byte size overflows is refused, not a panic.
+        assert!(matches!(
+            zeroed::<c32>(usize::MAX),
+            Err(SolverError::OutOfMemory)
+        ));
     }
 }

@@ -31,8 +31,24 @@ use faer::sparse::SymbolicSparseColMatRef;
 use faer::traits::ComplexField;
 use faer::{c32, c64, MatMut, Par};
 
+mod sealed {
+    /// Types whose all-zero bit pattern is their zero (IEEE floats and pairs of them), so a
+    /// buffer of them may come zeroed from the allocator.
+    ///
+    /// # Safety
+    /// The all-zero bit pattern must be a valid value of the type, and its zero.
+    pub unsafe trait ZeroBits {}
+    // SAFETY: IEEE 754 +0.0 is all zero bits; a complex number is two such floats.
+    unsafe impl ZeroBits for f64 {}
+    // SAFETY: as above.
+    unsafe impl ZeroBits for faer::c64 {}
+    // SAFETY: as above.
+    unsafe impl ZeroBits for faer::c32 {}
+}
+
 /// The scalars the flows factor: real Laplacians and the complex form of the Dirac matrix.
-pub trait Scalar: ComplexField + Copy + Sub<Output = Self> {
+/// Sealed: f64, c64 and c32 only.
+pub trait Scalar: ComplexField + Copy + Sub<Output = Self> + sealed::ZeroBits {
     #[cfg(target_arch = "x86_64")]
     const GEMM_TYPE: private_gemm_x86::DType;
     /// The real part of a diagonal entry of a Cholesky factor (real and positive).
