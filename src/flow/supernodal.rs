@@ -175,6 +175,8 @@ struct Workspace {
     dense_mem: MemBuffer,
     /// Scratch of the off-diagonal solve (see [`solve_right_lower_adjoint`]).
     narrow: NarrowScratch,
+    /// One update's column of vertex pairs ([`quaternion_update`]).
+    lanes: Vec<[f64; 4]>,
 }
 
 impl Workspace {
@@ -190,6 +192,7 @@ impl Workspace {
             ))
             .ok()?,
             narrow: NarrowScratch::new(),
+            lanes: vec![[0.0; 4]; max_pattern.div_ceil(2)],
         })
     }
 }
@@ -768,6 +771,23 @@ impl<T: Scalar> Job<'_, T> {
                 );
                 let ld_below = &ld[d_ncols + first..];
                 #[cfg(target_arch = "x86_64")]
+                if k.quaternionic && rows.len() * cols.len() * d_ncols <= LANE_UPDATE_MAX_MACS {
+                    // SAFETY: the kernel is only built on CPUs with AVX2 and FMA.
+                    unsafe {
+                        quaternion_update(
+                            block,
+                            s_nrows,
+                            ld_below,
+                            d_nrows,
+                            d_ncols,
+                            rows,
+                            cols,
+                            &mut ws.lanes,
+                        )
+                    };
+                    continue;
+                }
+                #[cfg(target_arch = "x86_64")]
                 gemm(
                     k.instructions,
                     block,
@@ -1050,21 +1070,106 @@ fn quaternion_column_product<T: Scalar>(
     x1: (f64, f64),
     out: &mut [[f64; 4]],
 ) {
-    // The product's coefficients, negated.
-    let a = [-x0.0; 4];
-    let b = [x0.1, -x0.1, x0.1, -x0.1];
-    let c = [x1.0, -x1.0, -x1.0, x1.0];
-    let d = [x1.1, x1.1, -x1.1, -x1.1];
+    let c = product_coefficients(x0, x1);
     for (pair, o) in column.chunks_exact(2).zip(out) {
-        let v = pair_lanes(pair);
-        let vb = [v[1], v[0], v[3], v[2]];
-        let vc = [v[2], v[3], v[0], v[1]];
-        let vd = [v[3], v[2], v[1], v[0]];
-        for l in 0..4 {
-            o[l] = v[l].mul_add(
-                a[l],
-                vb[l].mul_add(b[l], vc[l].mul_add(c[l], vd[l].mul_add(d[l], o[l]))),
-            );
+        apply_product(pair_lanes(pair), &c, o);
+    }
+}
+
+/// The negated coefficients of `(p x₀ − q̄ x₁, q x₀ + p̄ x₁)` on the lanes of `v`, `vb`, `vc`,
+/// `vd` ([`apply_product`]).
+#[inline(always)]
+fn product_coefficients(x0: (f64, f64), x1: (f64, f64)) -> [[f64; 4]; 4] {
+    [
+        [-x0.0; 4],
+        [x0.1, -x0.1, x0.1, -x0.1],
+        [x1.0, -x1.0, -x1.0, x1.0],
+        [x1.1, x1.1, -x1.1, -x1.1],
+    ]
+}
+
+/// `o −= (p x₀ − q̄ x₁, q x₀ + p̄ x₁)` for the pair lanes `v` and [`product_coefficients`].
+#[inline(always)]
+fn apply_product(v: [f64; 4], c: &[[f64; 4]; 4], o: &mut [f64; 4]) {
+    let vb = [v[1], v[0], v[3], v[2]];
+    let vc = [v[2], v[3], v[0], v[1]];
+    let vd = [v[3], v[2], v[1], v[0]];
+    for l in 0..4 {
+        o[l] = v[l].mul_add(
+            c[0][l],
+            vb[l].mul_add(
+                c[1][l],
+                vc[l].mul_add(c[2][l], vd[l].mul_add(c[3][l], o[l])),
+            ),
+        );
+    }
+}
+
+/// The largest quaternionic descendant update (rows × even columns × descendant columns, in
+/// complex multiply-adds) that [`quaternion_update`] does instead of the packed gemm. Most
+/// updates of a mesh's X are a few pairs wide, where the gemm's packing and call cost more
+/// than the products; measured on nefertiti's X (min of 20 factorizations each, one process):
+/// 91–94 ms with this bound anywhere in 4096–16384, 99–102 ms with the gemm alone, 105 ms with
+/// the lanes alone (they lose on the wide updates).
+const LANE_UPDATE_MAX_MACS: usize = 4096;
+
+/// One descendant's update of a quaternionic supernode, `L_s[rows, cols] −= L_d[below]
+/// L_d[below[..mid]]ᴴ` on the lower part, vertex pair by vertex pair: for each target pair
+/// `j` (even column `cols[j]`), the first column of `Σ_K Q_uK Q_jKᴴ` over the descendant's
+/// column pairs `K` and the pairs `u ≥ j` below, where the first column of `Q_jKᴴ` is
+/// `(p̄, −q)` for `Q_jK`'s `(p, q)`. `rows` maps the descendant's rows below to the target's
+/// local rows (pairs stay adjacent); `ld_below` is the descendant's block from its first
+/// row below.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+fn quaternion_update<T: Scalar>(
+    block: &mut [T],
+    s_nrows: usize,
+    ld_below: &[T],
+    d_nrows: usize,
+    d_ncols: usize,
+    rows: &[usize],
+    cols: &[usize],
+    lanes: &mut [[f64; 4]],
+) {
+    let pairs = rows.len() / 2;
+    for (j, &c) in cols.iter().enumerate() {
+        let acc = &mut lanes[j..pairs];
+        acc.fill([0.0; 4]);
+        let coefficients = |column: &[T]| {
+            let (p, q) = (column[2 * j], column[2 * j + 1]);
+            product_coefficients((p.re(), -p.im()), (-q.re(), -q.im()))
+        };
+        let mut k = 0;
+        // Two column pairs a pass: the accumulators are loaded and stored half as often.
+        while k + 4 <= d_ncols {
+            let first = &ld_below[k * d_nrows..][..rows.len()];
+            let second = &ld_below[(k + 2) * d_nrows..][..rows.len()];
+            let (cf, cs) = (coefficients(first), coefficients(second));
+            for ((f, s), o) in first[2 * j..]
+                .chunks_exact(2)
+                .zip(second[2 * j..].chunks_exact(2))
+                .zip(acc.iter_mut())
+            {
+                apply_product(pair_lanes(f), &cf, o);
+                apply_product(pair_lanes(s), &cs, o);
+            }
+            k += 4;
+        }
+        if k < d_ncols {
+            let column = &ld_below[k * d_nrows..][..rows.len()];
+            let c = coefficients(column);
+            for (f, o) in column[2 * j..].chunks_exact(2).zip(acc.iter_mut()) {
+                apply_product(pair_lanes(f), &c, o);
+            }
+        }
+        let target = &mut block[c * s_nrows..][..s_nrows];
+        for (u, lane) in (j..pairs).zip(acc.iter()) {
+            let r = rows[2 * u];
+            target[r] = T::from_parts(target[r].re() + lane[0], target[r].im() + lane[1]);
+            target[r + 1] =
+                T::from_parts(target[r + 1].re() + lane[2], target[r + 1].im() + lane[3]);
         }
     }
 }
