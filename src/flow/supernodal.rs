@@ -977,9 +977,17 @@ fn panel_product<T: Scalar>(
 fn copy_odd_columns<T: Scalar>(block: &mut [T], nrows: usize, diagonal: usize, ncols: usize) {
     for c in (1..ncols).step_by(2) {
         let (before, from_c) = block.split_at_mut(c * nrows);
-        let even = &before[(c - 1) * nrows..];
-        for (i, x) in from_c[..nrows].iter_mut().enumerate().skip(diagonal + c) {
-            *x = quaternion_partner(even, i);
+        let even = &before[(c - 1) * nrows..][..nrows];
+        let odd = &mut from_c[..nrows];
+        // The diagonal entry (odd row), then whole row pairs: branch-free, so it vectorizes.
+        let start = diagonal + c;
+        odd[start] = quaternion_partner(even, start);
+        for (o, e) in odd[start + 1..]
+            .chunks_exact_mut(2)
+            .zip(even[start + 1..].chunks_exact(2))
+        {
+            o[0] = T::zero_impl() - T::conj_impl(&e[1]);
+            o[1] = T::conj_impl(&e[0]);
         }
     }
 }
