@@ -798,6 +798,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
                 vertex_count,
                 face_count,
                 input_bytes: data.len() as u64,
+                received: true,
                 quotas: bench_quotas(),
                 created_at: willow::jobs::now_ms(),
                 idempotency: None,

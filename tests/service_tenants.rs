@@ -33,6 +33,56 @@ fn tenant_ids_are_checked() {
     }
 }
 
+/// A job made from a stored upload receives no mesh: the upload counted toward
+/// `uploads_per_minute` when it arrived, and its jobs neither count again nor are refused by
+/// that quota (they used to count as meshes received, so a tenant reached its limit at half
+/// the meshes it sent).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_from_a_stored_upload_do_not_count_as_meshes_received() {
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path(), |c| {
+        c.quotas = TenantQuotas {
+            max_live_jobs: 0,
+            max_stored_bytes: 0,
+            uploads_per_minute: 2,
+        }
+    }))
+    .await
+    .expect("start");
+    let a = tenant("alpha");
+    let upload_id = jobs
+        .store_upload(&a, bytes::Bytes::from(small_obj()), Format::Obj)
+        .await
+        .expect("the first mesh received");
+    let stored = || UploadRef::Stored {
+        upload_id: upload_id.clone(),
+    };
+    for n in 1..=3 {
+        jobs.submit(&a, stored(), spec(1), None)
+            .await
+            .unwrap_or_else(|e| panic!("job {n} from the stored upload: {e}"));
+    }
+    jobs.submit(&a, obj(small_obj()), spec(1), None)
+        .await
+        .expect("the second mesh received");
+    let refused = jobs.submit(&a, obj(small_obj()), spec(1), None).await;
+    assert!(
+        matches!(
+            refused,
+            Err(JobError::QuotaExceeded {
+                quota: "uploads_per_minute",
+                limit: 2,
+                ..
+            })
+        ),
+        "a third mesh in the minute: {refused:?}"
+    );
+    jobs.submit(&a, stored(), spec(1), None)
+        .await
+        .expect("a job from the stored upload, the minute's meshes spent");
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
 /// Every call of tenant B on tenant A's job answers exactly as for a job that does not exist;
 /// A's own calls keep working. Also after the job expired: B sees `NotFound`, A `Gone`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -3,7 +3,7 @@
 //! submissions, on this node and across nodes (the idempotency key's create and, on SQLite,
 //! the tenant's quota, in the insert; the queue's capacity, in the push).
 
-use super::ports::{over_quota, BlobKey, Inserted, NewJob, OverQuota};
+use super::ports::{over_quota, Admitting, BlobKey, Inserted, NewJob, OverQuota};
 use super::{
     audit, codec, join_err, mesh_error, now_ms, Caller, JobError, JobId, JobSpec, JobState,
     JobStatus, Jobs, UploadRef,
@@ -34,6 +34,7 @@ impl Jobs {
         }
         spec.validate(&self.inner.config)?;
         let backend = &self.inner.backend;
+        let received = matches!(upload, UploadRef::Bytes { .. });
         let (data, format) = match upload {
             UploadRef::Bytes { data, format } => (data, format),
             UploadRef::Stored { upload_id } => {
@@ -129,6 +130,7 @@ impl Jobs {
             vertex_count,
             face_count,
             input_bytes: data_len,
+            received,
             // Set by `admit`.
             quotas: super::TenantQuotas::default(),
             created_at: now_ms(),
@@ -249,7 +251,7 @@ impl Jobs {
             return Ok(());
         }
         let usage = self.inner.backend.store.usage(tenant, now_ms()).await?;
-        match over_quota(quotas, &usage, bytes, false) {
+        match over_quota(quotas, &usage, bytes, Admitting::Upload) {
             Some(over) => Err(self.over_quota(tenant, over)),
             None => Ok(()),
         }

@@ -39,6 +39,10 @@ pub struct NewJob {
     pub face_count: usize,
     /// Size of the uploaded file (the tenant's storage quota counts it).
     pub input_bytes: u64,
+    /// Whether the mesh came with this request. A job made from a stored upload receives no
+    /// mesh: its upload was counted toward `uploads_per_minute` when it arrived, so the job
+    /// neither counts there again nor is refused by that quota.
+    pub received: bool,
     pub created_at: u64,
     /// The tenant's quotas: [`JobStore::insert`] refuses the job when its tenant's usage
     /// leaves no room ([`Inserted::OverQuota`]).
@@ -68,14 +72,33 @@ pub struct OverQuota {
     pub used: u64,
 }
 
-/// The quota `usage` plus one more upload of `bytes` (and, for a job, one more live job) would
-/// break, if any. A limit of 0 is no limit.
-pub fn over_quota(q: &TenantQuotas, usage: &Usage, bytes: u64, job: bool) -> Option<OverQuota> {
+/// What asks [`over_quota`] for room.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Admitting {
+    /// An upload stored for later jobs.
+    Upload,
+    /// A job; `received`: its mesh came with it ([`NewJob::received`]).
+    Job { received: bool },
+}
+
+/// The quota `usage` plus what is `admitting` would break, if any: one more stored mesh of
+/// `bytes`, one more mesh received in the minute (uploads, and jobs that bring their mesh)
+/// and, for a job, one more live job. A limit of 0 is no limit.
+pub fn over_quota(
+    q: &TenantQuotas,
+    usage: &Usage,
+    bytes: u64,
+    admitting: Admitting,
+) -> Option<OverQuota> {
     let over = |quota, limit: u64, used: u64| Some(OverQuota { quota, limit, used });
+    let (job, received) = match admitting {
+        Admitting::Upload => (false, true),
+        Admitting::Job { received } => (true, received),
+    };
     if job && q.max_live_jobs > 0 && usage.live_jobs >= q.max_live_jobs {
         return over("live_jobs", q.max_live_jobs as u64, usage.live_jobs as u64);
     }
-    if q.uploads_per_minute > 0 && usage.uploads_last_minute >= q.uploads_per_minute {
+    if received && q.uploads_per_minute > 0 && usage.uploads_last_minute >= q.uploads_per_minute {
         return over(
             "uploads_per_minute",
             q.uploads_per_minute as u64,
@@ -110,7 +133,7 @@ pub struct Usage {
     pub live_jobs: usize,
     /// Bytes of uploaded meshes kept: inputs of unexpired jobs and unexpired uploads.
     pub stored_bytes: u64,
-    /// Meshes received (jobs and uploads) in the minute before the `now` of
+    /// Meshes received (uploads, and jobs that brought theirs) in the minute before the `now` of
     /// [`JobStore::usage`] (the SQLite store estimates the sliding minute from two fixed ones).
     pub uploads_last_minute: usize,
 }
@@ -118,7 +141,7 @@ pub struct Usage {
 /// A minute, in unix ms.
 pub const MINUTE_MS: u64 = 60_000;
 
-/// The meshes a tenant sent (jobs and uploads), counted in fixed minutes: O(1) to keep and to
+/// The meshes a tenant sent (uploads, and jobs that brought theirs), counted in fixed minutes: O(1) to keep and to
 /// read, for the `uploads_per_minute` quota. [`MinuteWindows::last_minute`] is the usual
 /// sliding-window estimate of rate limiters.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

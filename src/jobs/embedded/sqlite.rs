@@ -7,7 +7,8 @@
 
 use super::super::codec::{decode_metrics, encode_metrics};
 use super::super::ports::{
-    over_quota, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage, MINUTE_MS,
+    over_quota, Admitting, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage,
+    MINUTE_MS,
 };
 use super::super::{
     format_name, join_err, now_ms, parse_format, poisoned, JobError, JobSpec, JobState, JobStatus,
@@ -45,7 +46,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     expired         INTEGER NOT NULL DEFAULT 0,
     crashes         INTEGER NOT NULL DEFAULT 0,
     tenant          TEXT NOT NULL DEFAULT 'default',
-    input_bytes     INTEGER NOT NULL DEFAULT 0
+    input_bytes     INTEGER NOT NULL DEFAULT 0,
+    received        INTEGER NOT NULL DEFAULT 1
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_expiry ON jobs(expires_at) WHERE expired = 0;
@@ -74,10 +76,11 @@ CREATE TABLE IF NOT EXISTS uploads (
 /// Columns added after the first release, with their definitions: databases from before them
 /// get them at open (SQLite has no `ADD COLUMN IF NOT EXISTS`). Rows from before tenants
 /// belong to the default tenant.
-const ADDED_COLUMNS: [(&str, &str, &str); 4] = [
+const ADDED_COLUMNS: [(&str, &str, &str); 5] = [
     ("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
     ("jobs", "input_bytes", "INTEGER NOT NULL DEFAULT 0"),
+    ("jobs", "received", "INTEGER NOT NULL DEFAULT 1"),
     ("uploads", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
 ];
 
@@ -109,15 +112,17 @@ macro_rules! receive_into_windows {
 /// service_load`, part 8: counting the rows cost 5–10% of a submission at 8 clients):
 /// - `bytes`: inputs of unexpired jobs and uploads;
 /// - `live`: queued and running jobs;
-/// - `window_start`, `window_count`, `previous_count`: meshes received (jobs and uploads) in
+/// - `window_start`, `window_count`, `previous_count`: meshes received (uploads, and jobs
+///   that brought their mesh: `received`; a stored upload's job does not count again) in
 ///   the fixed minute starting at `window_start` and in the minute before it, from which
 ///   [`MinuteWindows`] estimates the sliding minute (the triggers do what
 ///   [`MinuteWindows::receive`] does).
 ///
 /// A mesh received moves its tenant's windows on to the minute of its `created_at`: the
 /// current window becomes the previous one when the next minute starts, both reset after a
-/// quiet minute, and a row committed late with the previous minute's time counts there. (One
-/// trigger per insert, statements in order: the row exists before the windows move.)
+/// quiet minute, and a row committed late with the previous minute's time counts there. (Each
+/// trigger creates its tenant's row before it updates it: SQLite promises no order between
+/// the triggers of one insert.)
 ///
 /// The triggers are recreated at every open, so their bodies are always this release's.
 /// Triggers keep it on every path that adds, finishes, expires or removes a row, and it is
@@ -151,6 +156,11 @@ BEGIN
         bytes = bytes + (CASE WHEN NEW.expired = 0 THEN NEW.input_bytes ELSE 0 END),
         live = live + (NEW.state IN ('queued', 'running'))
     WHERE tenant = NEW.tenant;
+END;
+DROP TRIGGER IF EXISTS tenant_usage_job_received;
+CREATE TRIGGER tenant_usage_job_received AFTER INSERT ON jobs WHEN NEW.received != 0
+BEGIN
+    INSERT INTO tenant_usage (tenant) VALUES (NEW.tenant) ON CONFLICT (tenant) DO NOTHING;
 ",
     receive_into_windows!(),
     "END;
@@ -198,7 +208,8 @@ const RECOUNT_USAGE: &str = "
 INSERT INTO tenant_usage (tenant, bytes, live, window_start, window_count, previous_count)
     SELECT tenant, SUM(b), SUM(l), ?1, SUM(c >= ?1), SUM(c >= ?1 - 60000 AND c < ?1) FROM (
         SELECT tenant, (CASE WHEN expired = 0 THEN input_bytes ELSE 0 END) AS b,
-               (state IN ('queued', 'running')) AS l, created_at AS c FROM jobs
+               (state IN ('queued', 'running')) AS l,
+               (CASE WHEN received != 0 THEN created_at ELSE 0 END) AS c FROM jobs
         UNION ALL SELECT tenant, size, 0, created_at FROM uploads
     ) GROUP BY tenant;
 ";
@@ -412,14 +423,17 @@ impl SqliteStore {
             // last unit of a quota.
             if job.quotas.any() {
                 let usage = usage_on(&tx, &job.tenant, now_ms())?;
-                if let Some(over) = over_quota(&job.quotas, &usage, job.input_bytes, true) {
+                let admitting = Admitting::Job {
+                    received: job.received,
+                };
+                if let Some(over) = over_quota(&job.quotas, &usage, job.input_bytes, admitting) {
                     return Ok(Inserted::OverQuota(over));
                 }
             }
             tx.prepare_cached(
                 "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at,
-                                   tenant, input_bytes)
-                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+                                   tenant, input_bytes, received)
+                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
             )?
             .execute(params![
                     job.id,
@@ -429,7 +443,8 @@ impl SqliteStore {
                     job.face_count as i64,
                     ms(job.created_at),
                     job.tenant,
-                    ms(job.input_bytes)
+                    ms(job.input_bytes),
+                    job.received
                 ],
             )?;
             if let Some((key, hash)) = &job.idempotency {
@@ -879,6 +894,7 @@ mod tests {
             vertex_count: 3,
             face_count: 1,
             input_bytes: bytes,
+            received: true,
             created_at: at,
             quotas: TenantQuotas {
                 max_live_jobs: 0,
@@ -935,6 +951,13 @@ mod tests {
                 .expect("insert")));
         }
         let b = id(&store.insert(job("b", 50, now)).await.expect("insert"));
+        // c's job is made from a stored upload: it holds its bytes and a live job, but
+        // received no mesh.
+        let stored = NewJob {
+            received: false,
+            ..job("c", 25, now)
+        };
+        store.insert(stored).await.expect("insert");
         store.start(&a[0], now).await.expect("start");
         store.start(&a[1], now).await.expect("start");
         store.requeue(&a[1]).await.expect("requeue");
@@ -989,7 +1012,19 @@ mod tests {
         assert_eq!(held(&kept), held(&recounted));
         // By hand: a keeps a[1] (queued, 200) and a[3] (queued, 400); b keeps its cancelled
         // job (50) and u2 (80).
-        assert_eq!(held(&kept), [("a".into(), 600, 2), ("b".into(), 130, 0)]);
+        assert_eq!(
+            held(&kept),
+            [
+                ("a".into(), 600, 2),
+                ("b".into(), 130, 0),
+                ("c".into(), 25, 1)
+            ]
+        );
+        // Nothing received: c's windows stay empty, in the triggers' rows and the recount's.
+        assert_eq!((kept[2].4, kept[2].5), (0, 0));
+        assert_eq!((recounted[2].4, recounted[2].5), (0, 0));
+        let usage = store.usage("c", now).await.expect("usage");
+        assert_eq!((usage.live_jobs, usage.uploads_last_minute), (1, 0));
         // The windows count every mesh received, also those deleted or swept since (deleting
         // jobs frees no rate): a got 2 in the previous minute and 1 in this one, b 3 in this
         // one. A recount sees only the rows still there (a[2] deleted, u1 swept).

@@ -14,7 +14,7 @@
 
 use super::super::codec::{decode_metrics, encode_metrics};
 use super::super::ports::{
-    over_quota, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage,
+    over_quota, Admitting, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage,
 };
 use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
 use super::{nats_err, retry, Nats};
@@ -104,7 +104,7 @@ struct UsageEntry {
     live: u64,
     /// Inputs of unretired jobs and unswept uploads.
     bytes: u64,
-    /// Meshes received (jobs and uploads).
+    /// Meshes received (uploads, and jobs that brought theirs).
     windows: MinuteWindows,
 }
 
@@ -531,14 +531,21 @@ impl JobStore for KvStore {
             over = job
                 .quotas
                 .any()
-                .then(|| over_quota(&job.quotas, &u.usage(now), job.input_bytes, true))
+                .then(|| {
+                    let admitting = Admitting::Job {
+                        received: job.received,
+                    };
+                    over_quota(&job.quotas, &u.usage(now), job.input_bytes, admitting)
+                })
                 .flatten();
             if over.is_some() {
                 return false;
             }
             u.live += 1;
             u.bytes = u.bytes.saturating_add(job.input_bytes);
-            u.windows.receive(job.created_at);
+            if job.received {
+                u.windows.receive(job.created_at);
+            }
             true
         })
         .await?;
