@@ -720,6 +720,24 @@ pub const MIXED_MAX_ITERATIONS: usize = 12;
 /// small multiple of what the double-precision direct solve leaves.
 pub const MIXED_TOLERANCE: f64 = 1e-13;
 
+/// Whether conjugate gradients on a kept factor, at backward error `best` after
+/// `iterations` from `start`, would need more than twice [`REUSE_GIVE_UP_ITERATIONS`] in all
+/// at the rate seen so far: then the factor is replaced at once instead of after the limit.
+/// The best error, not the last, sets the rate: CG's backward error is not monotone (the
+/// bumpy icosphere's kept solves went 3e-7, 8e-10, 3e-8, 5e-11, 3e-13, 8e-16). Measured on
+/// nefertiti (`--precision mixed`), where X moves too far in a step for any kept factor:
+/// the stalled solves fell by 2–5× an iteration from 1e-6–1e-5 and ended at 2e-11–2e-8
+/// after the 6 allowed; the rule stops two of three such solves after 2 iterations. The
+/// icosphere:7's successful kept solves (5 iterations) are predicted at 4.3–7.4 after 2–4.
+fn kept_factor_is_hopeless(start: f64, best: f64, iterations: usize) -> bool {
+    if !(best > 0.0 && start > best) {
+        return best > 0.0 && iterations >= 2;
+    }
+    let rate = (best / start).powf(1.0 / iterations as f64);
+    let remaining = (MIXED_TOLERANCE / best).ln() / rate.ln();
+    iterations as f64 + remaining > 2.0 * REUSE_GIVE_UP_ITERATIONS as f64
+}
+
 /// Why a [`Mixed`] solve gave up.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("conjugate gradients on the single-precision factor stalled at backward error {backward_error:.1e} after {iterations} iterations")]
@@ -748,6 +766,8 @@ pub struct Mixed {
     single_rhs: Vec<c32>,
     /// Iterations and backward error of the last solve.
     pub last_iterations: usize,
+    /// Where the last solve gave up early on a kept factor ([`kept_factor_is_hopeless`]).
+    pub gave_up_after: Option<usize>,
     pub last_backward_error: f64,
     /// Whether the factor is of a matrix that was (`factored`), whether it is of an earlier
     /// matrix than the values (`reused`), and how many refreshes have kept it (`age`).
@@ -758,6 +778,8 @@ pub struct Mixed {
     has_solution: bool,
     /// Refreshes left before a factor may be kept again, and the next such pause.
     blocked: usize,
+    /// The next refresh factors afresh ([`Mixed::refactor_next`]).
+    fresh_next: bool,
     backoff: usize,
 }
 
@@ -799,12 +821,14 @@ impl Mixed {
             ap: zeros(n)?,
             single_rhs,
             last_iterations: 0,
+            gave_up_after: None,
             last_backward_error: 0.0,
             factored: false,
             reused: false,
             age: 0,
             has_solution: false,
             blocked: 0,
+            fresh_next: false,
             backoff: 1,
         })
     }
@@ -831,8 +855,19 @@ impl Mixed {
     /// changes little from step to step, and a few more iterations cost far less than a
     /// factorization). Fails where rounding to single precision leaves a pivot that is not
     /// positive (a matrix too close to singular for it).
+    /// The next [`Mixed::refresh`] factors afresh, whatever the last solve took, without
+    /// counting toward a pause after failed kept factors. For a matrix known to be far from
+    /// the kept factor's: after the flow's safeguard rejects a try, the retry's X differs from
+    /// the rejected one's by half of its ρ, and a kept factor stalled there.
+    pub fn refactor_next(&mut self) {
+        self.fresh_next = true;
+    }
+
     pub fn refresh(&mut self, may_reuse: bool) -> Result<(), SolverError> {
         self.update_norm();
+        if std::mem::take(&mut self.fresh_next) {
+            return self.factorize();
+        }
         let paused = self.blocked > 0;
         self.blocked = self.blocked.saturating_sub(1);
         if may_reuse
@@ -904,6 +939,7 @@ impl Mixed {
     /// preconditioned with the single-precision factor. A kept factor that no longer does
     /// (see [`Mixed::refresh`]) is replaced by the factor of `A` and the solve run again.
     pub fn solve_in_place(&mut self, rhs: &mut [c64]) -> Result<(), NotConverged> {
+        self.gave_up_after = None;
         // A stalled solve leaves `rhs` as it was.
         match self.conjugate_gradients(rhs) {
             Err(stalled) if self.reused => {
@@ -941,6 +977,7 @@ impl Mixed {
             single_rhs,
             has_solution,
             reused,
+            gave_up_after,
             ..
         } = self;
         let dot = |a: &[c64], b: &[c64]| -> f64 {
@@ -958,10 +995,13 @@ impl Mixed {
                 0.0
             }
         };
-        // The start: the last solution, scaled to fit this system best in the energy norm
-        // (α = ⟨x, b⟩ / ⟨x, Ax⟩), where there is one: the flow solves nearly the same system
-        // every step, and the start costs a product where P⁻¹b costs a solve.
-        let warm = *has_solution && {
+        // The start: with a kept factor, the last solution, scaled to fit this system best in
+        // the energy norm (α = ⟨x, b⟩ / ⟨x, Ax⟩), where there is one: the flow solves nearly
+        // the same system every step, and the start costs a product where P⁻¹b costs a solve.
+        // A fresh factor's P⁻¹b is the solution to single precision, which the last one is
+        // not: nefertiti's fresh factors took 2–3 iterations from the last solution, 1–2
+        // from P⁻¹b.
+        let warm = *has_solution && *reused && {
             triangle_matvec(&single.triangle, &single.fwd, values, x, ap);
             let (xb, xax) = (dot(x, rhs), dot(x, ap));
             let alpha = xb / xax;
@@ -986,6 +1026,7 @@ impl Mixed {
             }
         }
         let mut error = backward_error(r, x);
+        let (start_error, mut best) = (error, error);
         let mut iterations = 0;
         if error > MIXED_TOLERANCE {
             Self::precondition(single, single_rhs, r, z);
@@ -1013,6 +1054,14 @@ impl Mixed {
                 }
                 error = backward_error(r, x);
                 if error <= MIXED_TOLERANCE {
+                    break;
+                }
+                best = best.min(error);
+                if *reused
+                    && iterations >= 2
+                    && kept_factor_is_hopeless(start_error, best, iterations)
+                {
+                    *gave_up_after = Some(iterations);
                     break;
                 }
                 Self::precondition(single, single_rhs, r, z);
@@ -1326,6 +1375,8 @@ pub(crate) mod tests {
             .map(|(y, b)| (y - b).norm())
             .fold(0.0, f64::max);
         assert!(residual < 1e-9, "residual {residual:e}");
+        // Its rate showed within 2 iterations that the kept factor would not do.
+        assert_eq!(mixed.gave_up_after, Some(2));
         // After a kept factor failed, the next refresh factors afresh (a pause of 1, then 2,
         // 4, … after further failures in a row); the one after may keep again.
         mixed.refresh(true).expect("factorize");
@@ -1333,6 +1384,45 @@ pub(crate) mod tests {
         mixed.solve_in_place(&mut x.clone()).expect("converges");
         mixed.refresh(true).expect("kept");
         assert!(mixed.reused(), "the pause did not end");
+        // Asked to (a rejected try's retry), the next refresh factors afresh, and the
+        // pause logic is untouched: the one after keeps again.
+        mixed.solve_in_place(&mut x.clone()).expect("converges");
+        mixed.refactor_next();
+        mixed.refresh(true).expect("factorize");
+        assert!(!mixed.reused(), "kept although asked to refactor");
+        mixed.solve_in_place(&mut x.clone()).expect("converges");
+        mixed.refresh(true).expect("kept");
+        assert!(mixed.reused(), "refactor_next paused keeping");
+    }
+
+    /// The early give-up on kept factors, on the backward errors of real solves: nefertiti's
+    /// stalled ones (stopped after 2 iterations where the rate says more than 12 in all,
+    /// left to the limit where it says about 8) and icosphere:7's successful ones (never
+    /// stopped, although their error is not monotone).
+    #[test]
+    fn kept_factors_are_given_up_by_their_rate() {
+        let hopeless_at = |errors: &[f64]| {
+            (2..errors.len()).find(|&k| {
+                let best = errors[1..=k].iter().copied().fold(f64::INFINITY, f64::min);
+                kept_factor_is_hopeless(errors[0], best, k)
+            })
+        };
+        assert_eq!(hopeless_at(&[9.04e-6, 4.57e-6, 1.39e-6, 2.96e-7]), Some(2));
+        assert_eq!(hopeless_at(&[3.78e-6, 1.20e-6, 8.66e-7, 1.19e-7]), Some(2));
+        let slow = [
+            1.23e-6, 1.21e-7, 2.26e-8, 3.22e-9, 4.90e-10, 8.99e-11, 2.39e-11,
+        ];
+        assert_eq!(hopeless_at(&slow), None);
+        for converging in [
+            [3.35e-7, 8.16e-10, 2.56e-8, 4.65e-11, 2.79e-13],
+            [1.34e-7, 2.91e-9, 1.13e-8, 1.13e-10, 8.11e-13],
+            [9.18e-8, 1.78e-9, 6.15e-10, 6.11e-11, 7.30e-13],
+        ] {
+            assert_eq!(hopeless_at(&converging), None, "{converging:?}");
+        }
+        // No progress at all: hopeless; no error (solved): not.
+        assert!(kept_factor_is_hopeless(1e-6, 1e-6, 2));
+        assert!(!kept_factor_is_hopeless(1e-6, 0.0, 2));
     }
 
     #[test]

@@ -1163,6 +1163,10 @@ impl super::safeguard::Retry for ConformalFlow {
         self.positions.copy_from_slice(positions);
         self.geometry.refresh(&self.positions, &self.triangles);
         self.step = step;
+        // The retry runs at a smaller τ: its X is not the rejected try's.
+        if let DiracFactor::Mixed(m) = &mut self.dirac {
+            m.refactor_next();
+        }
     }
 
     fn descends(&self) -> bool {
@@ -1230,6 +1234,50 @@ impl Flow for ConformalFlow {
 mod tests {
     use super::*;
     use crate::mesh::generate::bumpy_sphere;
+
+    /// A try the safeguard rejects is retried at a smaller τ from the restored surface: its
+    /// X is not the rejected try's, so the retry factors afresh instead of keeping the
+    /// rejected try's single-precision factor (which stalled there). A step that follows
+    /// an accepted one may keep its factor.
+    #[test]
+    fn a_retry_after_a_restore_does_not_keep_the_factor() {
+        use super::super::safeguard::Retry;
+        let mesh = bumpy_sphere(4, 0.15);
+        let params = FlowParams {
+            tau: 0.001,
+            precision: Precision::Mixed,
+            ..FlowParams::default()
+        };
+        let kept = |flow: &ConformalFlow| {
+            flow.profile
+                .counts()
+                .iter()
+                .find(|(name, _)| *name == "X factor kept")
+                .map(|&(_, kept)| kept)
+        };
+        let mut flow = ConformalFlow::new(&mesh, &params).expect("flow");
+        flow.step().expect("step");
+        let before = flow.positions.clone();
+        flow.step().expect("step");
+        assert_eq!(kept(&flow), Some(1.0), "a small step keeps the factor");
+        // As the safeguard does when it rejects a try: restore, halve τ, try again. (At
+        // this τ the kept factor would still precondition the retry: only the restore
+        // makes it factor afresh.)
+        flow.restore(&before, 1);
+        flow.set_tau(0.0005);
+        flow.step().expect("retry");
+        assert_eq!(
+            kept(&flow),
+            Some(0.0),
+            "the retry kept the rejected try's factor"
+        );
+        flow.step().expect("step");
+        assert_eq!(
+            kept(&flow),
+            Some(1.0),
+            "the step after the retry keeps again"
+        );
+    }
 
     /// The switch from the single-precision factor to the double one (taken where single
     /// precision cannot factor or precondition X) continues the same flow: after it, steps
