@@ -329,16 +329,19 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
         )
         .expect("update");
     assert_eq!(changed, 1);
-    // And without tenants (issue 12): no tenant column, keys unscoped. The upgrade gives the
-    // rows to the default tenant and scopes their keys to it.
+    // And without tenants (issue 12): no tenant column, keys unscoped, and no `received`
+    // column (every job then brought its mesh). The upgrade gives the rows to the default
+    // tenant and scopes their keys to it.
     db.execute_batch(
-        "DROP TRIGGER tenant_usage_job_in; DROP TRIGGER tenant_usage_job_state;
+        "DROP TRIGGER tenant_usage_job_in; DROP TRIGGER tenant_usage_job_received;
+         DROP TRIGGER tenant_usage_job_state;
          DROP TRIGGER tenant_usage_job_expired; DROP TRIGGER tenant_usage_job_out;
          DROP TRIGGER tenant_usage_upload_in; DROP TRIGGER tenant_usage_upload_out;
          DROP TABLE tenant_usage;
          DROP INDEX jobs_by_tenant; DROP INDEX jobs_by_tenant_state;
          DROP INDEX jobs_by_tenant_created; DROP INDEX uploads_by_tenant;
          ALTER TABLE jobs DROP COLUMN tenant; ALTER TABLE jobs DROP COLUMN input_bytes;
+         ALTER TABLE jobs DROP COLUMN received;
          ALTER TABLE uploads DROP COLUMN tenant;",
     )
     .expect("drop the tenant columns");
