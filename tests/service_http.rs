@@ -1660,6 +1660,52 @@ async fn curve_endpoint_rounds_a_noisy_curve_keeping_its_length() {
     srv.stop().await;
 }
 
+/// A body announced over the limit is still read (up to a bound) before the 413 goes out, so
+/// a client that is still sending reads the refusal instead of a broken pipe (CI saw
+/// `BrokenPipe` on a 120 KB curve against a 64 KB limit). Over a raw socket: while half the
+/// body is sent, no answer comes; once all of it is, the 413 does.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_oversized_body_is_read_before_it_is_refused() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let srv = start(|c| c.limits.max_curve_bytes = 64 * 1024).await;
+    let addr = srv
+        .base
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_string();
+    let body = vec![b' '; 128 * 1024];
+    let mut socket = tokio::net::TcpStream::connect(&addr)
+        .await
+        .expect("connect");
+    let head = format!(
+        "POST /v1/curves:fair HTTP/1.1\r\nhost: {addr}\r\ncontent-type: application/json\r\n\
+         content-length: {}\r\n\r\n",
+        body.len()
+    );
+    socket.write_all(head.as_bytes()).await.expect("head");
+    socket
+        .write_all(&body[..body.len() / 2])
+        .await
+        .expect("half");
+    let mut answer = vec![0u8; 4096];
+    let early = tokio::time::timeout(Duration::from_millis(500), socket.read(&mut answer)).await;
+    assert!(
+        early.is_err(),
+        "answered before the body was read: {early:?}"
+    );
+    socket
+        .write_all(&body[body.len() / 2..])
+        .await
+        .expect("the rest");
+    let n = tokio::time::timeout(Duration::from_secs(10), socket.read(&mut answer))
+        .await
+        .expect("an answer")
+        .expect("read");
+    let text = String::from_utf8_lossy(&answer[..n]);
+    assert!(text.starts_with("HTTP/1.1 413"), "{text}");
+    srv.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn curve_endpoint_refuses_hostile_input_with_specific_problems() {
     let srv = start(|c| {
