@@ -163,6 +163,11 @@ pub struct SupernodalLlt {
     /// The matrices are complex forms of quaternion Hermitian ones, on a structure that keeps
     /// each vertex's two columns together ([`SupernodalLlt::set_quaternionic`]).
     quaternionic: bool,
+    /// For a quaternionic structure, the vertex of each row pair below each supernode
+    /// (`rows[2k] / 2`): supernode `s`'s pairs are `pair_rows[row_ptr[s] / 2..row_ptr[s + 1] / 2]`.
+    /// The solve's gathers and scatters read these (a quarter of the bytes of faer's row
+    /// indices) and move each pair as one 32-byte value.
+    pair_rows: Vec<u32>,
 }
 
 /// The scratch of one thread of the numeric factorization.
@@ -394,6 +399,7 @@ impl SupernodalLlt {
             max_width,
             last_pieces: 1,
             quaternionic: false,
+            pair_rows: Vec::new(),
         })
     }
 
@@ -425,11 +431,19 @@ impl SupernodalLlt {
                     .all(|pair| pair[0].is_multiple_of(2) && pair[1] == pair[0] + 1)
         };
         self.quaternionic = symbolic.nrows().is_multiple_of(2)
+            && u32::try_from(symbolic.nrows() / 2).is_ok()
             && (0..symbolic.n_supernodes()).all(|s| {
                 begin[s].is_multiple_of(2)
                     && end[s].is_multiple_of(2)
                     && paired(&row_idx[row_ptr[s]..row_ptr[s + 1]])
             });
+        // Every pattern has an even length, so pair `k` of supernode `s` is entry
+        // `row_ptr[s] / 2 + k`; the vertex fits in 32 bits (checked above).
+        self.pair_rows = if self.quaternionic {
+            row_idx.iter().step_by(2).map(|&r| (r / 2) as u32).collect()
+        } else {
+            Vec::new()
+        };
         self.quaternionic
     }
 
@@ -469,7 +483,7 @@ impl SupernodalLlt {
         let end = symbolic.supernode_end();
         let row_ptr = symbolic.col_ptr_for_row_idx();
         let val_ptr = symbolic.col_ptr_for_val();
-        let row_idx = symbolic.row_idx();
+        let pairs_of = |s: usize| &self.pair_rows[row_ptr[s] / 2..row_ptr[s + 1] / 2];
         // L y = b: each vertex pair of a supernode is divided by its real diagonal, then its
         // even column (and with it the odd one) is taken off the rows below, in the
         // supernode and under it. The diagonal blocks' (2w + 1, 2w) entries are the zeros
@@ -477,20 +491,27 @@ impl SupernodalLlt {
         let n_supernodes = symbolic.n_supernodes();
         for s in 0..n_supernodes {
             let (start, width) = (begin[s], end[s] - begin[s]);
-            let rows = &row_idx[row_ptr[s]..row_ptr[s + 1]];
-            let nrows = width + rows.len();
+            let nrows = width + (row_ptr[s + 1] - row_ptr[s]);
             let block = &l[val_ptr[s]..val_ptr[s + 1]];
-            if s + 1 < n_supernodes {
+            let pairs = pairs_of(s);
+            let ahead = s + SOLVE_PREFETCH_AHEAD;
+            if ahead < n_supernodes {
                 prefetch_even_columns(
-                    &l[val_ptr[s + 1]..val_ptr[s + 2]],
-                    end[s + 1] - begin[s + 1],
+                    &l[val_ptr[ahead]..val_ptr[ahead + 1]],
+                    end[ahead] - begin[ahead],
                 );
-                prefetch_rows(x, &row_idx[row_ptr[s + 1]..row_ptr[s + 2]]);
+            }
+            if s + 1 < n_supernodes {
+                prefetch_pairs(x, pairs_of(s + 1));
             }
             // The supernode's own pairs, then the pairs below it: the rows of its columns.
             let lanes = &mut scratch[..nrows / 2];
-            gather_lanes(x, start..start + width, &mut lanes[..width / 2]);
-            gather_lanes(x, rows.iter().copied(), &mut lanes[width / 2..]);
+            gather_pairs(x, start / 2..(start + width) / 2, &mut lanes[..width / 2]);
+            gather_pairs(
+                x,
+                pairs.iter().map(|&p| p as usize),
+                &mut lanes[width / 2..],
+            );
             for w in 0..width / 2 {
                 let column = &block[2 * w * nrows..][..nrows];
                 let inverse = 1.0 / column[2 * w].diagonal();
@@ -507,23 +528,32 @@ impl SupernodalLlt {
                 }
                 lanes[w] = lane;
             }
-            scatter_lanes(x, start..start + width, &lanes[..width / 2]);
-            scatter_lanes(x, rows.iter().copied(), &lanes[width / 2..]);
+            scatter_pairs(x, start / 2..(start + width) / 2, &lanes[..width / 2]);
+            scatter_pairs(x, pairs.iter().map(|&p| p as usize), &lanes[width / 2..]);
         }
         // Lᴴ x = y, in reverse: each pair takes the adjoint products of its even column with
         // the rows below, then is divided by its diagonal.
         for s in (0..n_supernodes).rev() {
             let (start, width) = (begin[s], end[s] - begin[s]);
-            let rows = &row_idx[row_ptr[s]..row_ptr[s + 1]];
-            let nrows = width + rows.len();
+            let nrows = width + (row_ptr[s + 1] - row_ptr[s]);
             let block = &l[val_ptr[s]..val_ptr[s + 1]];
+            let pairs = pairs_of(s);
+            if let Some(ahead) = s.checked_sub(SOLVE_PREFETCH_AHEAD) {
+                prefetch_even_columns(
+                    &l[val_ptr[ahead]..val_ptr[ahead + 1]],
+                    end[ahead] - begin[ahead],
+                );
+            }
             if s > 0 {
-                prefetch_even_columns(&l[val_ptr[s - 1]..val_ptr[s]], end[s - 1] - begin[s - 1]);
-                prefetch_rows(x, &row_idx[row_ptr[s - 1]..row_ptr[s]]);
+                prefetch_pairs(x, pairs_of(s - 1));
             }
             let lanes = &mut scratch[..nrows / 2];
-            gather_lanes(x, start..start + width, &mut lanes[..width / 2]);
-            gather_lanes(x, rows.iter().copied(), &mut lanes[width / 2..]);
+            gather_pairs(x, start / 2..(start + width) / 2, &mut lanes[..width / 2]);
+            gather_pairs(
+                x,
+                pairs.iter().map(|&p| p as usize),
+                &mut lanes[width / 2..],
+            );
             for w in (0..width / 2).rev() {
                 let column = &block[2 * w * nrows..][..nrows];
                 let (to_w, after_w) = lanes.split_at_mut(w + 1);
@@ -538,7 +568,7 @@ impl SupernodalLlt {
                     (lane[3] - a1.1) * inverse,
                 ];
             }
-            scatter_lanes(x, start..start + width, &lanes[..width / 2]);
+            scatter_pairs(x, start / 2..(start + width) / 2, &lanes[..width / 2]);
         }
     }
 
@@ -825,7 +855,6 @@ impl<T: Scalar> Job<'_, T> {
                     block,
                     s_nrows,
                     s_ncols,
-                    &mut ws.dense_mem,
                     &mut ws.narrow,
                 )
                 .map_err(|column| NotPositive(column + s_start))?;
@@ -874,9 +903,10 @@ fn quaternion_partner<T: Scalar>(even: &[T], i: usize) -> T {
 /// Factors a quaternionic supernode whose even columns hold `A − Σ L_d L_dᴴ` (the descendant
 /// updates done): left-looking over panels of [`NARROW`] columns, each panel's even columns
 /// take the earlier panels' product (`L[first.., ..first] L[panel, ..first]ᴴ`, half the
-/// multiply-adds of the full panel), its odd columns are copied, its diagonal block is
-/// factored densely and the rows below it are solved by [`solve_narrow`], odd columns again
-/// copied. This replaces the dense Cholesky of the whole diagonal block and the off-diagonal
+/// multiply-adds of the full panel), its diagonal block is factored by
+/// [`quaternionic_diagonal_cholesky`] and the rows below it are solved by [`solve_narrow`],
+/// both writing each odd column as the copy of its even one (so the odd columns' values of
+/// `A` are never read, nor copied first). This replaces the dense Cholesky of the whole diagonal block and the off-diagonal
 /// solve of the general path, which would spend the full count on the diagonal block.
 /// Returns the column (in the supernode) of a pivot that is not positive.
 #[cfg(target_arch = "x86_64")]
@@ -885,7 +915,6 @@ fn factor_quaternionic_supernode<T: Scalar>(
     block: &mut [T],
     nrows: usize,
     width: usize,
-    dense_mem: &mut MemBuffer,
     narrow: &mut NarrowScratch,
 ) -> Result<(), usize> {
     for first in (0..width).step_by(NARROW) {
@@ -896,27 +925,56 @@ fn factor_quaternionic_supernode<T: Scalar>(
             let (rows, c) = (nrows - first, &mut rest[first..]);
             panel_product(instructions, c, done, nrows, first, rows, first, panel, 2);
         }
-        copy_odd_columns(rest, nrows, first, panel);
-        let diagonal = MatMut::from_column_major_slice_with_stride_mut(
-            &mut rest[first..],
-            panel,
-            panel,
-            nrows,
-        );
-        cholesky_in_place(
-            diagonal,
-            Default::default(),
-            Par::Seq,
-            MemStack::new(dense_mem),
-            Default::default(),
-        )
-        .map_err(|e| match e {
-            faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index } => {
-                first + index
-            }
-        })?;
+        quaternionic_diagonal_cholesky(rest, nrows, first, panel).map_err(|j| first + j)?;
         // SAFETY: `SupernodalLlt::new` only builds this kernel on CPUs with AVX2 and FMA.
         unsafe { solve_narrow(rest, nrows, first, panel, first + panel, true, narrow) };
+    }
+    Ok(())
+}
+
+/// `LLᴴ` of a panel's quaternionic diagonal block in place: the `width × width` block at rows
+/// `diagonal..` of the first `width` columns of `block` (column-major, `nrows` rows), lower
+/// triangle (only its even columns are read). Computes the even columns by left-looking
+/// substitution and copies each into the odd column after it before the next reads it: half the multiply-adds of a full Cholesky, and none of a dense
+/// library call's setup, which cost more than the work on blocks this small (most panels of
+/// a mesh's X are 2–10 columns; faer's `cholesky_in_place` took 3.4 ms of nefertiti's 85 ms
+/// factorization). The `(2w + 1, 2w)` entries come out as rounding, as in the full
+/// factorization: the quaternionic factor's zeros, never read. Returns the column of a pivot
+/// that is not positive (or not finite).
+fn quaternionic_diagonal_cholesky<T: Scalar>(
+    block: &mut [T],
+    nrows: usize,
+    diagonal: usize,
+    width: usize,
+) -> Result<(), usize> {
+    debug_assert!(width.is_multiple_of(2) && diagonal.is_multiple_of(2));
+    let at = |i: usize, j: usize| diagonal + i + j * nrows;
+    for j in (0..width).step_by(2) {
+        // v[i] = A[i, j] − Σ_{k<j} L[i, k] conj(L[j, k]), i ≥ j; L[j, j] = √v[j].
+        let mut pivot = block[at(j, j)].re();
+        for k in 0..j {
+            let l = block[at(j, k)];
+            pivot -= l.re() * l.re() + l.im() * l.im();
+        }
+        if !(pivot > 0.0 && pivot.is_finite()) {
+            return Err(j);
+        }
+        let d = pivot.sqrt();
+        let inverse = 1.0 / d;
+        block[at(j, j)] = T::from_parts(d, 0.0);
+        for i in j + 1..width {
+            let (mut re, mut im) = (block[at(i, j)].re(), block[at(i, j)].im());
+            for k in 0..j {
+                // L[i, k] · conj(L[j, k])
+                let (a, b) = (block[at(i, k)], block[at(j, k)]);
+                re -= a.re() * b.re() + a.im() * b.im();
+                im -= a.im() * b.re() - a.re() * b.im();
+            }
+            block[at(i, j)] = T::from_parts(re * inverse, im * inverse);
+        }
+        // The odd column: L[j + 1, j + 1] = conj(L[j, j]), then the row pairs below.
+        let (even, odd) = block[at(0, j)..].split_at_mut(nrows);
+        copy_odd_columns_from(even, odd, j + 1, width);
     }
     Ok(())
 }
@@ -971,24 +1029,19 @@ fn panel_product<T: Scalar>(
     );
 }
 
-/// Writes each odd column of the `ncols` columns of `block` (column-major, `nrows` rows,
-/// the first of them column `diagonal` of its supernode), on and below the diagonal, as the
-/// copy of the even column before it ([`SupernodalLlt::set_quaternionic`]).
-fn copy_odd_columns<T: Scalar>(block: &mut [T], nrows: usize, diagonal: usize, ncols: usize) {
-    for c in (1..ncols).step_by(2) {
-        let (before, from_c) = block.split_at_mut(c * nrows);
-        let even = &before[(c - 1) * nrows..][..nrows];
-        let odd = &mut from_c[..nrows];
-        // The diagonal entry (odd row), then whole row pairs: branch-free, so it vectorizes.
-        let start = diagonal + c;
-        odd[start] = quaternion_partner(even, start);
-        for (o, e) in odd[start + 1..]
-            .chunks_exact_mut(2)
-            .zip(even[start + 1..].chunks_exact(2))
-        {
-            o[0] = T::zero_impl() - T::conj_impl(&e[1]);
-            o[1] = T::conj_impl(&e[0]);
-        }
+/// Rows `start..end` of an odd column as the partner of the even column before it
+/// ([`quaternion_partner`]); `start` is the odd column's diagonal row (odd), so the rest come
+/// in whole row pairs.
+#[inline(always)]
+fn copy_odd_columns_from<T: Scalar>(even: &[T], odd: &mut [T], start: usize, end: usize) {
+    // The diagonal entry (odd row), then whole row pairs: branch-free, so it vectorizes.
+    odd[start] = quaternion_partner(even, start);
+    for (o, e) in odd[start + 1..end]
+        .chunks_exact_mut(2)
+        .zip(even[start + 1..end].chunks_exact(2))
+    {
+        o[0] = T::zero_impl() - T::conj_impl(&e[1]);
+        o[1] = T::conj_impl(&e[0]);
     }
 }
 
@@ -1000,6 +1053,11 @@ fn odd_columns_are_copies<T: Scalar>(block: &[T], nrows: usize, ncols: usize) ->
         (c..nrows).all(|i| block[c * nrows + i] == quaternion_partner(even, i))
     })
 }
+
+/// How many supernodes ahead the quaternionic solve prefetches the factor's columns: a
+/// supernode's work is shorter than a memory round trip (nefertiti's X: 17.0–17.4 ms a solve at
+/// 2, 17.4–17.7 at 1, 17.4–17.9 at 3, same process and matrix).
+const SOLVE_PREFETCH_AHEAD: usize = 2;
 
 /// Asks the CPU to bring the even columns of a supernode's `block` (`width` columns) into
 /// cache before a quaternionic solve reads them: the solves visit the factor in runs of a few
@@ -1021,42 +1079,37 @@ fn prefetch_even_columns<T>(block: &[T], width: usize) {
     }
 }
 
-/// Asks the CPU to bring the vertex pairs `x[rows]` of the next supernode into cache: they are
-/// scattered over the whole right-hand side.
+/// Asks the CPU to bring the vertex pairs `x[2p..2p + 2]` of the next supernode into cache:
+/// they are scattered over the whole right-hand side.
 #[inline(always)]
-fn prefetch_rows<T>(x: &[T], rows: &[usize]) {
+fn prefetch_pairs<T>(x: &[T], pairs: &[u32]) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        for &r in rows.iter().step_by(2) {
+        for &p in pairs {
+            let at = x.as_ptr().wrapping_add(2 * p as usize).cast::<i8>();
             // SAFETY: SSE is part of the x86_64 baseline, and a prefetch never faults.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(x.as_ptr().wrapping_add(r).cast::<i8>()) };
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(at) };
         }
     }
 }
 
-/// `x[rows]` by vertex pairs as lanes `[x₀.re, x₀.im, x₁.re, x₁.im]`.
-fn gather_lanes<T: Scalar>(x: &[T], mut rows: impl Iterator<Item = usize>, lanes: &mut [[f64; 4]]) {
-    for lane in lanes {
-        let (Some(even), Some(odd)) = (rows.next(), rows.next()) else {
-            break;
-        };
-        *lane = [x[even].re(), x[even].im(), x[odd].re(), x[odd].im()];
+/// The vertex pairs `x[2p..2p + 2]` as lanes `[x₀.re, x₀.im, x₁.re, x₁.im]` (for c64, one
+/// 32-byte load each).
+#[inline(always)]
+fn gather_pairs<T: Scalar>(x: &[T], pairs: impl Iterator<Item = usize>, lanes: &mut [[f64; 4]]) {
+    for (lane, p) in lanes.iter_mut().zip(pairs) {
+        *lane = pair_lanes(&x[2 * p..2 * p + 2]);
     }
 }
 
-/// The inverse of [`gather_lanes`].
-fn scatter_lanes<T: Scalar>(
-    x: &mut [T],
-    mut rows: impl Iterator<Item = usize>,
-    lanes: &[[f64; 4]],
-) {
-    for lane in lanes {
-        let (Some(even), Some(odd)) = (rows.next(), rows.next()) else {
-            break;
-        };
-        x[even] = T::from_parts(lane[0], lane[1]);
-        x[odd] = T::from_parts(lane[2], lane[3]);
+/// The inverse of [`gather_pairs`].
+#[inline(always)]
+fn scatter_pairs<T: Scalar>(x: &mut [T], pairs: impl Iterator<Item = usize>, lanes: &[[f64; 4]]) {
+    for (lane, p) in lanes.iter().zip(pairs) {
+        let pair = &mut x[2 * p..2 * p + 2];
+        pair[0] = T::from_parts(lane[0], lane[1]);
+        pair[1] = T::from_parts(lane[2], lane[3]);
     }
 }
 
@@ -1441,7 +1494,10 @@ fn solve_narrow<T: Scalar>(
         t_re,
         t_im,
     } = scratch;
-    for j in 0..width {
+    // Quaternionic: only the even columns are solved (the odd ones are copied), so only
+    // their rows of L and their entries of X are read.
+    let solved = if quaternionic { 2 } else { 1 };
+    for j in (0..width).step_by(solved) {
         for k in 0..j {
             let v = block[k * nrows + diagonal + j];
             c_re[j][k] = v.re();
@@ -1451,7 +1507,7 @@ fn solve_narrow<T: Scalar>(
     }
     for first in (0..rows).step_by(TILE_ROWS) {
         let count = TILE_ROWS.min(rows - first);
-        for j in 0..width {
+        for j in (0..width).step_by(solved) {
             let column = &block[j * nrows + below + first..][..count];
             for (i, v) in column.iter().enumerate() {
                 t_re[j][i] = v.re();
@@ -1722,6 +1778,116 @@ mod tests {
     }
 
     /// An indefinite matrix is refused with the column of the failed pivot, not factored.
+    /// A quaternion Hermitian positive definite matrix of `pairs` vertex pairs in complex form,
+    /// `C Cᴴ + 2·pairs·I` for a deterministic quaternion matrix `C` (products of complex forms
+    /// are complex forms).
+    fn quaternionic_spd(pairs: usize) -> Mat<c64> {
+        use crate::geometry::Quaternion;
+        let w = 2 * pairs;
+        let mut c = Mat::<c64>::zeros(w, w);
+        for u in 0..pairs {
+            for v in 0..pairs {
+                let t = (7 * u + 3 * v) as f64;
+                let block = Quaternion::new(
+                    t.sin(),
+                    (0.7 * t).cos(),
+                    (1.3 * t).sin(),
+                    0.4 - 0.1 * t.cos(),
+                )
+                .to_complex();
+                for (r, row) in block.iter().enumerate() {
+                    for (k, z) in row.iter().enumerate() {
+                        c[(2 * u + r, 2 * v + k)] = *z;
+                    }
+                }
+            }
+        }
+        let mut a = Mat::<c64>::zeros(w, w);
+        matmul(
+            a.as_mut(),
+            Accum::Replace,
+            c.as_ref(),
+            c.adjoint(),
+            c64::new(1.0, 0.0),
+            Par::Seq,
+        );
+        for i in 0..w {
+            a[(i, i)] += c64::new(w as f64, 0.0);
+        }
+        a
+    }
+
+    #[test]
+    fn quaternionic_diagonal_block_matches_the_dense_cholesky() {
+        let pairs = 5;
+        let w = 2 * pairs;
+        let a = quaternionic_spd(pairs);
+        // The block sits at rows 4.. of columns with 16 rows, as a panel of a supernode.
+        let (nrows, diagonal) = (w + 6, 4);
+        // Odd columns hold NaN: the kernel must read only the even columns of A.
+        let mut block = vec![c64::new(f64::NAN, f64::NAN); nrows * w];
+        for j in (0..w).step_by(2) {
+            for i in j..w {
+                block[diagonal + i + j * nrows] = a[(i, j)];
+            }
+        }
+        quaternionic_diagonal_cholesky(&mut block, nrows, diagonal, w).expect("definite");
+
+        let mut dense = a.clone();
+        let mut mem = MemBuffer::new(cholesky_in_place_scratch::<c64>(
+            w,
+            Par::Seq,
+            Default::default(),
+        ));
+        cholesky_in_place(
+            dense.as_mut(),
+            Default::default(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .expect("definite");
+        for j in 0..w {
+            for i in j..w {
+                let got = block[diagonal + i + j * nrows];
+                if j % 2 == 0 && i == j + 1 {
+                    // The quaternionic factor's zero, computed as rounding.
+                    assert!(got.norm() < 1e-13, "({i}, {j}): {got}");
+                    continue;
+                }
+                let want = dense[(i, j)];
+                assert!(
+                    (got - want).norm() < 1e-12 * (1.0 + want.norm()),
+                    "({i}, {j}): {got} vs {want}"
+                );
+            }
+        }
+        // Rows outside the block are not touched.
+        assert!(block[..diagonal].iter().all(|z| z.re.is_nan()));
+    }
+
+    #[test]
+    fn quaternionic_diagonal_block_reports_its_pivot() {
+        let pairs = 5;
+        let mut a = quaternionic_spd(pairs);
+        // Vertex 3's diagonal block made negative: the leading six columns stay definite.
+        for i in [6, 7] {
+            a[(i, i)] -= c64::new(1e3, 0.0);
+        }
+        let w = 2 * pairs;
+        let mut block = vec![c64::new(0.0, 0.0); w * w];
+        for j in 0..w {
+            for i in j..w {
+                block[i + j * w] = a[(i, j)];
+            }
+        }
+        assert_eq!(quaternionic_diagonal_cholesky(&mut block, w, 0, w), Err(6));
+        // A NaN on the diagonal is not a positive pivot either.
+        let mut block = vec![c64::new(0.0, 0.0); 4];
+        block[0] = c64::new(f64::NAN, 0.0);
+        assert_eq!(quaternionic_diagonal_cholesky(&mut block, 2, 0, 2), Err(0));
+    }
+
     #[test]
     fn indefinite_matrix_reports_its_pivot() {
         let (n, pattern, mut values) = hermitian_system(4);
