@@ -4,7 +4,9 @@
 
 mod service_http_support;
 
-use service_http_support::{obj, slow_obj, small_obj, spec, Capture};
+use service_http_support::{
+    assert_stored_upload_jobs_receive_no_mesh, obj, slow_obj, small_obj, spec, Capture,
+};
 use std::time::Duration;
 use willow::jobs::{Caller, Config, JobError, JobState, Jobs, TenantQuotas, UploadRef};
 use willow::mesh::io::Format;
@@ -49,37 +51,7 @@ async fn jobs_from_a_stored_upload_do_not_count_as_meshes_received() {
     }))
     .await
     .expect("start");
-    let a = tenant("alpha");
-    let upload_id = jobs
-        .store_upload(&a, bytes::Bytes::from(small_obj()), Format::Obj)
-        .await
-        .expect("the first mesh received");
-    let stored = || UploadRef::Stored {
-        upload_id: upload_id.clone(),
-    };
-    for n in 1..=3 {
-        jobs.submit(&a, stored(), spec(1), None)
-            .await
-            .unwrap_or_else(|e| panic!("job {n} from the stored upload: {e}"));
-    }
-    jobs.submit(&a, obj(small_obj()), spec(1), None)
-        .await
-        .expect("the second mesh received");
-    let refused = jobs.submit(&a, obj(small_obj()), spec(1), None).await;
-    assert!(
-        matches!(
-            refused,
-            Err(JobError::QuotaExceeded {
-                quota: "uploads_per_minute",
-                limit: 2,
-                ..
-            })
-        ),
-        "a third mesh in the minute: {refused:?}"
-    );
-    jobs.submit(&a, stored(), spec(1), None)
-        .await
-        .expect("a job from the stored upload, the minute's meshes spent");
+    assert_stored_upload_jobs_receive_no_mesh(&jobs, &tenant("alpha")).await;
     core.shutdown(Duration::from_secs(1)).await;
 }
 

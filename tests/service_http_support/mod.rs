@@ -435,3 +435,44 @@ pub fn spec(steps: usize) -> willow::jobs::JobSpec {
         ..willow::jobs::JobSpec::default()
     }
 }
+
+/// The quota check shared by both stores' tests: with `uploads_per_minute: 2` and nothing else
+/// limited, tenant `a` stores one mesh and makes three jobs from it (none counts), sends one
+/// more mesh (the second), is refused a third with the quota's name and limit, and can still
+/// make a job from the stored upload.
+pub async fn assert_stored_upload_jobs_receive_no_mesh(
+    jobs: &willow::jobs::Jobs,
+    a: &willow::jobs::Caller,
+) {
+    use willow::jobs::{JobError, UploadRef};
+    let upload_id = jobs
+        .store_upload(a, small_obj().into(), willow::mesh::io::Format::Obj)
+        .await
+        .expect("the first mesh received");
+    let stored = || UploadRef::Stored {
+        upload_id: upload_id.clone(),
+    };
+    for n in 1..=3 {
+        jobs.submit(a, stored(), spec(1), None)
+            .await
+            .unwrap_or_else(|e| panic!("job {n} from the stored upload: {e}"));
+    }
+    jobs.submit(a, obj(small_obj()), spec(1), None)
+        .await
+        .expect("the second mesh received");
+    let refused = jobs.submit(a, obj(small_obj()), spec(1), None).await;
+    assert!(
+        matches!(
+            refused,
+            Err(JobError::QuotaExceeded {
+                quota: "uploads_per_minute",
+                limit: 2,
+                ..
+            })
+        ),
+        "a third mesh in the minute: {refused:?}"
+    );
+    jobs.submit(a, stored(), spec(1), None)
+        .await
+        .expect("a job from the stored upload, the minute's meshes spent");
+}
