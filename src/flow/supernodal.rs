@@ -1046,7 +1046,7 @@ fn copy_odd_columns_from<T: Scalar>(even: &[T], odd: &mut [T], start: usize, end
 }
 
 /// Whether the odd columns of a block of `A` (on and below the diagonal) are already the
-/// copies [`copy_odd_columns`] would write, bit for bit.
+/// copies [`copy_odd_columns_from`] writes, bit for bit.
 fn odd_columns_are_copies<T: Scalar>(block: &[T], nrows: usize, ncols: usize) -> bool {
     (1..ncols).step_by(2).all(|c| {
         let even = &block[(c - 1) * nrows..c * nrows];
