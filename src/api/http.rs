@@ -734,6 +734,15 @@ async fn create_job_inner(
         .to_ascii_lowercase()
         .starts_with("multipart/form-data")
     {
+        // Buffered whole before parsing: it is bounded by the limit and the slack (the mesh
+        // part is buffered anyway), and a body that grows past the bound without announcing
+        // its length is then drained before its 413 like a raw one, rather than answered
+        // mid-upload by the parser's error (a reset connection for the sending client).
+        let (parts, body) = req.into_parts();
+        let data = read_limited(body, limit.saturating_add(super::server::MULTIPART_SLACK))
+            .await
+            .map_err(|_| Problem::too_large("upload bytes", limit))?;
+        let req = Request::from_parts(parts, Body::from(data));
         read_multipart(req, limit, query_params, query_given).await?
     } else {
         return Err(unsupported_media_type(&content_type));
@@ -1480,7 +1489,7 @@ pub mod fuzzing {
 /// how long. A server that answers 413 and closes while the client is still sending leaves
 /// that client a broken pipe instead of the answer (seen in CI: a 120 KB curve against a
 /// 64 KB limit). Bounded, so a hostile body costs the server at most this much.
-const DRAIN_MAX_BYTES: usize = 1 << 20;
+pub(super) const DRAIN_MAX_BYTES: usize = 1 << 20;
 const DRAIN_MAX_TIME: Duration = Duration::from_secs(2);
 
 /// Reads and discards up to [`DRAIN_MAX_BYTES`] of `body` within [`DRAIN_MAX_TIME`].

@@ -364,7 +364,13 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) ->
         streams_stop,
     })
     .merge(super::auth::routes(jobs.clone(), auth.clone()))
-    .layer(RequestBodyLimitLayer::new(body_limit))
+    // The raw stream's safety net sits the drain's length above the handlers' own bound: the
+    // mesh and curve handlers refuse a body past that bound themselves and read on up to
+    // `DRAIN_MAX_BYTES` before their 413 (so a client still sending reads it); a net at the
+    // bound itself would cut that drain short with a stream error.
+    .layer(RequestBodyLimitLayer::new(
+        body_limit.saturating_add(http::DRAIN_MAX_BYTES),
+    ))
     // Outside the body limit: a Content-Length over it is refused by that layer itself, before
     // any inner layer runs, and that plain-text 413 must become a problem too.
     .layer(axum::middleware::from_fn_with_state(
