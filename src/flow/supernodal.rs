@@ -906,8 +906,9 @@ fn quaternion_partner<T: Scalar>(even: &[T], i: usize) -> T {
 /// multiply-adds of the full panel), its diagonal block is factored by
 /// [`quaternionic_diagonal_cholesky`] and the rows below it are solved by [`solve_narrow`],
 /// both writing each odd column as the copy of its even one (so the odd columns' values of
-/// `A` are never read, nor copied first). This replaces the dense Cholesky of the whole diagonal block and the off-diagonal
-/// solve of the general path, which would spend the full count on the diagonal block.
+/// `A` are never read, nor copied first). This replaces the dense Cholesky of the whole
+/// diagonal block and the off-diagonal solve of the general path, which would spend the full
+/// count on the diagonal block.
 /// Returns the column (in the supernode) of a pivot that is not positive.
 #[cfg(target_arch = "x86_64")]
 fn factor_quaternionic_supernode<T: Scalar>(
@@ -935,12 +936,12 @@ fn factor_quaternionic_supernode<T: Scalar>(
 /// `LLᴴ` of a panel's quaternionic diagonal block in place: the `width × width` block at rows
 /// `diagonal..` of the first `width` columns of `block` (column-major, `nrows` rows), lower
 /// triangle (only its even columns are read). Computes the even columns by left-looking
-/// substitution and copies each into the odd column after it before the next reads it: half the multiply-adds of a full Cholesky, and none of a dense
-/// library call's setup, which cost more than the work on blocks this small (most panels of
-/// a mesh's X are 2–10 columns; faer's `cholesky_in_place` took 3.4 ms of nefertiti's 85 ms
-/// factorization). The `(2w + 1, 2w)` entries come out as rounding, as in the full
-/// factorization: the quaternionic factor's zeros, never read. Returns the column of a pivot
-/// that is not positive (or not finite).
+/// substitution and copies each into the odd column after it before the next reads it: half the
+/// multiply-adds of a full Cholesky, and none of a dense library call's setup, which cost more than
+/// the work on blocks this small (most panels of a mesh's X are 2–10 columns; faer's
+/// `cholesky_in_place` took 3.4 ms of nefertiti's 85 ms factorization). The `(2w + 1, 2w)` entries
+/// come out as rounding, as in the full factorization: the quaternionic factor's zeros, never read.
+/// Returns the column of a pivot that is not positive (or not finite).
 fn quaternionic_diagonal_cholesky<T: Scalar>(
     block: &mut [T],
     nrows: usize,
@@ -1777,7 +1778,6 @@ mod tests {
         }
     }
 
-    /// An indefinite matrix is refused with the column of the failed pivot, not factored.
     /// A quaternion Hermitian positive definite matrix of `pairs` vertex pairs in complex form,
     /// `C Cᴴ + 2·pairs·I` for a deterministic quaternion matrix `C` (products of complex forms
     /// are complex forms).
@@ -1888,6 +1888,7 @@ mod tests {
         assert_eq!(quaternionic_diagonal_cholesky(&mut block, 2, 0, 2), Err(0));
     }
 
+    /// An indefinite matrix is refused with the column of the failed pivot, not factored.
     #[test]
     fn indefinite_matrix_reports_its_pivot() {
         let (n, pattern, mut values) = hermitian_system(4);
