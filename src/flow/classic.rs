@@ -44,6 +44,7 @@ fn laplacian_solver(
         reason: e.to_string(),
     })?;
     cholesky.set_threads(params.threads);
+    cholesky.release_triangle();
     Ok(cholesky)
 }
 

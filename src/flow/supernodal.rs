@@ -447,6 +447,34 @@ impl SupernodalLlt {
         self.quaternionic
     }
 
+    /// Calls `visit(row, column, k)` for every entry `k` of the lower triangle given to
+    /// [`SupernodalLlt::new`], in its order, from the positions the factorization scatters
+    /// them to: the triangle's own row indices can be freed once this structure exists.
+    pub fn for_each_lower_entry(
+        &self,
+        symbolic: &SymbolicSupernodalCholesky<usize>,
+        mut visit: impl FnMut(usize, usize, usize),
+    ) {
+        let begin = symbolic.supernode_begin();
+        let end = symbolic.supernode_end();
+        let row_ptr = symbolic.col_ptr_for_row_idx();
+        let row_idx = symbolic.row_idx();
+        for s in 0..symbolic.n_supernodes() {
+            let width = end[s] - begin[s];
+            let below = &row_idx[row_ptr[s]..row_ptr[s + 1]];
+            let height = width + below.len();
+            for k in self.a_ptr[s]..self.a_ptr[s + 1] {
+                let position = self.a_position[k] as usize;
+                let (local, column) = (position % height, position / height);
+                let row = match local.checked_sub(width) {
+                    None => begin[s] + local,
+                    Some(i) => below[i],
+                };
+                visit(row, begin[s] + column, k);
+            }
+        }
+    }
+
     /// Whether the factorization can run subtrees on threads of their own (the supernodes
     /// are in postorder, so every subtree is a contiguous range of the factor).
     pub fn parallel(&self) -> bool {

@@ -353,6 +353,7 @@ impl ConformalFlow {
                     vertex_fwd,
                 )?;
                 double.set_quaternionic();
+                double.release_triangle();
                 DiracFactor::Double(Box::new(double))
             };
             dirac.set_threads(params.threads);
@@ -370,6 +371,7 @@ impl ConformalFlow {
             let mut laplace =
                 Cholesky::<f64>::analyze_with_vertex_order(&laplace_pattern, 3, &vertex_fwd)?;
             laplace.set_threads(params.threads);
+            laplace.release_triangle();
             Ok(laplace)
         };
         let (dirac_parts, laplace) = join(parallel, analyze_dirac, analyze_laplace);
@@ -736,6 +738,7 @@ impl ConformalFlow {
         let mut double = Cholesky::<c64>::analyze_with_vertex_order(pattern, 1, &self.vertex_fwd)
             .map_err(numerical)?;
         double.set_quaternionic();
+        double.release_triangle();
         self.dirac = DiracFactor::Double(Box::new(double));
         self.dirac.set_threads(threads);
         self.dirac_assembly = TriangleAssembly::new(
