@@ -77,7 +77,8 @@ impl From<PrecisionArg> for Precision {
 /// The most subdivisions `--generate` builds: 9 is 5.2M triangles, beyond this machine.
 const MAX_SUBDIVISIONS: usize = 8;
 
-fn generate(spec: &str) -> Result<(String, Mesh), String> {
+/// The subdivisions `icosphere:N` asks for.
+fn parse_generate(spec: &str) -> Result<usize, String> {
     let n = spec
         .strip_prefix("icosphere:")
         .and_then(|n| n.parse::<usize>().ok())
@@ -87,7 +88,7 @@ fn generate(spec: &str) -> Result<(String, Mesh), String> {
             "--generate {spec}: at most {MAX_SUBDIVISIONS} subdivisions"
         ));
     }
-    Ok((format!("bumpy icosphere:{n}"), bumpy_sphere(n, 0.15)))
+    Ok(n)
 }
 
 #[derive(serde::Serialize)]
@@ -121,7 +122,7 @@ pub fn run(args: BenchArgs) -> ExitCode {
     if args.genus {
         return super::bench_genus::run(args.meshes.first().map(PathBuf::as_path), args.steps);
     }
-    let inputs = match load_inputs(&args.meshes, &args.generate) {
+    let inputs = match list_inputs(&args.meshes, &args.generate) {
         Ok(i) => i,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
@@ -141,7 +142,13 @@ pub fn run(args: BenchArgs) -> ExitCode {
             "peak RSS MB"
         );
     }
-    for (name, mesh) in inputs {
+    for input in inputs {
+        // Built here and dropped after its row, so that no other input's mesh counts in a
+        // mesh's peak RSS (a generated million-triangle mesh is 60 MB).
+        let (name, mesh) = match input.load() {
+            Ok(loaded) => loaded,
+            Err(e) => return fail(EXIT_BAD_INPUT, e),
+        };
         match measure(&name, &mesh, &args) {
             Ok(f) => {
                 if args.json {
@@ -244,30 +251,66 @@ fn measure_curve() -> Result<CurveFigures, String> {
     })
 }
 
-fn load_inputs(paths: &[PathBuf], generated: &[String]) -> Result<Vec<(String, Mesh)>, String> {
+/// A mesh to measure, loaded only when its turn comes ([`Input::load`]).
+enum Input {
+    File(PathBuf),
+    /// The bumpy sphere on an icosahedron subdivided this many times.
+    Icosphere {
+        name: String,
+        subdivisions: usize,
+    },
+}
+
+impl Input {
+    fn load(&self) -> Result<(String, Mesh), String> {
+        match self {
+            Input::File(path) => {
+                let name = path
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| path.display().to_string());
+                Ok((name, read(path)?))
+            }
+            Input::Icosphere { name, subdivisions } => {
+                Ok((name.clone(), bumpy_sphere(*subdivisions, 0.15)))
+            }
+        }
+    }
+}
+
+/// The inputs in the order they are measured. A bad `--generate` spec or a path that is no
+/// file fails here, before any measurement; a file that does not parse fails at its turn.
+fn list_inputs(paths: &[PathBuf], generated: &[String]) -> Result<Vec<Input>, String> {
     let mut inputs = Vec::new();
     if paths.is_empty() && generated.is_empty() {
         let shared = PathBuf::from("../shared/meshes");
         for name in ["cheburashka.obj", "nefertiti.obj"] {
             let path = shared.join(name);
             if path.exists() {
-                inputs.push((name.to_string(), read(&path)?));
+                inputs.push(Input::File(path));
             }
         }
         if inputs.is_empty() {
-            inputs.push(("bumpy_sphere(5)".into(), bumpy_sphere(5, 0.15)));
-            inputs.push(("bumpy_sphere(6)".into(), bumpy_sphere(6, 0.15)));
+            for subdivisions in [5, 6] {
+                inputs.push(Input::Icosphere {
+                    name: format!("bumpy_sphere({subdivisions})"),
+                    subdivisions,
+                });
+            }
         }
     }
     for path in paths {
-        let name = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| path.display().to_string());
-        inputs.push((name, read(path)?));
+        if !path.is_file() {
+            return Err(format!("cannot read {}: not a file", path.display()));
+        }
+        inputs.push(Input::File(path.clone()));
     }
     for spec in generated {
-        inputs.push(generate(spec)?);
+        let subdivisions = parse_generate(spec)?;
+        inputs.push(Input::Icosphere {
+            name: format!("bumpy icosphere:{subdivisions}"),
+            subdivisions,
+        });
     }
     Ok(inputs)
 }
