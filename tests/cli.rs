@@ -157,6 +157,42 @@ fn bench_prints_figures_and_ratio() {
     assert!(line["rejected_tries"].as_u64().is_some());
 }
 
+/// Meshes are measured in the order given, files before generated ones, each loaded only at
+/// its turn; a path that is no file still fails before anything is measured.
+#[test]
+fn bench_measures_in_order_and_refuses_a_missing_file_first() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bench = |extra: &[&str]| {
+        willow()
+            .current_dir(dir.path())
+            .args(["bench", &spot()])
+            .args(extra)
+            .args(["--steps", "1", "--no-overhead", "--json"])
+            .output()
+            .expect("run willow")
+    };
+    let run = bench(&["--generate", "icosphere:1"]);
+    assert!(
+        run.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let rows: Vec<serde_json::Value> = String::from_utf8_lossy(&run.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("one JSON object per line"))
+        .collect();
+    assert_eq!(rows.len(), 2, "{rows:?}");
+    assert_eq!(rows[0]["faces"].as_u64(), Some(5856));
+    assert_eq!(rows[1]["mesh"].as_str(), Some("bumpy icosphere:1"));
+    assert_eq!(rows[1]["faces"].as_u64(), Some(80));
+
+    let missing = dir.path().join("missing.obj");
+    let run = bench(&[missing.to_str().expect("utf-8 path")]);
+    assert_eq!(run.status.code(), Some(2));
+    assert!(run.stdout.is_empty(), "a row was measured before the error");
+    assert!(String::from_utf8_lossy(&run.stderr).contains("missing.obj: not a file"));
+}
+
 #[test]
 fn paper_options_reach_the_flow() {
     let dir = tempfile::tempdir().expect("tempdir");
