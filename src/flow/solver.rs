@@ -1336,6 +1336,30 @@ pub(crate) mod tests {
         }
     }
 
+    /// `A x` from the full-storage `values` of `A` on `p`.
+    fn full_storage_product(
+        p: &BlockPattern,
+        values: &[faer::c64],
+        x: &[faer::c64],
+    ) -> Vec<faer::c64> {
+        let a = SparseColMatRef::new(p.symbolic.as_ref(), values);
+        let mut y = vec![faer::c64::new(0.0, 0.0); p.dim()];
+        for (col, &x_col) in x.iter().enumerate() {
+            for idx in a.col_ptr()[col]..a.col_ptr()[col + 1] {
+                y[a.row_idx()[idx]] += values[idx] * x_col;
+            }
+        }
+        y
+    }
+
+    /// The largest entrywise distance between two complex vectors.
+    fn max_distance(a: &[faer::c64], b: &[faer::c64]) -> f64 {
+        a.iter()
+            .zip(b)
+            .map(|(a, b)| (a - b).norm())
+            .fold(0.0, f64::max)
+    }
+
     /// With its triangle's pattern released, a factorization on our kernel still factors the
     /// same matrix (bitwise the same factor), and the product with the matrix, recovered
     /// from the kernel's positions, equals the full-storage product.
@@ -1361,21 +1385,11 @@ pub(crate) mod tests {
         let x: Vec<c64> = (0..n)
             .map(|i| c64::new((i as f64 * 0.37).sin(), (i as f64 * 0.11).cos()))
             .collect();
-        let mut expected = vec![c64::new(0.0, 0.0); n];
-        let a = SparseColMatRef::new(p.symbolic.as_ref(), &values);
-        for col in 0..n {
-            for idx in a.col_ptr()[col]..a.col_ptr()[col + 1] {
-                expected[a.row_idx()[idx]] += values[idx] * x[col];
-            }
-        }
+        let expected = full_storage_product(&p, &values, &x);
         for chol in [&kept, &released] {
             let mut y = vec![c64::new(f64::NAN, 0.0); n];
             chol.hermitian_matvec(&x, &mut y);
-            let error = y
-                .iter()
-                .zip(&expected)
-                .map(|(y, e)| (y - e).norm())
-                .fold(0.0, f64::max);
+            let error = max_distance(&y, &expected);
             assert!(error < 1e-12, "product off by {error}");
         }
     }
@@ -1415,11 +1429,7 @@ pub(crate) mod tests {
             let mut x = b.clone();
             mixed.solve_in_place(&mut x).expect("converges");
             let scale = exact.iter().map(|v| v.norm()).fold(0.0, f64::max);
-            let error = x
-                .iter()
-                .zip(&exact)
-                .map(|(x, e)| (x - e).norm())
-                .fold(0.0, f64::max);
+            let error = max_distance(&x, &exact);
             assert!(error < 1e-11 * scale, "off by {error:e} (scale {scale:e})");
             assert!(mixed.last_backward_error <= MIXED_TOLERANCE);
         }
@@ -1465,11 +1475,7 @@ pub(crate) mod tests {
         assert!(!mixed.reused(), "the stale factor was not replaced");
         let mut y = vec![c64::new(0.0, 0.0); p.dim()];
         mixed.hermitian_matvec(&x, &mut y);
-        let residual = y
-            .iter()
-            .zip(&b)
-            .map(|(y, b)| (y - b).norm())
-            .fold(0.0, f64::max);
+        let residual = max_distance(&y, &b);
         assert!(residual < 1e-9, "residual {residual:e}");
         // Its rate showed within 2 iterations that the kept factor would not do.
         assert_eq!(mixed.gave_up_after, Some(2));
@@ -1545,19 +1551,9 @@ pub(crate) mod tests {
             .collect();
         let mut x = b.clone();
         chol.solve_in_place(&mut x, 2);
-        let a = SparseColMatRef::new(p.symbolic.as_ref(), &values);
         for k in 0..2 {
-            let mut y = vec![c64::new(0.0, 0.0); n];
-            for col in 0..n {
-                for idx in a.col_ptr()[col]..a.col_ptr()[col + 1] {
-                    y[a.row_idx()[idx]] += values[idx] * x[k * n + col];
-                }
-            }
-            let residual = y
-                .iter()
-                .zip(&b[k * n..(k + 1) * n])
-                .map(|(y, b)| (y - b).norm())
-                .fold(0.0, f64::max);
+            let y = full_storage_product(&p, &values, &x[k * n..(k + 1) * n]);
+            let residual = max_distance(&y, &b[k * n..(k + 1) * n]);
             assert!(residual < 1e-12, "rhs {k}: residual {residual}");
         }
     }
