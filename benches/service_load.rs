@@ -43,13 +43,13 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
-use willow::jobs::codec::encode_checkpoint;
-use willow::jobs::embedded::files::FileBlobs;
-use willow::jobs::embedded::sqlite::SqliteStore;
-use willow::jobs::nats;
-use willow::jobs::ports::{Backend, BlobKey, BlobStore, JobStore, NewJob};
-use willow::jobs::{Caller, Config, JobSpec, Jobs};
 use willow::mesh::io::{Asset, Format};
+use willow_service::jobs::codec::encode_checkpoint;
+use willow_service::jobs::embedded::files::FileBlobs;
+use willow_service::jobs::embedded::sqlite::SqliteStore;
+use willow_service::jobs::nats;
+use willow_service::jobs::ports::{Backend, BlobKey, BlobStore, JobStore, NewJob};
+use willow_service::jobs::{Caller, Config, JobSpec, Jobs};
 
 /// Every request loop stops after this long, whatever its count: the benchmark must end.
 const PHASE_BUDGET: Duration = Duration::from_secs(60);
@@ -269,7 +269,7 @@ async fn overhead(steps: usize) {
     println!(
         "## 2. One {faces}-triangle job ({name}), {steps} conformal steps: service vs library"
     );
-    let params = willow::jobs::JobSpec::default().flow_params();
+    let params = willow_service::jobs::JobSpec::default().flow_params();
     // Library alone: parse, build, step (what the worker does minus persistence and fan-out).
     // Runs alternate with service runs so that load from anything else on the machine hits
     // both alike; the best of three of each is reported.
@@ -292,7 +292,10 @@ async fn overhead(steps: usize) {
                 "{}/v1/jobs?steps={steps}&frame_interval=1",
                 srv.base
             ))
-            .header("content-type", willow::jobs::format_media_type(format))
+            .header(
+                "content-type",
+                willow_service::jobs::format_media_type(format),
+            )
             .body(text.clone())
             .send()
             .await
@@ -306,7 +309,11 @@ async fn overhead(steps: usize) {
             .await
             .expect("wait");
         e2e_runs.push(t.elapsed().as_secs_f64());
-        assert_eq!(done.state, willow::jobs::JobState::Succeeded, "{done:?}");
+        assert_eq!(
+            done.state,
+            willow_service::jobs::JobState::Succeeded,
+            "{done:?}"
+        );
         let run_ms = done.finished_at.unwrap_or(0) - done.started_at.unwrap_or(0);
         svc_runs.push(run_ms as f64 / 1e3);
     }
@@ -406,7 +413,7 @@ fn main() {
     if std::env::var_os("RUST_LOG").is_none() {
         std::env::set_var("RUST_LOG", "warn");
     }
-    willow::api::server::init_logging("text");
+    willow_service::api::server::init_logging("text");
     rt.block_on(async {
         let small = obj_text(&willow::mesh::generate::icosphere(1));
         println!(
@@ -444,8 +451,8 @@ fn main() {
 
 /// Quotas that are checked on every submission (their cost is part of what is measured) but
 /// never refuse: the load here is one tenant's, far beyond the defaults.
-fn bench_quotas() -> willow::jobs::TenantQuotas {
-    willow::jobs::TenantQuotas {
+fn bench_quotas() -> willow_service::jobs::TenantQuotas {
+    willow_service::jobs::TenantQuotas {
         max_live_jobs: 1 << 30,
         max_stored_bytes: 1 << 50,
         uploads_per_minute: 1 << 30,
@@ -658,7 +665,7 @@ impl NatsNode {
             listener.local_addr().map_err(|e| e.to_string())?
         );
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(willow::api::server::serve(
+        let task = tokio::spawn(willow_service::api::server::serve(
             listener,
             jobs,
             core,
@@ -760,12 +767,12 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
     let metrics = flow.initial_metrics();
     let file_order = asset.file_positions(flow.positions());
     let (f32s, f64s) = (
-        bytes::Bytes::from(willow::jobs::codec::f32s_to_bytes(&file_order)),
-        bytes::Bytes::from(willow::jobs::codec::f64s_to_bytes(flow.positions())),
+        bytes::Bytes::from(willow_service::jobs::codec::f32s_to_bytes(&file_order)),
+        bytes::Bytes::from(willow_service::jobs::codec::f64s_to_bytes(flow.positions())),
     );
     let data = bytes::Bytes::from(obj.to_string());
     let mut out = vec![Vec::new(); PHASES.len()];
-    let err = |e: willow::jobs::JobError| e.to_string();
+    let err = |e: willow_service::jobs::JobError| e.to_string();
     let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
     for _ in 0..n {
         // A worker waits for the job before it is pushed, as an idle worker does.
@@ -792,7 +799,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
             .store
             .insert(NewJob {
                 id: id.clone(),
-                tenant: willow::jobs::DEFAULT_TENANT.to_string(),
+                tenant: willow_service::jobs::DEFAULT_TENANT.to_string(),
                 spec: JobSpec::default(),
                 format: Format::Obj,
                 vertex_count,
@@ -800,7 +807,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
                 input_bytes: data.len() as u64,
                 received: true,
                 quotas: bench_quotas(),
-                created_at: willow::jobs::now_ms(),
+                created_at: willow_service::jobs::now_ms(),
                 idempotency: None,
             })
             .await
@@ -809,7 +816,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
         let pushed = Instant::now();
         backend
             .queue
-            .push(willow::jobs::DEFAULT_TENANT, &id)
+            .push(willow_service::jobs::DEFAULT_TENANT, &id)
             .await
             .map_err(err)?;
         out[2].push(ms(pushed));
@@ -828,7 +835,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
         let t = Instant::now();
         backend
             .store
-            .start(&id, willow::jobs::now_ms())
+            .start(&id, willow_service::jobs::now_ms())
             .await
             .map_err(err)?;
         out[6].push(ms(t));
@@ -853,24 +860,24 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
             .map_err(err)?;
         out[9].push(ms(t));
         let t = Instant::now();
-        let frame = willow::jobs::Frame {
+        let frame = willow_service::jobs::Frame {
             step: 0,
             metrics,
             positions: Some(std::sync::Arc::new(file_order.clone())),
         };
         backend
             .events
-            .publish(&id, willow::jobs::JobEvent::Frame(frame))
+            .publish(&id, willow_service::jobs::JobEvent::Frame(frame))
             .await
             .map_err(err)?;
         out[10].push(ms(t));
         drop(watching);
-        let now = willow::jobs::now_ms();
+        let now = willow_service::jobs::now_ms();
         backend
             .store
             .finish(
                 &id,
-                willow::jobs::JobState::Succeeded,
+                willow_service::jobs::JobState::Succeeded,
                 None,
                 now,
                 now + 60_000,
@@ -899,7 +906,7 @@ async fn submit_phases(obj: &str) {
     let dir = tempfile::tempdir().expect("temp dir");
     let mut config = Config::new(dir.path());
     config.queue_capacity = 10_000;
-    let emb = match willow::jobs::embedded::open(dir.path(), config.queue_capacity) {
+    let emb = match willow_service::jobs::embedded::open(dir.path(), config.queue_capacity) {
         Ok(b) => port_phases(&b, obj, n).await,
         Err(e) => Err(e.to_string()),
     };
@@ -1125,18 +1132,18 @@ async fn auth_overhead(obj: &str) {
         CLIENTS * PER_CLIENT
     );
     println!();
-    let off = willow::jobs::TenantQuotas {
+    let off = willow_service::jobs::TenantQuotas {
         max_live_jobs: 0,
         max_stored_bytes: 0,
         uploads_per_minute: 0,
     };
     let keys_dir = tempfile::tempdir().expect("dir");
-    let (key, line) = willow::api::auth::new_key("bench", "load").expect("key");
+    let (key, line) = willow_service::api::auth::new_key("bench", "load").expect("key");
     let file = keys_dir.path().join("keys");
     std::fs::write(&file, format!("{line}\n")).expect("key file");
     let keys = || {
-        willow::api::auth::Auth::new(&willow::api::auth::AuthConfig {
-            mode: willow::api::auth::AuthMode {
+        willow_service::api::auth::Auth::new(&willow_service::api::auth::AuthConfig {
+            mode: willow_service::api::auth::AuthMode {
                 keys: true,
                 jwt: false,
             },
@@ -1157,7 +1164,7 @@ async fn auth_overhead(obj: &str) {
         let auth = if with_key {
             keys()
         } else {
-            willow::api::auth::Auth::none()
+            willow_service::api::auth::Auth::none()
         };
         let server = service_http_support::start_with(
             tempfile::tempdir().expect("dir"),
@@ -1170,8 +1177,8 @@ async fn auth_overhead(obj: &str) {
                     off.clone()
                 };
             },
-            willow::api::server::ServeOptions {
-                app: willow::api::server::AppOptions {
+            willow_service::api::server::ServeOptions {
+                app: willow_service::api::server::AppOptions {
                     auth,
                     ..Default::default()
                 },
@@ -1263,7 +1270,7 @@ const AUTH_CALLS: usize = 200_000;
 
 /// Mean µs per request through a router with a trivial handler, without and with `auth`'s
 /// layer checking `key`, alternating blocks of 1000 so that drift hits both alike.
-async fn auth_layer_cost(auth: willow::api::auth::Auth, key: &str) -> (f64, f64) {
+async fn auth_layer_cost(auth: willow_service::api::auth::Auth, key: &str) -> (f64, f64) {
     use tower::ServiceExt as _;
     let app = || {
         axum::Router::new().route(
@@ -1442,7 +1449,7 @@ async fn spawn_willow(args: Vec<String>, log: &Path) -> Result<(ChildGuard, Stri
         .arg("serve")
         .args(&args)
         .args(["--log-format", "json"])
-        .env("RUST_LOG", "warn,willow::jobs::worker=info")
+        .env("RUST_LOG", "warn,willow_service::jobs::worker=info")
         .stdout(Stdio::piped())
         .stderr(open()?)
         .spawn()

@@ -26,7 +26,7 @@
 # is a crash); -rss_limit_mb=2048 and -timeout=10 catch the rest. The only toolchain here is
 # stable, so RUSTC_BOOTSTRAP=1 lets cargo-fuzz pass its -Z flags.
 #
-# Seed corpora are made at run time from the repository's test files (tests/data) into
+# Seed corpora are made at run time from the repository's test files (crates/willow/tests/data) into
 # target/fuzz-work/seeds/ (glTF, gRPC and HTTP seeds by the make-seeds binary of fuzz/);
 # what a run finds goes to target/fuzz-work/corpus/TARGET/ and crashes to
 # target/fuzz-work/artifacts/TARGET/. None of it is committed.
@@ -89,9 +89,9 @@ seeds="$work/seeds"
 fresh="$work/seeds.$$"
 rm -rf "$fresh"
 mkdir -p "$fresh"/{obj,curve}
-cp tests/data/*.obj "$fresh/obj/"
-cp tests/data/curves/* "$fresh/curve/"
-"$bin/make-seeds" "$fresh" tests/data/*.obj 2>/dev/null
+cp crates/willow/tests/data/*.obj "$fresh/obj/"
+cp crates/willow/tests/data/curves/* "$fresh/curve/"
+"$bin/make-seeds" "$fresh" crates/willow/tests/data/*.obj 2>/dev/null
 rm -rf "$seeds"
 mv "$fresh" "$seeds"
 

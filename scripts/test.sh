@@ -59,8 +59,10 @@ summary() {
         }' "$logs/cargo-test.log" "$logs/cargo-test-doc.log" 2>/dev/null
 }
 trap 'status=$?; echo "test.sh: the cargo tests, per binary:"; summary; exit $status' EXIT
-cargo test --lib --bins --tests "$@" 2>&1 | tee "$logs/cargo-test.log"
-cargo test --doc "$@" 2>&1 | tee "$logs/cargo-test-doc.log"
+# The workspace: the library's tests (crates/willow: their own binaries, which build no service
+# code) and the service's.
+cargo test --workspace --lib --bins --tests "$@" 2>&1 | tee "$logs/cargo-test.log"
+cargo test --workspace --doc "$@" 2>&1 | tee "$logs/cargo-test-doc.log"
 
 # docker/ and deploy/: hadolint, `docker compose config`, `kubectl kustomize` of every overlay
 # and schema validation of the renders (a few seconds once its tools are installed).

@@ -27,7 +27,7 @@ enum Command {
     /// Flow a planar polyline to a round curve, keeping its edge lengths (format: .json, .obj).
     Curve(cli::curve::CurveArgs),
     /// Run the fairing service: HTTP/1.1, h2c and gRPC on one port (jobs kept in --data-dir).
-    Serve(willow::api::server::ServeArgs),
+    Serve(willow_service::api::server::ServeArgs),
     /// Manage API keys for `serve --auth keys` (`keys new --tenant T --name N`).
     Keys(cli::keys::KeysArgs),
 }
@@ -39,7 +39,7 @@ fn main() -> ExitCode {
         Command::Bench(a) => cli::bench::run(a),
         Command::Curve(a) => cli::curve::run(a),
         Command::Keys(a) => cli::keys::run(a),
-        Command::Serve(a) => match willow::api::server::run(a) {
+        Command::Serve(a) => match willow_service::api::server::run(a) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {
                 eprintln!("error: {e}");

@@ -9,7 +9,7 @@ fn willow() -> Command {
 fn spot() -> String {
     concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/tests/data/spot_triangulated.obj"
+        "/crates/willow/tests/data/spot_triangulated.obj"
     )
     .to_string()
 }

@@ -2,7 +2,7 @@
 
 use std::path::Path;
 use std::process::{Command, Output};
-use willow::flow::curve::{curvature_std_over_mean, dual_lengths, Curve};
+use willow::curve::{curvature_std_over_mean, dual_lengths, Curve};
 
 fn willow() -> Command {
     Command::new(env!("CARGO_BIN_EXE_willow"))

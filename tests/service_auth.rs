@@ -12,9 +12,9 @@ use std::path::PathBuf;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tonic::transport::Channel;
 use tonic::Code;
-use willow::api::auth::{Auth, AuthArgs, AuthConfig, AuthMode, JwtConfig};
-use willow::api::grpc::pb::willow::v1;
-use willow::jobs::{Caller, Jobs};
+use willow_service::api::auth::{Auth, AuthArgs, AuthConfig, AuthMode, JwtConfig};
+use willow_service::api::grpc::pb::willow::v1;
+use willow_service::jobs::{Caller, Jobs};
 
 use v1::fairing_client::FairingClient;
 
@@ -44,8 +44,8 @@ impl Server {
     }
 
     async fn start_with(auth: Auth) -> Server {
-        let options = willow::api::server::ServeOptions {
-            app: willow::api::server::AppOptions {
+        let options = willow_service::api::server::ServeOptions {
+            app: willow_service::api::server::AppOptions {
                 auth,
                 ..Default::default()
             },
@@ -109,7 +109,7 @@ fn acme() -> Caller {
 
 /// Every job of the tenants a refused request could have reached (the keys' and tokens'
 /// tenant, and the anonymous one).
-async fn all_jobs(jobs: &Jobs) -> Vec<willow::jobs::JobStatus> {
+async fn all_jobs(jobs: &Jobs) -> Vec<willow_service::jobs::JobStatus> {
     let mut all = Vec::new();
     for who in [acme(), Caller::anonymous()] {
         all.extend(jobs.list(&who, None, 100, None).await.expect("list").0);
@@ -262,7 +262,7 @@ async fn assert_401(res: reqwest::Response, reason: &str, secret: &str) {
 /// 401, and none of those submissions created a job.
 #[tokio::test]
 async fn http_refusals_have_no_side_effects() {
-    let (key, line) = willow::api::auth::new_key("acme", "ci").expect("key");
+    let (key, line) = willow_service::api::auth::new_key("acme", "ci").expect("key");
     let keys = key_file(&[line]);
     let server = Server::start(keys_and_jwt(&keys.file)).await;
 
@@ -363,7 +363,7 @@ async fn es256_jwt() {
     let wrong_aud = es(&signing, &claims(|c| c["aud"] = json!("other")));
     server.refuses(&wrong_aud, "invalid_token").await;
     // An API key is nothing to a JWT-only server.
-    let (key, _) = willow::api::auth::new_key("acme", "ci").expect("key");
+    let (key, _) = willow_service::api::auth::new_key("acme", "ci").expect("key");
     server.refuses(&key, "invalid_token").await;
     assert_eq!(server.job_count(&bearer(&good)).await, 1);
     server.stop().await;
@@ -459,8 +459,8 @@ async fn jwt_key_file_reloads() {
 /// broken file keeps the keys there were.
 #[tokio::test]
 async fn key_file_reloads() {
-    let (old, old_line) = willow::api::auth::new_key("acme", "old").expect("key");
-    let (new, new_line) = willow::api::auth::new_key("acme", "new").expect("key");
+    let (old, old_line) = willow_service::api::auth::new_key("acme", "old").expect("key");
+    let (new, new_line) = willow_service::api::auth::new_key("acme", "new").expect("key");
     let keys = key_file(&[old_line]);
     let server = Server::start(keys_and_jwt(&keys.file)).await;
     assert_eq!(
@@ -504,8 +504,8 @@ async fn key_file_reloads() {
 #[cfg(unix)]
 #[tokio::test]
 async fn sighup_reloads_keys() {
-    let (old, old_line) = willow::api::auth::new_key("acme", "old").expect("key");
-    let (new, new_line) = willow::api::auth::new_key("acme", "new").expect("key");
+    let (old, old_line) = willow_service::api::auth::new_key("acme", "old").expect("key");
+    let (new, new_line) = willow_service::api::auth::new_key("acme", "new").expect("key");
     let keys = key_file(&[old_line]);
     let config = AuthConfig {
         keys_poll: Duration::from_secs(3600),
@@ -546,7 +546,7 @@ async fn sighup_reloads_keys() {
 /// Probes, docs and the web page are open; /metrics is open unless protected.
 #[tokio::test]
 async fn open_routes_and_metrics() {
-    let (key, line) = willow::api::auth::new_key("acme", "ci").expect("key");
+    let (key, line) = willow_service::api::auth::new_key("acme", "ci").expect("key");
     let keys = key_file(&[line]);
     let server = Server::start(keys_and_jwt(&keys.file)).await;
     for path in ["/healthz", "/openapi.json", "/docs", "/", "/metrics"] {
@@ -633,7 +633,7 @@ async fn mint(server: &Server, id: &str, auth: Option<&str>) -> reqwest::Respons
 /// not job B, not other routes, not as a bearer; SSE with the header works too.
 #[tokio::test]
 async fn stream_tokens() {
-    let (key, line) = willow::api::auth::new_key("acme", "ci").expect("key");
+    let (key, line) = willow_service::api::auth::new_key("acme", "ci").expect("key");
     let keys = key_file(&[line]);
     let server = Server::start(keys_and_jwt(&keys.file)).await;
     let auth = bearer(&key);
@@ -753,7 +753,7 @@ async fn stream_tokens() {
 /// An expired stream token is refused (TTL of one second for the test).
 #[tokio::test]
 async fn stream_token_expires() {
-    let (key, line) = willow::api::auth::new_key("acme", "ci").expect("key");
+    let (key, line) = willow_service::api::auth::new_key("acme", "ci").expect("key");
     let keys = key_file(&[line]);
     let config = AuthConfig {
         stream_ttl: Duration::from_secs(1),
@@ -810,7 +810,7 @@ fn with_auth<T>(msg: T, auth: Option<&str>) -> tonic::Request<T> {
 #[tokio::test]
 async fn grpc_refusals_have_no_side_effects() {
     use tonic_types::StatusExt as _;
-    let (key, line) = willow::api::auth::new_key("acme", "ci").expect("key");
+    let (key, line) = willow_service::api::auth::new_key("acme", "ci").expect("key");
     let keys = key_file(&[line]);
     let server = Server::start(keys_and_jwt(&keys.file)).await;
     let mut client = FairingClient::new(server.channel().await);
@@ -963,7 +963,7 @@ async fn tokens_never_reach_the_log() {
     // A current-thread runtime: the server's tasks run on this thread, under this subscriber.
     let _guard = tracing::subscriber::set_default(subscriber);
 
-    let (key, line) = willow::api::auth::new_key("acme", "ci").expect("key");
+    let (key, line) = willow_service::api::auth::new_key("acme", "ci").expect("key");
     let keys = key_file(std::slice::from_ref(&line));
     let server = Server::start(keys_and_jwt(&keys.file)).await;
     let auth = bearer(&key);

@@ -9,7 +9,7 @@ mod service_http_support;
 use service_http_support::{is_terminal, small_obj, start};
 use std::collections::{BTreeMap, HashSet};
 use std::time::{Duration, Instant};
-use willow::jobs::TenantQuotas;
+use willow_service::jobs::TenantQuotas;
 
 const CLIENTS: usize = 50;
 const PER_CLIENT: usize = 20;

@@ -6,8 +6,8 @@ mod service_http_support;
 use futures::StreamExt;
 use service_http_support::{obj, slow_obj, small_obj, spec};
 use std::time::Duration;
-use willow::jobs::{Caller, Config, JobEvent, JobSpec, JobState, Jobs, UploadRef};
 use willow::mesh::io::Format;
+use willow_service::jobs::{Caller, Config, JobEvent, JobSpec, JobState, Jobs, UploadRef};
 
 /// Every call here is the default tenant's, as with `--auth none`.
 fn me() -> Caller {
@@ -146,7 +146,10 @@ async fn graceful_shutdown_checkpoints_running_jobs_and_restart_resumes_them() {
     assert_eq!(s.state, JobState::Queued, "re-queued, not lost: {s:?}");
     assert!(s.step >= 1, "keeps its progress: {s:?}");
     let err = jobs.submit(&me(), obj(small_obj()), spec(1), None).await;
-    assert!(matches!(err, Err(willow::jobs::JobError::ShuttingDown)));
+    assert!(matches!(
+        err,
+        Err(willow_service::jobs::JobError::ShuttingDown)
+    ));
     drop(jobs);
 
     // Restart on the same data dir: both jobs are there and run (the short one first would
@@ -229,7 +232,7 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
         .await;
     assert!(matches!(
         mismatch,
-        Err(willow::jobs::JobError::IdempotencyMismatch(_))
+        Err(willow_service::jobs::JobError::IdempotencyMismatch(_))
     ));
     let missing = jobs
         .submit(
@@ -243,13 +246,13 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
         .await;
     assert!(matches!(
         missing,
-        Err(willow::jobs::JobError::UploadNotFound(_))
+        Err(willow_service::jobs::JobError::UploadNotFound(_))
     ));
     let bad = jobs
         .store_upload(&me(), bytes::Bytes::from_static(b"f 1 2 3\n"), Format::Obj)
         .await;
     assert!(
-        matches!(bad, Err(willow::jobs::JobError::InvalidMesh(_))),
+        matches!(bad, Err(willow_service::jobs::JobError::InvalidMesh(_))),
         "{bad:?}"
     );
     let done = jobs
@@ -259,7 +262,7 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
     assert_eq!(done.state, JobState::Succeeded);
     assert!(matches!(
         jobs.cancel(&me(), &a.id).await,
-        Err(willow::jobs::JobError::Conflict(_))
+        Err(willow_service::jobs::JobError::Conflict(_))
     ));
     let mesh = jobs
         .result(&me(), &a.id, Format::Obj)
@@ -268,12 +271,12 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
     assert!(!mesh.is_empty());
     assert!(matches!(
         jobs.frame_mesh(&me(), &a.id, 99, Format::Obj).await,
-        Err(willow::jobs::JobError::FrameNotFound { .. })
+        Err(willow_service::jobs::JobError::FrameNotFound { .. })
     ));
     jobs.delete(&me(), &a.id).await.expect("delete");
     assert!(matches!(
         jobs.get(&me(), &a.id).await,
-        Err(willow::jobs::JobError::NotFound(_))
+        Err(willow_service::jobs::JobError::NotFound(_))
     ));
     core.shutdown(Duration::from_secs(1)).await;
 }
@@ -375,8 +378,8 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
 /// caller's future is dropped.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dropped_curve_request_frees_its_slot() {
-    use willow::jobs::curve::{CurveInput, CurveSpec};
-    use willow::jobs::JobError;
+    use willow_service::jobs::curve::{CurveInput, CurveSpec};
+    use willow_service::jobs::JobError;
     let dir = tempfile::tempdir().expect("dir");
     let mut c = config(dir.path());
     c.curve_slots = 1;

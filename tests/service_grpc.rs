@@ -1,5 +1,5 @@
 //! The gRPC API end to end: a tonic client generated from `proto/` (the library's own
-//! `willow::api::grpc::pb`) talks over a loopback socket to `willow::api::grpc::routes` served
+//! `willow_service::api::grpc::pb`) talks over a loopback socket to `willow_service::api::grpc::routes` served
 //! by `axum::serve` on an ephemeral port, in front of a real job core (SQLite in a temp dir,
 //! real flows on a blocking worker).
 //!
@@ -14,9 +14,9 @@ use tonic::transport::Channel;
 use tonic::{Code, Status};
 use tonic_types::StatusExt;
 
-use willow::api::grpc::pb::google::longrunning as lro;
-use willow::api::grpc::pb::willow::v1;
-use willow::jobs::{Config, Jobs, Shutdown};
+use willow_service::api::grpc::pb::google::longrunning as lro;
+use willow_service::api::grpc::pb::willow::v1;
+use willow_service::jobs::{Config, Jobs, Shutdown};
 mod service_http_support;
 use service_http_support::obj_text;
 use willow::mesh::generate;
@@ -81,7 +81,8 @@ impl Server {
         let addr = format!("http://{}", listener.local_addr().expect("local addr"));
         // The gRPC services alone, behind the server's authentication layer (`--auth none`:
         // every call is the anonymous caller's).
-        let app = willow::api::auth::Auth::none().wrap(willow::api::grpc::routes(jobs.clone()));
+        let app = willow_service::api::auth::Auth::none()
+            .wrap(willow_service::api::grpc::routes(jobs.clone()));
         tokio::spawn(async move { axum::serve(listener, app).await });
         Server {
             addr,
@@ -1138,7 +1139,7 @@ async fn health_and_reflection() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     assert_eq!(status, ServingStatus::Serving as i32);
-    for service in willow::api::grpc::SERVICE_NAMES {
+    for service in willow_service::api::grpc::SERVICE_NAMES {
         let s = health
             .check(check(service))
             .await
@@ -1490,7 +1491,7 @@ fn noisy_closed_curve(n: usize) -> Vec<f64> {
 
 /// The library's measures of a closed curve: (σ(κ)/κ̄ with its own dual lengths, length).
 fn curve_measures(xy: &[f64]) -> (f64, f64) {
-    use willow::flow::curve::{curvature_std_over_mean, dual_lengths, Curve};
+    use willow::curve::{curvature_std_over_mean, dual_lengths, Curve};
     let points: Vec<[f64; 2]> = xy.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
     let curve = Curve::new(points, true).expect("valid curve");
     let mut dual = vec![0.0; curve.points.len()];

@@ -781,10 +781,11 @@ async fn list_delete_and_expiry() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn probes_metrics_openapi_docs_cors_and_request_id() {
-    let options = willow::api::server::ServeOptions {
-        app: willow::api::server::AppOptions {
+    let options = willow_service::api::server::ServeOptions {
+        app: willow_service::api::server::AppOptions {
             cors_origins: vec![
-                willow::api::server::parse_origin("http://example.test").expect("an origin")
+                willow_service::api::server::parse_origin("http://example.test")
+                    .expect("an origin"),
             ],
             ..Default::default()
         },
@@ -958,9 +959,10 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn textured_upload_keeps_uvs_in_the_validated_result() {
     use willow::mesh::io::{Asset, Format};
-    let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot_triangulated.obj");
-    let input = std::fs::read(&path).expect("tests/data/spot_triangulated.obj (Spot, with UVs)");
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("crates/willow/tests/data/spot_triangulated.obj");
+    let input = std::fs::read(&path)
+        .expect("crates/willow/tests/data/spot_triangulated.obj (Spot, with UVs)");
     let limits = willow::mesh::Limits::default();
     let input_asset = Asset::read(&input, Format::Obj, &limits).expect("spot parses");
     let input_uvs = input_asset.corner_uvs().expect("spot has UVs");
@@ -1479,7 +1481,7 @@ fn noisy_closed_curve(n: usize) -> Vec<[f64; 2]> {
 
 /// The library's measures of a curve: (σ(κ)/κ̄ with its own dual lengths, total length).
 fn curve_measures(points: &[[f64; 2]], closed: bool) -> (f64, f64) {
-    use willow::flow::curve::{curvature_std_over_mean, dual_lengths, Curve};
+    use willow::curve::{curvature_std_over_mean, dual_lengths, Curve};
     let curve = Curve::new(points.to_vec(), closed).expect("valid curve");
     let mut dual = vec![0.0; points.len()];
     dual_lengths(&curve.edge_lengths(), closed, &mut dual);
@@ -1526,7 +1528,7 @@ async fn post_curve(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn curve_endpoint_rounds_a_noisy_curve_keeping_its_length() {
-    use willow::flow::curve::{Curve, CurveFlow, CurveParams};
+    use willow::curve::{Curve, CurveFlow, CurveParams};
     let srv = start(|_| {}).await;
     let input = noisy_closed_curve(256);
     let (before, length) = curve_measures(&input, true);

@@ -12,8 +12,8 @@ use service_http_support::{read_sse, slow_obj, small_obj, start_with, TestServer
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
-use willow::api::conn::ConnLimits;
-use willow::api::server::{parse_origin, AppOptions, ServeOptions};
+use willow_service::api::conn::ConnLimits;
+use willow_service::api::server::{parse_origin, AppOptions, ServeOptions};
 
 /// Extra time a cut may take beyond its timeout.
 const MARGIN: Duration = Duration::from_secs(3);
@@ -307,8 +307,8 @@ async fn slow_and_stalled_bodies_are_cut_and_real_uploads_work() {
 
 #[tokio::test]
 async fn grpc_upload_trickling_is_deadline_exceeded() {
-    use willow::api::grpc::pb::willow::v1;
-    use willow::api::grpc::pb::willow::v1::upload_mesh_chunk::Part;
+    use willow_service::api::grpc::pb::willow::v1;
+    use willow_service::api::grpc::pb::willow::v1::upload_mesh_chunk::Part;
     let srv = start(limits(|_| {})).await;
     let channel = tonic::transport::Channel::from_shared(srv.base.clone())
         .expect("uri")
@@ -486,8 +486,8 @@ async fn requests_per_connection_are_limited() {
 
 #[tokio::test]
 async fn sse_and_grpc_streams_outlive_the_timeouts() {
-    use willow::api::grpc::pb::willow::v1;
-    use willow::api::grpc::pb::willow::v1::stream_frames_response::Event;
+    use willow_service::api::grpc::pb::willow::v1;
+    use willow_service::api::grpc::pb::willow::v1::stream_frames_response::Event;
     let srv = start(limits(|c| {
         c.header_read_timeout = Duration::from_secs(1);
         c.body_timeout = Duration::from_secs(1);
@@ -731,7 +731,7 @@ fn serve_flags_have_defaults_and_are_validated() {
     #[derive(clap::Parser)]
     struct Cli {
         #[command(flatten)]
-        serve: willow::api::server::ServeArgs,
+        serve: willow_service::api::server::ServeArgs,
     }
     let parse = |args: &[&str]| {
         let mut all = vec!["willow"];

@@ -439,7 +439,7 @@ async fn cancel_through_api_b_a_job_running_from_api_a() {
 /// Retry-After, over gRPC with RESOURCE_EXHAUSTED; once they are done B accepts again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn queue_full_across_nodes_429_and_resource_exhausted() {
-    use willow::api::grpc::pb::willow::v1;
+    use willow_service::api::grpc::pb::willow::v1;
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();
     let nats = Nats::start(d);

@@ -10,8 +10,8 @@ use service_http_support::{
     assert_stored_upload_jobs_receive_no_mesh, obj, slow_obj, small_obj, spec,
 };
 use std::time::Duration;
-use willow::jobs::nats::{connect, NatsOptions};
-use willow::jobs::{Caller, Config, JobError, JobState, Jobs, Shutdown, TenantQuotas};
+use willow_service::jobs::nats::{connect, NatsOptions};
+use willow_service::jobs::{Caller, Config, JobError, JobState, Jobs, Shutdown, TenantQuotas};
 
 fn tenant(name: &str) -> Caller {
     Caller::new(name, "test").expect("tenant")
@@ -178,7 +178,7 @@ async fn nats_quotas_hold_across_nodes_and_are_recounted_at_connect() {
         }
     }
     assert_eq!((admitted.len(), refused), (5, 11), "{admitted:?}");
-    let refused_now = |r: Result<willow::jobs::JobStatus, JobError>| {
+    let refused_now = |r: Result<willow_service::jobs::JobStatus, JobError>| {
         matches!(
             r,
             Err(JobError::QuotaExceeded {
@@ -208,7 +208,7 @@ async fn nats_quotas_hold_across_nodes_and_are_recounted_at_connect() {
     // Wipe the counters: the nodes running now would admit again; a node connecting recounts.
     let client = async_nats::connect(nats.url()).await.expect("client");
     let kv = async_nats::jetstream::new(client)
-        .get_key_value(willow::jobs::nats::KV_BUCKET)
+        .get_key_value(willow_service::jobs::nats::KV_BUCKET)
         .await
         .expect("bucket");
     let mut keys = kv.keys().await.expect("keys");
@@ -253,7 +253,7 @@ async fn nats_stored_bytes_are_counted_and_given_back() {
     })
     .await;
     let a = tenant("alpha");
-    let bytes_refused = |r: Result<willow::jobs::JobStatus, JobError>, used: u64| match r {
+    let bytes_refused = |r: Result<willow_service::jobs::JobStatus, JobError>, used: u64| match r {
         Err(JobError::QuotaExceeded {
             quota: "stored_bytes",
             used: Some(u),

@@ -8,8 +8,8 @@ use service_http_support::{
     assert_stored_upload_jobs_receive_no_mesh, obj, slow_obj, small_obj, spec, Capture,
 };
 use std::time::Duration;
-use willow::jobs::{Caller, Config, JobError, JobState, Jobs, TenantQuotas, UploadRef};
 use willow::mesh::io::Format;
+use willow_service::jobs::{Caller, Config, JobError, JobState, Jobs, TenantQuotas, UploadRef};
 
 fn tenant(name: &str) -> Caller {
     Caller::new(name, &format!("{name}-key")).expect("a valid tenant id")

@@ -12,11 +12,11 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tonic::Code;
 use tonic_types::StatusExt;
-use willow::api::auth::{new_key, Auth, AuthConfig, AuthMode};
-use willow::api::grpc::pb::google::longrunning as lro;
-use willow::api::grpc::pb::willow::v1;
-use willow::api::server::{AppOptions, ServeOptions};
-use willow::jobs::{Config, Jobs, TenantQuotas};
+use willow_service::api::auth::{new_key, Auth, AuthConfig, AuthMode};
+use willow_service::api::grpc::pb::google::longrunning as lro;
+use willow_service::api::grpc::pb::willow::v1;
+use willow_service::api::server::{AppOptions, ServeOptions};
+use willow_service::jobs::{Config, Jobs, TenantQuotas};
 
 struct Server {
     base: String,
@@ -64,7 +64,7 @@ async fn start(quotas: TenantQuotas) -> (Server, Keys) {
         },
         ..Default::default()
     };
-    let task = tokio::spawn(willow::api::server::serve_with(
+    let task = tokio::spawn(willow_service::api::server::serve_with(
         listener,
         jobs,
         core,

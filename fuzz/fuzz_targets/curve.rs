@@ -4,7 +4,7 @@
 willow_fuzz::capped_allocator!();
 
 use libfuzzer_sys::fuzz_target;
-use willow::flow::curve::Curve;
+use willow::curve::Curve;
 
 fuzz_target!(|data: &[u8]| {
     for curve in [Curve::from_json(data), Curve::from_obj(data)]

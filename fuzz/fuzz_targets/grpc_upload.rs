@@ -7,7 +7,7 @@
 willow_fuzz::capped_allocator!();
 
 use libfuzzer_sys::fuzz_target;
-use willow::api::grpc::fuzzing::{create_job, upload_mesh};
+use willow_service::api::grpc::fuzzing::{create_job, upload_mesh};
 
 /// Upload limit of the assembly: small, so that inputs of a few KiB can exceed it.
 const LIMIT: u64 = 4096;

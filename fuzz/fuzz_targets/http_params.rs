@@ -6,7 +6,7 @@
 willow_fuzz::capped_allocator!();
 
 use libfuzzer_sys::fuzz_target;
-use willow::api::http::fuzzing::create_job_params;
+use willow_service::api::http::fuzzing::create_job_params;
 
 fuzz_target!(|data: &[u8]| {
     let result = match data.split_first() {

@@ -24,14 +24,14 @@ use tonic::{Code, Request, Response, Status, Streaming};
 use tonic_types::{ErrorDetails, StatusExt};
 
 use super::problem::cap_detail;
-use crate::flow::Method;
 use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{
     Caller, Frame, JobError, JobEvent, JobSpec, JobState, JobStatus, Jobs, UploadRef,
 };
-use crate::mesh::io::Format;
-use crate::metrics::StepMetrics;
+use willow::flow::Method;
+use willow::mesh::io::Format;
+use willow::metrics::StepMetrics;
 
 /// Code generated from `proto/` by `build.rs` (prost messages, tonic servers and clients).
 ///
@@ -1475,8 +1475,8 @@ pub mod fuzzing {
     use super::{spec_from_pb, v1, JobSpec, UploadAssembly};
     use crate::api::codec;
     use crate::jobs::Config;
-    use crate::mesh::io::Format;
     use tonic::Status;
+    use willow::mesh::io::Format;
 
     /// An `UploadMesh` stream whose messages arrive as the protobuf encodings in `messages`,
     /// decoded as the server's codec decodes them and assembled under an upload limit of

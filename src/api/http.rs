@@ -12,14 +12,12 @@
 
 use super::auth::SecurityAddon;
 use super::problem::{clip, Problem};
-use crate::flow::Method;
 use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{
     format_media_type, format_name, parse_format, rfc3339, Caller, JobEvent, JobSpec, JobState,
     JobStatus, Jobs, UploadRef,
 };
-use crate::mesh::io::Format;
 use axum::body::Body;
 use axum::extract::{FromRequest, Path, Request, State};
 use axum::http::{header, HeaderMap, HeaderName, HeaderValue, StatusCode, Uri};
@@ -34,6 +32,8 @@ use std::convert::Infallible;
 use std::time::Duration;
 use tokio_util::sync::CancellationToken;
 use utoipa::{IntoParams, OpenApi, ToSchema};
+use willow::flow::Method;
+use willow::mesh::io::Format;
 
 /// SSE keep-alive comments every 15 s: shorter than the 30–60 s idle timeouts of common
 /// proxies and load balancers, so a quiet stream (a long step) is not cut.
@@ -384,7 +384,7 @@ pub struct Progress {
 pub struct LatestMetrics {
     /// Metrics of the latest completed step (`null` before the job started).
     #[schema(value_type = Option<Object>)]
-    pub latest: Option<crate::metrics::StepMetrics>,
+    pub latest: Option<willow::metrics::StepMetrics>,
 }
 
 #[derive(Debug, Serialize, ToSchema)]
@@ -496,7 +496,7 @@ pub struct FramesQuery {
 pub struct FrameList {
     /// Metrics of each step, in order (`step` 0 is the input).
     #[schema(value_type = Vec<Object>)]
-    pub frames: Vec<crate::metrics::StepMetrics>,
+    pub frames: Vec<willow::metrics::StepMetrics>,
     /// Pass as `from_step` for the next page; absent on the last page.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub next_from_step: Option<usize>,
@@ -525,7 +525,7 @@ pub struct EventsQuery {
 pub struct FrameEvent {
     pub step: usize,
     #[schema(value_type = Object)]
-    pub metrics: crate::metrics::StepMetrics,
+    pub metrics: willow::metrics::StepMetrics,
     /// Little-endian f32 xyz per vertex in the uploaded file's vertex order, base64; present
     /// at the frame interval when the job includes positions.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -1191,7 +1191,7 @@ pub struct CurveResult {
     /// circle; `null` when the mean curvature is 0 but κ varies), `max_edge_length_distortion`,
     /// `closure_gap`, `poisson_residual`, `total_length`, `total_curvature`, `step_ms`.
     #[schema(value_type = Vec<Object>)]
-    pub metrics: Vec<crate::flow::curve::CurveStepMetrics>,
+    pub metrics: Vec<willow::curve::CurveStepMetrics>,
     /// The kept frames, present when `frame_interval` was given.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub frames: Option<Vec<CurveFrameView>>,

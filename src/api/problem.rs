@@ -186,7 +186,7 @@ impl From<JobError> for Problem {
                 p
             }
             JobError::InvalidCurve(curve) => {
-                use crate::flow::curve::CurveError;
+                use willow::curve::CurveError;
                 let p = Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail);
                 // Where in the input: a point index, or an OBJ line.
                 match curve {

@@ -7,7 +7,6 @@
 //! defaults and limits, from the same values [`JobSpec::validate`] checks against.
 
 use super::http::AppState;
-use crate::flow::Method;
 use crate::jobs::JobSpec;
 use axum::extract::{Path, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
@@ -15,6 +14,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use serde::Serialize;
+use willow::flow::Method;
 
 /// One embedded file of the page.
 pub struct Asset {
@@ -143,7 +143,7 @@ async fn config(State(st): State<AppState>) -> Json<PageConfig> {
             max_deadline_secs: c.max_deadline.as_secs_f64(),
             max_iterations: crate::jobs::MAX_ITERATIONS,
             max_filter_k: crate::jobs::spec::MAX_FILTER_K,
-            max_frame_angle: crate::flow::prescribed::MAX_FRAME_ANGLE,
+            max_frame_angle: willow::flow::prescribed::MAX_FRAME_ANGLE,
         },
         methods: Method::ALL.iter().map(|m| m.name().to_string()).collect(),
     })

@@ -12,7 +12,7 @@ use super::{fail, EXIT_BAD_INPUT, EXIT_FAILURE};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use willow::flow::curve::{Curve, CurveFlow, CurveParams};
+use willow::curve::{Curve, CurveFlow, CurveParams};
 use willow::flow::{new_flow, FlowParams, Method, Precision};
 use willow::mesh::generate::bumpy_sphere;
 use willow::mesh::io::{Asset, Format, Limits};

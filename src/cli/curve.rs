@@ -8,7 +8,7 @@ use clap::Args;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use willow::flow::curve::{Curve, CurveFlow, CurveParams};
+use willow::curve::{Curve, CurveFlow, CurveParams};
 
 #[derive(Args, Debug)]
 pub struct CurveArgs {

@@ -12,9 +12,9 @@ use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use willow::flow::{new_flow, FlowError, Method};
-use willow::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
-use willow::jobs::JobSpec;
 use willow::mesh::io::{Asset, Format, Limits};
+use willow_service::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
+use willow_service::jobs::JobSpec;
 
 #[derive(Args, Debug)]
 pub struct FairArgs {

@@ -26,7 +26,7 @@ pub enum KeysCommand {
 pub fn run(args: KeysArgs) -> ExitCode {
     match args.command {
         KeysCommand::New { tenant, name } => {
-            match willow::api::auth::new_key(&tenant, &name) {
+            match willow_service::api::auth::new_key(&tenant, &name) {
                 Ok((key, line)) => {
                     // stdout: the key, then the line (scripts take them apart); stderr: how.
                     eprintln!("API key (shown only now; give it to the client as `Authorization: Bearer <key>`):");

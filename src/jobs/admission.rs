@@ -8,9 +8,9 @@ use super::{
     audit, codec, join_err, mesh_error, now_ms, Caller, JobError, JobId, JobSpec, JobState,
     JobStatus, Jobs, UploadRef,
 };
-use crate::mesh::io::{Asset, Format};
 use std::sync::atomic::Ordering;
 use std::time::Instant;
+use willow::mesh::io::{Asset, Format};
 
 impl Jobs {
     /// Parse and validate the mesh (on a blocking thread), then store and enqueue the job.

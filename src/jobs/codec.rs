@@ -3,10 +3,10 @@
 //! after an upgrade by a newer binary: each form says how it stays readable.
 
 use super::{format_name, JobError, JobSpec};
-use crate::flow::FlowState;
-use crate::mesh::io::Format;
-use crate::metrics::StepMetrics;
 use sha2::{Digest, Sha256};
+use willow::flow::FlowState;
+use willow::mesh::io::Format;
+use willow::metrics::StepMetrics;
 
 /// The hash an idempotency key is bound to: format, spec and mesh bytes.
 pub fn request_hash(data: &[u8], format: Format, spec: &JobSpec) -> String {
@@ -25,7 +25,7 @@ pub fn request_hash(data: &[u8], format: Format, spec: &JobSpec) -> String {
 /// as a different request. New [`JobSpec`] fields go at the end here too, skipped at default.
 #[derive(serde::Serialize)]
 struct HashedSpec<'a> {
-    method: crate::flow::Method,
+    method: willow::flow::Method,
     steps: usize,
     tau: f64,
     iterations: usize,

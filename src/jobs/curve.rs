@@ -25,12 +25,12 @@
 //!   with [`JobError::Numerical`].
 
 use super::{join_err, Config, JobError, JobLimits, Jobs};
-use crate::flow::curve::{Curve, CurveError, CurveFlow, CurveParams, CurveStepMetrics};
 use bytes::Bytes;
 use serde::Serialize;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
+use willow::curve::{Curve, CurveError, CurveFlow, CurveParams, CurveStepMetrics};
 
 /// Longest a request waits for a curve slot. Requests take milliseconds, so a slot frees up
 /// quickly unless the server is saturated, and then a prompt 429 is more useful than a hang.

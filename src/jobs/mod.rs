@@ -42,14 +42,14 @@ pub mod worker;
 
 pub use model::*;
 
-use crate::mesh::io::{Asset, Format};
-use crate::mesh::MeshError;
-use crate::metrics::StepMetrics;
 use futures::Stream;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio_util::sync::CancellationToken;
+use willow::mesh::io::{Asset, Format};
+use willow::mesh::MeshError;
+use willow::metrics::StepMetrics;
 
 use ports::{Backend, BlobKey};
 /// One audit line (target `audit`) for a change a caller made: who (tenant and subject), what,

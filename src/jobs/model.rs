@@ -4,15 +4,15 @@
 //! transport, no backend.
 
 use super::{curve, spec};
-use crate::flow::curve::CurveError;
-use crate::flow::{FlowParams, Method};
-use crate::mesh::io::Format;
-use crate::mesh::{Limits, MeshError};
-use crate::metrics::StepMetrics;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use willow::curve::CurveError;
+use willow::flow::{FlowParams, Method};
+use willow::mesh::io::Format;
+use willow::mesh::{Limits, MeshError};
+use willow::metrics::StepMetrics;
 
 /// A job's identifier: a UUID v4 in its hyphenated lower-case text form.
 pub type JobId = String;
@@ -51,7 +51,7 @@ pub struct JobSpec {
     pub filter: Option<spec::FilterSpec>,
     /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
     pub boundary: spec::BoundarySpec,
-    /// Safeguarded steps (see [`crate::flow::safeguard`]): a step that raises W or damages the
+    /// Safeguarded steps (see [`willow::flow::safeguard`]): a step that raises W or damages the
     /// mesh is retried at a smaller τ. Every method; default on.
     pub safeguard: bool,
 }
@@ -168,10 +168,10 @@ impl JobSpec {
     }
 
     /// Checks that need the uploaded surface: one per-loop boundary angle per boundary loop.
-    pub fn validate_for_mesh(&self, mesh: &crate::mesh::Mesh) -> Result<(), JobError> {
+    pub fn validate_for_mesh(&self, mesh: &willow::mesh::Mesh) -> Result<(), JobError> {
         if let spec::BoundarySpec::Prescribed(p) = &self.boundary {
             if matches!(p.angles, spec::AnglesSpec::PerLoop(_)) {
-                let loops = crate::mesh::topology::Topology::new(mesh)
+                let loops = willow::mesh::topology::Topology::new(mesh)
                     .boundary_loops
                     .len();
                 spec::check_loop_count(&self.boundary, loops)
@@ -194,7 +194,7 @@ impl JobSpec {
             safeguard: self.safeguard,
             // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
             threads: 1,
-            precision: crate::flow::Precision::Auto,
+            precision: willow::flow::Precision::Auto,
         }
     }
 
@@ -205,7 +205,7 @@ impl JobSpec {
     }
 }
 
-pub use crate::flow::MAX_ITERATIONS;
+pub use willow::flow::MAX_ITERATIONS;
 
 /// Where a job is in its life. Terminal states: succeeded, failed, cancelled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

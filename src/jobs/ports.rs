@@ -21,11 +21,11 @@
 //!   `ack_wait`; embedded: on the next start of the process).
 
 use super::{JobError, JobEvent, JobId, JobSpec, JobState, JobStatus, TenantQuotas};
-use crate::mesh::io::Format;
-use crate::metrics::StepMetrics;
 use async_trait::async_trait;
 use futures::stream::BoxStream;
 use tokio_util::sync::CancellationToken;
+use willow::mesh::io::Format;
+use willow::metrics::StepMetrics;
 
 /// A job about to be admitted.
 #[derive(Clone, Debug)]

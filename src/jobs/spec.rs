@@ -10,13 +10,14 @@
 //! library). The same names are the field paths errors report: `filter.k`,
 //! `boundary.prescribed.axis.fixed`, and so on.
 
-use crate::flow::filter::SpectralFilter;
-use crate::flow::prescribed::MAX_FRAME_ANGLE;
-use crate::flow::{Boundary, BoundaryAngles, PrescribedVectors, RotationAxis};
 use serde::{Deserialize, Serialize};
+use willow::flow::filter::SpectralFilter;
+use willow::flow::{
+    Boundary, BoundaryAngles, FlowError, FlowParams, PrescribedVectors, RotationAxis,
+};
 
 /// Largest filter order: the library's `FilterSolver` builds `L (M⁻¹L)^{k−1}` for k ≤ 3.
-pub const MAX_FILTER_K: u32 = 3;
+pub const MAX_FILTER_K: u32 = willow::flow::filter::MAX_K;
 
 /// Spectral filter of the flow direction (§4): `v ← v − (id + σ(−Δ)^k)⁻¹ v`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -133,64 +134,29 @@ impl Default for AnglesSpec {
 /// What is wrong with a filter or boundary spec, as (field path, reason).
 pub type SpecViolation = (&'static str, String);
 
-/// Check a filter against the library's rules (`FilterSolver::new`), naming the field.
+/// Check a filter against the library's rules ([`FlowParams::validate`]), naming the field.
 pub fn check_filter(filter: &FilterSpec) -> Result<(), SpecViolation> {
-    if filter.k > MAX_FILTER_K {
-        return Err((
-            "filter.k",
-            format!("must be 0, 1, 2 or 3, got {}", filter.k),
-        ));
-    }
-    if !(filter.sigma.is_finite() && filter.sigma > 0.0) {
-        return Err((
-            "filter.sigma",
-            format!("must be a finite number > 0, got {}", filter.sigma),
-        ));
-    }
-    Ok(())
+    library_check(FlowParams {
+        filter: Some(filter.to_flow()),
+        ..FlowParams::default()
+    })
 }
 
-/// Check a boundary spec's numbers (the per-loop count needs the mesh: [`check_loop_count`]).
+/// Check a boundary spec's numbers (the per-loop count needs the mesh: [`check_loop_count`])
+/// against the library's rules ([`FlowParams::validate`]), naming the field.
 pub fn check_boundary(boundary: &BoundarySpec) -> Result<(), SpecViolation> {
-    let BoundarySpec::Prescribed(p) = boundary else {
-        return Ok(());
-    };
-    // §6.3.1: V = ±N (φ = ±π/2) makes the boundary problem non-elliptic (Bohle and Pinkall);
-    // the library keeps a margin from it, and the same bound here refuses the job at the door
-    // instead of failing it in the worker.
-    if !(p.frame_angle.is_finite() && p.frame_angle.abs() <= MAX_FRAME_ANGLE) {
-        return Err((
-            "boundary.prescribed.frame_angle",
-            format!(
-                "must be finite with |frame_angle| <= {MAX_FRAME_ANGLE} rad (V must stay away \
-                 from ±N, where the boundary problem is not elliptic, §6.3.1), got {}",
-                p.frame_angle
-            ),
-        ));
-    }
-    if let AxisSpec::Fixed(a) = p.axis {
-        let length = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
-        if !(a.iter().all(|c| c.is_finite()) && length > 0.0 && length.is_finite()) {
-            return Err((
-                "boundary.prescribed.axis.fixed",
-                format!("must be finite and non-zero, got {a:?}"),
-            ));
-        }
-    }
-    match &p.angles {
-        AnglesSpec::Uniform(a) if !a.is_finite() => Err((
-            "boundary.prescribed.angles.uniform",
-            format!("must be finite, got {a}"),
-        )),
-        AnglesSpec::PerLoop(list) => match list.iter().position(|a| !a.is_finite()) {
-            Some(i) => Err((
-                "boundary.prescribed.angles.per_loop",
-                format!("must be finite, got {} at index {i}", list[i]),
-            )),
-            None => Ok(()),
-        },
-        AnglesSpec::Uniform(_) => Ok(()),
-    }
+    library_check(FlowParams {
+        boundary: boundary.to_flow(),
+        ..FlowParams::default()
+    })
+}
+
+/// The library's verdict on parameters the spec sets, as (field path, reason).
+fn library_check(params: FlowParams) -> Result<(), SpecViolation> {
+    params.validate().map_err(|e| match e {
+        FlowError::InvalidParameter { name, reason } => (name, reason),
+        other => ("params", other.to_string()),
+    })
 }
 
 /// A per-loop angle list must have one angle per boundary loop of the mesh.

@@ -9,7 +9,7 @@
 //! dead worker.
 //!
 //! Checkpoints: every [`Config::checkpoint_steps`] steps or [`Config::checkpoint_interval`],
-//! whichever comes first, the flow's state ([`crate::flow::FlowState`]) goes to the blob store.
+//! whichever comes first, the flow's state ([`willow::flow::FlowState`]) goes to the blob store.
 //! A job delivered again after its worker died (or after a restart, or a shutdown) resumes from
 //! there instead of step 0: the store forgets the frames after the checkpoint, and the steps
 //! after it are taken again (watchers skip the step numbers they have seen).
@@ -21,13 +21,13 @@
 use super::codec::{decode_checkpoint, encode_checkpoint, f32s_to_bytes, f64s_to_bytes};
 use super::ports::{BlobKey, Lease};
 use super::{mesh_error, now_ms, Frame, Inner, JobError, JobEvent, JobState, JobStatus, Jobs};
-use crate::flow::{new_flow, Flow, FlowError};
-use crate::mesh::io::Asset;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::runtime::Handle;
 use tokio_util::sync::CancellationToken;
+use willow::flow::{new_flow, Flow, FlowError};
+use willow::mesh::io::Asset;
 
 /// Decrements the live-worker count however the loop ends (return or panic), so readiness
 /// reports a dead pool.
@@ -273,7 +273,7 @@ fn run_job(
         }
     };
 
-    let emit = |step: usize, mut metrics: crate::metrics::StepMetrics, positions: &[[f64; 3]]| {
+    let emit = |step: usize, mut metrics: willow::metrics::StepMetrics, positions: &[[f64; 3]]| {
         metrics.step = step;
         let payload = if spec.keeps_positions(step) {
             let file_order = asset.file_positions(positions);

@@ -4,9 +4,9 @@
 
 use futures::StreamExt;
 use std::time::{Duration, Instant};
-use willow::jobs::{Config, Jobs};
 use willow::mesh::generate;
 use willow::mesh::Mesh;
+use willow_service::jobs::{Config, Jobs};
 
 /// OBJ text of a mesh (1-based faces).
 pub fn obj_text(mesh: &Mesh) -> String {
@@ -184,14 +184,19 @@ pub async fn start(tweak: impl FnOnce(&mut Config)) -> TestServer {
 }
 
 pub async fn start_in(dir: tempfile::TempDir, tweak: impl FnOnce(&mut Config)) -> TestServer {
-    start_with(dir, tweak, willow::api::server::ServeOptions::default()).await
+    start_with(
+        dir,
+        tweak,
+        willow_service::api::server::ServeOptions::default(),
+    )
+    .await
 }
 
 /// [`start_in`] with CORS origins and connection limits.
 pub async fn start_with(
     dir: tempfile::TempDir,
     tweak: impl FnOnce(&mut Config),
-    options: willow::api::server::ServeOptions,
+    options: willow_service::api::server::ServeOptions,
 ) -> TestServer {
     let mut config = Config::new(dir.path());
     config.workers = 1;
@@ -203,7 +208,7 @@ pub async fn start_with(
         .expect("bind loopback");
     let base = format!("http://{}", listener.local_addr().expect("local addr"));
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let task = tokio::spawn(willow::api::server::serve_with(
+    let task = tokio::spawn(willow_service::api::server::serve_with(
         listener,
         jobs.clone(),
         core,
@@ -421,18 +426,18 @@ impl Capture {
 }
 
 /// An OBJ text as the job core's upload, for tests that call `Jobs` directly.
-pub fn obj(text: String) -> willow::jobs::UploadRef {
-    willow::jobs::UploadRef::Bytes {
+pub fn obj(text: String) -> willow_service::jobs::UploadRef {
+    willow_service::jobs::UploadRef::Bytes {
         data: bytes::Bytes::from(text),
         format: willow::mesh::io::Format::Obj,
     }
 }
 
 /// The default spec with `steps` steps.
-pub fn spec(steps: usize) -> willow::jobs::JobSpec {
-    willow::jobs::JobSpec {
+pub fn spec(steps: usize) -> willow_service::jobs::JobSpec {
+    willow_service::jobs::JobSpec {
         steps,
-        ..willow::jobs::JobSpec::default()
+        ..willow_service::jobs::JobSpec::default()
     }
 }
 
@@ -441,10 +446,10 @@ pub fn spec(steps: usize) -> willow::jobs::JobSpec {
 /// more mesh (the second), is refused a third with the quota's name and limit, and can still
 /// make a job from the stored upload.
 pub async fn assert_stored_upload_jobs_receive_no_mesh(
-    jobs: &willow::jobs::Jobs,
-    a: &willow::jobs::Caller,
+    jobs: &willow_service::jobs::Jobs,
+    a: &willow_service::jobs::Caller,
 ) {
-    use willow::jobs::{JobError, UploadRef};
+    use willow_service::jobs::{JobError, UploadRef};
     let upload_id = jobs
         .store_upload(a, small_obj().into(), willow::mesh::io::Format::Obj)
         .await

@@ -12,7 +12,7 @@
 
 use prost::Message as _;
 use std::path::{Path, PathBuf};
-use willow::api::grpc::pb::willow::v1;
+use willow_service::api::grpc::pb::willow::v1;
 use willow::mesh::io::{Asset, Format, Limits};
 
 type Error = Box<dyn std::error::Error>;

@@ -13,14 +13,14 @@ use super::super::ports::{
 use super::super::{
     format_name, join_err, now_ms, parse_format, poisoned, JobError, JobSpec, JobState, JobStatus,
 };
-use crate::mesh::io::Format;
-use crate::metrics::StepMetrics;
 use async_trait::async_trait;
 use base64::Engine as _;
 use rusqlite::{params, Connection, OptionalExtension};
 use std::fs;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
+use willow::mesh::io::Format;
+use willow::metrics::StepMetrics;
 
 /// How long a connection waits for a lock held by another connection (only relevant if an
 /// operator opens the database alongside the server) before failing the call.

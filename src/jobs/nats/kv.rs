@@ -19,8 +19,6 @@ use super::super::ports::{
 use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
 use super::{nats_err, retry, Nats};
 use crate::jobs::embedded::sqlite::check_id;
-use crate::mesh::io::Format;
-use crate::metrics::StepMetrics;
 use async_nats::jetstream::kv::{CreateErrorKind, UpdateErrorKind};
 use async_nats::jetstream::stream::DirectGetErrorKind;
 use async_trait::async_trait;
@@ -30,6 +28,8 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::sync::Arc;
 use std::time::Duration;
+use willow::mesh::io::Format;
+use willow::metrics::StepMetrics;
 
 /// A job as kept in KV.
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -6,18 +6,14 @@
 
 pub mod classic;
 pub mod constraints;
-pub mod curve;
 pub mod dirac;
 pub mod dirichlet;
 pub mod exactness;
 pub mod filter;
 pub mod mobius;
-pub mod ordering;
 pub mod prescribed;
 pub mod safeguard;
 pub mod scale;
-pub mod solver;
-pub mod supernodal;
 pub mod willmore;
 
 use crate::mesh::Mesh;
@@ -189,6 +185,54 @@ pub struct FlowParams {
     pub threads: usize,
     /// How the conformal flow factors the Dirac matrix X (see [`Precision`]).
     pub precision: Precision,
+}
+
+impl FlowParams {
+    /// Checks every parameter that does not need the mesh, naming the first bad one by its
+    /// field path (`tau`, `filter.k`, `boundary.prescribed.axis.fixed`, ...), as the service's
+    /// errors do. Every flow calls it when it is built; the CLI and the job service call it
+    /// before a job is accepted. What needs the mesh (the per-loop angle count, a vertex on the
+    /// boundary, Taubin's pass band) is checked when the flow is built.
+    pub fn validate(&self) -> Result<(), FlowError> {
+        let invalid = |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
+        if !(self.tau.is_finite() && self.tau > 0.0) {
+            return Err(invalid(
+                "tau",
+                format!("must be a positive finite number, got {}", self.tau),
+            ));
+        }
+        if self.iterations == 0 || self.iterations > MAX_ITERATIONS {
+            return Err(invalid(
+                "iterations",
+                format!(
+                    "must be between 1 and {MAX_ITERATIONS}, got {}",
+                    self.iterations
+                ),
+            ));
+        }
+        if self.threads == 0 {
+            return Err(invalid("threads", "must be at least 1, got 0".into()));
+        }
+        if let Some(f) = self.filter {
+            if f.k > filter::MAX_K {
+                return Err(invalid(
+                    "filter.k",
+                    format!("must be 0, 1, 2 or 3, got {}", f.k),
+                ));
+            }
+            if !(f.sigma.is_finite() && f.sigma > 0.0) {
+                return Err(invalid(
+                    "filter.sigma",
+                    format!("must be a finite number > 0, got {}", f.sigma),
+                ));
+            }
+        }
+        if let Boundary::Prescribed(p) = &self.boundary {
+            p.validate()
+                .map_err(|(name, e)| invalid(name, e.to_string()))?;
+        }
+        Ok(())
+    }
 }
 
 /// The arithmetic of the Dirac matrix's factor in the conformal flow.

@@ -3,10 +3,9 @@
 
 use super::safeguard::Retry;
 use super::scale::ScalePolicy;
-use super::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
-use super::willmore::check_params;
 use super::{Flow, FlowError, FlowParams};
 use crate::geometry::cache::GeometryCache;
+use crate::linalg::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
 use crate::mesh::topology::Topology;
 use crate::mesh::Mesh;
 use crate::metrics::{StepMetrics, StepReporter};
@@ -50,7 +49,7 @@ fn laplacian_solver(
 
 impl ImplicitMeanCurvatureFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
-        check_params(params)?;
+        params.validate()?;
         let topology = Topology::new(mesh);
         let pattern = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 1);
         let cholesky = laplacian_solver(&pattern, params)?;
@@ -262,7 +261,7 @@ pub struct ConformalizedMeanCurvatureFlow {
 
 impl ConformalizedMeanCurvatureFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
-        check_params(params)?;
+        params.validate()?;
         let topology = Topology::new(mesh);
         for (index, component) in topology.components.iter().enumerate() {
             if component.genus != 0 || !component.is_closed() {
@@ -369,7 +368,7 @@ pub struct ImplicitBilaplacianFlow {
 
 impl ImplicitBilaplacianFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
-        check_params(params)?;
+        params.validate()?;
         let setup_error = |reason: String| FlowError::Numerical { step: 0, reason };
         let topology = Topology::new(mesh);
         let n = mesh.vertex_count();
@@ -511,7 +510,7 @@ pub struct TaubinSmoothing {
 impl TaubinSmoothing {
     /// λ = τ and μ from the default pass band (see the type's docs).
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
-        check_params(params)?;
+        params.validate()?;
         let lambda = params.tau;
         if lambda * TAUBIN_PASS_BAND >= 1.0 {
             return Err(FlowError::InvalidParameter {

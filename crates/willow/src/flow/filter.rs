@@ -12,13 +12,16 @@
 //! The products `L (M⁻¹L)^{j}` have fixed patterns (the j-ring): their symbolic products and
 //! the Cholesky analysis are done once, the numeric products and factorization every step.
 
-use super::solver::{BlockPattern, Cholesky};
+use crate::linalg::solver::{BlockPattern, Cholesky};
 use faer::sparse::linalg::matmul::{
     sparse_sparse_matmul_numeric, sparse_sparse_matmul_symbolic, SparseMatMulInfo,
 };
 use faer::sparse::{SparseColMatMut, SparseColMatRef, SymbolicSparseColMat};
 use faer::{Accum, Par};
 use serde::{Deserialize, Serialize};
+
+/// Largest filter order k: [`FilterSolver`] builds `L (M⁻¹L)^{k−1}` for k ≤ 3.
+pub const MAX_K: u32 = 3;
 
 /// Filter parameters (§4): strength σ (unitless, see the module docs) and shape k ∈ 0..=3.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -61,7 +64,7 @@ pub struct FilterSolver {
 
 impl FilterSolver {
     pub fn new(pattern: &BlockPattern, filter: SpectralFilter) -> Result<Self, FilterError> {
-        if filter.k > 3 {
+        if filter.k > MAX_K {
             return Err(FilterError::BadOrder(filter.k));
         }
         if !(filter.sigma.is_finite() && filter.sigma > 0.0) {

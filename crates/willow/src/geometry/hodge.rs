@@ -18,7 +18,7 @@ use faer::sparse::{SparseColMat, Triplet};
 
 use super::operators::{barycentric_vertex_areas, corner_cotangents, corner_cotangents_into};
 use super::vec3::{add, cross, dot, norm, scale, sub};
-use crate::flow::solver::{BlockPattern, Cholesky, SolverError};
+use crate::linalg::solver::{BlockPattern, Cholesky, SolverError};
 use crate::mesh::generate::SplitMix64;
 use crate::mesh::{Mesh, Topology};
 

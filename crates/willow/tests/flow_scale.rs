@@ -128,7 +128,7 @@ fn two_components_flow_alike_on_any_thread_count_and_precision() {
             .iter()
             .map(|t| [t[0] + offset, t[1] + offset, t[2] + offset]),
     );
-    assert!(mesh.vertex_count() >= willow::flow::ordering::ND_MIN_VERTICES);
+    assert!(mesh.vertex_count() >= willow::linalg::ordering::ND_MIN_VERTICES);
     let params = |threads, precision| FlowParams {
         method: Method::Conformal,
         tau: 0.1,

@@ -1,7 +1,7 @@
 //! Isometric curve flow (paper §5): each test asserts a number the math predicts.
 
 use std::f64::consts::{PI, TAU};
-use willow::flow::curve::{
+use willow::curve::{
     dual_inner, dual_lengths, edge_lengths, project_out_closure_constraints, rotate_edges,
     tangent_angles, tangents, turning_angles, ConstraintBasis, Curve, CurveError, CurveFlow,
     CurveParams, CurvePoisson,

@@ -16,10 +16,10 @@
 //! symbolic factorization and every buffer are built once per flow.
 
 use super::dirac::{dirac_face_entry, opposite_edges};
-use super::solver::{BlockPattern, Cholesky};
 use super::{BoundaryAngles, PrescribedVectors, RotationAxis};
 use crate::geometry::vec3::{cross, dot, norm, scale, sub};
 use crate::geometry::Quaternion;
+use crate::linalg::solver::{BlockPattern, Cholesky};
 use crate::mesh::topology::Topology;
 
 /// Largest |φ| accepted: `V` must stay away from `±N`, where the boundary problem stops being
@@ -172,6 +172,48 @@ impl BoundaryVertices {
     }
 }
 
+impl PrescribedVectors {
+    /// The checks that need no mesh, each with the field path that names it in a job spec:
+    /// φ away from ±π/2 (§6.3.1: `V = ±N` is not elliptic), a finite non-zero fixed axis,
+    /// finite angles.
+    pub fn validate(&self) -> Result<(), (&'static str, PrescribedError)> {
+        if !(self.frame_angle.is_finite() && self.frame_angle.abs() <= MAX_FRAME_ANGLE) {
+            return Err((
+                "boundary.prescribed.frame_angle",
+                PrescribedError::FrameAngle(self.frame_angle),
+            ));
+        }
+        if let RotationAxis::Fixed(a) = self.axis {
+            let len = norm(a);
+            if !(a.iter().all(|c| c.is_finite()) && len.is_finite() && len > 0.0) {
+                return Err(("boundary.prescribed.axis.fixed", PrescribedError::Axis(a)));
+            }
+        }
+        let bad = |a: &f64| !a.is_finite();
+        match &self.angles {
+            BoundaryAngles::Uniform(a) if bad(a) => Err((
+                "boundary.prescribed.angles.uniform",
+                PrescribedError::Angle(*a),
+            )),
+            BoundaryAngles::PerLoop(list) => match list.iter().find(|a| bad(a)) {
+                Some(a) => Err((
+                    "boundary.prescribed.angles.per_loop",
+                    PrescribedError::Angle(*a),
+                )),
+                None => Ok(()),
+            },
+            BoundaryAngles::PerVertex(list) => match list.iter().find(|(_, a)| bad(a)) {
+                Some((_, a)) => Err((
+                    "boundary.prescribed.angles.per_vertex",
+                    PrescribedError::Angle(*a),
+                )),
+                None => Ok(()),
+            },
+            BoundaryAngles::Uniform(_) => Ok(()),
+        }
+    }
+}
+
 /// The targets `Ṽ` of §6.3.1 on the input surface: its `V` rotated as `spec` says.
 pub fn boundary_targets(
     spec: &PrescribedVectors,
@@ -180,9 +222,7 @@ pub fn boundary_targets(
     positions: &[[f64; 3]],
     normals: &[[f64; 3]],
 ) -> Result<Vec<[f64; 3]>, PrescribedError> {
-    if !(spec.frame_angle.is_finite() && spec.frame_angle.abs() <= MAX_FRAME_ANGLE) {
-        return Err(PrescribedError::FrameAngle(spec.frame_angle));
-    }
+    spec.validate().map_err(|(_, e)| e)?;
     let fixed_axis = match spec.axis {
         RotationAxis::Tangent => None,
         RotationAxis::Fixed(a) => {
@@ -216,9 +256,6 @@ pub fn boundary_targets(
                 angles[s] = a;
             }
         }
-    }
-    if let Some(bad) = angles.iter().find(|a| !a.is_finite()) {
-        return Err(PrescribedError::Angle(*bad));
     }
     boundary
         .triples

@@ -13,11 +13,11 @@
 //! X is a complex Hermitian `2|V| × 2|V|` matrix: half the factorization time and memory of the
 //! real `4|V|` form with identical λ (SOLVER.md, "the complex form").
 
-#[cfg(doc)]
-use super::solver::Cholesky;
-use super::solver::{BlockPattern, SolverError};
 use crate::geometry::vec3::sub;
 use crate::geometry::Quaternion;
+#[cfg(doc)]
+use crate::linalg::solver::Cholesky;
+use crate::linalg::solver::{BlockPattern, SolverError};
 use faer::c64;
 
 /// The per-face quaternion `X_ij` of Appendix G.
@@ -345,7 +345,7 @@ pub(crate) mod tests {
     }
 
     fn triangle_assembly_matches(mesh: &crate::mesh::Mesh) {
-        use crate::flow::solver::Cholesky;
+        use crate::linalg::solver::Cholesky;
         let n = mesh.vertex_count();
         let pattern = BlockPattern::new(n, &mesh.triangles, 2);
         let areas = crate::geometry::face_areas(mesh);

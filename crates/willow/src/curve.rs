@@ -40,7 +40,7 @@
 //! 0.12–0.14 ms for the first step of a very noisy curve (every edge turns by more than π/4).
 //!
 //! ```
-//! use willow::flow::curve::{Curve, CurveFlow, CurveParams};
+//! use willow::curve::{Curve, CurveFlow, CurveParams};
 //! // A wavy closed curve, r = 1 + 0.1 cos 3t, sampled at 100 points.
 //! let points = (0..100)
 //!     .map(|i| {
@@ -59,7 +59,7 @@
 //! assert!(m.curvature_std_over_mean < 1e-2); // round
 //! assert!((m.total_length / length - 1.0).abs() < 1e-3); // and as long as before
 //! assert!((m.total_curvature - std::f64::consts::TAU).abs() < 1e-9); // turning number 1
-//! # Ok::<(), willow::flow::curve::CurveError>(())
+//! # Ok::<(), willow::curve::CurveError>(())
 //! ```
 
 use serde::{Deserialize, Serialize};

@@ -6,7 +6,7 @@
 //! definite, the free block is exactly the original one, and the solve returns the
 //! prescribed values unchanged at fixed vertices.
 
-use super::solver::BlockPattern;
+use crate::linalg::solver::BlockPattern;
 use faer::c64;
 
 /// Apply to a block-2 complex matrix whose unknowns are quaternions in complex form:

@@ -1589,8 +1589,8 @@ fn solve_narrow<T: Scalar>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::flow::solver::tests::{assert_solves_hermitian_system, hermitian_block_values};
-    use crate::flow::solver::{BlockPattern, Cholesky};
+    use crate::linalg::solver::tests::{assert_solves_hermitian_system, hermitian_block_values};
+    use crate::linalg::solver::{BlockPattern, Cholesky};
     use crate::mesh::generate::icosphere;
     use faer::linalg::matmul::matmul;
     use faer::{Accum, Mat};
@@ -1700,7 +1700,7 @@ mod tests {
     /// gives the threads separate subtrees; the test checks that they were used.
     #[test]
     fn quaternionic_factor_of_the_dirac_matrix_matches_the_full_factor() {
-        use crate::flow::ordering::Ordering;
+        use crate::linalg::ordering::Ordering;
         // X(ρ) of Appendix G with a potential and a diagonal shift that keep it definite.
         let (mesh, pattern, values) = crate::flow::dirac::tests::assembled_dirac(4, 0.3, 2.0);
         let n = mesh.vertex_count();
@@ -1791,7 +1791,7 @@ mod tests {
 
     #[test]
     fn threads_give_the_same_factor_bit_for_bit() {
-        use crate::flow::ordering::Ordering;
+        use crate::linalg::ordering::Ordering;
         let (_, pattern, values) = hermitian_system(5);
         for ordering in [Ordering::NestedDissection, Ordering::Amd] {
             let mut one = Cholesky::<c64>::analyze_with(&pattern, 1, ordering).expect("analyze");

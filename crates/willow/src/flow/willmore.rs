@@ -21,17 +21,17 @@ use super::dirichlet;
 use super::exactness::Exactness;
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
-use super::ordering::{self, Ordering};
 use super::prescribed::{PrescribedError, PrescribedSolver, SurfaceState};
 use super::scale::ScalePolicy;
-use super::solver::{
-    add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky, Mixed, NotConverged,
-    SolverError,
-};
 use super::{Boundary, Flow, FlowError, FlowParams, Precision, PrescribedVectors, StepProfile};
 use crate::geometry::cache::GeometryCache;
 use crate::geometry::vec3::{norm2, sub};
 use crate::geometry::Quaternion;
+use crate::linalg::ordering::{self, Ordering};
+use crate::linalg::solver::{
+    add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky, Mixed, NotConverged,
+    SolverError,
+};
 use crate::mesh::topology::Topology;
 use crate::mesh::Mesh;
 use crate::metrics::{StepMetrics, StepReporter};
@@ -239,7 +239,7 @@ pub struct ConformalFlow {
 
 impl ConformalFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
-        check_params(params)?;
+        params.validate()?;
         let mut setup = StepProfile::default();
         setup.start();
         let parallel = params.threads > 1;
@@ -1131,26 +1131,6 @@ fn normalize_per_component(
         };
         *l = l.scale(factor);
     }
-}
-
-pub(super) fn check_params(params: &FlowParams) -> Result<(), FlowError> {
-    if !(params.tau.is_finite() && params.tau > 0.0) {
-        return Err(FlowError::InvalidParameter {
-            name: "tau",
-            reason: format!("must be a positive finite number, got {}", params.tau),
-        });
-    }
-    if params.iterations == 0 || params.iterations > super::MAX_ITERATIONS {
-        return Err(FlowError::InvalidParameter {
-            name: "iterations",
-            reason: format!(
-                "must be between 1 and {}, got {}",
-                super::MAX_ITERATIONS,
-                params.iterations
-            ),
-        });
-    }
-    Ok(())
 }
 
 impl super::safeguard::Retry for ConformalFlow {

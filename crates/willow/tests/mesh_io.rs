@@ -50,7 +50,7 @@ fn assert_seams_closed(a: &Asset, moved: &[[f64; 3]]) {
 // Khronos glTF-Validator
 
 fn tools_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/tools")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/tools")
 }
 
 /// Runs the Khronos validator on `bytes`; fails on any error. Skipped only with

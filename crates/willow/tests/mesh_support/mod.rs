@@ -120,7 +120,7 @@ pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
     let candidates = match std::env::var_os("WILLOW_SHARED_MESHES") {
         Some(dir) => vec![std::path::PathBuf::from(dir)],
         None => vec![
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/meshes"),
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/meshes"),
             std::path::PathBuf::from("/work/shared/meshes"),
         ],
     };

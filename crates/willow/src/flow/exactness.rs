@@ -28,9 +28,9 @@
 
 use super::constraints::ConstraintBasis;
 use super::dirac::opposite_edges;
-use super::solver::Cholesky;
 use crate::geometry::hodge::{harmonic_vector_field_into, HarmonicBasisSolver, HodgeError};
 use crate::geometry::Quaternion;
+use crate::linalg::solver::Cholesky;
 use crate::mesh::topology::Topology;
 use faer::c64;
 

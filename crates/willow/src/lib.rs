@@ -1,0 +1,58 @@
+//! Willow: mesh fairing by conformal Willmore flow.
+//!
+//! Crane, Pinkall and Schröder, "Robust Fairing via Conformal Curvature Flow" (SIGGRAPH 2013).
+//! The modules stack one way, each using only those above it:
+//!
+//! - [`mesh`]: the welded triangle surface the flow sees ([`mesh::Mesh`]), its topology and
+//!   validation, and reading/writing OBJ, glTF and GLB with UVs and textures carried through
+//!   ([`mesh::io::Asset`]).
+//! - [`geometry`]: discrete operators on a `Mesh` (cotan Laplacian, vertex areas, normals,
+//!   mean curvature, the Dirac-free Hodge machinery) and quaternions.
+//! - [`linalg`]: the sparse linear algebra every flow factors with: the fixed block pattern, the
+//!   Cholesky factorization reused across steps (symbolic once, numeric per step), the
+//!   supernodal kernels and the fill-reducing orderings.
+//! - [`flow`]: one step at a time of conformal Willmore flow (Table 1, right column) and of the
+//!   classic flows it is compared with; a [`flow::Flow`] owns no threads and never blocks.
+//! - [`curve`]: the isometric flow of planar curves (§5), a sibling of `flow`.
+//! - [`metrics`]: what each step reports ([`metrics::StepMetrics`]): Willmore energy,
+//!   quasi-conformal error Q, closure residual.
+//!
+//! ```
+//! use willow::flow::{new_flow, FlowParams};
+//! use willow::mesh::io::{Asset, Format, Limits};
+//!
+//! // Spot (Keenan Crane's cow, public domain), with its UVs.
+//! let bytes = include_bytes!("../tests/data/spot_triangulated.obj");
+//! let asset = Asset::read(bytes, Format::Obj, &Limits::default())?;
+//! let params = FlowParams { tau: 0.1, ..FlowParams::default() };
+//! params.validate()?;
+//! let mut flow = new_flow(asset.surface(), &params)?;
+//! let first = flow.step()?;
+//! let second = flow.step()?;
+//! assert!(second.willmore_energy < first.willmore_energy);
+//! println!("step {}: W = {:.3}, mean Q = {:.4}", second.step, second.willmore_energy, second.q_mean);
+//! // The file comes back as it was (UVs, seams, materials), with the new positions.
+//! let glb = asset.write(flow.positions(), Format::Glb)?;
+//! assert!(glb.starts_with(b"glTF"));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+//!
+//! This crate has no async runtime, no transport, no database and no build script: a CAD
+//! pipeline adds it in one line. The service (`willow-service`: jobs, HTTP, gRPC, the web page
+//! and the CLI) is built on top of it.
+
+// Geometry code indexes triangle corners as `c, c + 1, c + 2 (mod 3)`, exactly as the paper's
+// formulas do; rewriting those loops as iterator chains would hide the math.
+#![allow(clippy::needless_range_loop)]
+
+pub mod curve;
+pub mod flow;
+pub mod geometry;
+pub mod linalg;
+pub mod mesh;
+pub mod metrics;
+
+// The README's library example compiles as a doctest of this crate.
+#[cfg(doctest)]
+#[doc = include_str!("../../../README.md")]
+struct ReadmeExamples;
