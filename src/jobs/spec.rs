@@ -143,12 +143,15 @@ pub fn check_filter(filter: &FilterSpec) -> Result<(), SpecViolation> {
 }
 
 /// Check a boundary spec's numbers (the per-loop count needs the mesh: [`check_loop_count`])
-/// against the library's rules ([`FlowParams::validate`]), naming the field.
+/// against the library's rules (`PrescribedVectors::validate`), naming the field.
 pub fn check_boundary(boundary: &BoundarySpec) -> Result<(), SpecViolation> {
-    library_check(FlowParams {
-        boundary: boundary.to_flow(),
-        ..FlowParams::default()
-    })
+    match boundary {
+        BoundarySpec::Prescribed(p) => p
+            .to_flow()
+            .validate()
+            .map_err(|(field, e)| (field, e.to_string())),
+        _ => Ok(()),
+    }
 }
 
 /// The library's verdict on parameters the spec sets, as (field path, reason).

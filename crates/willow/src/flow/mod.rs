@@ -189,12 +189,12 @@ pub struct FlowParams {
 
 impl FlowParams {
     /// Checks every parameter that does not need the mesh, naming the first bad one by its
-    /// field path (`tau`, `filter.k`, `boundary.prescribed.axis.fixed`, ...), as the service's
-    /// errors do. Every flow calls it when it is built; the CLI and the job service call it
+    /// field path (`tau`, `filter.k`, `boundary`, ...). Every flow calls it when it is built; the CLI and the job service call it
     /// before a job is accepted. What needs the mesh (the per-loop angle count, a vertex on the
     /// boundary, Taubin's pass band) is checked when the flow is built.
     pub fn validate(&self) -> Result<(), FlowError> {
-        let invalid = |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
+        let invalid =
+            |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
         if !(self.tau.is_finite() && self.tau > 0.0) {
             return Err(invalid(
                 "tau",
@@ -227,9 +227,11 @@ impl FlowParams {
                 ));
             }
         }
+        // The library names the whole `boundary` (its errors always have); the job service
+        // reports the field path that `PrescribedVectors::validate` gives.
         if let Boundary::Prescribed(p) = &self.boundary {
             p.validate()
-                .map_err(|(name, e)| invalid(name, e.to_string()))?;
+                .map_err(|(_, e)| invalid("boundary", e.to_string()))?;
         }
         Ok(())
     }
