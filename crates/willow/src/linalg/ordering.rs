@@ -2,7 +2,7 @@
 //!
 //! Every matrix the flows factor lives on the vertex graph (one vertex ring per column), so one
 //! vertex ordering, expanded to the matrix's blocks, serves the Laplacian and the Dirac matrix
-//! alike (SOLVER.md: AMD on the vertex graph gives the same fill as AMD on the expanded pattern
+//! alike (docs/solver.md: AMD on the vertex graph gives the same fill as AMD on the expanded pattern
 //! at half the symbolic cost).
 //!
 //! Two orderings, chosen by size ([`Ordering::for_vertices`]): approximate minimum degree
