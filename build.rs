@@ -2,7 +2,7 @@
 //!
 //! protox (a protobuf compiler written in Rust) parses the .proto files, so a fresh machine needs
 //! no system `protoc`; tonic-prost-build turns the descriptors into prost messages and tonic
-//! server and client stubs in `OUT_DIR` (see SERVICE-RESEARCH.md §1). The encoded descriptor set
+//! server and client stubs in `OUT_DIR` (see docs/service-research.md §1). The encoded descriptor set
 //! is written beside them for the reflection service.
 //!
 //! The web page (issue 13): `npm ci` in `web/` when `web/node_modules` is missing or the lock

@@ -75,7 +75,7 @@ const ZERO_EDGE_RTOL: f64 = 1e-12;
 const CUSP_SIN_RTOL: f64 = 1e-12;
 
 /// A constraint function whose norm after orthogonalization falls below this fraction of its
-/// norm before is linearly dependent on the earlier ones and is dropped (ALGORITHM.md §3).
+/// norm before is linearly dependent on the earlier ones and is dropped (docs/algorithm.md §3).
 const GRAM_SCHMIDT_DROP_RTOL: f64 = 1e-10;
 
 /// OBJ `v` lines may carry a z coordinate; it must be 0 up to this fraction of the largest

@@ -1,6 +1,6 @@
 //! The classic flows of the paper's Figure 17 beside implicit MCF (issue 4, item 6):
 //! conformalized MCF, implicit bi-Laplacian flow and Taubin λ|μ smoothing, through the same
-//! `Flow` interface and metrics, and the torus comparison of ALGORITHM.md §10.
+//! `Flow` interface and metrics, and the torus comparison of docs/algorithm.md §10.
 
 use std::f64::consts::PI;
 use willow::flow::classic::TaubinSmoothing;
@@ -327,7 +327,7 @@ fn torus_run(mesh: &Mesh, method: Method, tau: f64) -> TorusRun {
     run
 }
 
-/// ALGORITHM.md §10 on a bumpy torus (R/r = 2.5), 10 steps each. Measured: the conformal flow
+/// docs/algorithm.md §10 on a bumpy torus (R/r = 2.5), 10 steps each. Measured: the conformal flow
 /// reaches the energy of the round torus of revolution in its conformal class (W/2π² 2.32 →
 /// 1.36) with Q ≈ 1.04; implicit MCF and the bi-Laplacian flow remove the bumps, then pinch
 /// the tube (W rises, Q explodes, factorizations fail); Taubin λ|μ neither degenerates nor

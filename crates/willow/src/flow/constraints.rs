@@ -7,7 +7,7 @@
 //! vanishes on a component (after orthogonalization) it is dropped there.
 
 /// Relative norm below which an orthogonalized function is considered dependent and dropped
-/// (ALGORITHM.md §3).
+/// (docs/algorithm.md §3).
 const DEPENDENT: f64 = 1e-10;
 
 pub struct ConstraintBasis {

@@ -11,7 +11,7 @@
 //!
 //! Each quaternion entry is stored as its 2×2 complex matrix ([`Quaternion::to_complex`]), so
 //! X is a complex Hermitian `2|V| × 2|V|` matrix: half the factorization time and memory of the
-//! real `4|V|` form with identical λ (SOLVER.md, "the complex form").
+//! real `4|V|` form with identical λ (docs/solver.md, "the complex form").
 
 use crate::geometry::vec3::sub;
 use crate::geometry::Quaternion;

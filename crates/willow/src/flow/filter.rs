@@ -3,7 +3,7 @@
 //! k = 2 approximates position-based Willmore flow).
 //!
 //! With the PSD cotan Laplacian `L` and lumped mass `M` (`−Δ = M⁻¹L`), the weak form is
-//! `(M + σ L (M⁻¹L)^{k−1}) x = M v`, an SPD system (ALGORITHM.md §8); a mode of `−Δ` with
+//! `(M + σ L (M⁻¹L)^{k−1}) x = M v`, an SPD system (docs/algorithm.md §8); a mode of `−Δ` with
 //! eigenvalue μ keeps the fraction `σμ^k / (1 + σμ^k)` of its speed. σ is given unitless:
 //! internally it is `σ · R^{2k}` with `R² = area / 4π`, so on a unit sphere (where the
 //! eigenvalues of −Δ are l(l+1)) σ = (l(l+1))^{−k} puts the crossover at spherical degree l,

@@ -1,4 +1,4 @@
-//! Scale policy (ALGORITHM.md §6, decision): after every step each connected component gets
+//! Scale policy (docs/algorithm.md §6, decision): after every step each connected component gets
 //! back the area-weighted centroid and the total area it had in the input, so a CAD pipeline
 //! receives its part where it was, at its size. The conformal flow determines positions only
 //! up to a similarity (Eq. 6), and implicit MCF shrinks; both use this.

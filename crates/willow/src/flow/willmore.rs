@@ -4,7 +4,7 @@
 //! 1. flow direction `v = −2H` (§6.1: `μ̇ = −2μ`), projected onto the constraints (Table 1
 //!    III–IV; §6.2): normals `N^{x,y,z}` (no sphere inversions, App. D) and `1` (total
 //!    curvature, App. B), per closed component;
-//! 2. `ρ = τ·P(v) = −2τ·P(H)` (ALGORITHM.md §2: with this convention τ has the paper's §4
+//! 2. `ρ = τ·P(v) = −2τ·P(H)` (docs/algorithm.md §2: with this convention τ has the paper's §4
 //!    meaning, `u ← (1 − 2τ)u`, stable for τ < 1);
 //! 3. smallest eigenvector of `(D − ρ)λ = γλ` (Eq. 5) by inverse iteration on `X(ρ)`
 //!    (App. G), starting from `λ ≡ 1` because the previous surface is the reference;
@@ -156,7 +156,7 @@ pub const MIXED_MIN_VERTICES: usize = 100_000;
 /// Diagonal shift of X relative to its mean diagonal, scaled per vertex by relative area:
 /// large enough that LLᴴ never meets a non-positive pivot on the constant-quaternion kernel at
 /// ρ ≈ 0, small enough that inverse iteration still amplifies the near-null direction
-/// (ALGORITHM.md §5, pitfall 4).
+/// (docs/algorithm.md §5, pitfall 4).
 const DIRAC_SHIFT: f64 = 1e-9;
 /// The same for the Poisson system `L + εM`, whose kernel is the constants per component.
 const POISSON_SHIFT: f64 = 1e-10;
@@ -536,7 +536,7 @@ impl ConformalFlow {
             }
         }
         if let Some(filter) = &mut self.filter {
-            // §4 / ALGORITHM.md §3: filter the direction before projecting it.
+            // §4 / docs/algorithm.md §3: filter the direction before projecting it.
             filter
                 .apply(
                     &self.laplace_pattern,
@@ -936,7 +936,7 @@ impl ConformalFlow {
             // differential λ̄ df λ onto gradients of piecewise linear maps (the cotan matrix is
             // the P1 stiffness matrix; Wardetzky et al. 2007, "Discrete Laplace operators: no
             // free lunch"). T_f is linear in e, so every face closes exactly (Σ e = 0).
-            // The edge integral ∫_edge λ̄ e λ (weights ⅓, ⅙, ⅙, ⅓; ALGORITHM.md §6) does
+            // The edge integral ∫_edge λ̄ e λ (weights ⅓, ⅙, ⅙, ⅓; docs/algorithm.md §6) does
             // not close a face, and on needles the gap is far wider than the face: on
             // botijo_genus5_irregular (a 0.005°/179.6° face, width 1e-4 of its length) it
             // folded the needle out of its plane in one step at τ = 0.02 (one vertex's H

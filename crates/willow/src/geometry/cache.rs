@@ -1,8 +1,8 @@
 //! The per-step geometry of a moving surface, refilled in place.
 //!
 //! Connectivity never changes during a flow, so every buffer is sized once; `refresh` after
-//! the positions move recomputes everything the flows and metrics read (STYLE.md: explicit
-//! cache, explicit refill).
+//! the positions move recomputes everything the flows and metrics read: an explicit cache
+//! with an explicit refill, never a recomputation hidden in a getter.
 
 use super::operators::{
     barycentric_vertex_areas_into, corner_cotangents_into, cotan_laplacian_apply_into,

@@ -190,7 +190,7 @@ fn face_edge_signs(tri: &[usize; 3]) -> [f64; 3] {
 // ---------------------------------------------------------------------------------------------
 
 /// Hodge star on 0-forms: the diagonal of barycentric vertex areas, `(⋆0)_ii = A_i = Σ_{f∋i}
-/// A_f / 3` (ALGORITHM.md §1: the flow's lumped mass matrix and inner product).
+/// A_f / 3` (docs/algorithm.md §1: the flow's lumped mass matrix and inner product).
 pub fn star0(mesh: &Mesh) -> Vec<f64> {
     barycentric_vertex_areas(mesh)
 }
@@ -598,7 +598,7 @@ fn codifferential_into(edges: &[[usize; 2]], weights: &[f64], form: &[f64], out:
 ///   Neumann condition at boundary vertices),
 /// - orthonormal in `⟨a, b⟩ = aᵀ ⋆1 b = Σ_e w_e a_e b_e`.
 ///
-/// Steps (App. C.1 I–III, ALGORITHM.md §7), Hodge decomposition `α = d0 φ + δβ + h` after
+/// Steps (App. C.1 I–III, docs/algorithm.md §7), Hodge decomposition `α = d0 φ + δβ + h` after
 /// Desbrun et al. 2008:
 ///
 /// 1. (`new`, once) random 1-forms `α_i`, uniform in `[−1, 1)` per edge from a SplitMix64

@@ -141,7 +141,7 @@ pub fn cotan_laplacian(mesh: &Mesh) -> faer::sparse::SparseColMat<usize, f64> {
         .expect("triplet indices are vertex indices of a valid mesh")
 }
 
-/// Pointwise mean curvature `H_i = ⟨(L f)_i, N_i⟩ / (2 A_i)` (ALGORITHM.md §1): projecting the
+/// Pointwise mean curvature `H_i = ⟨(L f)_i, N_i⟩ / (2 A_i)` (docs/algorithm.md §1): projecting the
 /// curvature normal onto N keeps the sign (H > 0 on an outward sphere).
 pub fn mean_curvature_into(
     laplacian_f: &[[f64; 3]],

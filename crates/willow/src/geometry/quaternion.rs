@@ -1,4 +1,4 @@
-//! Quaternions `w + xi + yj + zk` (real part first everywhere, ALGORITHM.md pitfall 3).
+//! Quaternions `w + xi + yj + zk` (real part first everywhere, docs/algorithm.md pitfall 3).
 //!
 //! Vectors of R³ are imaginary quaternions (paper §2.3): `q̄ v q` rotates and scales `v`.
 
@@ -105,7 +105,7 @@ impl Quaternion {
     ///
     /// This map is an injective ring homomorphism from H into 2×2 complex matrices that sends
     /// conjugation to the conjugate transpose, so a quaternion-Hermitian |V|×|V| matrix becomes a
-    /// complex Hermitian 2|V|×2|V| one with half the flops of the 4×4 real form (SOLVER.md).
+    /// complex Hermitian 2|V|×2|V| one with half the flops of the 4×4 real form (docs/solver.md).
     pub fn to_complex(self) -> [[c64; 2]; 2] {
         [
             [c64::new(self.w, self.x), c64::new(self.y, self.z)],
