@@ -93,7 +93,7 @@ pub enum MeshError {
     NonFinite { vertices: Offenders<usize> },
 
     /// Some coordinates are finite but larger in magnitude than
-    /// [`MAX_COORDINATE`](super::validate::MAX_COORDINATE): the flow's squared quantities would
+    /// `MAX_COORDINATE`: the flow's squared quantities would
     /// overflow or lose all precision later, so they are refused when the mesh is read.
     #[error(
         "{} vertices have coordinates of magnitude above {limit:e}; first: {}; scale the model down",

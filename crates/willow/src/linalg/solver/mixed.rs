@@ -62,7 +62,7 @@ pub struct Mixed {
     single_rhs: Vec<c32>,
     /// Iterations and backward error of the last solve.
     pub last_iterations: usize,
-    /// Where the last solve gave up early on a kept factor ([`kept_factor_is_hopeless`]).
+    /// Where the last solve gave up early on a kept factor (`kept_factor_is_hopeless`).
     pub gave_up_after: Option<usize>,
     pub last_backward_error: f64,
     /// Whether the factor is of a matrix that was (`factored`), whether it is of an earlier

@@ -159,7 +159,7 @@ impl BlockPattern {
     }
 
     /// A fill-reducing ordering `(fwd, inv)` of the vertex graph alone: every pattern of the
-    /// same mesh shares it ([`Cholesky::analyze_with_vertex_order`]), so a flow that factors
+    /// same mesh shares it ([`Cholesky::analyze_with_vertex_order`](super::Cholesky::analyze_with_vertex_order)), so a flow that factors
     /// several matrices orders its graph once.
     pub fn vertex_order(
         &self,
