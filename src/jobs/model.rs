@@ -195,6 +195,9 @@ impl JobSpec {
             // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
             threads: 1,
             precision: willow::flow::Precision::Auto,
+            // Regions are the library's so far; the job spec does not carry them yet.
+            regions: Vec::new(),
+            seam: willow::flow::region::Seam::default(),
         }
     }
 

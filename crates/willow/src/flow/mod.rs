@@ -12,6 +12,7 @@ pub mod exactness;
 pub mod filter;
 pub mod mobius;
 pub mod prescribed;
+pub mod region;
 pub mod safeguard;
 pub mod scale;
 pub mod willmore;
@@ -185,6 +186,11 @@ pub struct FlowParams {
     pub threads: usize,
     /// How the conformal flow factors the Dirac matrix X (see [`Precision`]).
     pub precision: Precision,
+    /// The part of the surface that moves ([`region`]): empty, the whole surface; otherwise
+    /// the union of these regions, everything else held exactly where it was.
+    pub regions: Vec<region::Region>,
+    /// How a region meets the surface around it (ignored without regions).
+    pub seam: region::Seam,
 }
 
 impl FlowParams {
@@ -227,6 +233,9 @@ impl FlowParams {
                 ));
             }
         }
+        for r in &self.regions {
+            r.validate().map_err(|reason| invalid("region", reason))?;
+        }
         // The library names the whole `boundary` (its errors always have); the job service
         // reports the field path that `PrescribedVectors::validate` gives.
         if let Boundary::Prescribed(p) = &self.boundary {
@@ -268,6 +277,8 @@ impl Default for FlowParams {
             safeguard: true,
             threads: 1,
             precision: Precision::Auto,
+            regions: Vec::new(),
+            seam: region::Seam::default(),
         }
     }
 }
@@ -400,6 +411,9 @@ pub fn new_flow(mesh: &Mesh, params: &FlowParams) -> Result<Box<dyn Flow>, FlowE
             &mesh.triangles,
             params.safeguard,
         ))
+    }
+    if !params.regions.is_empty() {
+        return Ok(Box::new(region::RegionFlow::new(mesh, params)?));
     }
     Ok(match params.method {
         Method::Conformal => guard(willmore::ConformalFlow::new(mesh, params)?, mesh, params),

@@ -239,6 +239,26 @@ pub struct ConformalFlow {
 
 impl ConformalFlow {
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
+        Self::build(mesh, params, None)
+    }
+
+    /// The flow with the vertices of `pinned` held exactly where they are, by the Dirichlet
+    /// conditions of a fixed boundary (§6.3.2: λ = 1 and the input position there) wherever
+    /// the pinned vertices lie: what a region of a larger surface flows with
+    /// ([`super::region`]), its surroundings pinned.
+    pub(crate) fn with_pinned(
+        mesh: &Mesh,
+        params: &FlowParams,
+        pinned: Vec<bool>,
+    ) -> Result<Self, FlowError> {
+        Self::build(mesh, params, Some(pinned))
+    }
+
+    fn build(
+        mesh: &Mesh,
+        params: &FlowParams,
+        pinned: Option<Vec<bool>>,
+    ) -> Result<Self, FlowError> {
         params.validate()?;
         let mut setup = StepProfile::default();
         setup.start();
@@ -275,8 +295,10 @@ impl ConformalFlow {
             .iter()
             .map(|&c| topology.components[c].is_closed())
             .collect();
-        let fixed = (params.boundary == Boundary::Fixed && !topology.boundary_loops.is_empty())
-            .then(|| topology.boundary_vertex_mask(n));
+        let fixed = pinned.or_else(|| {
+            (params.boundary == Boundary::Fixed && !topology.boundary_loops.is_empty())
+                .then(|| topology.boundary_vertex_mask(n))
+        });
         let boundary_vertex =
             (!topology.boundary_loops.is_empty()).then(|| topology.boundary_vertex_mask(n));
 

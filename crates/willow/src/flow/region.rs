@@ -1,0 +1,467 @@
+//! Fairing a part of a surface: the region moves, everything else stays exactly where it was.
+//!
+//! A region is a set of vertices (a sphere, a box, a list, or several of them together). The
+//! flow runs on the *submesh* around it, with the surrounding vertices held by the Dirichlet
+//! conditions of a fixed boundary (§6.3.2: λ = 1 and the input position there), so a step
+//! costs what the region costs, not what the whole mesh does. The seam decides how many rings
+//! of the surroundings are held:
+//! - [`Seam::Fixed`]: one ring, the vertices adjacent to the region: the border stays where it
+//!   was (C0); the surface may meet it at an angle.
+//! - [`Seam::Smooth`]: two rings: the held ring next to the region and the one beyond it fix the
+//!   border's positions *and* its tangent planes, the discrete form of holding the boundary
+//!   vectors at the surrounding surface's frame (§6.3.1), so the faired surface leaves the
+//!   border tangent to the surface around it (G1 up to the mesh's resolution).
+//!
+//! Vertices outside the region are never written: they are bit-identical to the input. The
+//! metrics a region flow reports are those of the submesh (the region and its held rings).
+
+use super::safeguard::Safeguarded;
+use super::willmore::ConformalFlow;
+use super::{Boundary, Flow, FlowError, FlowParams, FlowState, Method, StepProfile};
+use crate::mesh::Mesh;
+use crate::metrics::StepMetrics;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+/// One way to name vertices of the mesh, in its own units and numbering.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum Region {
+    /// Every vertex within `radius` of `center` (the boundary included).
+    Sphere { center: [f64; 3], radius: f64 },
+    /// Every vertex with `min ≤ p ≤ max` in each coordinate.
+    Box { min: [f64; 3], max: [f64; 3] },
+    /// These vertices (indices into the mesh's vertices).
+    Vertices(Vec<usize>),
+}
+
+/// How the region meets the surface around it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Seam {
+    /// The border's positions stay (C0).
+    Fixed,
+    /// The border's positions and tangent planes stay (G1).
+    #[default]
+    Smooth,
+}
+
+impl Seam {
+    /// Rings of the surroundings held by Dirichlet conditions.
+    pub const fn held_rings(self) -> usize {
+        match self {
+            Seam::Fixed => 1,
+            Seam::Smooth => 2,
+        }
+    }
+}
+
+impl Region {
+    /// The checks that need no mesh: finite numbers, a positive radius, an ordered box.
+    pub fn validate(&self) -> Result<(), String> {
+        let finite = |p: &[f64; 3]| p.iter().all(|x| x.is_finite());
+        match self {
+            Region::Sphere { center, radius } => {
+                if !finite(center) {
+                    return Err(format!("sphere center must be finite, got {center:?}"));
+                }
+                if !(radius.is_finite() && *radius > 0.0) {
+                    return Err(format!(
+                        "sphere radius must be a finite number > 0, got {radius}"
+                    ));
+                }
+            }
+            Region::Box { min, max } => {
+                if !(finite(min) && finite(max)) {
+                    return Err(format!("box corners must be finite, got {min:?}, {max:?}"));
+                }
+                if (0..3).any(|a| min[a] > max[a]) {
+                    return Err(format!("box min must not exceed max, got {min:?}, {max:?}"));
+                }
+            }
+            Region::Vertices(list) => {
+                if list.is_empty() {
+                    return Err("the vertex list is empty".into());
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Marks the vertices this region names in `selected`; an index past the mesh is an error.
+    pub fn select_into(&self, positions: &[[f64; 3]], selected: &mut [bool]) -> Result<(), String> {
+        match self {
+            Region::Sphere { center, radius } => {
+                for (s, p) in selected.iter_mut().zip(positions) {
+                    let d2 = (0..3).map(|a| (p[a] - center[a]).powi(2)).sum::<f64>();
+                    *s |= d2 <= radius * radius;
+                }
+            }
+            Region::Box { min, max } => {
+                for (s, p) in selected.iter_mut().zip(positions) {
+                    *s |= (0..3).all(|a| min[a] <= p[a] && p[a] <= max[a]);
+                }
+            }
+            Region::Vertices(list) => {
+                for &v in list {
+                    let s = selected.get_mut(v).ok_or_else(|| {
+                        format!(
+                            "vertex {v} is outside the mesh ({} vertices)",
+                            positions.len()
+                        )
+                    })?;
+                    *s = true;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The vertices the union of `regions` names.
+pub fn select(positions: &[[f64; 3]], regions: &[Region]) -> Result<Vec<bool>, String> {
+    let mut selected = vec![false; positions.len()];
+    for r in regions {
+        r.select_into(positions, &mut selected)?;
+    }
+    Ok(selected)
+}
+
+/// The part of a mesh a region flows on.
+#[derive(Clone, Debug)]
+pub struct Submesh {
+    /// The faces around the region, on their own vertices.
+    pub mesh: Mesh,
+    /// The full mesh's vertex of each submesh vertex.
+    pub to_full: Vec<usize>,
+    /// Submesh vertices held by Dirichlet conditions: every one outside the region.
+    pub held: Vec<bool>,
+}
+
+/// The faces touching the region grown by `rings − 1` rings, and the stars of any vertex where
+/// those faces would pinch (meet in two fans): the submesh must be a manifold surface.
+pub fn submesh(mesh: &Mesh, moving: &[bool], rings: usize) -> Submesh {
+    let n = mesh.vertex_count();
+    let mut grown = moving.to_vec();
+    for _ in 1..rings {
+        let mut next = grown.clone();
+        for t in &mesh.triangles {
+            if t.iter().any(|&v| grown[v]) {
+                for &v in t {
+                    next[v] = true;
+                }
+            }
+        }
+        grown = next;
+    }
+    let mut in_sub: Vec<bool> = mesh
+        .triangles
+        .iter()
+        .map(|t| t.iter().any(|&v| grown[v]))
+        .collect();
+    // Vertex → faces, to add a whole star where the submesh pinches.
+    let mut star_ptr = vec![0usize; n + 1];
+    for t in &mesh.triangles {
+        for &v in t {
+            star_ptr[v + 1] += 1;
+        }
+    }
+    for v in 0..n {
+        star_ptr[v + 1] += star_ptr[v];
+    }
+    let mut star = vec![0usize; star_ptr[n]];
+    let mut fill = star_ptr.clone();
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        for &v in t {
+            star[fill[v]] = f;
+            fill[v] += 1;
+        }
+    }
+    loop {
+        let pinched = pinched_vertices(mesh, &in_sub);
+        if pinched.is_empty() {
+            break;
+        }
+        for v in pinched {
+            for &f in &star[star_ptr[v]..star_ptr[v + 1]] {
+                in_sub[f] = true;
+            }
+        }
+    }
+    let mut local = vec![usize::MAX; n];
+    let mut to_full = Vec::new();
+    let mut triangles = Vec::new();
+    for (t, _) in mesh.triangles.iter().zip(&in_sub).filter(|(_, &s)| s) {
+        triangles.push(t.map(|v| {
+            if local[v] == usize::MAX {
+                local[v] = to_full.len();
+                to_full.push(v);
+            }
+            local[v]
+        }));
+    }
+    let positions = to_full.iter().map(|&v| mesh.positions[v]).collect();
+    let held = to_full.iter().map(|&v| !moving[v]).collect();
+    Submesh {
+        mesh: Mesh {
+            positions,
+            triangles,
+        },
+        to_full,
+        held,
+    }
+}
+
+/// Vertices where the faces marked `in_sub` meet in more than one fan: more than two of their
+/// edges are boundary edges of the marked set.
+fn pinched_vertices(mesh: &Mesh, in_sub: &[bool]) -> Vec<usize> {
+    let mut edge_faces: HashMap<(usize, usize), u32> = HashMap::new();
+    for (t, _) in mesh.triangles.iter().zip(in_sub).filter(|(_, &s)| s) {
+        for c in 0..3 {
+            let (a, b) = (t[c], t[(c + 1) % 3]);
+            *edge_faces.entry((a.min(b), a.max(b))).or_default() += 1;
+        }
+    }
+    let mut boundary_edges: HashMap<usize, u32> = HashMap::new();
+    for (&(a, b), &count) in &edge_faces {
+        if count == 1 {
+            *boundary_edges.entry(a).or_default() += 1;
+            *boundary_edges.entry(b).or_default() += 1;
+        }
+    }
+    let mut pinched: Vec<usize> = boundary_edges
+        .into_iter()
+        .filter(|&(_, count)| count > 2)
+        .map(|(v, _)| v)
+        .collect();
+    pinched.sort_unstable();
+    pinched
+}
+
+/// The conformal flow of a region: its submesh flows with the surroundings held, and the
+/// region's vertices are written back into the whole surface after each step.
+pub struct RegionFlow {
+    inner: Box<dyn Flow>,
+    to_full: Vec<usize>,
+    /// Submesh vertices inside the region: the only ones ever written back.
+    moving: Vec<usize>,
+    positions: Vec<[f64; 3]>,
+}
+
+impl RegionFlow {
+    pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
+        params.validate()?;
+        let invalid = |reason: String| FlowError::InvalidParameter {
+            name: "region",
+            reason,
+        };
+        if params.method != Method::Conformal {
+            return Err(invalid(format!(
+                "a region is faired by the conformal flow only, not by `{}`",
+                params.method.name()
+            )));
+        }
+        let selected = select(&mesh.positions, &params.regions).map_err(invalid)?;
+        let count = selected.iter().filter(|&&s| s).count();
+        if count == 0 {
+            return Err(invalid("the region selects no vertex of the mesh".into()));
+        }
+        if count == selected.len() {
+            return Err(invalid(
+                "the region selects every vertex: leave it out to fair the whole surface".into(),
+            ));
+        }
+        let sub = submesh(mesh, &selected, params.seam.held_rings());
+        let inner_params = FlowParams {
+            regions: Vec::new(),
+            boundary: Boundary::Fixed,
+            ..params.clone()
+        };
+        let flow = ConformalFlow::with_pinned(&sub.mesh, &inner_params, sub.held.clone())?;
+        let inner: Box<dyn Flow> = Box::new(Safeguarded::new(
+            flow,
+            &sub.mesh.triangles,
+            params.safeguard,
+        ));
+        let moving = (0..sub.to_full.len()).filter(|&s| !sub.held[s]).collect();
+        Ok(RegionFlow {
+            inner,
+            to_full: sub.to_full,
+            moving,
+            positions: mesh.positions.clone(),
+        })
+    }
+
+    fn write_back(&mut self) {
+        let sub = self.inner.positions();
+        for &s in &self.moving {
+            self.positions[self.to_full[s]] = sub[s];
+        }
+    }
+}
+
+impl Flow for RegionFlow {
+    fn step(&mut self) -> Result<StepMetrics, FlowError> {
+        let metrics = self.inner.step()?;
+        self.write_back();
+        Ok(metrics)
+    }
+
+    fn positions(&self) -> &[[f64; 3]] {
+        &self.positions
+    }
+
+    fn initial_metrics(&self) -> StepMetrics {
+        self.inner.initial_metrics()
+    }
+
+    fn profile(&self) -> Option<&StepProfile> {
+        self.inner.profile()
+    }
+
+    fn setup_profile(&self) -> Option<&StepProfile> {
+        self.inner.setup_profile()
+    }
+
+    /// The whole surface's positions (so a resumed job writes the whole file), with the inner
+    /// flow's metrics and step-size control.
+    fn checkpoint(&self) -> Option<FlowState> {
+        self.inner.checkpoint().map(|state| FlowState {
+            positions: self.positions.clone(),
+            ..state
+        })
+    }
+
+    fn resume(&mut self, state: &FlowState) -> Result<(), FlowError> {
+        if state.positions.len() != self.positions.len() {
+            return Err(FlowError::InvalidParameter {
+                name: "checkpoint",
+                reason: format!(
+                    "holds {} vertices, the mesh has {}",
+                    state.positions.len(),
+                    self.positions.len()
+                ),
+            });
+        }
+        let sub_state = FlowState {
+            positions: self.to_full.iter().map(|&v| state.positions[v]).collect(),
+            ..state.clone()
+        };
+        self.inner.resume(&sub_state)?;
+        self.write_back();
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate::icosphere;
+    use crate::mesh::Topology;
+
+    #[test]
+    fn a_sphere_region_selects_what_lies_within_its_radius() {
+        let mesh = icosphere(2);
+        let regions = [Region::Sphere {
+            center: [0.0, 0.0, 1.0],
+            radius: 0.5,
+        }];
+        let selected = select(&mesh.positions, &regions).expect("valid");
+        for (p, &s) in mesh.positions.iter().zip(&selected) {
+            let d = (p[0].powi(2) + p[1].powi(2) + (p[2] - 1.0).powi(2)).sqrt();
+            assert_eq!(s, d <= 0.5, "{p:?} at {d}");
+        }
+        assert!(selected.iter().any(|&s| s));
+    }
+
+    #[test]
+    fn regions_add_up_and_bad_indices_are_named() {
+        let mesh = icosphere(1);
+        let both = select(
+            &mesh.positions,
+            &[
+                Region::Vertices(vec![0, 1]),
+                Region::Box {
+                    min: [-2.0, -2.0, 0.9],
+                    max: [2.0, 2.0, 2.0],
+                },
+            ],
+        )
+        .expect("valid");
+        assert!(both[0] && both[1]);
+        let err = select(&mesh.positions, &[Region::Vertices(vec![10_000])]).unwrap_err();
+        assert!(err.contains("vertex 10000"), "{err}");
+    }
+
+    #[test]
+    fn the_submesh_is_a_disk_with_its_held_rings_outside_the_region() {
+        let mesh = icosphere(3);
+        let selected = select(
+            &mesh.positions,
+            &[Region::Sphere {
+                center: [0.0, 0.0, 1.0],
+                radius: 0.4,
+            }],
+        )
+        .expect("valid");
+        for seam in [Seam::Fixed, Seam::Smooth] {
+            let sub = submesh(&mesh, &selected, seam.held_rings());
+            let topology = Topology::new(&sub.mesh);
+            assert_eq!(topology.boundary_loops.len(), 1, "{seam:?}");
+            assert_eq!(topology.genus(), 0);
+            // Every boundary vertex is held, and every region vertex is free.
+            for v in topology
+                .boundary_vertex_mask(sub.to_full.len())
+                .iter()
+                .enumerate()
+            {
+                if *v.1 {
+                    assert!(sub.held[v.0], "{seam:?}: free boundary vertex");
+                }
+            }
+            for (s, &full) in sub.to_full.iter().enumerate() {
+                assert_eq!(sub.held[s], !selected[full]);
+                assert_eq!(sub.mesh.positions[s], mesh.positions[full]);
+            }
+            let moving = selected.iter().filter(|&&s| s).count();
+            assert_eq!(sub.held.iter().filter(|&&h| !h).count(), moving);
+            let rings = sub.held.iter().filter(|&&h| h).count();
+            assert!(rings > 0 && sub.to_full.len() < mesh.vertex_count());
+        }
+        let fixed = submesh(&mesh, &selected, 1).to_full.len();
+        let smooth = submesh(&mesh, &selected, 2).to_full.len();
+        assert!(smooth > fixed, "two held rings hold more than one");
+    }
+
+    #[test]
+    fn bad_regions_are_refused_with_the_reason() {
+        let cases = [
+            (
+                Region::Sphere {
+                    center: [0.0, f64::NAN, 0.0],
+                    radius: 1.0,
+                },
+                "finite",
+            ),
+            (
+                Region::Sphere {
+                    center: [0.0; 3],
+                    radius: 0.0,
+                },
+                "radius",
+            ),
+            (
+                Region::Box {
+                    min: [1.0, 0.0, 0.0],
+                    max: [0.0, 1.0, 1.0],
+                },
+                "min",
+            ),
+            (Region::Vertices(vec![]), "empty"),
+        ];
+        for (region, needle) in cases {
+            let err = region.validate().unwrap_err();
+            assert!(err.contains(needle), "{err:?} lacks {needle:?}");
+        }
+    }
+}

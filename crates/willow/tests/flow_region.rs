@@ -1,0 +1,317 @@
+//! Fairing a region: only the region moves (bit for bit), it fairs, and its seam holds.
+//!
+//! Every check here is computed in the test from positions and faces (face normals, areas,
+//! the triangle's affine map), not from Willow's metrics, except W, which the flow reports.
+
+use willow::flow::region::{select, Region, Seam};
+use willow::flow::{new_flow, FlowError, FlowParams, Method};
+use willow::mesh::generate::{bumpy_cap, pretzel, with_noise};
+use willow::mesh::io::{Asset, Format, Limits};
+use willow::mesh::Mesh;
+
+/// Spot's right ear (found by rendering the mesh with this sphere marked).
+const EAR: Region = Region::Sphere {
+    center: [0.40, 0.72, -0.20],
+    radius: 0.15,
+};
+
+fn spot() -> Asset {
+    let bytes = include_bytes!("data/spot_triangulated.obj");
+    Asset::read(bytes, Format::Obj, &Limits::default()).expect("spot reads")
+}
+
+fn params(regions: Vec<Region>, seam: Seam) -> FlowParams {
+    FlowParams {
+        regions,
+        seam,
+        ..FlowParams::default()
+    }
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn face_normal(p: &[[f64; 3]], t: [usize; 3]) -> [f64; 3] {
+    let n = cross(sub(p[t[1]], p[t[0]]), sub(p[t[2]], p[t[0]]));
+    let l = dot(n, n).sqrt();
+    [n[0] / l, n[1] / l, n[2] / l]
+}
+
+/// The quasi-conformal distortion of the affine map from the input triangle to the current
+/// one: the ratio of its singular values, from the two triangles' edge vectors in their own
+/// planes.
+fn face_q(input: &[[f64; 3]], now: &[[f64; 3]], t: [usize; 3]) -> f64 {
+    let frame = |p: &[[f64; 3]]| {
+        let e1 = sub(p[t[1]], p[t[0]]);
+        let e2 = sub(p[t[2]], p[t[0]]);
+        let l1 = dot(e1, e1).sqrt();
+        let u = [e1[0] / l1, e1[1] / l1, e1[2] / l1];
+        let n = cross(e1, e2);
+        let w = cross(n, e1);
+        let lw = dot(w, w).sqrt();
+        let v = [w[0] / lw, w[1] / lw, w[2] / lw];
+        // Columns: e1 and e2 in the triangle's own orthonormal frame.
+        [[l1, dot(e2, u)], [0.0, dot(e2, v)]]
+    };
+    let a = frame(input);
+    let b = frame(now);
+    // M = B A⁻¹ (2×2), then its singular value ratio.
+    let det_a = a[0][0] * a[1][1] - a[0][1] * a[1][0];
+    let inv = [
+        [a[1][1] / det_a, -a[0][1] / det_a],
+        [-a[1][0] / det_a, a[0][0] / det_a],
+    ];
+    let m = [
+        [
+            b[0][0] * inv[0][0] + b[0][1] * inv[1][0],
+            b[0][0] * inv[0][1] + b[0][1] * inv[1][1],
+        ],
+        [
+            b[1][0] * inv[0][0] + b[1][1] * inv[1][0],
+            b[1][0] * inv[0][1] + b[1][1] * inv[1][1],
+        ],
+    ];
+    let fro2 = m[0][0].powi(2) + m[0][1].powi(2) + m[1][0].powi(2) + m[1][1].powi(2);
+    let det = (m[0][0] * m[1][1] - m[0][1] * m[1][0]).abs();
+    let disc = (fro2 * fro2 - 4.0 * det * det).max(0.0).sqrt();
+    let s1 = ((fro2 + disc) / 2.0).sqrt();
+    let s2 = ((fro2 - disc) / 2.0).max(0.0).sqrt();
+    s1 / s2
+}
+
+/// Mean angle between the normals of the two faces of each edge on the region's border (one
+/// face touching a moving vertex, the other not).
+fn border_normal_jump(mesh: &Mesh, moving: &[bool], p: &[[f64; 3]]) -> f64 {
+    use std::collections::HashMap;
+    let mut edges: HashMap<(usize, usize), Vec<usize>> = HashMap::new();
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        for c in 0..3 {
+            let (a, b) = (t[c], t[(c + 1) % 3]);
+            edges.entry((a.min(b), a.max(b))).or_default().push(f);
+        }
+    }
+    let touches = |f: usize| mesh.triangles[f].iter().any(|&v| moving[v]);
+    let (mut sum, mut count) = (0.0, 0usize);
+    for faces in edges.values() {
+        if let [f, g] = faces[..] {
+            if touches(f) != touches(g) {
+                let c = dot(
+                    face_normal(p, mesh.triangles[f]),
+                    face_normal(p, mesh.triangles[g]),
+                );
+                sum += c.clamp(-1.0, 1.0).acos();
+                count += 1;
+            }
+        }
+    }
+    assert!(count > 0, "the region has no border");
+    sum / count as f64
+}
+
+struct Outcome {
+    w0: f64,
+    w: f64,
+    positions: Vec<[f64; 3]>,
+}
+
+fn run(mesh: &Mesh, params: &FlowParams, steps: usize) -> Outcome {
+    let mut flow = new_flow(mesh, params).expect("region flow");
+    let w0 = flow.initial_metrics().willmore_energy;
+    let mut w = w0;
+    for step in 0..steps {
+        match flow.step() {
+            Ok(m) => w = m.willmore_energy,
+            // Converged: the flow keeps the last accepted surface.
+            Err(FlowError::NoProgress { .. }) if step > 0 => break,
+            Err(e) => panic!("step {step}: {e}"),
+        }
+    }
+    Outcome {
+        w0,
+        w,
+        positions: flow.positions().to_vec(),
+    }
+}
+
+/// What every region run must show: the outside bit-identical, W down, no fold, Q near 1
+/// inside, and the seam's normal jump no worse than twice the input's.
+fn check(name: &str, mesh: &Mesh, regions: &[Region], out: &Outcome, max_jump_ratio: f64) {
+    let moving = select(&mesh.positions, regions).expect("valid region");
+    let mut moved = 0;
+    for (v, (p, q)) in out.positions.iter().zip(&mesh.positions).enumerate() {
+        if moving[v] {
+            moved += usize::from(p != q);
+        } else {
+            assert_eq!(
+                p.map(f64::to_bits),
+                q.map(f64::to_bits),
+                "{name}: vertex {v} outside moved"
+            );
+        }
+    }
+    assert!(moved > 0, "{name}: nothing moved");
+    assert!(out.w < out.w0, "{name}: W {} -> {}", out.w0, out.w);
+    let mut folds = 0;
+    let (mut q_sum, mut area_sum, mut q_max) = (0.0, 0.0, 1.0f64);
+    for &t in &mesh.triangles {
+        if !t.iter().any(|&v| moving[v]) {
+            continue;
+        }
+        let before = face_normal(&mesh.positions, t);
+        if dot(before, face_normal(&out.positions, t)) < 0.0 {
+            folds += 1;
+        }
+        let n = cross(
+            sub(mesh.positions[t[1]], mesh.positions[t[0]]),
+            sub(mesh.positions[t[2]], mesh.positions[t[0]]),
+        );
+        let area = dot(n, n).sqrt() / 2.0;
+        let q = face_q(&mesh.positions, &out.positions, t);
+        q_sum += q * area;
+        area_sum += area;
+        q_max = q_max.max(q);
+    }
+    let q_mean = q_sum / area_sum;
+    let jump0 = border_normal_jump(mesh, &moving, &mesh.positions);
+    let jump = border_normal_jump(mesh, &moving, &out.positions);
+    eprintln!(
+        "{name}: W {:.3} -> {:.3}, {moved} moved, folds {folds}, Q mean {q_mean:.3} max \
+         {q_max:.3}, border normal jump {:.2}° -> {:.2}°",
+        out.w0,
+        out.w,
+        jump0.to_degrees(),
+        jump.to_degrees()
+    );
+    assert_eq!(folds, 0, "{name}: faces folded");
+    assert!(q_mean <= 1.3, "{name}: Q mean {q_mean}");
+    assert!(
+        jump <= max_jump_ratio * jump0,
+        "{name}: border normal jump {jump0} -> {jump}"
+    );
+}
+
+#[test]
+fn spot_ear_fairs_alone_with_a_smooth_seam() {
+    let asset = spot();
+    let mesh = asset.surface().clone();
+    let regions = vec![EAR];
+    let out = run(&mesh, &params(regions.clone(), Seam::Smooth), 5);
+    check("spot ear, smooth", &mesh, &regions, &out, 2.0);
+
+    // The files keep every vertex outside the region exactly: the OBJ as written, and the GLB
+    // at the f32 it stores.
+    let moving = select(&mesh.positions, &regions).expect("valid");
+    for format in [Format::Obj, Format::Glb] {
+        let bytes = asset.write(&out.positions, format).expect("writes");
+        let back = Asset::read(&bytes, format, &Limits::default()).expect("re-reads");
+        let back = back.surface();
+        assert_eq!(back.vertex_count(), mesh.vertex_count());
+        for (v, (p, q)) in back.positions.iter().zip(&mesh.positions).enumerate() {
+            if moving[v] {
+                continue;
+            }
+            let same = match format {
+                Format::Obj => p.map(f64::to_bits) == q.map(f64::to_bits),
+                _ => p.map(|x| (x as f32).to_bits()) == q.map(|x| (x as f32).to_bits()),
+            };
+            assert!(
+                same,
+                "{format:?}: vertex {v} outside changed: {p:?} vs {q:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_fixed_seam_and_a_vertex_list_hold_the_outside_too() {
+    let mesh = spot().surface().clone();
+    let out = run(&mesh, &params(vec![EAR], Seam::Fixed), 5);
+    // A fixed seam holds positions only: the surface may meet its border at an angle.
+    check("spot ear, fixed", &mesh, &[EAR], &out, 3.0);
+
+    // The same vertices named one by one flow the same, bit for bit.
+    let moving = select(&mesh.positions, &[EAR]).expect("valid");
+    let list = Region::Vertices((0..moving.len()).filter(|&v| moving[v]).collect());
+    let by_list = run(&mesh, &params(vec![list], Seam::Fixed), 5);
+    assert_eq!(by_list.positions, out.positions);
+}
+
+#[test]
+fn a_region_of_a_genus_two_surface_and_of_an_open_one() {
+    let mesh = with_noise(pretzel(2, 24), 0.05, 7);
+    // A patch around the vertex farthest along +x: the outer rim of one handle.
+    let far = (0..mesh.vertex_count())
+        .max_by(|&a, &b| mesh.positions[a][0].total_cmp(&mesh.positions[b][0]))
+        .expect("vertices");
+    let region = Region::Sphere {
+        center: mesh.positions[far],
+        radius: 0.35,
+    };
+    let out = run(&mesh, &params(vec![region.clone()], Seam::Smooth), 4);
+    check("genus-2 rim, smooth", &mesh, &[region], &out, 2.0);
+
+    let cap = with_noise(bumpy_cap(4, 0.06), 0.05, 11);
+    let region = Region::Box {
+        min: [-0.4, -0.4, -2.0],
+        max: [0.4, 0.4, 2.0],
+    };
+    let out = run(&cap, &params(vec![region.clone()], Seam::Smooth), 4);
+    check("bumpy cap centre, smooth", &cap, &[region], &out, 2.0);
+}
+
+#[test]
+fn regions_that_cannot_be_faired_are_refused_by_name() {
+    let mesh = spot().surface().clone();
+    let refuse = |params: FlowParams, needle: &str| match new_flow(&mesh, &params) {
+        Err(FlowError::InvalidParameter { name, reason }) => {
+            assert_eq!(name, "region");
+            assert!(reason.contains(needle), "{reason:?} lacks {needle:?}");
+        }
+        Err(other) => panic!("wrong error {other:?}"),
+        Ok(_) => panic!("accepted ({needle})"),
+    };
+    let far_away = Region::Sphere {
+        center: [100.0, 0.0, 0.0],
+        radius: 0.1,
+    };
+    refuse(params(vec![far_away], Seam::Smooth), "no vertex");
+    let everything = Region::Box {
+        min: [-10.0; 3],
+        max: [10.0; 3],
+    };
+    refuse(params(vec![everything], Seam::Smooth), "every vertex");
+    refuse(
+        params(vec![Region::Vertices(vec![1_000_000])], Seam::Smooth),
+        "vertex 1000000",
+    );
+    refuse(
+        FlowParams {
+            method: Method::Mcf,
+            ..params(vec![EAR], Seam::Smooth)
+        },
+        "conformal",
+    );
+    refuse(
+        params(
+            vec![Region::Sphere {
+                center: [0.0; 3],
+                radius: f64::INFINITY,
+            }],
+            Seam::Smooth,
+        ),
+        "radius",
+    );
+}
