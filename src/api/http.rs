@@ -16,7 +16,7 @@ use crate::jobs::curve::{CurveInput, CurveOutcome, CurveSpec};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{
     format_media_type, format_name, parse_format, rfc3339, Caller, JobEvent, JobSpec, JobState,
-    JobStatus, Jobs, UploadRef,
+    JobStatus, UploadRef,
 };
 use axum::body::Body;
 use axum::extract::{FromRequest, Path, Request, State};
@@ -30,7 +30,6 @@ use futures::StreamExt;
 use serde::{Deserialize, Serialize};
 use std::convert::Infallible;
 use std::time::Duration;
-use tokio_util::sync::CancellationToken;
 use utoipa::{IntoParams, OpenApi, ToSchema};
 use willow::flow::Method;
 use willow::mesh::io::Format;
@@ -60,16 +59,14 @@ impl<S: Send + Sync> axum::extract::FromRequestParts<S> for Caller {
     }
 }
 
-/// Shared by all handlers.
-#[derive(Clone)]
-pub struct AppState {
-    pub jobs: Jobs,
-    /// Cancelled when the server stops: open SSE streams end so the graceful shutdown of the
-    /// HTTP server does not wait for them forever.
-    pub streams_stop: CancellationToken,
-}
+pub use super::state::AppState;
 
-/// The HTTP routes (the REST API, probes, metrics, docs, the web page), state applied.
+/// Bytes a multipart upload may carry beyond the mesh itself: boundaries, part headers and the
+/// `params` JSON part. 1 MiB is far more than those need and small next to a mesh.
+pub const MULTIPART_SLACK: u64 = 1 << 20;
+
+/// The HTTP routes (the REST API, probes, metrics, docs), state applied. The web page's own
+/// routes are merged beside them by `api::server::app`.
 pub fn routes(state: AppState) -> Router {
     Router::new()
         .route("/v1/jobs", post(create_job).get(list_jobs))
@@ -86,7 +83,6 @@ pub fn routes(state: AppState) -> Router {
         .route("/metrics", get(metrics))
         .route("/openapi.json", get(openapi_json))
         .route("/docs", get(docs))
-        .merge(super::web::routes())
         .with_state(state)
 }
 
@@ -710,7 +706,7 @@ async fn create_job_inner(
     {
         // Multipart adds boundaries and the params part; the mesh part is checked below.
         let allowed = if content_type.starts_with("multipart/") {
-            limit + super::server::MULTIPART_SLACK
+            limit + MULTIPART_SLACK
         } else {
             limit
         };
@@ -739,7 +735,7 @@ async fn create_job_inner(
         // its length is then drained before its 413 like a raw one, rather than answered
         // mid-upload by the parser's error (a reset connection for the sending client).
         let (parts, body) = req.into_parts();
-        let data = read_limited(body, limit.saturating_add(super::server::MULTIPART_SLACK))
+        let data = read_limited(body, limit.saturating_add(MULTIPART_SLACK))
             .await
             .map_err(|_| Problem::too_large("upload bytes", limit))?;
         let req = Request::from_parts(parts, Body::from(data));
