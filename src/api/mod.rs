@@ -2,9 +2,11 @@
 //!
 //! - [`http`]: the REST API (axum), Server-Sent Events, probes, metrics, OpenAPI and docs.
 //! - [`problem`]: RFC 9457 problem details; the one place job errors become HTTP statuses.
-//! - [`server`]: the single router serving HTTP/1.1, h2c and gRPC on one port, and
+//! - [`server`]: the single router serving HTTP/1.1, h2c and gRPC on one port (assembled in
+//!   [`server::app`] from the routes of the modules below, none of which imports it), and
 //!   `willow serve`.
 //! - [`web`]: the web page at `/` (issue 13), its files embedded at build time.
+//! - `state`: [`http::AppState`], what the REST and web handlers share.
 //! - [`grpc`]: the tonic services (package `willow.v1`, longrunning Operations, health,
 //!   reflection), merged into the same router by [`server::app`].
 //! - [`auth`]: authentication (API keys, JWT, stream tokens), one layer for HTTP and gRPC.
@@ -19,4 +21,5 @@ pub mod http;
 pub mod problem;
 pub mod schema;
 pub mod server;
+mod state;
 pub mod web;

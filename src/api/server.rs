@@ -8,7 +8,8 @@
 
 use super::auth::{Auth, AuthArgs, AuthConfig};
 use super::conn::ConnLimits;
-use super::http::{self, AppState};
+use super::http::{self, MULTIPART_SLACK};
+use super::state::AppState;
 use crate::jobs::{Config, Jobs, Shutdown};
 use axum::extract::DefaultBodyLimit;
 use axum::http::{header, HeaderName, HeaderValue, Method, Request};
@@ -22,10 +23,6 @@ use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::limit::RequestBodyLimitLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
-
-/// Bytes a multipart upload may carry beyond the mesh itself: boundaries, part headers and the
-/// `params` JSON part. 1 MiB is far more than those need and small next to a mesh.
-pub const MULTIPART_SLACK: u64 = 1 << 20;
 
 /// How long the HTTP server waits for open requests once the job core has drained; SSE streams
 /// are ended first, so this only covers downloads in flight.
@@ -332,8 +329,9 @@ impl ServeArgs {
     }
 }
 
-/// The whole application router for `jobs`: REST + probes + docs, with the gRPC services
-/// merged in, all behind `options.auth`. `streams_stop` ends open SSE streams (for shutdown).
+/// The whole application router for `jobs`, assembled here and nowhere else: REST + probes +
+/// docs + the web page, with the gRPC services merged in, all behind `options.auth`.
+/// `streams_stop` ends open SSE streams (for shutdown).
 pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) -> Router {
     let auth = &options.auth;
     let limit = jobs.config().limits.max_upload_bytes;
@@ -359,25 +357,27 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) ->
             header::CONTENT_DISPOSITION,
             REQUEST_ID,
         ]);
-    let rest = http::routes(AppState {
+    let state = AppState {
         jobs: jobs.clone(),
         streams_stop,
-    })
-    .merge(super::auth::routes(jobs.clone(), auth.clone()))
-    // The raw stream's safety net sits the drain's length above the handlers' own bound: the
-    // mesh and curve handlers refuse a body past that bound themselves and read on up to
-    // `DRAIN_MAX_BYTES` before their 413 (so a client still sending reads it); a net at the
-    // bound itself would cut that drain short with a stream error.
-    .layer(RequestBodyLimitLayer::new(
-        body_limit.saturating_add(http::DRAIN_MAX_BYTES),
-    ))
-    // Outside the body limit: a Content-Length over it is refused by that layer itself, before
-    // any inner layer runs, and that plain-text 413 must become a problem too.
-    .layer(axum::middleware::from_fn_with_state(
-        limit.saturating_add(MULTIPART_SLACK),
-        http::problem_for_plain_413,
-    ))
-    .layer(DefaultBodyLimit::max(body_limit));
+    };
+    let rest = http::routes(state.clone())
+        .merge(super::web::routes(state))
+        .merge(super::auth::routes(jobs.clone(), auth.clone()))
+        // The raw stream's safety net sits the drain's length above the handlers' own bound: the
+        // mesh and curve handlers refuse a body past that bound themselves and read on up to
+        // `DRAIN_MAX_BYTES` before their 413 (so a client still sending reads it); a net at the
+        // bound itself would cut that drain short with a stream error.
+        .layer(RequestBodyLimitLayer::new(
+            body_limit.saturating_add(http::DRAIN_MAX_BYTES),
+        ))
+        // Outside the body limit: a Content-Length over it is refused by that layer itself, before
+        // any inner layer runs, and that plain-text 413 must become a problem too.
+        .layer(axum::middleware::from_fn_with_state(
+            limit.saturating_add(MULTIPART_SLACK),
+            http::problem_for_plain_413,
+        ))
+        .layer(DefaultBodyLimit::max(body_limit));
     let rest = if options.cors_origins.is_empty() {
         rest
     } else {

@@ -6,7 +6,7 @@
 //! elsewhere. It uses only the public API, plus `/ui/config.json`: the job parameters'
 //! defaults and limits, from the same values [`JobSpec::validate`] checks against.
 
-use super::http::AppState;
+use super::state::AppState;
 use crate::jobs::JobSpec;
 use axum::extract::{Path, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
@@ -32,12 +32,13 @@ include!(concat!(env!("OUT_DIR"), "/web/assets.rs"));
 /// long max-age would keep an old page after an upgrade.
 const CACHE_CONTROL: &str = "no-cache";
 
-/// The page's routes; merged into the REST router (so the same layers apply).
-pub fn routes() -> Router<AppState> {
+/// The page's routes, state applied; merged beside the REST routes (so the same layers apply).
+pub fn routes(state: AppState) -> Router {
     Router::new()
         .route("/", get(index))
         .route("/ui/config.json", get(config))
         .route("/ui/{file}", get(asset))
+        .with_state(state)
 }
 
 async fn index(headers: HeaderMap) -> Response {

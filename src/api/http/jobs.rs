@@ -1,0 +1,594 @@
+//! The job routes: submit (raw or multipart), status, list, cancel, delete, frames and the
+//! result, and the job as HTTP clients see it ([`JobView`]).
+
+use super::body::{drain_refused, read_limited, MULTIPART_SLACK};
+use super::params::{
+    parse_out_format, query, FormatQuery, FramesQuery, JobParams, JobQuery, ListQuery,
+};
+use crate::api::problem::{clip, Problem};
+use crate::api::state::AppState;
+use crate::jobs::{
+    format_media_type, format_name, parse_format, rfc3339, Caller, JobSpec, JobState, JobStatus,
+    UploadRef,
+};
+use axum::body::Body;
+use axum::extract::{FromRequest, Path, Request, State};
+use axum::http::{header, HeaderValue, StatusCode, Uri};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Serialize;
+use utoipa::ToSchema;
+use willow::mesh::io::Format;
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Progress {
+    pub step: usize,
+    pub total_steps: usize,
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct LatestMetrics {
+    /// Metrics of the latest completed step (`null` before the job started).
+    #[schema(value_type = Option<Object>)]
+    pub latest: Option<willow::metrics::StepMetrics>,
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Links {
+    #[serde(rename = "self")]
+    pub self_: String,
+    pub events: String,
+    pub frames: String,
+    pub result: String,
+    pub cancel: String,
+}
+
+/// A job as HTTP clients see it.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobView {
+    pub id: String,
+    /// `queued`, `running`, `succeeded`, `failed` or `cancelled`.
+    pub state: String,
+    pub progress: Progress,
+    pub metrics: LatestMetrics,
+    /// Why the job failed or was cancelled; on a `succeeded` job, why it stopped before
+    /// `total_steps` (then `error_code` is `no_progress`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// `deadline_exceeded`, `cancelled`, `numerical`, … for a failed or cancelled job;
+    /// `no_progress` on a succeeded job the safeguard stopped early (no acceptable step even at
+    /// τ/1024): its result is the last accepted surface, the one after `progress.step`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_code: Option<String>,
+    /// The parameters the job runs with, defaults filled in.
+    #[schema(value_type = crate::api::schema::JobSpecSchema)]
+    pub params: JobSpec,
+    /// `obj`, `glb` or `gltf`.
+    pub input_format: String,
+    /// Vertices in the uploaded file's order: `positions_b64` decodes to this many f32 xyz.
+    pub vertex_count: usize,
+    pub face_count: usize,
+    /// RFC 3339 UTC.
+    pub created_time: String,
+    pub started_time: Option<String>,
+    pub finished_time: Option<String>,
+    /// When a finished job is deleted (then 410 Gone).
+    pub expire_time: Option<String>,
+    pub links: Links,
+}
+
+impl From<JobStatus> for JobView {
+    fn from(s: JobStatus) -> JobView {
+        let base = format!("/v1/jobs/{}", s.id);
+        JobView {
+            state: s.state.as_str().to_string(),
+            progress: Progress {
+                step: s.step,
+                total_steps: s.total_steps,
+            },
+            metrics: LatestMetrics { latest: s.latest },
+            error: s.error,
+            error_code: s.error_code,
+            params: s.spec,
+            input_format: format_name(s.input_format).to_string(),
+            vertex_count: s.vertex_count,
+            face_count: s.face_count,
+            created_time: rfc3339(s.created_at),
+            started_time: s.started_at.map(rfc3339),
+            finished_time: s.finished_at.map(rfc3339),
+            expire_time: s.expires_at.map(rfc3339),
+            links: Links {
+                events: format!("{base}/events"),
+                frames: format!("{base}/frames"),
+                result: format!("{base}/result"),
+                cancel: format!("{base}/cancel"),
+                self_: base,
+            },
+            id: s.id,
+        }
+    }
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobList {
+    pub jobs: Vec<JobView>,
+    /// Pass as `page_token` for the next page; absent on the last page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub next_page_token: Option<String>,
+}
+
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameList {
+    /// Metrics of each step, in order (`step` 0 is the input).
+    #[schema(value_type = Vec<Object>)]
+    pub frames: Vec<willow::metrics::StepMetrics>,
+    /// Pass as `from_step` for the next page; absent on the last page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub next_from_step: Option<usize>,
+}
+
+/// The mesh format of a media type (parameters such as `; charset=` ignored).
+fn format_of_media_type(ct: &str) -> Option<Format> {
+    let essence = ct
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
+    match essence.as_str() {
+        "model/obj" => Some(Format::Obj),
+        "model/gltf-binary" => Some(Format::Glb),
+        "model/gltf+json" => Some(Format::Gltf),
+        _ => None,
+    }
+}
+
+fn unsupported_media_type(got: &str) -> Problem {
+    Problem::new(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_media_type",
+        format!(
+            "Content-Type `{got}` is not accepted: send model/obj, model/gltf-binary or \
+             model/gltf+json as the raw body, or multipart/form-data with a `mesh` file part"
+        ),
+    )
+}
+
+fn job_response(status: StatusCode, s: JobStatus) -> Response {
+    let location = format!("/v1/jobs/{}", s.id);
+    let mut res = (status, Json(JobView::from(s))).into_response();
+    if let Ok(v) = HeaderValue::from_str(&location) {
+        res.headers_mut().insert(header::LOCATION, v);
+    }
+    res
+}
+
+fn mesh_response(id: &str, name: &str, format: Format, bytes: Vec<u8>) -> Response {
+    let mut res = (StatusCode::OK, bytes).into_response();
+    let h = res.headers_mut();
+    h.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static(format_media_type(format)),
+    );
+    if let Ok(v) = HeaderValue::from_str(&format!(
+        "attachment; filename=\"{id}-{name}.{}\"",
+        format_name(format)
+    )) {
+        h.insert(header::CONTENT_DISPOSITION, v);
+    }
+    res
+}
+
+pub(super) fn record_job(id: &str) {
+    tracing::Span::current().record("job_id", id);
+}
+
+/// Submit a job: the mesh as the raw body (parameters in the query) or as multipart.
+#[utoipa::path(
+    post, path = "/v1/jobs", tag = "jobs",
+    params(JobQuery,
+        ("Idempotency-Key" = Option<String>, Header, description = "Retries with the same key and request return the same job")),
+    request_body(description = "The mesh: raw `model/obj`, `model/gltf-binary` or `model/gltf+json`, or `multipart/form-data` with a `mesh` file part and an optional `params` JSON part (same fields as the query)",
+        content(
+            (Vec<u8> = "model/obj"), (Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"),
+            (Vec<u8> = "multipart/form-data"))),
+    responses(
+        (status = 202, description = "Accepted; `Location` is the job", body = JobView),
+        (status = 400, description = "Bad parameters", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Too large (the limit is named)", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Unknown content type", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid mesh, or idempotency key reused with another request", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "Queue full; see Retry-After", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Shutting down", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn create_job(State(st): State<AppState>, caller: Caller, req: Request) -> Response {
+    match create_job_inner(&st, &caller, req).await {
+        Ok(s) => {
+            record_job(&s.id);
+            job_response(StatusCode::ACCEPTED, s)
+        }
+        Err(p) => p.instance("/v1/jobs").into_response(),
+    }
+}
+
+async fn create_job_inner(
+    st: &AppState,
+    caller: &Caller,
+    req: Request,
+) -> Result<JobStatus, Problem> {
+    let limit = st.jobs.config().limits.max_upload_bytes;
+    let headers = req.headers().clone();
+    let key = match headers.get("idempotency-key") {
+        None => None,
+        Some(v) => Some(
+            v.to_str()
+                .map_err(|_| {
+                    Problem::bad_request(
+                        "invalid_parameter",
+                        "the Idempotency-Key header must be visible ASCII",
+                    )
+                    .with("field", "Idempotency-Key")
+                })?
+                .trim()
+                .trim_matches('"')
+                .to_string(),
+        ),
+    };
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string();
+    if content_type.is_empty() {
+        return Err(unsupported_media_type("(none)"));
+    }
+    if let Some(len) = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+    {
+        // Multipart adds boundaries and the params part; the mesh part is checked below.
+        let allowed = if content_type.starts_with("multipart/") {
+            limit + MULTIPART_SLACK
+        } else {
+            limit
+        };
+        if len > allowed {
+            drain_refused(req.into_body()).await;
+            return Err(Problem::from(crate::jobs::JobError::TooLarge {
+                what: "upload bytes",
+                limit,
+            }));
+        }
+    }
+    let query_given = req.uri().query().is_some_and(|q| !q.is_empty());
+    let query_params = query::<JobQuery>(req.uri())?.into_params()?;
+
+    let (data, format, params) = if let Some(format) = format_of_media_type(&content_type) {
+        let data = read_limited(req.into_body(), limit)
+            .await
+            .map_err(|_| Problem::too_large("upload bytes", limit))?;
+        (data, format, query_params)
+    } else if content_type
+        .to_ascii_lowercase()
+        .starts_with("multipart/form-data")
+    {
+        // Buffered whole before parsing: it is bounded by the limit and the slack (the mesh
+        // part is buffered anyway), and a body that grows past the bound without announcing
+        // its length is then drained before its 413 like a raw one, rather than answered
+        // mid-upload by the parser's error (a reset connection for the sending client).
+        let (parts, body) = req.into_parts();
+        let data = read_limited(body, limit.saturating_add(MULTIPART_SLACK))
+            .await
+            .map_err(|_| Problem::too_large("upload bytes", limit))?;
+        let req = Request::from_parts(parts, Body::from(data));
+        read_multipart(req, limit, query_params, query_given).await?
+    } else {
+        return Err(unsupported_media_type(&content_type));
+    };
+    let spec = params.into_spec()?;
+    st.jobs
+        .submit(caller, UploadRef::Bytes { data, format }, spec, key)
+        .await
+        .map_err(Problem::from)
+}
+
+async fn read_multipart(
+    req: Request,
+    limit: u64,
+    query_params: JobParams,
+    query_given: bool,
+) -> Result<(bytes::Bytes, Format, JobParams), Problem> {
+    let mut mp = axum::extract::Multipart::from_request(req, &())
+        .await
+        .map_err(|e| Problem::bad_request("invalid_multipart", e.body_text()))?;
+    let mut mesh: Option<(bytes::Bytes, Format)> = None;
+    let mut params: Option<JobParams> = None;
+    loop {
+        let field = match mp.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => {
+                return Err(Problem::too_large("upload bytes", limit))
+            }
+            Err(e) => return Err(Problem::bad_request("invalid_multipart", e.body_text())),
+        };
+        let name = field.name().unwrap_or("").to_string();
+        // A second `mesh` or `params` part would silently replace the first: refuse it, so a
+        // client that meant to send one job's worth learns what it actually sent.
+        let seen = match name.as_str() {
+            "mesh" => mesh.is_some(),
+            "params" => params.is_some(),
+            _ => false,
+        };
+        if seen {
+            return Err(Problem::bad_request(
+                "invalid_multipart",
+                format!("more than one `{name}` part: send exactly one"),
+            )
+            .with("field", name));
+        }
+        match name.as_str() {
+            "mesh" => {
+                let by_type = field.content_type().and_then(format_of_media_type);
+                let by_name = field
+                    .file_name()
+                    .and_then(|n| n.rsplit_once('.').and_then(|(_, ext)| parse_format(ext)));
+                let shown = field
+                    .content_type()
+                    .map(str::to_string)
+                    .or_else(|| field.file_name().map(str::to_string))
+                    .unwrap_or_else(|| "(none)".into());
+                let format = by_type.or(by_name).ok_or_else(|| {
+                    Problem::new(
+                        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                        "unsupported_media_type",
+                        format!(
+                            "the `mesh` part's type `{shown}` is not a mesh format: give it Content-Type \
+                             model/obj, model/gltf-binary or model/gltf+json, or a .obj/.glb/.gltf file name"
+                        ),
+                    )
+                })?;
+                let data = field.bytes().await.map_err(|e| {
+                    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                        Problem::too_large("upload bytes", limit)
+                    } else {
+                        Problem::bad_request("invalid_multipart", e.body_text())
+                    }
+                })?;
+                if data.len() as u64 > limit {
+                    return Err(Problem::too_large("upload bytes", limit));
+                }
+                mesh = Some((data, format));
+            }
+            "params" => {
+                // Two sources of parameters would have to be merged by rules nobody reads:
+                // one request, one place.
+                if query_given {
+                    return Err(Problem::bad_request(
+                        "invalid_parameter",
+                        "parameters given both in the `params` part and in the query string: \
+                         send them in one place",
+                    )
+                    .with("field", "params"));
+                }
+                let text = field
+                    .bytes()
+                    .await
+                    .map_err(|e| Problem::bad_request("invalid_multipart", e.body_text()))?;
+                let p: JobParams = serde_json::from_slice(&text).map_err(|e| {
+                    Problem::bad_request(
+                        "invalid_parameter",
+                        format!("the `params` part is not valid job parameters: {e}"),
+                    )
+                    .with("field", "params")
+                })?;
+                params = Some(p);
+            }
+            other => {
+                return Err(Problem::bad_request(
+                    "invalid_multipart",
+                    format!(
+                        "unexpected part `{}`: only `mesh` and `params` are accepted",
+                        clip(other)
+                    ),
+                ))
+            }
+        }
+    }
+    let (data, format) = mesh.ok_or_else(|| {
+        Problem::bad_request("missing_mesh", "the multipart body has no `mesh` file part")
+    })?;
+    Ok((data, format, params.unwrap_or(query_params)))
+}
+
+/// The job's status (poll this).
+#[utoipa::path(get, path = "/v1/jobs/{id}", tag = "jobs",
+    params(("id" = String, Path)),
+    responses((status = 200, description = "The job", body = JobView),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+pub async fn get_job(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Response {
+    record_job(&id);
+    match st.jobs.get(&caller, &id).await {
+        Ok(s) => (StatusCode::OK, Json(JobView::from(s))).into_response(),
+        Err(e) => Problem::from(e)
+            .instance(format!("/v1/jobs/{id}"))
+            .into_response(),
+    }
+}
+
+/// Jobs, newest first, paged.
+#[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(ListQuery),
+    responses((status = 200, description = "A page of jobs, newest first", body = JobList),
+        (status = 400, description = "Bad parameters (`state`, `page_size`, `page_token`; the field is named)", body = Problem, content_type = "application/problem+json")))]
+pub async fn list_jobs(State(st): State<AppState>, caller: Caller, uri: Uri) -> Response {
+    let run = async {
+        let q: ListQuery = query(&uri)?;
+        let state = match q.state.as_deref() {
+            None | Some("") => None,
+            Some(s) => Some(JobState::parse(s).ok_or_else(|| {
+                Problem::bad_request(
+                    "invalid_parameter",
+                    format!("invalid parameter `state`: expected queued, running, succeeded, failed or cancelled, got `{s}`"),
+                )
+                .with("field", "state")
+            })?),
+        };
+        let (jobs, next) = st
+            .jobs
+            .list(&caller, state, q.page_size.unwrap_or(0), q.page_token)
+            .await?;
+        Ok::<_, Problem>(JobList {
+            jobs: jobs.into_iter().map(JobView::from).collect(),
+            next_page_token: next,
+        })
+    };
+    match run.await {
+        Ok(list) => Json(list).into_response(),
+        Err(p) => p.instance("/v1/jobs").into_response(),
+    }
+}
+
+/// Cancel: a queued job is cancelled at once, a running one at its next step.
+#[utoipa::path(post, path = "/v1/jobs/{id}/cancel", tag = "jobs",
+    params(("id" = String, Path)),
+    responses((status = 202, description = "Cancelled, or cancellation requested (a running job stops at its next step)", body = JobView),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Already finished", body = Problem, content_type = "application/problem+json")))]
+pub async fn cancel_job(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Response {
+    record_job(&id);
+    match st.jobs.cancel(&caller, &id).await {
+        Ok(s) => job_response(StatusCode::ACCEPTED, s),
+        Err(e) => Problem::from(e)
+            .instance(format!("/v1/jobs/{id}/cancel"))
+            .into_response(),
+    }
+}
+
+/// Delete a finished job and its files.
+#[utoipa::path(delete, path = "/v1/jobs/{id}", tag = "jobs",
+    params(("id" = String, Path)),
+    responses((status = 204, description = "Deleted"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Queued or running", body = Problem, content_type = "application/problem+json")))]
+pub async fn delete_job(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Response {
+    record_job(&id);
+    match st.jobs.delete(&caller, &id).await {
+        Ok(()) => StatusCode::NO_CONTENT.into_response(),
+        Err(e) => Problem::from(e)
+            .instance(format!("/v1/jobs/{id}"))
+            .into_response(),
+    }
+}
+
+/// Metrics of every step, paged by step.
+#[utoipa::path(get, path = "/v1/jobs/{id}/frames", tag = "jobs",
+    params(("id" = String, Path), FramesQuery),
+    responses((status = 200, description = "A page of step metrics", body = FrameList),
+        (status = 400, description = "Bad parameters (`page_size`, `page_token`; the field is named)", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+pub async fn list_frames(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+    uri: Uri,
+) -> Response {
+    record_job(&id);
+    let run = async {
+        let q: FramesQuery = query(&uri)?;
+        let (frames, next) = st
+            .jobs
+            .frames(
+                &caller,
+                &id,
+                q.from_step.unwrap_or(0),
+                q.page_size.unwrap_or(0),
+            )
+            .await?;
+        Ok::<_, Problem>(FrameList {
+            frames,
+            next_from_step: next,
+        })
+    };
+    match run.await {
+        Ok(list) => Json(list).into_response(),
+        Err(p) => p.instance(format!("/v1/jobs/{id}/frames")).into_response(),
+    }
+}
+
+/// The mesh after one step (steps that kept positions: 0, every frame interval, the last).
+#[utoipa::path(get, path = "/v1/jobs/{id}/frames/{step}", tag = "jobs",
+    params(("id" = String, Path), ("step" = usize, Path), FormatQuery),
+    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+pub async fn frame_mesh(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path((id, step)): Path<(String, String)>,
+    uri: Uri,
+) -> Response {
+    record_job(&id);
+    let run = async {
+        let step: usize = step.parse().map_err(|_| {
+            Problem::bad_request(
+                "invalid_parameter",
+                format!("invalid step `{step}`: expected a non-negative integer"),
+            )
+            .with("field", "step")
+        })?;
+        let format = parse_out_format(&query(&uri)?)?.unwrap_or(Format::Glb);
+        let bytes = st.jobs.frame_mesh(&caller, &id, step, format).await?;
+        Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, bytes))
+    };
+    match run.await {
+        Ok(r) => r,
+        Err(p) => p.instance(uri.path().to_string()).into_response(),
+    }
+}
+
+/// The faired mesh, with the input's UVs, materials and textures; in the input's format unless
+/// `format` asks for another.
+#[utoipa::path(get, path = "/v1/jobs/{id}/result", tag = "jobs",
+    params(("id" = String, Path), FormatQuery),
+    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+        (status = 400, description = "Bad parameters (`format`; the field is named)", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+pub async fn job_result(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+    uri: Uri,
+) -> Response {
+    record_job(&id);
+    let run = async {
+        let format = match parse_out_format(&query(&uri)?)? {
+            Some(f) => f,
+            None => st.jobs.get(&caller, &id).await?.input_format,
+        };
+        let bytes = st.jobs.result(&caller, &id, format).await?;
+        Ok::<_, Problem>(mesh_response(&id, "result", format, bytes))
+    };
+    match run.await {
+        Ok(r) => r,
+        Err(p) => p.instance(uri.path().to_string()).into_response(),
+    }
+}
