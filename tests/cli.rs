@@ -185,6 +185,18 @@ fn bench_measures_in_order_and_refuses_a_missing_file_first() {
     assert_eq!(rows[0]["faces"].as_u64(), Some(5856));
     assert_eq!(rows[1]["mesh"].as_str(), Some("bumpy icosphere:1"));
     assert_eq!(rows[1]["faces"].as_u64(), Some(80));
+    // Each row also measures a region of 5% of its vertices (spot: 2930 welded vertices).
+    assert_eq!(rows[0]["region_vertices"].as_u64(), Some(147));
+    for row in &rows {
+        let try_ms = row["region_median_try_ms"]
+            .as_f64()
+            .expect("a region try time");
+        assert!(try_ms.is_finite() && try_ms > 0.0, "{row}");
+        assert!(
+            row["region_try_ratio"].as_f64().is_some_and(|r| r > 0.0),
+            "{row}"
+        );
+    }
 
     let missing = dir.path().join("missing.obj");
     let run = bench(&[missing.to_str().expect("utf-8 path")]);

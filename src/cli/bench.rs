@@ -13,6 +13,7 @@ use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use willow::curve::{Curve, CurveFlow, CurveParams};
+use willow::flow::region::Region;
 use willow::flow::{new_flow, FlowParams, Method, Precision};
 use willow::mesh::generate::bumpy_sphere;
 use willow::mesh::io::{Asset, Format, Limits};
@@ -116,7 +117,17 @@ struct Figures {
     profile: Vec<(String, f64)>,
     /// Where its setup went (the safeguard's own setup is the rest of `setup_ms`).
     setup_profile: Vec<(String, f64)>,
+    /// The same flow on a region of [`REGION_SHARE`] of the vertices (a sphere about the
+    /// vertex farthest along +x): its vertex count, setup, median try, and that try over the
+    /// whole mesh's (issue 29: the system solved is the region's).
+    region_vertices: usize,
+    region_setup_ms: f64,
+    region_median_try_ms: f64,
+    region_try_ratio: f64,
 }
+
+/// The share of a mesh's vertices the region benchmark fairs.
+const REGION_SHARE: f64 = 0.05;
 
 pub fn run(args: BenchArgs) -> ExitCode {
     if args.genus {
@@ -185,6 +196,15 @@ pub fn run(args: BenchArgs) -> ExitCode {
                         .map(|(name, value)| format!("{name} {value:.1}"))
                         .collect();
                     println!("    conformal setup: {}", setup.join(", "));
+                    println!(
+                        "    region of {} vertices ({:.0}%): setup {:.1} ms, per try {:.2} ms, \
+                         {:.1}% of the whole mesh's try",
+                        f.region_vertices,
+                        REGION_SHARE * 100.0,
+                        f.region_setup_ms,
+                        f.region_median_try_ms,
+                        f.region_try_ratio * 100.0
+                    );
                 }
             }
             Err(e) => return fail(EXIT_FAILURE, format!("{name}: {e}")),
@@ -432,6 +452,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         })
         .unwrap_or_default();
     drop((flow, mcf_flow, unguarded_flow));
+    let region = measure_region(mesh, &conformal, args.steps)?;
     let u = median(&mut unguarded_times);
     let clean = median(&mut clean_times);
     let (c, m) = (median(&mut times), median(&mut mcf_times));
@@ -457,6 +478,62 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         final_q_mean: last.q_mean,
         profile,
         setup_profile,
+        region_vertices: region.vertices,
+        region_setup_ms: region.setup_ms,
+        region_median_try_ms: region.median_try_ms,
+        region_try_ratio: if t > 0.0 {
+            region.median_try_ms / t
+        } else {
+            f64::NAN
+        },
+    })
+}
+
+struct RegionFigures {
+    vertices: usize,
+    setup_ms: f64,
+    median_try_ms: f64,
+}
+
+/// `steps` steps of `params`' flow on a sphere about the vertex farthest along +x holding
+/// [`REGION_SHARE`] of the vertices (a converged region ends early; its steps so far count).
+fn measure_region(mesh: &Mesh, params: &FlowParams, steps: usize) -> Result<RegionFigures, String> {
+    let tip = (0..mesh.vertex_count())
+        .max_by(|&a, &b| mesh.positions[a][0].total_cmp(&mesh.positions[b][0]))
+        .ok_or("an empty mesh")?;
+    let center = mesh.positions[tip];
+    let mut distances: Vec<f64> = mesh
+        .positions
+        .iter()
+        .map(|p| {
+            (0..3)
+                .map(|a| (p[a] - center[a]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .collect();
+    let k = ((mesh.vertex_count() as f64 * REGION_SHARE).ceil() as usize).max(1);
+    distances.sort_unstable_by(f64::total_cmp);
+    let radius = distances[k - 1];
+    let params = FlowParams {
+        regions: vec![Region::Sphere { center, radius }],
+        ..params.clone()
+    };
+    let start = std::time::Instant::now();
+    let mut flow = new_flow(mesh, &params).map_err(|e| format!("region: {e}"))?;
+    let setup_ms = start.elapsed().as_secs_f64() * 1e3;
+    let mut tries = Vec::with_capacity(steps);
+    for _ in 0..steps {
+        match flow.step() {
+            Ok(m) => tries.push(m.step_ms / f64::from(1 + m.rejected)),
+            Err(_) if !tries.is_empty() => break,
+            Err(e) => return Err(format!("region: {e}")),
+        }
+    }
+    Ok(RegionFigures {
+        vertices: k,
+        setup_ms,
+        median_try_ms: median(&mut tries),
     })
 }
 
