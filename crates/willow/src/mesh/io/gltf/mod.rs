@@ -1,0 +1,403 @@
+//! glTF 2.0 and GLB.
+//!
+//! Reading: the GLB container is split here (with checked lengths), the JSON is parsed and
+//! index-validated by the `gltf` crate, and buffers are resolved by hand from the BIN chunk or
+//! base64 `data:` URIs only. Every buffer view and accessor range is checked against the bytes
+//! it lives in, so a lying file is a [`MeshError::TruncatedBuffer`], never a panic.
+//!
+//! Writing keeps the input document as raw JSON, so extensions and extras this crate does not
+//! model survive: all original buffers are concatenated unchanged into one buffer, new
+//! POSITION (and NORMAL) data is appended, and those accessors are repointed in place. TANGENT
+//! is dropped from the primitives (see `drop_tangents`). Images, samplers, materials, UVs,
+//! indices and nodes are untouched.
+
+use super::{format_name, Affine, FileGeometry, Format, Limits, MeshError};
+use base64::Engine as _;
+use serde_json::Value;
+use std::collections::HashMap;
+
+mod accessors;
+use accessors::*;
+mod write;
+pub(crate) use write::*;
+#[cfg(test)]
+mod tests;
+
+/// Extensions that change how vertex data is stored: reading around them would give garbage.
+const REFUSED_EXTENSIONS: [&str; 3] = [
+    "KHR_draco_mesh_compression",
+    "EXT_meshopt_compression",
+    "KHR_mesh_quantization",
+];
+
+/// glTF `target` for vertex attribute buffer views (`ARRAY_BUFFER`).
+const ARRAY_BUFFER: u32 = 34962;
+/// glTF `target` for index buffer views (`ELEMENT_ARRAY_BUFFER`).
+const ELEMENT_ARRAY_BUFFER: u32 = 34963;
+/// glTF `componentType` codes.
+const FLOAT: u32 = 5126;
+const UNSIGNED_INT: u32 = 5125;
+
+/// What a glTF file has beyond the surface: its whole document and buffer bytes.
+#[derive(Clone, Debug)]
+pub(crate) struct GltfSource {
+    /// The input JSON, untouched.
+    json: Value,
+    /// Each buffer's bytes (exactly `byteLength` of them).
+    buffers: Vec<Vec<u8>>,
+    /// POSITION accessor of each file-vertex block (same order as `FileGeometry::blocks`).
+    position_accessors: Vec<usize>,
+    /// NORMAL accessors to recompute, with the block whose vertices they describe.
+    normal_accessors: Vec<(usize, usize)>,
+}
+
+/// The JSON and BIN chunks of a GLB, or the whole input as JSON.
+fn split_container(bytes: &[u8], format: Format) -> Result<(&[u8], Option<&[u8]>), MeshError> {
+    let name = format_name(format);
+    if !bytes.starts_with(b"glTF") {
+        if format == Format::Glb {
+            return Err(MeshError::parse(name, "missing the 'glTF' magic bytes"));
+        }
+        return Ok((bytes, None));
+    }
+    let u32_at = |at: usize| -> Option<usize> {
+        let b = bytes.get(at..at.checked_add(4)?)?;
+        Some(u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+    };
+    let header = |what: &str| MeshError::parse("GLB", format!("truncated header: {what}"));
+    let version = u32_at(4).ok_or_else(|| header("no version"))?;
+    if version != 2 {
+        return Err(MeshError::unsupported(format!("GLB version {version}")));
+    }
+    let length = u32_at(8).ok_or_else(|| header("no length"))?;
+    if length > bytes.len() {
+        return Err(MeshError::truncated(format!(
+            "GLB header says {length} bytes but the file has {}",
+            bytes.len()
+        )));
+    }
+    let mut at = 12usize;
+    let mut json = None;
+    let mut bin = None;
+    // A chunk needs at least its 8-byte header; fewer trailing bytes are ignored padding.
+    while at.saturating_add(8) <= length {
+        let chunk_len = u32_at(at).ok_or_else(|| header("chunk length"))?;
+        let chunk_type = bytes
+            .get(at + 4..at + 8)
+            .ok_or_else(|| header("chunk type"))?;
+        let start = at + 8;
+        let end = start
+            .checked_add(chunk_len)
+            .filter(|&e| e <= length)
+            .ok_or_else(|| {
+                MeshError::truncated(format!(
+                    "GLB chunk at byte {at} claims {chunk_len} bytes, past the end ({length})"
+                ))
+            })?;
+        let data = &bytes[start..end];
+        match chunk_type {
+            b"JSON" if json.is_none() => json = Some(data),
+            b"BIN\0" if bin.is_none() && json.is_some() => bin = Some(data),
+            b"JSON" | b"BIN\0" => {
+                return Err(MeshError::parse("GLB", "duplicate or misplaced chunk"))
+            }
+            _ => {} // unknown chunks are skipped, as the spec says
+        }
+        // Chunks are 4-byte aligned; tolerate a missing final pad.
+        at = end.saturating_add(3) & !3;
+    }
+    let json = json.ok_or_else(|| MeshError::parse("GLB", "no JSON chunk"))?;
+    Ok((json, bin))
+}
+
+/// Checks that every primitive's attribute, index and morph-target accessor exists.
+///
+/// gltf-json 1.4.1's validation indexes `accessors[POSITION]` before checking it (a panic on
+/// an out-of-range index), so these references are checked on the raw JSON first.
+fn check_primitive_references(json: &Value) -> Result<(), MeshError> {
+    let accessor_count = json
+        .get("accessors")
+        .and_then(Value::as_array)
+        .map_or(0, Vec::len);
+    let meshes = json.get("meshes").and_then(Value::as_array);
+    for (m, mesh) in meshes.into_iter().flatten().enumerate() {
+        let prims = mesh.get("primitives").and_then(Value::as_array);
+        for (p, prim) in prims.into_iter().flatten().enumerate() {
+            let attrs = prim.get("attributes").and_then(Value::as_object);
+            let targets = prim.get("targets").and_then(Value::as_array);
+            let refs = attrs
+                .into_iter()
+                .flat_map(|a| a.values())
+                .chain(prim.get("indices"))
+                .chain(
+                    targets
+                        .into_iter()
+                        .flatten()
+                        .filter_map(Value::as_object)
+                        .flat_map(|t| t.values()),
+                );
+            for r in refs {
+                if r.as_u64().is_none_or(|i| i >= accessor_count as u64) {
+                    return Err(MeshError::parse(
+                        "glTF",
+                        format!(
+                            "mesh {m} primitive {p} refers to accessor {r}, but there are \
+                             {accessor_count}"
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Refuses images by external URI and images with no source, on the raw JSON (the gltf
+/// crate's `Image::source` unwraps a missing `uri` or `mimeType` that its validation lets
+/// through).
+fn check_images(json: &Value) -> Result<(), MeshError> {
+    let images = json.get("images").and_then(Value::as_array);
+    for (i, image) in images.into_iter().flatten().enumerate() {
+        match (image.get("uri"), image.get("bufferView")) {
+            (Some(uri), _) => match uri.as_str() {
+                Some(u) if u.starts_with("data:") => {}
+                Some(u) => {
+                    return Err(MeshError::ExternalUri {
+                        uri: u.chars().take(200).collect(),
+                    })
+                }
+                None => return Err(MeshError::parse("glTF", format!("image {i}: bad uri"))),
+            },
+            (None, Some(_)) if image.get("mimeType").is_some_and(Value::is_string) => {}
+            _ => {
+                return Err(MeshError::parse(
+                    "glTF",
+                    format!("image {i} needs a uri, or a bufferView with a mimeType"),
+                ))
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Decodes a base64 `data:` URI, or refuses anything else without touching it.
+fn decode_data_uri(uri: &str) -> Result<Vec<u8>, MeshError> {
+    let Some(rest) = uri.strip_prefix("data:") else {
+        return Err(MeshError::ExternalUri {
+            uri: uri.chars().take(200).collect(),
+        });
+    };
+    let (_, payload) = rest
+        .split_once(";base64,")
+        .ok_or_else(|| MeshError::unsupported("data: URIs that are not base64"))?;
+    base64::engine::general_purpose::STANDARD
+        .decode(payload.trim())
+        .map_err(|e| MeshError::parse("glTF", format!("bad base64 in a data: URI: {e}")))
+}
+
+/// `asset.version` must be 2.x (glTF 2.0 says a reader refuses a major version it does not
+/// know). glTF 1.0 is a different schema the gltf crate would half-read (a 1.0 file's
+/// meshes look empty or wrong), so a 1.0 file is refused by name instead.
+fn check_asset_version(json: &Value) -> Result<(), MeshError> {
+    let version = json
+        .get("asset")
+        .and_then(|a| a.get("version"))
+        .and_then(Value::as_str);
+    match version {
+        Some(v) if v.split('.').next() == Some("2") => Ok(()),
+        Some(v) => Err(MeshError::unsupported(format!(
+            "glTF asset.version {:?}: only glTF 2.x is read",
+            v.chars().take(32).collect::<String>()
+        ))),
+        // Missing: the gltf crate's own parse error says so.
+        None => Ok(()),
+    }
+}
+
+pub(crate) fn read(
+    bytes: &[u8],
+    format: Format,
+    limits: &Limits,
+) -> Result<(FileGeometry, GltfSource), MeshError> {
+    let name = format_name(format);
+    let (json_bytes, bin) = split_container(bytes, format)?;
+    let json: Value =
+        serde_json::from_slice(json_bytes).map_err(|e| MeshError::parse(name, e.to_string()))?;
+    // Checked on the raw JSON: the gltf crate refuses unknown required extensions with a
+    // generic validation error, and these deserve a precise "unsupported".
+    let required = json.get("extensionsRequired").and_then(Value::as_array);
+    for ext in required.into_iter().flatten().filter_map(Value::as_str) {
+        if REFUSED_EXTENSIONS.contains(&ext) {
+            return Err(MeshError::unsupported(format!(
+                "required extension {ext} (compressed or quantized vertex data)"
+            )));
+        }
+    }
+    check_asset_version(&json)?;
+    check_primitive_references(&json)?;
+    check_images(&json)?;
+    let root = gltf::json::Root::from_slice(json_bytes)
+        .map_err(|e| MeshError::parse(name, e.to_string()))?;
+    let doc = gltf::Document::from_json(root).map_err(|e| MeshError::parse(name, e.to_string()))?;
+
+    // Resolve buffers: GLB BIN chunk or data: URIs; nothing else is ever opened.
+    let mut buffers = Vec::new();
+    for b in doc.buffers() {
+        let mut data = match b.source() {
+            gltf::buffer::Source::Bin => match bin {
+                Some(bin) if b.index() == 0 => bin.to_vec(),
+                _ => {
+                    return Err(MeshError::truncated(format!(
+                        "buffer {} has no uri and there is no GLB BIN chunk for it",
+                        b.index()
+                    )))
+                }
+            },
+            gltf::buffer::Source::Uri(uri) => decode_data_uri(uri)?,
+        };
+        if data.len() < b.length() {
+            return Err(MeshError::truncated(format!(
+                "buffer {} declares {} bytes but holds {}",
+                b.index(),
+                b.length(),
+                data.len()
+            )));
+        }
+        data.truncate(b.length());
+        buffers.push(data);
+    }
+    for view in doc.views() {
+        let len = buffers.get(view.buffer().index()).map_or(0, Vec::len);
+        if view
+            .offset()
+            .checked_add(view.length())
+            .is_none_or(|end| end > len)
+        {
+            return Err(MeshError::truncated(format!(
+                "buffer view {} (bytes {}..+{}) is past the end of buffer {} ({len} bytes)",
+                view.index(),
+                view.offset(),
+                view.length(),
+                view.buffer().index()
+            )));
+        }
+    }
+
+    // The nodes to draw: the default scene, else scene 0, else every root node.
+    let roots: Vec<gltf::Node<'_>> = match doc.default_scene().or_else(|| doc.scenes().next()) {
+        Some(scene) => scene.nodes().collect(),
+        None => {
+            let mut is_child = vec![false; doc.nodes().len()];
+            for n in doc.nodes() {
+                for c in n.children() {
+                    if let Some(x) = is_child.get_mut(c.index()) {
+                        *x = true;
+                    }
+                }
+            }
+            doc.nodes().filter(|n| !is_child[n.index()]).collect()
+        }
+    };
+
+    let mut b = Builder {
+        buffers: &buffers,
+        limits,
+        local: Vec::new(),
+        blocks: Vec::new(),
+        block_of_accessor: HashMap::new(),
+        position_accessors: Vec::new(),
+        normal_accessors: Vec::new(),
+        uvs: Vec::new(),
+        normals: Vec::new(),
+        triangles: Vec::new(),
+        non_triangle_primitives: (0, 0),
+        bad_faces: Default::default(),
+    };
+    let mut visited = vec![false; doc.nodes().len()];
+    let mut stack: Vec<(gltf::Node<'_>, Affine)> = roots
+        .into_iter()
+        .rev()
+        .map(|n| (n, Affine::IDENTITY))
+        .collect();
+    while let Some((node, parent)) = stack.pop() {
+        let seen = visited.get_mut(node.index()).ok_or_else(|| {
+            MeshError::parse(name, format!("node {} does not exist", node.index()))
+        })?;
+        if *seen {
+            return Err(MeshError::parse(
+                name,
+                format!(
+                    "node {} is reached twice: the hierarchy is not a tree",
+                    node.index()
+                ),
+            ));
+        }
+        *seen = true;
+        let world = parent.then_after(&affine_of(&node));
+        if let Some(mesh) = node.mesh() {
+            for prim in mesh.primitives() {
+                b.primitive(&prim, &world, node.index())?;
+            }
+        }
+        let children: Vec<_> = node.children().collect();
+        for c in children.into_iter().rev() {
+            stack.push((c, world));
+        }
+    }
+    if !b.bad_faces.is_empty() {
+        return Err(MeshError::IndexOutOfRange {
+            faces: b.bad_faces,
+            vertex_count: b.local.len(),
+        });
+    }
+    if b.triangles.is_empty() {
+        let (points, lines) = b.non_triangle_primitives;
+        return Err(if points + lines > 0 {
+            MeshError::PointsOrLinesOnly { points, lines }
+        } else {
+            MeshError::Empty {
+                vertices: b.local.len(),
+                faces: 0,
+            }
+        });
+    }
+
+    let Builder {
+        local,
+        blocks,
+        position_accessors,
+        normal_accessors,
+        uvs,
+        normals,
+        triangles,
+        ..
+    } = b;
+    let uvs = uvs.iter().any(Option::is_some).then_some(uvs);
+    let normal_keys = normals.iter().any(Option::is_some).then(|| {
+        let mut ids: HashMap<[u64; 3], u64> = HashMap::new();
+        normals
+            .iter()
+            .map(|n| match n {
+                None => u64::MAX,
+                Some(n) => {
+                    let next = ids.len() as u64;
+                    *ids.entry(n.map(f64::to_bits)).or_insert(next)
+                }
+            })
+            .collect()
+    });
+    let file = FileGeometry {
+        local,
+        blocks,
+        triangles,
+        uvs,
+        normal_keys,
+    };
+    let src = GltfSource {
+        json,
+        buffers,
+        position_accessors,
+        normal_accessors,
+    };
+    Ok((file, src))
+}

@@ -1,0 +1,481 @@
+//! Writing glTF and GLB: the input document kept with new positions (and bounds), or a new document for a mesh that came from OBJ.
+
+use super::*;
+use crate::mesh::io::{normalize_or_z, Affine, Asset, Block, Limits, MeshError};
+use gltf::mesh::Mode;
+use serde_json::{json, Value};
+use std::collections::HashMap;
+
+/// Accumulates file vertices and triangles while walking the scene.
+pub(super) struct Builder<'a> {
+    pub(super) buffers: &'a [Vec<u8>],
+    pub(super) limits: &'a Limits,
+    pub(super) local: Vec<[f64; 3]>,
+    pub(super) blocks: Vec<Block>,
+    pub(super) block_of_accessor: HashMap<usize, usize>,
+    pub(super) position_accessors: Vec<usize>,
+    pub(super) normal_accessors: Vec<(usize, usize)>,
+    pub(super) uvs: Vec<Option<[f64; 2]>>,
+    pub(super) normals: Vec<Option<[f64; 3]>>,
+    pub(super) triangles: Vec<[usize; 3]>,
+    pub(super) non_triangle_primitives: (usize, usize),
+    pub(super) bad_faces: crate::mesh::error::Offenders<usize>,
+}
+
+impl Builder<'_> {
+    pub(super) fn primitive(
+        &mut self,
+        prim: &gltf::Primitive<'_>,
+        world: &Affine,
+        node: usize,
+    ) -> Result<(), MeshError> {
+        match prim.mode() {
+            Mode::Points => {
+                self.non_triangle_primitives.0 += 1;
+                return Ok(());
+            }
+            Mode::Lines | Mode::LineLoop | Mode::LineStrip => {
+                self.non_triangle_primitives.1 += 1;
+                return Ok(());
+            }
+            Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan => {}
+        }
+        let pos = prim
+            .get(&gltf::Semantic::Positions)
+            .ok_or_else(|| MeshError::parse("glTF", "a triangle primitive has no POSITION"))?;
+        let count = pos.count();
+        let block = match self.block_of_accessor.get(&pos.index()) {
+            Some(&bi) => {
+                if self.blocks.get(bi).map(|b| &b.to_world) != Some(world) {
+                    return Err(MeshError::unsupported(format!(
+                        "mesh data (POSITION accessor {}) drawn by several nodes with different \
+                         transforms (instancing); node {node} is one of them",
+                        pos.index()
+                    )));
+                }
+                bi
+            }
+            None => {
+                self.limits
+                    .check_vertices(self.local.len().saturating_add(count))?;
+                let to_local = world.inverse().ok_or_else(|| {
+                    MeshError::unsupported(format!("node {node} has a singular transform"))
+                })?;
+                let positions = read_vec3(&pos, self.buffers, "POSITION")?;
+                let start = self.local.len();
+                self.local.extend(positions);
+                self.uvs.resize(self.local.len(), None);
+                self.normals.resize(self.local.len(), None);
+                self.blocks.push(Block {
+                    start,
+                    len: count,
+                    to_world: *world,
+                    to_local,
+                });
+                self.position_accessors.push(pos.index());
+                self.block_of_accessor
+                    .insert(pos.index(), self.blocks.len() - 1);
+                self.blocks.len() - 1
+            }
+        };
+        let start = self.blocks.get(block).map_or(0, |b| b.start);
+        if let Some(uv) = prim.get(&gltf::Semantic::TexCoords(0)) {
+            if uv.count() != count {
+                return Err(MeshError::parse(
+                    "glTF",
+                    "TEXCOORD_0 and POSITION counts differ",
+                ));
+            }
+            for (i, v) in read_uv(&uv, self.buffers)?.into_iter().enumerate() {
+                if let Some(slot) = self.uvs.get_mut(start + i) {
+                    *slot = Some(v);
+                }
+            }
+        }
+        if let Some(n) = prim.get(&gltf::Semantic::Normals) {
+            if n.count() != count {
+                return Err(MeshError::parse(
+                    "glTF",
+                    "NORMAL and POSITION counts differ",
+                ));
+            }
+            if !self.normal_accessors.iter().any(|&(a, _)| a == n.index()) {
+                self.normal_accessors.push((n.index(), block));
+            }
+            for (i, v) in read_vec3(&n, self.buffers, "NORMAL")?
+                .into_iter()
+                .enumerate()
+            {
+                if let Some(slot) = self.normals.get_mut(start + i) {
+                    *slot = Some(v);
+                }
+            }
+        }
+
+        let indices: Vec<usize> = match prim.indices() {
+            Some(acc) => {
+                self.limits
+                    .check_faces(self.triangles.len().saturating_add(acc.count() / 3))?;
+                read_indices(&acc, self.buffers)?
+            }
+            None => {
+                self.limits
+                    .check_faces(self.triangles.len().saturating_add(count / 3))?;
+                (0..count).collect()
+            }
+        };
+        let mut push = |t: [usize; 3], skip_repeated: bool| {
+            if skip_repeated && (t[0] == t[1] || t[1] == t[2] || t[0] == t[2]) {
+                return; // the zero-area triangles strips use to restart
+            }
+            if t.iter().any(|&i| i >= count) {
+                self.bad_faces.push(self.triangles.len());
+            }
+            self.triangles
+                .push(t.map(|i| start + i.min(count.saturating_sub(1))));
+        };
+        match prim.mode() {
+            Mode::TriangleStrip => {
+                for (i, w) in indices.windows(3).enumerate() {
+                    let t = if i % 2 == 0 {
+                        [w[0], w[1], w[2]]
+                    } else {
+                        [w[1], w[0], w[2]]
+                    };
+                    push(t, true);
+                }
+            }
+            Mode::TriangleFan => {
+                if let Some((&first, rest)) = indices.split_first() {
+                    for w in rest.windows(2) {
+                        push([first, w[0], w[1]], true);
+                    }
+                }
+            }
+            _ => {
+                if !indices.len().is_multiple_of(3) {
+                    return Err(MeshError::parse(
+                        "glTF",
+                        format!(
+                            "a TRIANGLES primitive has {} indices, not a multiple of 3",
+                            indices.len()
+                        ),
+                    ));
+                }
+                for t in indices.chunks_exact(3) {
+                    push([t[0], t[1], t[2]], false);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Appends `data` to `bin` at a 4-byte aligned offset; returns the offset.
+pub(super) fn append_aligned(bin: &mut Vec<u8>, data: &[u8]) -> usize {
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    let at = bin.len();
+    bin.extend_from_slice(data);
+    at
+}
+
+pub(super) fn vec3_bytes(values: &[[f32; 3]]) -> Vec<u8> {
+    values
+        .iter()
+        .flatten()
+        .flat_map(|x| x.to_le_bytes())
+        .collect()
+}
+
+/// Component-wise min and max, as JSON arrays (glTF requires them on POSITION).
+pub(super) fn bounds(values: &[[f32; 3]]) -> (Value, Value) {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for v in values {
+        for k in 0..3 {
+            lo[k] = lo[k].min(v[k]);
+            hi[k] = hi[k].max(v[k]);
+        }
+    }
+    (json!(lo), json!(hi))
+}
+
+pub(super) fn malformed(what: &str) -> MeshError {
+    MeshError::parse("glTF", format!("cannot rewrite the document: {what}"))
+}
+
+/// Repoints accessor `index` at a new tightly packed float VEC3 buffer view.
+pub(super) fn repoint_accessor(
+    doc: &mut Value,
+    index: usize,
+    view: usize,
+    count: usize,
+    min_max: Option<(Value, Value)>,
+) -> Result<(), MeshError> {
+    let acc = doc
+        .get_mut("accessors")
+        .and_then(|a| a.get_mut(index))
+        .and_then(Value::as_object_mut)
+        .ok_or_else(|| malformed("missing accessor"))?;
+    for key in ["byteOffset", "sparse", "normalized", "min", "max"] {
+        acc.remove(key);
+    }
+    acc.insert("bufferView".into(), json!(view));
+    acc.insert("componentType".into(), json!(FLOAT));
+    acc.insert("type".into(), json!("VEC3"));
+    acc.insert("count".into(), json!(count));
+    if let Some((lo, hi)) = min_max {
+        acc.insert("min".into(), lo);
+        acc.insert("max".into(), hi);
+    }
+    Ok(())
+}
+
+pub(super) fn push_view(
+    doc: &mut Value,
+    offset: usize,
+    length: usize,
+    target: u32,
+) -> Result<usize, MeshError> {
+    let obj = doc
+        .as_object_mut()
+        .ok_or_else(|| malformed("not an object"))?;
+    let views = obj
+        .entry("bufferViews")
+        .or_insert_with(|| json!([]))
+        .as_array_mut()
+        .ok_or_else(|| malformed("bufferViews is not an array"))?;
+    views.push(json!({"buffer": 0, "byteOffset": offset, "byteLength": length, "target": target}));
+    Ok(views.len() - 1)
+}
+
+/// Per split vertex position in its block's local space, as f32 (glTF stores f32).
+pub(super) fn split_f32(asset: &Asset, positions: &[[f64; 3]]) -> Vec<[f32; 3]> {
+    asset
+        .split_positions(positions)
+        .into_iter()
+        .map(|p| p.map(|x| x as f32))
+        .collect()
+}
+
+/// Removes TANGENT from every primitive and morph target: tangents follow positions, so the
+/// stored ones are stale once the surface moves. glTF says viewers compute MikkTSpace tangents
+/// when none are given, which is more faithful than a second implementation here (MikkTSpace's
+/// exact splitting rules would have to match). The accessors stay (unused, which is valid).
+pub(super) fn drop_tangents(doc: &mut Value) {
+    let meshes = doc.get_mut("meshes").and_then(Value::as_array_mut);
+    for mesh in meshes.into_iter().flatten() {
+        let prims = mesh.get_mut("primitives").and_then(Value::as_array_mut);
+        for prim in prims.into_iter().flatten() {
+            if let Some(a) = prim.get_mut("attributes").and_then(Value::as_object_mut) {
+                a.remove("TANGENT");
+            }
+            let targets = prim.get_mut("targets").and_then(Value::as_array_mut);
+            for t in targets
+                .into_iter()
+                .flatten()
+                .filter_map(Value::as_object_mut)
+            {
+                t.remove("TANGENT");
+            }
+        }
+    }
+}
+
+/// Rewrites the input document with new positions (see the module docs).
+pub(crate) fn write_document(
+    asset: &Asset,
+    src: &GltfSource,
+    positions: &[[f64; 3]],
+    glb: bool,
+) -> Result<Vec<u8>, MeshError> {
+    let mut doc = src.json.clone();
+    drop_tangents(&mut doc);
+    // One buffer: every original buffer unchanged, each at an 8-aligned offset so the
+    // alignment of every original view (at most 4 is required) is kept.
+    let mut bin: Vec<u8> = Vec::new();
+    let mut base = Vec::with_capacity(src.buffers.len());
+    for b in &src.buffers {
+        while !bin.len().is_multiple_of(8) {
+            bin.push(0);
+        }
+        base.push(bin.len());
+        bin.extend_from_slice(b);
+    }
+    if let Some(views) = doc.get_mut("bufferViews").and_then(Value::as_array_mut) {
+        for v in views {
+            let v = v.as_object_mut().ok_or_else(|| malformed("buffer view"))?;
+            let buffer = v.get("buffer").and_then(Value::as_u64).unwrap_or(0) as usize;
+            let offset = v.get("byteOffset").and_then(Value::as_u64).unwrap_or(0) as usize;
+            let b = base
+                .get(buffer)
+                .ok_or_else(|| malformed("view of a missing buffer"))?;
+            v.insert("buffer".into(), json!(0));
+            v.insert("byteOffset".into(), json!(offset + b));
+        }
+    }
+
+    let local = split_f32(asset, positions);
+    for (&acc, block) in src.position_accessors.iter().zip(&asset.file.blocks) {
+        let values = local
+            .get(block.start..block.start + block.len)
+            .ok_or_else(|| malformed("block out of range"))?;
+        let at = append_aligned(&mut bin, &vec3_bytes(values));
+        let view = push_view(&mut doc, at, values.len() * 12, ARRAY_BUFFER)?;
+        repoint_accessor(&mut doc, acc, view, values.len(), Some(bounds(values)))?;
+    }
+
+    if let Some(world_normals) = asset.split_normals_world(positions) {
+        for &(acc, bi) in &src.normal_accessors {
+            let block = asset
+                .file
+                .blocks
+                .get(bi)
+                .ok_or_else(|| malformed("normal block"))?;
+            let values: Vec<[f32; 3]> = world_normals
+                .get(block.start..block.start + block.len)
+                .ok_or_else(|| malformed("normal block out of range"))?
+                .iter()
+                .map(|&n| normalize_or_z(block.to_world.transpose_apply(n)).map(|x| x as f32))
+                .collect();
+            let at = append_aligned(&mut bin, &vec3_bytes(&values));
+            let view = push_view(&mut doc, at, values.len() * 12, ARRAY_BUFFER)?;
+            repoint_accessor(&mut doc, acc, view, values.len(), None)?;
+        }
+    }
+
+    finish(doc, bin, glb)
+}
+
+/// Sets the single buffer and serializes as GLB (BIN chunk) or glTF (base64 data: URI).
+pub(super) fn finish(mut doc: Value, mut bin: Vec<u8>, glb: bool) -> Result<Vec<u8>, MeshError> {
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    let buffer = if glb {
+        json!({"byteLength": bin.len()})
+    } else {
+        let b64 = base64::engine::general_purpose::STANDARD.encode(&bin);
+        json!({"byteLength": bin.len(), "uri": format!("data:application/octet-stream;base64,{b64}")})
+    };
+    doc.as_object_mut()
+        .ok_or_else(|| malformed("not an object"))?
+        .insert("buffers".into(), json!([buffer]));
+    let mut json_bytes =
+        serde_json::to_vec(&doc).map_err(|e| malformed(&format!("serialization: {e}")))?;
+    if !glb {
+        return Ok(json_bytes);
+    }
+    while json_bytes.len() % 4 != 0 {
+        json_bytes.push(b' ');
+    }
+    let total = 12 + 8 + json_bytes.len() + 8 + bin.len();
+    let as_u32 = |n: usize| -> Result<[u8; 4], MeshError> {
+        u32::try_from(n)
+            .map(u32::to_le_bytes)
+            .map_err(|_| MeshError::TooLarge {
+                what: "output bytes",
+                value: n,
+                limit: u32::MAX as usize,
+            })
+    };
+    let mut out = Vec::with_capacity(total);
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&as_u32(total)?);
+    out.extend_from_slice(&as_u32(json_bytes.len())?);
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&json_bytes);
+    out.extend_from_slice(&as_u32(bin.len())?);
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&bin);
+    Ok(out)
+}
+
+/// A new document for an asset read from OBJ: one mesh, one primitive with POSITION,
+/// TEXCOORD_0 and NORMAL when the file had them, u32 indices wound like the surface.
+pub(crate) fn write_new(
+    asset: &Asset,
+    positions: &[[f64; 3]],
+    glb: bool,
+) -> Result<Vec<u8>, MeshError> {
+    let local = split_f32(asset, positions);
+    let mut bin = Vec::new();
+    let mut accessors = Vec::new();
+    let mut views = Vec::new();
+    let mut attributes = serde_json::Map::new();
+
+    let mut add = |bin: &mut Vec<u8>, data: Vec<u8>, target: u32, accessor: Value| -> usize {
+        let at = append_aligned(bin, &data);
+        views.push(
+            json!({"buffer": 0, "byteOffset": at, "byteLength": data.len(), "target": target}),
+        );
+        let mut accessor = accessor;
+        if let Some(a) = accessor.as_object_mut() {
+            a.insert("bufferView".into(), json!(views.len() - 1));
+        }
+        accessors.push(accessor);
+        accessors.len() - 1
+    };
+
+    let (lo, hi) = bounds(&local);
+    let pos = add(
+        &mut bin,
+        vec3_bytes(&local),
+        ARRAY_BUFFER,
+        json!({"componentType": FLOAT, "count": local.len(), "type": "VEC3", "min": lo, "max": hi}),
+    );
+    attributes.insert("POSITION".into(), json!(pos));
+    if let Some(normals) = asset.split_normals_world(positions) {
+        let values: Vec<[f32; 3]> = normals.iter().map(|n| n.map(|x| x as f32)).collect();
+        let n = add(
+            &mut bin,
+            vec3_bytes(&values),
+            ARRAY_BUFFER,
+            json!({"componentType": FLOAT, "count": values.len(), "type": "VEC3"}),
+        );
+        attributes.insert("NORMAL".into(), json!(n));
+    }
+    if let Some(uvs) = &asset.file.uvs {
+        let uvs: Vec<[f32; 2]> = uvs
+            .iter()
+            .map(|uv| uv.unwrap_or([0.0; 2]).map(|x| x as f32))
+            .collect();
+        let data: Vec<u8> = uvs.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+        let t = add(
+            &mut bin,
+            data,
+            ARRAY_BUFFER,
+            json!({"componentType": FLOAT, "count": uvs.len(), "type": "VEC2"}),
+        );
+        attributes.insert("TEXCOORD_0".into(), json!(t));
+    }
+    let triangles = asset.oriented_split_triangles();
+    let mut index_bytes = Vec::with_capacity(triangles.len() * 12);
+    for i in triangles.iter().flatten() {
+        let i = u32::try_from(*i).map_err(|_| MeshError::TooLarge {
+            what: "vertices for 32-bit indices",
+            value: *i,
+            limit: u32::MAX as usize,
+        })?;
+        index_bytes.extend_from_slice(&i.to_le_bytes());
+    }
+    let indices = add(
+        &mut bin,
+        index_bytes,
+        ELEMENT_ARRAY_BUFFER,
+        json!({"componentType": UNSIGNED_INT, "count": triangles.len() * 3, "type": "SCALAR"}),
+    );
+    let doc = json!({
+        "asset": {"version": "2.0", "generator": "Willow"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": attributes, "indices": indices, "mode": 4}]}],
+        "accessors": accessors,
+        "bufferViews": views,
+    });
+    finish(doc, bin, glb)
+}
