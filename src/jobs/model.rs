@@ -195,6 +195,8 @@ impl JobSpec {
             // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
             threads: 1,
             precision: willow::flow::Precision::Auto,
+            // Not in the job spec yet (the CLI sets it): today's behaviour.
+            preserve: willow::flow::Preserve::Area,
         }
     }
 

@@ -82,6 +82,47 @@ impl std::str::FromStr for Method {
     }
 }
 
+/// What the scale policy ([`scale`]) gives back to each connected component after every step.
+/// Every choice also puts the component's area-weighted centroid back where it was.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Preserve {
+    /// Each component keeps its input area (ALGORITHM.md §6): what a CAD pipeline expects.
+    #[default]
+    Area,
+    /// Each *closed* component keeps its input enclosed volume, by a uniform scale about its
+    /// centroid (a similarity, so Q is untouched); components with boundary enclose nothing
+    /// and keep their area as under [`Preserve::Area`].
+    Volume,
+    /// No rescaling: the size is whatever the flow makes it (implicit MCF shrinks; the
+    /// conformal flow's λ normalization keeps the area roughly). The centroid is still
+    /// restored: the conformal flow's Poisson solve (Table 1 step VII) fixes positions only up
+    /// to a constant per component, so without it the translation would be a gauge artefact,
+    /// not shape, and it would swamp the distance from the input.
+    None,
+}
+
+impl Preserve {
+    pub const ALL: [Preserve; 3] = [Preserve::Area, Preserve::Volume, Preserve::None];
+
+    /// The one name of a choice: JSON and the CLI.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Preserve::Area => "area",
+            Preserve::Volume => "volume",
+            Preserve::None => "none",
+        }
+    }
+
+    /// The choice of a name (any case), or an error listing the names.
+    pub fn parse(name: &str) -> Result<Preserve, String> {
+        Preserve::ALL
+            .into_iter()
+            .find(|p| p.name().eq_ignore_ascii_case(name))
+            .ok_or_else(|| format!("expected one of `area`, `volume`, `none`, got `{name}`"))
+    }
+}
+
 /// More inverse iterations per step than this buy nothing (§6.4.2 uses one) and only burn
 /// CPU: the one cap, for the library and every transport.
 pub const MAX_ITERATIONS: usize = 50;
@@ -185,6 +226,10 @@ pub struct FlowParams {
     pub threads: usize,
     /// How the conformal flow factors the Dirac matrix X (see [`Precision`]).
     pub precision: Precision,
+    /// What each component keeps after every step: area (the default), enclosed volume, or
+    /// nothing ([`Preserve`]). Taubin smoothing is never rescaled and a fixed boundary pins
+    /// the size already: both refuse `volume` ([`FlowError::Unsupported`]).
+    pub preserve: Preserve,
 }
 
 impl FlowParams {
@@ -194,7 +239,8 @@ impl FlowParams {
     /// before a job is accepted. What needs the mesh (the per-loop angle count, a vertex on the
     /// boundary, Taubin's pass band) is checked when the flow is built.
     pub fn validate(&self) -> Result<(), FlowError> {
-        let invalid = |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
+        let invalid =
+            |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
         if !(self.tau.is_finite() && self.tau > 0.0) {
             return Err(invalid(
                 "tau",
@@ -266,6 +312,7 @@ impl Default for FlowParams {
             safeguard: true,
             threads: 1,
             precision: Precision::Auto,
+            preserve: Preserve::Area,
         }
     }
 }
