@@ -10,11 +10,16 @@
 //! - Enclosed volume: the sum over *closed* components of `Σ_f det(p0, p1, p2) / 6` (the
 //!   divergence theorem, [`enclosed_volume`]); a component with boundary encloses nothing and
 //!   adds 0, so a disk reports 0 and a sphere beside a disk reports the sphere's volume.
+//! - Deviation from the input: the two-sided sampled distance between the current surface
+//!   and the input (vertices, edge midpoints and face centroids of each, to the nearest point
+//!   of the other's triangles): its maximum and its area-weighted mean
+//!   ([`crate::geometry::distance`] says exactly what is measured). In model units.
 
 use crate::geometry::cache::GeometryCache;
-use crate::geometry::operators::component_volumes_into;
+use crate::geometry::distance::Deviation;
 #[cfg(doc)]
 use crate::geometry::operators::enclosed_volume;
+use crate::geometry::operators::{component_volumes_into, face_areas_into};
 use crate::mesh::topology::Topology;
 use serde::{Deserialize, Serialize};
 
@@ -54,6 +59,13 @@ pub struct StepMetrics {
     /// docs). Rows stored before it existed read as 0.
     #[serde(default)]
     pub volume: f64,
+    /// Largest sampled distance between this surface and the input, either way (a sampled
+    /// symmetric Hausdorff distance; [`crate::geometry::distance`]). 0 for step 0.
+    #[serde(default)]
+    pub deviation_max: f64,
+    /// Mean of the two one-sided area-weighted mean distances to the input. 0 for step 0.
+    #[serde(default)]
+    pub deviation_mean: f64,
 }
 
 /// The input surface's per-triangle metric, kept to measure the quasi-conformal error of every
@@ -132,6 +144,7 @@ pub struct StepReporter {
     volume_apex: Vec<Option<usize>>,
     apexes: Vec<[f64; 3]>,
     volumes: Vec<f64>,
+    deviation: Deviation,
 }
 
 impl StepReporter {
@@ -141,7 +154,10 @@ impl StepReporter {
             .iter()
             .map(|c| c.is_closed().then(|| c.vertices.first().copied()).flatten())
             .collect();
+        let mut face_areas = vec![0.0; triangles.len()];
+        face_areas_into(positions, triangles, &mut face_areas);
         StepReporter {
+            deviation: Deviation::new(positions, triangles, topology, &face_areas),
             reference: ConformalReference::new(positions, triangles),
             q: vec![1.0; triangles.len()],
             scratch: vec![1.0; triangles.len()],
@@ -173,6 +189,8 @@ impl StepReporter {
             tau: 0.0,
             rejected: 0,
             volume: self.closed_volume(positions, triangles),
+            deviation_max: 0.0,
+            deviation_mean: 0.0,
         }
     }
 
@@ -216,6 +234,9 @@ impl StepReporter {
         let (q_mean, q_area_mean, q_p95, q_max) =
             summarize_q(&self.q, &geometry.face_areas, &mut self.scratch);
         let volume = self.closed_volume(positions, triangles);
+        let (deviation_max, deviation_mean) =
+            self.deviation
+                .measure(positions, triangles, &geometry.face_areas);
         StepMetrics {
             step,
             willmore_energy: geometry.willmore_energy(),
@@ -230,6 +251,8 @@ impl StepReporter {
             tau: 0.0,
             rejected: 0,
             volume,
+            deviation_max,
+            deviation_mean,
         }
     }
 }
