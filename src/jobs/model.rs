@@ -197,6 +197,9 @@ impl JobSpec {
             precision: willow::flow::Precision::Auto,
             // Not in the job spec yet (the CLI sets it): today's behaviour.
             preserve: willow::flow::Preserve::Area,
+            // The service has no stopping rules yet: a job runs its steps.
+            until_willmore: None,
+            max_deviation: None,
         }
     }
 

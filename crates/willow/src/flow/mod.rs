@@ -14,6 +14,7 @@ pub mod mobius;
 pub mod prescribed;
 pub mod safeguard;
 pub mod scale;
+pub mod stopping;
 pub mod willmore;
 
 use crate::mesh::Mesh;
@@ -230,6 +231,12 @@ pub struct FlowParams {
     /// nothing ([`Preserve`]). Taubin smoothing is never rescaled and a fixed boundary pins
     /// the size already: both refuse `volume` ([`FlowError::Unsupported`]).
     pub preserve: Preserve,
+    /// Stop once the Willmore energy is at most this ([`stopping::Run`]); `None`: no target.
+    pub until_willmore: Option<f64>,
+    /// Stop before the first step that would move the surface further than this from the
+    /// input (`StepMetrics::deviation_max`, model units); the result is the last surface
+    /// within it ([`stopping::Run`]). `None`: no bound.
+    pub max_deviation: Option<f64>,
 }
 
 impl FlowParams {
@@ -273,6 +280,19 @@ impl FlowParams {
                 ));
             }
         }
+        for (name, value) in [
+            ("until_willmore", self.until_willmore),
+            ("max_deviation", self.max_deviation),
+        ] {
+            if let Some(v) = value {
+                if !(v.is_finite() && v >= 0.0) {
+                    return Err(invalid(
+                        name,
+                        format!("must be a finite number ≥ 0, got {v}"),
+                    ));
+                }
+            }
+        }
         if let Boundary::Prescribed(p) = &self.boundary {
             p.validate()
                 .map_err(|(name, e)| invalid(name, e.to_string()))?;
@@ -313,6 +333,8 @@ impl Default for FlowParams {
             threads: 1,
             precision: Precision::Auto,
             preserve: Preserve::Area,
+            until_willmore: None,
+            max_deviation: None,
         }
     }
 }
