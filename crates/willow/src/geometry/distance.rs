@@ -415,21 +415,22 @@ impl SamplePlan {
 /// costs about the number of triangles within the distance's slack of the sample (tens of
 /// them once the surface moved a few edge lengths: measured 5 µs per query on nefertiti
 /// after one step at τ 0.5), so every sample of a 100k-triangle mesh (600k queries) would
-/// cost ten conformal steps; 4096 per side keep the mean's sampling error far below 1%.
-pub const MEAN_SAMPLES: usize = 4096;
-/// Steps of the greedy walk over face neighbours that gives each sample its upper bound.
+/// cost several conformal steps; 2048 per side keep the mean's sampling error near 1%.
+pub const MEAN_SAMPLES: usize = 2048;
+/// Steps of the greedy walk over face neighbours that improves a query's starting face.
 const WALK_STEPS: usize = 8;
 
-/// An upper bound on the distance from `p` to the triangles: walk from `face` to the edge
-/// neighbour nearest to `p` while that gets nearer (at most [`WALK_STEPS`] steps). Returns
-/// the face reached and its squared distance.
+/// A face near `p`: walk from `face` to the edge neighbour nearest to `p` while that gets
+/// nearer (at most [`WALK_STEPS`] steps). Only a starting point for an exact query, which
+/// then opens fewer boxes: the surface may have slid along itself since the input, so the
+/// same face on the other surface can be far.
 fn walk_down(
     p: [f64; 3],
     face: usize,
     neighbours: &[[u32; 3]],
     positions: &[[f64; 3]],
     triangles: &[[usize; 3]],
-) -> (usize, f64) {
+) -> usize {
     let d2_of = |f: usize| {
         let t = triangles[f];
         dist2(
@@ -439,8 +440,8 @@ fn walk_down(
     };
     let mut best = (face, d2_of(face));
     for _ in 0..WALK_STEPS {
-        let here = best;
-        for &g in &neighbours[here.0] {
+        let here = best.0;
+        for &g in &neighbours[here] {
             if g != u32::MAX {
                 let d2 = d2_of(g as usize);
                 if d2 < best.1 {
@@ -448,154 +449,108 @@ fn walk_down(
                 }
             }
         }
-        if best.0 == here.0 {
+        if best.0 == here {
             break;
         }
     }
-    best
+    best.0
 }
 
-/// Scratch of [`one_sided`], allocated once per flow.
-#[derive(Default)]
-struct Scratch {
-    /// Per sample: the face its upper bound was found on, and the bound.
-    face: Vec<u32>,
-    upper: Vec<f64>,
-    /// Faces in breadth-first order, and candidates for the max (bound, sample).
-    queue: Vec<u32>,
-    candidates: Vec<(f64, u32)>,
+/// One surface's side of the measure: its samples, their weights, its tree, and the other
+/// surface to measure against.
+struct Side<'a> {
+    samples: &'a [[f64; 3]],
+    weights: &'a [f64],
+    hints: &'a [u32],
+    /// This surface (its samples lie in its tree's boxes).
+    own: &'a Bvh,
+    own_positions: &'a [[f64; 3]],
+    /// The other surface.
+    other: &'a Bvh,
+    other_positions: &'a [[f64; 3]],
+    triangles: &'a [[usize; 3]],
+    neighbours: &'a [[u32; 3]],
 }
 
-/// Upper bounds on the distance of every sample (laid out as [`SamplePlan`] says, face
-/// centroids last) to the triangles of `bvh`, left in `scratch` for [`settle_max`], and the
-/// exact largest and weighted mean distance over the strided subset of the `Deviation`
-/// docs.
-///
-/// Every sample first gets an upper bound from a short walk ([`walk_down`]) that starts
-/// where a neighbour's walk ended: face centroids in breadth-first order over the faces
-/// (each from its parent's face, the root of each component from an exact query), then
-/// vertices and edge midpoints from an incident face's centroid. Neighbouring samples have
-/// neighbouring nearest points, so the walk mostly ends on the nearest face itself, and the
-/// bounds are tight however far the surface slid since the input.
-#[allow(clippy::too_many_arguments)]
-fn bound_and_mean(
-    samples: &[[f64; 3]],
-    weights: &[f64],
-    hints: &[u32],
-    neighbours: &[[u32; 3]],
-    bvh: &Bvh,
-    positions: &[[f64; 3]],
-    triangles: &[[usize; 3]],
-    scratch: &mut Scratch,
-) -> (f64, f64) {
-    let exact = |p: [f64; 3], hint: usize| {
-        bvh.nearest(positions, triangles, p, Some(hint))
-            .unwrap_or((hint, 0.0))
-    };
-    let n = samples.len();
-    let nf = triangles.len();
-    let first_centroid = n - nf;
-    // The distance to a surface is 1-Lipschitz: a sample is at most its parent's bound plus
-    // their separation from it. A walk that ends above that got lost among local minima of
-    // the face graph (fine detail on the other surface); an exact query re-anchors it, so
-    // a lost walk does not hand a bad start to the samples after it.
-    let walk_or_anchor =
-        |samples: &[[f64; 3]], i: usize, parent: usize, start: usize, scratch: &Scratch| {
-            let (face, d2) = walk_down(samples[i], start, neighbours, positions, triangles);
-            let lipschitz = scratch.upper[parent] + dist2(samples[i], samples[parent]).sqrt();
-            if d2.sqrt() > lipschitz * (1.0 + 1e-9) {
-                let (face, d2) = exact(samples[i], face);
-                (face, d2.sqrt())
-            } else {
-                (face, d2.sqrt())
-            }
-        };
-    scratch.face.clear();
-    scratch.face.resize(n, u32::MAX);
-    scratch.upper.clear();
-    scratch.upper.resize(n, 0.0);
-    for root in 0..nf {
-        if scratch.face[first_centroid + root] != u32::MAX {
-            continue;
+impl Side<'_> {
+    fn exact(&self, p: [f64; 3], hint: usize) -> (usize, f64) {
+        self.other
+            .nearest(self.other_positions, self.triangles, p, Some(hint))
+            .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
+    }
+
+    /// The exact largest and weighted mean distance over the strided subset of the
+    /// [`Deviation`] docs.
+    fn subset(&self) -> (f64, f64) {
+        let n = self.samples.len();
+        let stride = n.div_ceil(MEAN_SAMPLES).max(1);
+        let (mut max, mut sum, mut total) = (0.0f64, 0.0, 0.0);
+        for i in (0..n).step_by(stride) {
+            let p = self.samples[i];
+            let start = walk_down(
+                p,
+                self.hints[i] as usize,
+                self.neighbours,
+                self.other_positions,
+                self.triangles,
+            );
+            let d = self.exact(p, start).1;
+            max = max.max(d);
+            sum += self.weights[i] * d;
+            total += self.weights[i];
         }
-        let (face, d2) = exact(samples[first_centroid + root], root);
-        scratch.face[first_centroid + root] = face as u32;
-        scratch.upper[first_centroid + root] = d2.sqrt();
-        scratch.queue.clear();
-        scratch.queue.push(root as u32);
-        let mut head = 0;
-        while head < scratch.queue.len() {
-            let f = scratch.queue[head] as usize;
-            head += 1;
-            let start = scratch.face[first_centroid + f] as usize;
-            for &g in &neighbours[f] {
-                let i = first_centroid + g as usize;
-                if g == u32::MAX || scratch.face[i] != u32::MAX {
-                    continue;
+        (max, if total > 0.0 { sum / total } else { 0.0 })
+    }
+
+    /// The largest distance over every sample of this side, exactly, given `max`, one
+    /// already reached. Top-down through this surface's tree: every sample of a node lies
+    /// in its box (vertices of its triangles, and midpoints and centroids between them), and
+    /// the distance to a surface is 1-Lipschitz, so no sample of a node is further than
+    /// `d(centre) + half diagonal`; a node whose bound is not above `max` is skipped whole.
+    /// Only the leaves near the largest distance have their samples measured.
+    fn settle_max(&self, mut max: f64, stack: &mut Vec<(u32, u32)>) -> f64 {
+        if self.own.nodes.is_empty() {
+            return max;
+        }
+        stack.clear();
+        stack.push((0, self.own.order[0]));
+        while let Some((index, hint)) = stack.pop() {
+            let node = self.own.nodes[index as usize];
+            let centre = scale(add(node.min, node.max), 0.5);
+            let radius = 0.5 * dist2(node.max, node.min).sqrt();
+            let (face, d) = self.exact(centre, hint as usize);
+            if d + radius <= max {
+                continue;
+            }
+            if node.count == 0 {
+                stack.push((node.start, face as u32));
+                stack.push((index + 1, face as u32));
+                continue;
+            }
+            let s = node.start as usize;
+            for &f in &self.own.order[s..s + node.count as usize] {
+                let t = self.triangles[f as usize];
+                let [a, b, c] = t.map(|v| self.own_positions[v]);
+                // The same arithmetic as `SamplePlan::points_into`, so the same points.
+                let points = [
+                    a,
+                    b,
+                    c,
+                    scale(add(a, b), 0.5),
+                    scale(add(b, c), 0.5),
+                    scale(add(c, a), 0.5),
+                    scale(add(add(a, b), c), 1.0 / 3.0),
+                ];
+                for p in points {
+                    if dist2(p, centre).sqrt() + d <= max {
+                        continue;
+                    }
+                    max = max.max(self.exact(p, face).1);
                 }
-                let parent = first_centroid + f;
-                let (face, upper) = walk_or_anchor(samples, i, parent, start, scratch);
-                scratch.face[i] = face as u32;
-                scratch.upper[i] = upper;
-                scratch.queue.push(g);
             }
         }
+        max
     }
-    for i in 0..first_centroid {
-        let parent = first_centroid + hints[i] as usize;
-        let start = scratch.face[parent] as usize;
-        let (face, upper) = walk_or_anchor(samples, i, parent, start, scratch);
-        scratch.face[i] = face as u32;
-        scratch.upper[i] = upper;
-    }
-    // The mean, exactly over a strided subset; its largest distance bounds the max below.
-    let stride = n.div_ceil(MEAN_SAMPLES).max(1);
-    let (mut max, mut sum, mut total) = (0.0f64, 0.0, 0.0);
-    for i in (0..n).step_by(stride) {
-        let d = exact(samples[i], scratch.face[i] as usize).1.sqrt();
-        max = max.max(d);
-        sum += weights[i] * d;
-        total += weights[i];
-    }
-    let mean = if total > 0.0 { sum / total } else { 0.0 };
-    (max, mean)
-}
-
-/// The largest distance over every sample of one side, exactly, given `max`, a distance
-/// already reached (by either side: the deviation is the larger of the two), and the bounds
-/// [`bound_and_mean`] left in `scratch`.
-fn settle_max(
-    samples: &[[f64; 3]],
-    bvh: &Bvh,
-    positions: &[[f64; 3]],
-    triangles: &[[usize; 3]],
-    scratch: &mut Scratch,
-    mut max: f64,
-) -> f64 {
-    let exact = |p: [f64; 3], hint: usize| {
-        bvh.nearest(positions, triangles, p, Some(hint))
-            .unwrap_or((hint, 0.0))
-    };
-    // The max over every sample, exactly: a sample whose upper bound is not above the
-    // largest exact distance so far cannot raise it; the others are settled by exact
-    // queries in decreasing order of their bounds until the next bound is not above it.
-    scratch.candidates.clear();
-    for (i, &upper) in scratch.upper.iter().enumerate() {
-        if upper > max {
-            scratch.candidates.push((upper, i as u32));
-        }
-    }
-    scratch
-        .candidates
-        .sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
-    for &(upper, i) in &scratch.candidates {
-        if upper <= max {
-            break;
-        }
-        let i = i as usize;
-        max = max.max(exact(samples[i], scratch.face[i] as usize).1.sqrt());
-    }
-    max
 }
 
 /// The two-sided sampled distance between the input surface and a moving one with the same
@@ -617,7 +572,7 @@ pub struct Deviation {
     current_bvh: Bvh,
     samples: Vec<[f64; 3]>,
     weights: Vec<f64>,
-    scratch: [Scratch; 2],
+    stack: Vec<(u32, u32)>,
 }
 
 impl Deviation {
@@ -665,7 +620,7 @@ impl Deviation {
             input_weights,
             plan,
             neighbours,
-            scratch: [Scratch::default(), Scratch::default()],
+            stack: Vec::new(),
         }
     }
 
@@ -682,45 +637,34 @@ impl Deviation {
         self.plan
             .weights_into(triangles, face_areas, &mut self.weights);
         self.current_bvh.refit(positions, triangles);
-        let [out, back] = &mut self.scratch;
-        let (max_out, mean_out) = bound_and_mean(
-            &self.samples,
-            &self.weights,
-            &self.plan.hints,
-            &self.neighbours,
-            &self.input_bvh,
-            &self.input_positions,
+        let out = Side {
+            samples: &self.samples,
+            weights: &self.weights,
+            hints: &self.plan.hints,
+            own: &self.current_bvh,
+            own_positions: positions,
+            other: &self.input_bvh,
+            other_positions: &self.input_positions,
             triangles,
-            out,
-        );
-        let (max_in, mean_in) = bound_and_mean(
-            &self.input_samples,
-            &self.input_weights,
-            &self.plan.hints,
-            &self.neighbours,
-            &self.current_bvh,
-            positions,
+            neighbours: &self.neighbours,
+        };
+        let back = Side {
+            samples: &self.input_samples,
+            weights: &self.input_weights,
+            hints: &self.plan.hints,
+            own: &self.input_bvh,
+            own_positions: &self.input_positions,
+            other: &self.current_bvh,
+            other_positions: positions,
             triangles,
-            back,
-        );
+            neighbours: &self.neighbours,
+        };
+        let (max_out, mean_out) = out.subset();
+        let (max_in, mean_in) = back.subset();
         // Both sides' exact distances so far bound the max below before either settles it,
         // so the side with the smaller distances mostly has nothing left to check.
-        let max = settle_max(
-            &self.input_samples,
-            &self.current_bvh,
-            positions,
-            triangles,
-            back,
-            max_out.max(max_in),
-        );
-        let max = settle_max(
-            &self.samples,
-            &self.input_bvh,
-            &self.input_positions,
-            triangles,
-            out,
-            max,
-        );
+        let max = back.settle_max(max_out.max(max_in), &mut self.stack);
+        let max = out.settle_max(max, &mut self.stack);
         (max, 0.5 * (mean_out + mean_in))
     }
 }
