@@ -518,6 +518,14 @@ impl Side<'_> {
             let node = self.own.nodes[index as usize];
             let centre = scale(add(node.min, node.max), 0.5);
             let radius = 0.5 * dist2(node.max, node.min).sqrt();
+            if radius > max && node.count == 0 {
+                // No distance can cull a box this big: open it without a query (from the
+                // centre of a big box deep inside a closed surface, a query would open
+                // most of the other tree).
+                stack.push((node.start, hint));
+                stack.push((index + 1, hint));
+                continue;
+            }
             let (face, d) = self.exact(centre, hint as usize);
             if d + radius <= max {
                 continue;
