@@ -198,7 +198,7 @@ impl Bvh {
 
     /// Refill every box after the vertices moved (children before parents: reverse
     /// pre-order), and rebuild when the refitted boxes got much looser than a fresh build's
-    /// ([`REBUILD_GROWTH`]).
+    /// (twice as loose, by their summed surface area).
     pub fn refit(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]]) {
         for i in (0..self.nodes.len()).rev() {
             let node = self.nodes[i];
