@@ -32,10 +32,14 @@ fn fair_writes_json_lines_frames_and_output() {
         String::from_utf8_lossy(&run.stderr)
     );
     let stdout = String::from_utf8(run.stdout).expect("utf-8");
-    let lines: Vec<serde_json::Value> = stdout
+    let mut lines: Vec<serde_json::Value> = stdout
         .lines()
         .map(|l| serde_json::from_str(l).expect("each line is JSON"))
         .collect();
+    // The last line says how the run ended.
+    let outcome = lines.pop().unwrap_or_default();
+    assert_eq!(outcome["outcome"], "completed", "{outcome}");
+    assert_eq!(outcome["reason"], "ran its 3 steps", "{outcome}");
     assert_eq!(lines.len(), 3);
     let mut previous = f64::INFINITY;
     for (i, line) in lines.iter().enumerate() {
@@ -222,8 +226,9 @@ fn paper_options_reach_the_flow() {
     assert!(plain.status.success() && filtered.status.success());
     // The filter changes the step: the reported energies differ.
     let w = |out: &std::process::Output| -> f64 {
-        let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON line");
-        v["willmore_energy"].as_f64().unwrap_or(f64::NAN)
+        let lines = json_lines(out);
+        assert_eq!(lines.len(), 1, "one step");
+        lines[0]["willmore_energy"].as_f64().unwrap_or(f64::NAN)
     };
     assert!(
         (w(&plain) - w(&filtered)).abs() > 1e-6 * w(&plain),
@@ -298,7 +303,8 @@ fn prescribed_and_cmc_boundaries_from_the_command_line() {
             "{extra:?}: {}",
             String::from_utf8_lossy(&out.stderr)
         );
-        assert_eq!(String::from_utf8_lossy(&out.stdout).lines().count(), 2);
+        // Two steps and the outcome line.
+        assert_eq!(String::from_utf8_lossy(&out.stdout).lines().count(), 3);
     }
     for (extra, needle) in [
         (
@@ -335,11 +341,28 @@ fn bumpy_obj() -> String {
     s
 }
 
+/// The per-step JSON lines of a `fair --json` run (every line but the outcome line).
 fn json_lines(out: &std::process::Output) -> Vec<serde_json::Value> {
+    let mut lines = all_json_lines(out);
+    let last = lines.pop().unwrap_or_default();
+    assert!(
+        last["outcome"].is_string(),
+        "the last line is the outcome: {last}"
+    );
+    assert!(lines.iter().all(|l| l["step"].is_u64()));
+    lines
+}
+
+fn all_json_lines(out: &std::process::Output) -> Vec<serde_json::Value> {
     String::from_utf8_lossy(&out.stdout)
         .lines()
         .map(|l| serde_json::from_str(l).expect("each line is JSON"))
         .collect()
+}
+
+/// The outcome line of a `fair --json` run.
+fn outcome(out: &std::process::Output) -> serde_json::Value {
+    all_json_lines(out).pop().unwrap_or_default()
 }
 
 /// Each JSON line reports the τ its step used and its rejected tries: the requested τ and 0
@@ -402,6 +425,7 @@ fn no_progress_writes_the_last_good_mesh_and_exits_3() {
     );
     let lines = json_lines(&out);
     assert_eq!(lines.len(), 2, "steps 1 and 2 were kept");
+    assert_eq!(outcome(&out)["outcome"], "no_progress");
     for line in &lines {
         assert_eq!(line["tau"].as_f64(), Some(1000.0), "{line}");
         assert_eq!(line["rejected"].as_u64(), Some(0), "{line}");
@@ -422,4 +446,82 @@ fn no_progress_writes_the_last_good_mesh_and_exits_3() {
         .collect();
     assert_eq!(coords.len(), 3 * 162);
     assert!(coords.iter().all(|c| c.is_finite()));
+}
+
+/// The stopping rules from the command line: `--until-willmore` ends `target_reached` at the
+/// first step at or below the target, `--max-deviation` keeps every reported step (and the
+/// output) within the bound, `--preserve volume` keeps the volume; bad values are refused
+/// naming the flag.
+#[test]
+fn fair_stops_on_its_rules_and_names_a_bad_flag() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let input = dir.path().join("bumpy.obj");
+    std::fs::write(&input, bumpy_obj()).expect("write mesh");
+    let run = |extra: &[&str]| {
+        willow()
+            .arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(dir.path().join("o.obj"))
+            .arg("--json")
+            .args(extra)
+            .output()
+            .expect("run willow")
+    };
+    let target = 20.0;
+    let out = run(&[
+        "--steps",
+        "40",
+        "--until-willmore",
+        "20",
+        "--preserve",
+        "volume",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let end = outcome(&out);
+    assert_eq!(end["outcome"], "target_reached", "{end}");
+    assert!(end["reason"]
+        .as_str()
+        .is_some_and(|r| r.contains("until_willmore")));
+    let lines = json_lines(&out);
+    assert!(lines.len() >= 2, "{} steps", lines.len());
+    let w = |l: &serde_json::Value| l["willmore_energy"].as_f64().unwrap_or(f64::NAN);
+    assert!(w(&lines[lines.len() - 1]) <= target);
+    assert!(lines[..lines.len() - 1].iter().all(|l| w(l) > target));
+    let v0 = lines[0]["volume"].as_f64().unwrap_or(f64::NAN);
+    for l in &lines {
+        let v = l["volume"].as_f64().unwrap_or(f64::NAN);
+        assert!((v / v0 - 1.0).abs() < 1e-6, "volume {v} vs {v0}");
+    }
+
+    // A bound between the distances after steps 1 and 2 of the free run: step 1 only.
+    let free = json_lines(&run(&["--steps", "2"]));
+    let d = |l: &serde_json::Value| l["deviation_max"].as_f64().unwrap_or(f64::NAN);
+    let bound = 0.5 * (d(&free[0]) + d(&free[1]));
+    let out = run(&["--steps", "40", "--max-deviation", &bound.to_string()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(outcome(&out)["outcome"], "max_deviation");
+    let lines = json_lines(&out);
+    assert_eq!(lines.len(), 1);
+    assert!(d(&lines[0]) <= bound);
+
+    for (extra, flag) in [
+        (&["--max-deviation", "-1"][..], "--max-deviation"),
+        (&["--until-willmore", "nan"][..], "--until-willmore"),
+        (&["--preserve", "mass"][..], "--preserve"),
+    ] {
+        let out = run(extra);
+        assert_eq!(out.status.code(), Some(2), "{extra:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(flag), "{extra:?}: {err}");
+        assert!(out.stdout.is_empty(), "{extra:?}: nothing ran");
+    }
 }

@@ -1,9 +1,17 @@
 //! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
-//! [--frames-dir DIR] [--json] [--no-safeguard]`: the contract other tools rely on.
+//! [--frames-dir DIR] [--json] [--no-safeguard] [--preserve area|volume|none]
+//! [--max-deviation D] [--until-willmore W]`: the contract other tools rely on.
 //!
-//! Exit codes: 0 done; 2 input refused; 1 failure while running (no output written); 3 the
-//! safeguard found no acceptable step (`FlowError::NoProgress`): the output holds the last
-//! accepted surface and stderr says why the flow stopped.
+//! The run stops as `willow::flow::stopping` decides: after `--steps`, or earlier when W
+//! stops falling, reaches `--until-willmore`, or the next step would pass `--max-deviation`.
+//! With `--json`, stdout has one JSON object per step, then one last line
+//! `{"outcome": "...", "reason": "..."}` (outcomes: `completed`, `converged`,
+//! `target_reached`, `max_deviation`, `no_progress`).
+//!
+//! Exit codes: 0 done (any outcome but `no_progress`); 2 input refused; 1 failure while
+//! running (no output written); 3 the safeguard found no acceptable step
+//! (`FlowError::NoProgress`): the output holds the last accepted surface and stderr says why
+//! the flow stopped.
 
 use super::{fail, read_input, EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_NO_PROGRESS};
 use clap::Args;
@@ -11,7 +19,8 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use willow::flow::{new_flow, FlowError, Method};
+use willow::flow::stopping::{Event, Outcome, Run};
+use willow::flow::{new_flow, FlowError, Method, Preserve};
 use willow::mesh::io::{Asset, Format, Limits};
 use willow_service::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use willow_service::jobs::JobSpec;
@@ -23,7 +32,8 @@ pub struct FairArgs {
     /// Output mesh; its extension picks the format.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Number of flow steps.
+    /// Number of flow steps, at most: the run stops earlier when W stops falling (relative
+    /// change below 1e-4 for 3 steps) or another stopping rule below applies.
     #[arg(long, default_value_t = 10)]
     pub steps: usize,
     /// Time step. Conformal flow: the paper's τ, stable below 1 (0.5 removes the unconstrained
@@ -84,6 +94,18 @@ pub struct FairArgs {
     /// vertex) or a fixed direction `x,y,z`.
     #[arg(long, default_value = "tangent", allow_negative_numbers = true)]
     pub boundary_axis: String,
+    /// What each connected component keeps after every step: `area` (the input's area and
+    /// centroid), `volume` (closed components keep their enclosed volume, open ones their
+    /// area) or `none` (only the centroid).
+    #[arg(long, default_value = "area", value_parser = Preserve::parse)]
+    pub preserve: Preserve,
+    /// Stop before the first step that would move the surface further than D (model units)
+    /// from the input, in either direction; the output is the last surface within D.
+    #[arg(long, value_name = "D", allow_negative_numbers = true)]
+    pub max_deviation: Option<f64>,
+    /// Stop once the Willmore energy is at most W (4π for a round sphere).
+    #[arg(long, value_name = "W", allow_negative_numbers = true)]
+    pub until_willmore: Option<f64>,
 }
 
 /// `--boundary-axis`: `tangent` or `x,y,z`.
@@ -188,10 +210,24 @@ pub fn run(args: FairArgs) -> ExitCode {
             n => n,
         },
         precision: args.precision.into(),
+        preserve: args.preserve,
+        max_deviation: args.max_deviation,
+        until_willmore: args.until_willmore,
         ..spec.flow_params()
     };
-    let mut flow = match new_flow(asset.surface(), &params) {
+    // The job spec checked everything else; these the library checks, named as flags.
+    if let Err(FlowError::InvalidParameter { name, reason }) = params.validate() {
+        return fail(
+            EXIT_BAD_INPUT,
+            format!("--{}: {reason}", name.replace('_', "-")),
+        );
+    }
+    let flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
+    let mut run = match Run::new(flow, &params, args.steps) {
+        Ok(r) => r,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
     if let Some(dir) = &args.frames_dir {
@@ -214,15 +250,19 @@ pub fn run(args: FairArgs) -> ExitCode {
         None
     };
     let stdout = std::io::stdout();
-    let mut stopped_early = None;
-    for _ in 0..args.steps {
-        let metrics = match flow.step() {
-            Ok(m) => m,
-            // The flow is still on the last accepted surface: write it below, then say why.
-            Err(e @ FlowError::NoProgress { .. }) => {
-                stopped_early = Some(e);
-                break;
-            }
+    let print_line = |line: String| -> Result<(), ExitCode> {
+        let mut out = stdout.lock();
+        // stdout closed (e.g. piped into `head`): stop quietly, like other tools.
+        writeln!(out, "{line}")
+            .and_then(|_| out.flush())
+            .map_err(|_| ExitCode::from(EXIT_FAILURE))
+    };
+    let (outcome, reason) = loop {
+        let metrics = match run.advance() {
+            Ok(Event::Step(m)) => m,
+            // The flow is on its result (for `no_progress`, the last accepted surface):
+            // write it below, then say why it stopped.
+            Ok(Event::Stopped { outcome, reason }) => break (outcome, reason),
             Err(e) => return fail(EXIT_FAILURE, e),
         };
         if args.json {
@@ -230,17 +270,16 @@ pub fn run(args: FairArgs) -> ExitCode {
                 Ok(l) => l,
                 Err(e) => return fail(EXIT_FAILURE, e),
             };
-            let mut out = stdout.lock();
-            if writeln!(out, "{line}").and_then(|_| out.flush()).is_err() {
-                // stdout closed (e.g. piped into `head`): stop quietly, like other tools.
-                return ExitCode::from(EXIT_FAILURE);
+            if let Err(code) = print_line(line) {
+                return code;
             }
         }
         if let Some(bar) = &progress {
             bar.set_message(format!(
-                "W {:.4}  Q mean {:.4}  τ {}{}  {:.0} ms",
+                "W {:.4}  Q mean {:.4}  dev {:.3e}  τ {}{}  {:.0} ms",
                 metrics.willmore_energy,
                 metrics.q_mean,
+                metrics.deviation_max,
                 metrics.tau,
                 match metrics.rejected {
                     0 => String::new(),
@@ -256,26 +295,37 @@ pub fn run(args: FairArgs) -> ExitCode {
                 metrics.step,
                 output_format.extension()
             ));
-            if let Err(e) = write_mesh(&asset, flow.positions(), output_format, &path) {
+            if let Err(e) = write_mesh(&asset, run.flow().positions(), output_format, &path) {
                 return fail(EXIT_FAILURE, e);
             }
         }
-    }
+    };
     if let Some(bar) = progress {
         bar.finish();
     }
-    if let Err(e) = write_mesh(&asset, flow.positions(), output_format, &args.output) {
+    if let Err(e) = write_mesh(&asset, run.flow().positions(), output_format, &args.output) {
         return fail(EXIT_FAILURE, e);
     }
-    match stopped_early {
-        None => ExitCode::SUCCESS,
-        Some(e) => fail(
+    if args.json {
+        let line = serde_json::json!({"outcome": outcome, "reason": reason}).to_string();
+        if let Err(code) = print_line(line) {
+            return code;
+        }
+    }
+    match outcome {
+        Outcome::NoProgress => fail(
             EXIT_NO_PROGRESS,
             format!(
-                "{e}; {} holds the last accepted surface",
+                "{reason}; {} holds the last accepted surface",
                 args.output.display()
             ),
         ),
+        _ => {
+            if !args.json {
+                eprintln!("{}: {reason}", outcome.name());
+            }
+            ExitCode::SUCCESS
+        }
     }
 }
 

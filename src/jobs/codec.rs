@@ -156,6 +156,10 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         step_ms: f(9),
         tau,
         rejected,
+        // Not stored in a metrics row yet: rows read back without volume and deviation.
+        volume: 0.0,
+        deviation_max: 0.0,
+        deviation_mean: 0.0,
     })
 }
 
@@ -310,6 +314,9 @@ mod tests {
             step_ms: 3.25,
             tau: 0.125,
             rejected: 3,
+            volume: 0.0,
+            deviation_max: 0.0,
+            deviation_mean: 0.0,
         };
         let blob = encode_metrics(&m);
         assert_eq!(blob.len(), METRICS_BYTES);
@@ -376,6 +383,9 @@ mod tests {
                 step_ms: 2.0,
                 tau: 0.25,
                 rejected: 1,
+                volume: 0.0,
+                deviation_max: 0.0,
+                deviation_mean: 0.0,
             },
             positions: vec![[1.0, -2.0, 3.5], [0.1, 0.2, f64::MIN_POSITIVE]],
             next_tau: 0.25,

@@ -198,6 +198,11 @@ impl JobSpec {
             // Regions are the library's so far; the job spec does not carry them yet.
             regions: Vec::new(),
             seam: willow::flow::region::Seam::default(),
+            // Not in the job spec yet (the CLI sets it): today's behaviour.
+            preserve: willow::flow::Preserve::Area,
+            // The service has no stopping rules yet: a job runs its steps.
+            until_willmore: None,
+            max_deviation: None,
         }
     }
 

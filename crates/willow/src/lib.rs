@@ -7,15 +7,19 @@
 //!   validation, and reading/writing OBJ, glTF and GLB with UVs and textures carried through
 //!   ([`mesh::io::Asset`]).
 //! - [`geometry`]: discrete operators on a `Mesh` (cotan Laplacian, vertex areas, normals,
-//!   mean curvature, the Dirac-free Hodge machinery) and quaternions.
+//!   mean curvature, enclosed volume, the Dirac-free Hodge machinery), quaternions, and the
+//!   distance between two surfaces through a bounding volume hierarchy
+//!   ([`geometry::distance`]).
 //! - [`linalg`]: the sparse linear algebra every flow factors with: the fixed block pattern, the
 //!   Cholesky factorization reused across steps (symbolic once, numeric per step), the
 //!   supernodal kernels and the fill-reducing orderings.
 //! - [`flow`]: one step at a time of conformal Willmore flow (Table 1, right column) and of the
 //!   classic flows it is compared with; a [`flow::Flow`] owns no threads and never blocks.
+//!   [`flow::stopping::Run`] drives one to its end and says why it stopped
+//!   ([`flow::stopping::Outcome`]).
 //! - [`curve`]: the isometric flow of planar curves (§5), a sibling of `flow`.
 //! - [`metrics`]: what each step reports ([`metrics::StepMetrics`]): Willmore energy,
-//!   quasi-conformal error Q, closure residual.
+//!   quasi-conformal error Q, closure residual, enclosed volume, distance from the input.
 //!
 //! ```
 //! use willow::flow::{new_flow, FlowParams};

@@ -7,8 +7,20 @@
 //!   Sander et al. 2001). Q = 1 for a similarity.
 //! - Closure residual `|d f̃ − ẽ| / |ẽ|` over all half-edges: how far the edges produced by λ
 //!   (Table 1 step VI) are from integrable; the Poisson solve (step VII) spreads this error.
+//! - Enclosed volume: the sum over *closed* components of `Σ_f det(p0, p1, p2) / 6` (the
+//!   divergence theorem, [`enclosed_volume`]); a component with boundary encloses nothing and
+//!   adds 0, so a disk reports 0 and a sphere beside a disk reports the sphere's volume.
+//! - Deviation from the input: the two-sided sampled distance between the current surface
+//!   and the input (vertices, edge midpoints and face centroids of each, to the nearest point
+//!   of the other's triangles): its maximum and its area-weighted mean
+//!   ([`crate::geometry::distance`] says exactly what is measured). In model units.
 
 use crate::geometry::cache::GeometryCache;
+use crate::geometry::distance::Deviation;
+#[cfg(doc)]
+use crate::geometry::operators::enclosed_volume;
+use crate::geometry::operators::{component_volumes_into, face_areas_into};
+use crate::mesh::topology::Topology;
 use serde::{Deserialize, Serialize};
 
 /// The metrics of the surface after one step (step 0 describes the input).
@@ -43,6 +55,17 @@ pub struct StepMetrics {
     /// Tries of this step the safeguard rejected before the one taken.
     #[serde(default)]
     pub rejected: u32,
+    /// Enclosed volume summed over the closed components (open ones add 0: see the module
+    /// docs). Rows stored before it existed read as 0.
+    #[serde(default)]
+    pub volume: f64,
+    /// Largest sampled distance between this surface and the input, either way (a sampled
+    /// symmetric Hausdorff distance; [`crate::geometry::distance`]). 0 for step 0.
+    #[serde(default)]
+    pub deviation_max: f64,
+    /// Mean of the two one-sided area-weighted mean distances to the input. 0 for step 0.
+    #[serde(default)]
+    pub deviation_mean: f64,
 }
 
 /// The input surface's per-triangle metric, kept to measure the quasi-conformal error of every
@@ -109,24 +132,49 @@ impl ConformalReference {
 }
 
 /// The per-step report every flow shares: Q against the input (with its buffers allocated
-/// once), and the geometry's energy and area.
+/// once), and the geometry's energy, area and enclosed volume.
 pub struct StepReporter {
     reference: ConformalReference,
     q: Vec<f64>,
     scratch: Vec<f64>,
+    /// Per face its component, and per component a vertex of it (the apex of the volume's
+    /// cones: on the surface, so rounding sees the surface's size, not its distance from the
+    /// origin) or `None` for a component with boundary.
+    face_component: Vec<usize>,
+    volume_apex: Vec<Option<usize>>,
+    apexes: Vec<[f64; 3]>,
+    volumes: Vec<f64>,
+    deviation: Deviation,
 }
 
 impl StepReporter {
-    pub fn new(positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> Self {
+    pub fn new(positions: &[[f64; 3]], triangles: &[[usize; 3]], topology: &Topology) -> Self {
+        let volume_apex: Vec<Option<usize>> = topology
+            .components
+            .iter()
+            .map(|c| c.is_closed().then(|| c.vertices.first().copied()).flatten())
+            .collect();
+        let mut face_areas = vec![0.0; triangles.len()];
+        face_areas_into(positions, triangles, &mut face_areas);
         StepReporter {
+            deviation: Deviation::new(positions, triangles, topology, &face_areas),
             reference: ConformalReference::new(positions, triangles),
             q: vec![1.0; triangles.len()],
             scratch: vec![1.0; triangles.len()],
+            face_component: topology.face_component.clone(),
+            apexes: vec![[0.0; 3]; volume_apex.len()],
+            volumes: vec![0.0; volume_apex.len()],
+            volume_apex,
         }
     }
 
     /// Step 0: the input itself (Q = 1 everywhere, no residuals).
-    pub fn initial(geometry: &GeometryCache) -> StepMetrics {
+    pub fn initial(
+        &mut self,
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+        geometry: &GeometryCache,
+    ) -> StepMetrics {
         StepMetrics {
             step: 0,
             willmore_energy: geometry.willmore_energy(),
@@ -140,7 +188,33 @@ impl StepReporter {
             step_ms: 0.0,
             tau: 0.0,
             rejected: 0,
+            volume: self.closed_volume(positions, triangles),
+            deviation_max: 0.0,
+            deviation_mean: 0.0,
         }
+    }
+
+    /// The enclosed volume of the closed components (module docs).
+    pub fn closed_volume(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> f64 {
+        if self.volume_apex.iter().all(Option::is_none) {
+            return 0.0;
+        }
+        for (apex, v) in self.apexes.iter_mut().zip(&self.volume_apex) {
+            *apex = v.map_or([0.0; 3], |v| positions[v]);
+        }
+        component_volumes_into(
+            positions,
+            triangles,
+            &self.face_component,
+            &self.apexes,
+            &mut self.volumes,
+        );
+        self.volumes
+            .iter()
+            .zip(&self.volume_apex)
+            .filter(|(_, apex)| apex.is_some())
+            .map(|(v, _)| v)
+            .sum()
     }
 
     /// The metrics of the surface at `positions` (whose geometry is `geometry`) after `step`.
@@ -159,6 +233,10 @@ impl StepReporter {
             .quasi_conformal_errors_into(positions, triangles, &mut self.q);
         let (q_mean, q_area_mean, q_p95, q_max) =
             summarize_q(&self.q, &geometry.face_areas, &mut self.scratch);
+        let volume = self.closed_volume(positions, triangles);
+        let (deviation_max, deviation_mean) =
+            self.deviation
+                .measure(positions, triangles, &geometry.face_areas);
         StepMetrics {
             step,
             willmore_energy: geometry.willmore_energy(),
@@ -172,6 +250,9 @@ impl StepReporter {
             step_ms: started.elapsed().as_secs_f64() * 1e3,
             tau: 0.0,
             rejected: 0,
+            volume,
+            deviation_max,
+            deviation_mean,
         }
     }
 }

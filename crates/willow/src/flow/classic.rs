@@ -3,7 +3,7 @@
 
 use super::safeguard::Retry;
 use super::scale::ScalePolicy;
-use super::{Flow, FlowError, FlowParams};
+use super::{Flow, FlowError, FlowParams, Preserve};
 use crate::geometry::cache::GeometryCache;
 use crate::linalg::solver::{add_diagonal, assemble_cotan_laplacian_into, BlockPattern, Cholesky};
 use crate::mesh::topology::Topology;
@@ -54,7 +54,7 @@ impl ImplicitMeanCurvatureFlow {
         let pattern = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 1);
         let cholesky = laplacian_solver(&pattern, params)?;
         Ok(ImplicitMeanCurvatureFlow {
-            surface: ClassicSurface::new(mesh, &topology, true),
+            surface: ClassicSurface::new(mesh, &topology, Some(params.preserve)),
             tau: params.tau,
             values: vec![0.0; pattern.nnz()],
             pattern,
@@ -140,22 +140,25 @@ struct ClassicSurface {
 }
 
 impl ClassicSurface {
-    fn new(mesh: &Mesh, topology: &Topology, restore_scale: bool) -> Self {
+    /// `preserve`: the scale policy to apply after every step, `None` for none at all.
+    fn new(mesh: &Mesh, topology: &Topology, preserve: Option<Preserve>) -> Self {
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
-        let scale = restore_scale.then(|| {
+        let scale = preserve.map(|preserve| {
             ScalePolicy::new(
-                topology.vertex_component.clone(),
-                topology.components.len(),
+                preserve,
+                topology,
                 &mesh.positions,
+                &mesh.triangles,
                 &geometry.vertex_areas,
             )
         });
-        let initial = StepReporter::initial(&geometry);
+        let mut reporter = StepReporter::new(&mesh.positions, &mesh.triangles, topology);
+        let initial = reporter.initial(&mesh.positions, &mesh.triangles, &geometry);
         ClassicSurface {
             triangles: mesh.triangles.clone(),
             positions: mesh.positions.clone(),
             step: 0,
-            reporter: StepReporter::new(&mesh.positions, &mesh.triangles),
+            reporter,
             geometry,
             scale,
             initial,
@@ -200,7 +203,11 @@ impl ClassicSurface {
         }
         self.geometry.refresh(&self.positions, &self.triangles);
         if let Some(scale) = &mut self.scale {
-            scale.restore(&mut self.positions, &self.geometry.vertex_areas);
+            scale.restore(
+                &mut self.positions,
+                &self.triangles,
+                &self.geometry.vertex_areas,
+            );
             self.geometry.refresh(&self.positions, &self.triangles);
         }
         self.step += 1;
@@ -274,7 +281,7 @@ impl ConformalizedMeanCurvatureFlow {
             }
         }
         let n = mesh.vertex_count();
-        let surface = ClassicSurface::new(mesh, &topology, true);
+        let surface = ClassicSurface::new(mesh, &topology, Some(params.preserve));
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let cholesky = laplacian_solver(&pattern, params)?;
         let mut initial_laplacian = vec![0.0; pattern.nnz()];
@@ -372,7 +379,7 @@ impl ImplicitBilaplacianFlow {
         let setup_error = |reason: String| FlowError::Numerical { step: 0, reason };
         let topology = Topology::new(mesh);
         let n = mesh.vertex_count();
-        let surface = ClassicSurface::new(mesh, &topology, true);
+        let surface = ClassicSurface::new(mesh, &topology, Some(params.preserve));
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let one_ring = pattern.symbolic.as_ref();
         let (symbolic, info) = sparse_sparse_matmul_symbolic(one_ring, one_ring)
@@ -495,7 +502,10 @@ const TAUBIN_PASS_BAND: f64 = 1.0 / 0.5 - 1.0 / 0.53;
 /// Through [`FlowParams`], λ = τ (unitless: the fraction of the way to the neighbours'
 /// average) and μ keeps Taubin's pass band `k_PB = 1/λ + 1/μ` fixed at its value for the
 /// defaults λ = 0.5, μ = −0.53 (τ = 0.5 gives exactly those). The scale policy is **not**
-/// applied: keeping the volume without rescaling is what λ|μ is for.
+/// applied: keeping the volume without rescaling is what λ|μ is for, and rescaling would
+/// hide what the comparison is meant to show. So `preserve` `area` (the default) and `none`
+/// both leave it alone, and `volume` is refused ([`FlowError::Unsupported`]) rather than
+/// quietly ignored.
 pub struct TaubinSmoothing {
     surface: ClassicSurface,
     lambda: f64,
@@ -511,6 +521,13 @@ impl TaubinSmoothing {
     /// λ = τ and μ from the default pass band (see the type's docs).
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
         params.validate()?;
+        if params.preserve == Preserve::Volume {
+            return Err(FlowError::Unsupported(
+                "preserve `volume` with Taubin smoothing: λ|μ is never rescaled (keeping the \
+                 volume without rescaling is what it is for); use `area` or `none`"
+                    .into(),
+            ));
+        }
         let lambda = params.tau;
         if lambda * TAUBIN_PASS_BAND >= 1.0 {
             return Err(FlowError::InvalidParameter {
@@ -573,7 +590,7 @@ impl TaubinSmoothing {
             fill[b] += 1;
         }
         Ok(TaubinSmoothing {
-            surface: ClassicSurface::new(mesh, &topology, false),
+            surface: ClassicSurface::new(mesh, &topology, None),
             lambda,
             mu,
             neighbour_ptr,

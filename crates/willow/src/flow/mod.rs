@@ -15,6 +15,7 @@ pub mod prescribed;
 pub mod region;
 pub mod safeguard;
 pub mod scale;
+pub mod stopping;
 pub mod willmore;
 
 use crate::mesh::Mesh;
@@ -80,6 +81,47 @@ impl std::str::FromStr for Method {
     type Err = String;
     fn from_str(s: &str) -> Result<Method, String> {
         Method::parse(s)
+    }
+}
+
+/// What the scale policy ([`scale`]) gives back to each connected component after every step.
+/// Every choice also puts the component's area-weighted centroid back where it was.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Preserve {
+    /// Each component keeps its input area (docs/algorithm.md §6): what a CAD pipeline expects.
+    #[default]
+    Area,
+    /// Each *closed* component keeps its input enclosed volume, by a uniform scale about its
+    /// centroid (a similarity, so Q is untouched); components with boundary enclose nothing
+    /// and keep their area as under [`Preserve::Area`].
+    Volume,
+    /// No rescaling: the size is whatever the flow makes it (implicit MCF shrinks; the
+    /// conformal flow's λ normalization keeps the area roughly). The centroid is still
+    /// restored: the conformal flow's Poisson solve (Table 1 step VII) fixes positions only up
+    /// to a constant per component, so without it the translation would be a gauge artefact,
+    /// not shape, and it would swamp the distance from the input.
+    None,
+}
+
+impl Preserve {
+    pub const ALL: [Preserve; 3] = [Preserve::Area, Preserve::Volume, Preserve::None];
+
+    /// The one name of a choice: JSON and the CLI.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Preserve::Area => "area",
+            Preserve::Volume => "volume",
+            Preserve::None => "none",
+        }
+    }
+
+    /// The choice of a name (any case), or an error listing the names.
+    pub fn parse(name: &str) -> Result<Preserve, String> {
+        Preserve::ALL
+            .into_iter()
+            .find(|p| p.name().eq_ignore_ascii_case(name))
+            .ok_or_else(|| format!("expected one of `area`, `volume`, `none`, got `{name}`"))
     }
 }
 
@@ -191,6 +233,16 @@ pub struct FlowParams {
     pub regions: Vec<region::Region>,
     /// How a region meets the surface around it (ignored without regions).
     pub seam: region::Seam,
+    /// What each component keeps after every step: area (the default), enclosed volume, or
+    /// nothing ([`Preserve`]). Taubin smoothing is never rescaled and a fixed boundary pins
+    /// the size already: both refuse `volume` ([`FlowError::Unsupported`]).
+    pub preserve: Preserve,
+    /// Stop once the Willmore energy is at most this ([`stopping::Run`]); `None`: no target.
+    pub until_willmore: Option<f64>,
+    /// Stop before the first step that would move the surface further than this from the
+    /// input (`StepMetrics::deviation_max`, model units); the result is the last surface
+    /// within it ([`stopping::Run`]). `None`: no bound.
+    pub max_deviation: Option<f64>,
 }
 
 impl FlowParams {
@@ -236,6 +288,19 @@ impl FlowParams {
         for r in &self.regions {
             r.validate().map_err(|reason| invalid("region", reason))?;
         }
+        for (name, value) in [
+            ("until_willmore", self.until_willmore),
+            ("max_deviation", self.max_deviation),
+        ] {
+            if let Some(v) = value {
+                if !(v.is_finite() && v >= 0.0) {
+                    return Err(invalid(
+                        name,
+                        format!("must be a finite number ≥ 0, got {v}"),
+                    ));
+                }
+            }
+        }
         // The library names the whole `boundary` (its errors always have); the job service
         // reports the field path that `PrescribedVectors::validate` gives.
         if let Boundary::Prescribed(p) = &self.boundary {
@@ -279,6 +344,9 @@ impl Default for FlowParams {
             precision: Precision::Auto,
             regions: Vec::new(),
             seam: region::Seam::default(),
+            preserve: Preserve::Area,
+            until_willmore: None,
+            max_deviation: None,
         }
     }
 }

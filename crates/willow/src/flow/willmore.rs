@@ -23,7 +23,9 @@ use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
 use super::prescribed::{PrescribedError, PrescribedSolver, SurfaceState};
 use super::scale::ScalePolicy;
-use super::{Boundary, Flow, FlowError, FlowParams, Precision, PrescribedVectors, StepProfile};
+use super::{
+    Boundary, Flow, FlowError, FlowParams, Precision, PrescribedVectors, Preserve, StepProfile,
+};
 use crate::geometry::cache::GeometryCache;
 use crate::geometry::vec3::{norm2, sub};
 use crate::geometry::Quaternion;
@@ -329,14 +331,25 @@ impl ConformalFlow {
             ),
             None => None,
         };
-        let topology = exactness.is_some().then_some(topology);
-        let reporter = StepReporter::new(&mesh.positions, &mesh.triangles);
+        // A fixed boundary pins its components' position and size, and the step skips the
+        // scale policy altogether (see `step`): a volume asked for alongside would silently
+        // not be kept on the closed components either.
+        if fixed.is_some() && params.preserve == Preserve::Volume {
+            return Err(FlowError::Unsupported(
+                "preserve `volume` with a fixed boundary: the fixed boundary already pins \
+                 position and size, and the flow does not rescale"
+                    .into(),
+            ));
+        }
+        let mut reporter = StepReporter::new(&mesh.positions, &mesh.triangles, &topology);
         let scale = ScalePolicy::new(
-            vertex_component.clone(),
-            n_components,
+            params.preserve,
+            &topology,
             &mesh.positions,
+            &mesh.triangles,
             &geometry.vertex_areas,
         );
+        let topology = exactness.is_some().then_some(topology);
         setup.lap("reporter, scale");
         let numerical = |e: SolverError| FlowError::Numerical {
             step: 0,
@@ -413,7 +426,7 @@ impl ConformalFlow {
             })?),
             None => None,
         };
-        let initial = StepReporter::initial(&geometry);
+        let initial = reporter.initial(&mesh.positions, &mesh.triangles, &geometry);
         Ok(ConformalFlow {
             triangles: mesh.triangles.clone(),
             positions: mesh.positions.clone(),
@@ -1197,9 +1210,11 @@ impl Flow for ConformalFlow {
         self.geometry.refresh(&self.positions, &self.triangles);
         if self.fixed.is_none() {
             // A fixed boundary already pins position and size.
-            let scales = self
-                .scale
-                .restore(&mut self.positions, &self.geometry.vertex_areas);
+            let scales = self.scale.restore(
+                &mut self.positions,
+                &self.triangles,
+                &self.geometry.vertex_areas,
+            );
             self.geometry
                 .rescale(&self.triangles, &self.vertex_component, scales);
         }

@@ -6,6 +6,7 @@
 //! an outward sphere.
 
 pub mod cache;
+pub mod distance;
 pub mod hodge;
 pub mod operators;
 pub mod quaternion;

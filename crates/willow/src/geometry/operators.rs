@@ -186,6 +186,57 @@ pub fn willmore_energy(mean_curvature: &[f64], areas: &[f64]) -> f64 {
         .sum()
 }
 
+/// Signed volume of the tetrahedron `(o, a, b, c)` times 6: `det(a − o, b − o, c − o)`.
+/// Positive when `(a, b, c)` winds counter-clockwise seen from the side away from `o`.
+#[inline]
+pub fn tetrahedron_volume6(o: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
+    let (a, b, c) = (sub(a, o), sub(b, o), sub(c, o));
+    dot(a, cross(b, c))
+}
+
+/// Enclosed volume of a closed, consistently oriented surface by the divergence theorem:
+/// `V = Σ_f det(p0 − o, p1 − o, p2 − o) / 6` (each face's cone to the apex `o`). Positive for
+/// outward (counter-clockwise from outside) faces, and independent of `o` on a closed surface;
+/// taking `o` on or near the surface (its centroid, a vertex) keeps the products the size of
+/// the surface rather than of its distance from the origin, which is what rounding sees. On a
+/// surface with boundary the sum depends on `o` and is not a volume: callers pass closed
+/// components only.
+pub fn enclosed_volume<'a>(
+    positions: &[[f64; 3]],
+    triangles: impl IntoIterator<Item = &'a [usize; 3]>,
+    origin: [f64; 3],
+) -> f64 {
+    triangles
+        .into_iter()
+        .map(|t| tetrahedron_volume6(origin, positions[t[0]], positions[t[1]], positions[t[2]]))
+        .sum::<f64>()
+        / 6.0
+}
+
+/// Per component `c`, `out[c] = Σ_{f in c} det(p0 − o_c, p1 − o_c, p2 − o_c) / 6` with the apex
+/// `o_c = origins[c]`: the enclosed volume of every closed component ([`enclosed_volume`])
+/// in one pass over the faces. Entries of open components are not volumes (see there).
+pub fn component_volumes_into(
+    positions: &[[f64; 3]],
+    triangles: &[[usize; 3]],
+    face_component: &[usize],
+    origins: &[[f64; 3]],
+    out: &mut [f64],
+) {
+    out.fill(0.0);
+    for (t, &c) in triangles.iter().zip(face_component) {
+        out[c] += tetrahedron_volume6(
+            origins[c],
+            positions[t[0]],
+            positions[t[1]],
+            positions[t[2]],
+        );
+    }
+    for v in out.iter_mut() {
+        *v /= 6.0;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -283,5 +334,51 @@ mod tests {
         for (n, p) in vertex_normals(&mesh).iter().zip(&mesh.positions) {
             assert!(dot(*n, *p) > 0.99);
         }
+    }
+
+    /// The unit cube, 12 outward triangles: its volume is exactly 1 from any apex, and turning
+    /// the faces inside out flips the sign.
+    #[test]
+    fn unit_cube_volume_is_one() {
+        let positions: Vec<[f64; 3]> = (0..8)
+            .map(|i| [(i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64])
+            .collect();
+        // Quads (counter-clockwise seen from outside) split along a diagonal.
+        let quads = [
+            [0, 2, 3, 1], // z = 0, normal −z
+            [4, 5, 7, 6], // z = 1
+            [0, 1, 5, 4], // y = 0
+            [2, 6, 7, 3], // y = 1
+            [0, 4, 6, 2], // x = 0
+            [1, 3, 7, 5], // x = 1
+        ];
+        let triangles: Vec<[usize; 3]> = quads
+            .iter()
+            .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+            .collect();
+        for origin in [[0.0; 3], [0.5, 0.5, 0.5], [10.0, -3.0, 7.0]] {
+            let v = enclosed_volume(&positions, &triangles, origin);
+            assert!((v - 1.0).abs() < 1e-12, "apex {origin:?}: V = {v}");
+        }
+        let flipped: Vec<[usize; 3]> = triangles.iter().map(|t| [t[0], t[2], t[1]]).collect();
+        assert!((enclosed_volume(&positions, &flipped, [0.2; 3]) + 1.0).abs() < 1e-12);
+        let mut out = [0.0];
+        component_volumes_into(&positions, &triangles, &[0; 12], &[[3.0; 3]], &mut out);
+        assert!((out[0] - 1.0).abs() < 1e-12);
+    }
+
+    /// The icosphere is inscribed in the unit sphere: its volume is below 4/3 π and the gap is
+    /// second order in the edge length, so each subdivision (half the edge) divides it by ~4.
+    #[test]
+    fn icosphere_volume_approaches_four_thirds_pi() {
+        let ball = 4.0 / 3.0 * PI;
+        let gap = |k| {
+            let mesh = icosphere(k);
+            ball - enclosed_volume(&mesh.positions, &mesh.triangles, [0.0; 3])
+        };
+        let (g3, g4) = (gap(3), gap(4));
+        assert!(g4 > 0.0 && g4 < 0.005 * ball, "gap {g4}");
+        let ratio = g3 / g4;
+        assert!((ratio - 4.0).abs() < 0.1, "gap ratio {ratio}");
     }
 }

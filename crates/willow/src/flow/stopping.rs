@@ -1,0 +1,397 @@
+//! Stopping rules: when a run of a [`Flow`] ends, and why ([`Outcome`]).
+//!
+//! [`Run`] drives a flow for at most a number of steps and stops earlier when
+//!
+//! - the Willmore energy reaches `FlowParams::until_willmore` ([`Outcome::TargetReached`]);
+//! - W stopped falling: its relative change `|W_k − W_{k−1}| / W_{k−1}` stayed below
+//!   [`CONVERGED_TOLERANCE`] for [`CONVERGED_WINDOW`] steps in a row ([`Outcome::Converged`]).
+//!   A window, not one step, because one small step can also be the safeguard trying a small
+//!   τ; three quiet steps in a row span a τ doubling (`safeguard::GROW_AFTER`);
+//! - the next step would move the surface further than `FlowParams::max_deviation` from the
+//!   input (`StepMetrics::deviation_max`, model units) ([`Outcome::MaxDeviation`]): that step
+//!   is undone (the flow is resumed from the checkpoint taken before it), so the result is
+//!   the last surface within the bound, and no step past it is ever reported;
+//! - the safeguard found no acceptable step ([`FlowError::NoProgress`], [`Outcome::NoProgress`]):
+//!   the flow is still on the last accepted surface.
+//!
+//! Otherwise it ends [`Outcome::Completed`] after its steps. When one step meets several
+//! rules, the target beats convergence, which beats completion (the most specific reason).
+
+use super::{Flow, FlowError, FlowParams, FlowState};
+use crate::metrics::StepMetrics;
+use serde::{Deserialize, Serialize};
+
+/// Relative change of W per step below which a step counts as quiet.
+pub const CONVERGED_TOLERANCE: f64 = 1e-4;
+/// Quiet steps in a row after which a run has converged.
+pub const CONVERGED_WINDOW: usize = 3;
+
+/// How a run ended (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Outcome {
+    /// Ran all its steps.
+    Completed,
+    /// W stopped falling.
+    Converged,
+    /// W reached `until_willmore`.
+    TargetReached,
+    /// The next step would have passed `max_deviation`; the result is the step before.
+    MaxDeviation,
+    /// The safeguard found no acceptable step.
+    NoProgress,
+}
+
+impl Outcome {
+    /// The one name of an outcome (its JSON form).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Outcome::Completed => "completed",
+            Outcome::Converged => "converged",
+            Outcome::TargetReached => "target_reached",
+            Outcome::MaxDeviation => "max_deviation",
+            Outcome::NoProgress => "no_progress",
+        }
+    }
+}
+
+/// What [`Run::advance`] has to say.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Event {
+    /// A step was taken and kept: its metrics.
+    Step(StepMetrics),
+    /// The run is over; the flow holds its result. Returned again by every later call.
+    Stopped { outcome: Outcome, reason: String },
+}
+
+/// A flow run to its end under the stopping rules of its [`FlowParams`] (module docs).
+pub struct Run {
+    flow: Box<dyn Flow>,
+    steps: usize,
+    until_willmore: Option<f64>,
+    max_deviation: Option<f64>,
+    /// The metrics of the surface the flow is on.
+    last: StepMetrics,
+    /// Consecutive steps whose relative change of W was below [`CONVERGED_TOLERANCE`].
+    quiet: usize,
+    /// Decided after the step just reported; returned by the next call.
+    stop: Option<(Outcome, String)>,
+    /// Where the flow was before the step being tried, when `max_deviation` may undo it.
+    before: Option<FlowState>,
+}
+
+impl Run {
+    /// A run of at most `steps` steps of `flow`, stopping as `params` asks (its
+    /// `until_willmore` and `max_deviation`, checked here as `FlowParams::validate` does).
+    /// `max_deviation` needs a flow that can go back a step (every flow [`super::new_flow`]
+    /// builds can); for one that cannot it is [`FlowError::Unsupported`].
+    pub fn new(flow: Box<dyn Flow>, params: &FlowParams, steps: usize) -> Result<Run, FlowError> {
+        params.validate()?;
+        if params.max_deviation.is_some() && flow.checkpoint().is_none() {
+            return Err(FlowError::Unsupported(
+                "max_deviation needs a flow that can undo a step (checkpoint and resume)".into(),
+            ));
+        }
+        Ok(Run {
+            last: flow.initial_metrics(),
+            flow,
+            steps,
+            until_willmore: params.until_willmore,
+            max_deviation: params.max_deviation,
+            quiet: 0,
+            stop: None,
+            before: None,
+        })
+    }
+
+    /// The flow, on the surface of the last step reported (or the input).
+    pub fn flow(&self) -> &dyn Flow {
+        self.flow.as_ref()
+    }
+
+    /// The metrics of the surface the flow is on.
+    pub fn last_metrics(&self) -> &StepMetrics {
+        &self.last
+    }
+
+    /// Take the next step, or say why the run is over. Errors other than
+    /// [`FlowError::NoProgress`] (a numerical failure) end the run as errors.
+    pub fn advance(&mut self) -> Result<Event, FlowError> {
+        if let Some((outcome, reason)) = &self.stop {
+            return Ok(Event::Stopped {
+                outcome: *outcome,
+                reason: reason.clone(),
+            });
+        }
+        if let Some(stop) = self.stop_before_stepping() {
+            return Ok(self.finish(stop));
+        }
+        if self.max_deviation.is_some() {
+            self.before = self.flow.checkpoint();
+        }
+        let metrics = match self.flow.step() {
+            Ok(m) => m,
+            Err(e @ FlowError::NoProgress { .. }) => {
+                return Ok(self.finish((Outcome::NoProgress, e.to_string())));
+            }
+            Err(e) => return Err(e),
+        };
+        if let Some(bound) = self.max_deviation {
+            if metrics.deviation_max > bound {
+                let state = self.before.take().ok_or_else(|| {
+                    FlowError::Unsupported("the flow gave no checkpoint to undo a step".into())
+                })?;
+                self.flow.resume(&state)?;
+                let reason = format!(
+                    "step {} would move the surface {:.6e} from the input, past max_deviation \
+                     {bound:.6e}; the result is the surface after step {} ({:.6e} from the input)",
+                    metrics.step, metrics.deviation_max, self.last.step, self.last.deviation_max
+                );
+                return Ok(self.finish((Outcome::MaxDeviation, reason)));
+            }
+        }
+        self.stop = self.stop_after(&metrics);
+        self.last = metrics;
+        Ok(Event::Step(metrics))
+    }
+
+    /// Rules decided on the surface the flow is on, before any step: a run of 0 steps, a
+    /// run that has taken all of them, an input already at the target.
+    fn stop_before_stepping(&self) -> Option<(Outcome, String)> {
+        if let Some(target) = self.until_willmore {
+            if self.last.step == 0 && self.last.willmore_energy <= target {
+                return Some((
+                    Outcome::TargetReached,
+                    format!(
+                        "the input's Willmore energy {:.6} is already at most until_willmore {target}",
+                        self.last.willmore_energy
+                    ),
+                ));
+            }
+        }
+        (self.last.step >= self.steps)
+            .then(|| (Outcome::Completed, format!("ran its {} steps", self.steps)))
+    }
+
+    /// Rules decided on a step just taken (most specific first: see the module docs).
+    fn stop_after(&mut self, m: &StepMetrics) -> Option<(Outcome, String)> {
+        let w0 = self.last.willmore_energy;
+        let change = (w0 - m.willmore_energy).abs() / w0.abs().max(f64::MIN_POSITIVE);
+        self.quiet = if change < CONVERGED_TOLERANCE {
+            self.quiet + 1
+        } else {
+            0
+        };
+        if let Some(target) = self.until_willmore {
+            if m.willmore_energy <= target {
+                return Some((
+                    Outcome::TargetReached,
+                    format!(
+                        "Willmore energy {:.6} at step {} is at most until_willmore {target}",
+                        m.willmore_energy, m.step
+                    ),
+                ));
+            }
+        }
+        if self.quiet >= CONVERGED_WINDOW {
+            return Some((
+                Outcome::Converged,
+                format!(
+                    "Willmore energy changed by less than {CONVERGED_TOLERANCE:e} (relative) per \
+                     step for {CONVERGED_WINDOW} steps, to {:.6} at step {}",
+                    m.willmore_energy, m.step
+                ),
+            ));
+        }
+        (m.step >= self.steps)
+            .then(|| (Outcome::Completed, format!("ran its {} steps", self.steps)))
+    }
+
+    fn finish(&mut self, stop: (Outcome, String)) -> Event {
+        let event = Event::Stopped {
+            outcome: stop.0,
+            reason: stop.1.clone(),
+        };
+        self.stop = Some(stop);
+        event
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::flow::{new_flow, Method};
+    use crate::geometry::distance::Deviation;
+    use crate::geometry::operators::face_areas_into;
+    use crate::mesh::generate::bumpy_sphere;
+    use crate::mesh::topology::Topology;
+    use crate::mesh::Mesh;
+
+    /// Every event of a run until it stops.
+    fn drive(mesh: &Mesh, params: &FlowParams, steps: usize) -> (Vec<StepMetrics>, Outcome, Run) {
+        let flow = new_flow(mesh, params).expect("flow");
+        let mut run = Run::new(flow, params, steps).expect("run");
+        let mut metrics = Vec::new();
+        loop {
+            match run.advance().expect("no numerical failure") {
+                Event::Step(m) => metrics.push(m),
+                Event::Stopped { outcome, reason } => {
+                    assert!(!reason.is_empty());
+                    // Asking again gives the same answer and takes no step.
+                    assert!(matches!(
+                        run.advance(),
+                        Ok(Event::Stopped { outcome: o, .. }) if o == outcome
+                    ));
+                    return (metrics, outcome, run);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_run_without_rules_completes_its_steps() {
+        let mesh = bumpy_sphere(2, 0.1);
+        let (metrics, outcome, _) = drive(&mesh, &FlowParams::default(), 2);
+        assert_eq!(outcome, Outcome::Completed);
+        assert_eq!(metrics.len(), 2);
+        let (metrics, outcome, _) = drive(&mesh, &FlowParams::default(), 0);
+        assert_eq!((metrics.len(), outcome), (0, Outcome::Completed));
+    }
+
+    /// A slightly bumpy sphere at τ 0.5 reaches its round minimum within a few steps and
+    /// stays there: the run ends `converged` long before its 100 steps, with W near 4π and
+    /// the last steps quiet.
+    #[test]
+    fn a_converging_flow_ends_converged() {
+        let mesh = bumpy_sphere(3, 0.05);
+        let (metrics, outcome, _) = drive(&mesh, &FlowParams::default(), 100);
+        assert_eq!(outcome, Outcome::Converged, "after {} steps", metrics.len());
+        assert!(metrics.len() < 30, "{} steps", metrics.len());
+        let n = metrics.len();
+        for pair in metrics[n - CONVERGED_WINDOW - 1..].windows(2) {
+            let change =
+                (pair[0].willmore_energy - pair[1].willmore_energy).abs() / pair[0].willmore_energy;
+            assert!(change < CONVERGED_TOLERANCE, "{change}");
+        }
+        let w = metrics[n - 1].willmore_energy;
+        assert!(
+            (w / (4.0 * std::f64::consts::PI) - 1.0).abs() < 0.01,
+            "W = {w}"
+        );
+    }
+
+    /// The run stops at the first step whose W is at most the target, not before, not after.
+    #[test]
+    fn until_willmore_ends_target_reached_at_the_first_step_below() {
+        let mesh = bumpy_sphere(3, 0.15);
+        let free = drive(&mesh, &FlowParams::default(), 8).0;
+        // A target between the energies after steps 2 and 3 of the same flow.
+        let target = 0.5 * (free[1].willmore_energy + free[2].willmore_energy);
+        let params = FlowParams {
+            until_willmore: Some(target),
+            ..FlowParams::default()
+        };
+        let (metrics, outcome, _) = drive(&mesh, &params, 8);
+        assert_eq!(outcome, Outcome::TargetReached);
+        assert_eq!(metrics.len(), 3);
+        assert!(metrics[2].willmore_energy <= target);
+        assert!(metrics[1].willmore_energy > target);
+        // An input already below the target takes no step.
+        let params = FlowParams {
+            until_willmore: Some(1e9),
+            ..FlowParams::default()
+        };
+        let (metrics, outcome, _) = drive(&mesh, &params, 8);
+        assert_eq!((metrics.len(), outcome), (0, Outcome::TargetReached));
+    }
+
+    /// With a bound between the deviations after steps 2 and 3 of the free flow, the run
+    /// reports steps 1 and 2 only, ends `max_deviation`, and the flow is back on the surface
+    /// after step 2: within the bound, measured afresh.
+    #[test]
+    fn max_deviation_never_returns_a_surface_past_the_bound() {
+        let mesh = bumpy_sphere(3, 0.15);
+        let free = drive(&mesh, &FlowParams::default(), 4).0;
+        assert!(free[2].deviation_max > free[1].deviation_max);
+        let bound = 0.5 * (free[1].deviation_max + free[2].deviation_max);
+        let params = FlowParams {
+            max_deviation: Some(bound),
+            ..FlowParams::default()
+        };
+        let (metrics, outcome, run) = drive(&mesh, &params, 10);
+        assert_eq!(outcome, Outcome::MaxDeviation);
+        assert_eq!(metrics.len(), 2);
+        assert!(metrics.iter().all(|m| m.deviation_max <= bound));
+        let topology = Topology::new(&mesh);
+        let mut areas = vec![0.0; mesh.face_count()];
+        face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
+        let mut deviation = Deviation::new(&mesh.positions, &mesh.triangles, &topology, &areas);
+        let result = run.flow().positions().to_vec();
+        face_areas_into(&result, &mesh.triangles, &mut areas);
+        let (max, _) = deviation.measure(&result, &mesh.triangles, &areas);
+        assert!(
+            max <= bound,
+            "the result is {max} from the input, bound {bound}"
+        );
+        assert!((max - metrics[1].deviation_max).abs() < 1e-12);
+        assert_eq!(run.last_metrics().step, 2);
+        // A bound of 0 keeps the input itself.
+        let params = FlowParams {
+            max_deviation: Some(0.0),
+            ..FlowParams::default()
+        };
+        let (metrics, outcome, run) = drive(&mesh, &params, 10);
+        assert_eq!((metrics.len(), outcome), (0, Outcome::MaxDeviation));
+        assert_eq!(run.flow().positions(), &mesh.positions[..]);
+    }
+
+    /// Implicit MCF at τ = 1000 on a bumpy sphere: the safeguard gives up at step 3 (as the
+    /// CLI's test shows), and the run says so instead of failing.
+    #[test]
+    fn no_acceptable_step_ends_no_progress() {
+        let mesh = bumpy_sphere(2, 0.4);
+        let params = FlowParams {
+            method: Method::Mcf,
+            tau: 1000.0,
+            ..FlowParams::default()
+        };
+        let (metrics, outcome, _) = drive(&mesh, &params, 6);
+        assert_eq!(outcome, Outcome::NoProgress);
+        assert_eq!(metrics.len(), 2);
+    }
+
+    #[test]
+    fn bad_bounds_are_refused_by_name() {
+        for (params, name) in [
+            (
+                FlowParams {
+                    until_willmore: Some(-1.0),
+                    ..FlowParams::default()
+                },
+                "until_willmore",
+            ),
+            (
+                FlowParams {
+                    max_deviation: Some(f64::NAN),
+                    ..FlowParams::default()
+                },
+                "max_deviation",
+            ),
+            (
+                FlowParams {
+                    max_deviation: Some(f64::INFINITY),
+                    ..FlowParams::default()
+                },
+                "max_deviation",
+            ),
+        ] {
+            match params.validate() {
+                Err(FlowError::InvalidParameter { name: n, .. }) => assert_eq!(n, name),
+                other => panic!("{name}: {other:?}"),
+            }
+        }
+        let json = serde_json::to_string(&Outcome::TargetReached).expect("serializes");
+        assert_eq!(json, "\"target_reached\"");
+        assert_eq!(Outcome::MaxDeviation.name(), "max_deviation");
+    }
+}
