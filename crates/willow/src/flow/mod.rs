@@ -194,7 +194,8 @@ impl FlowParams {
     /// before a job is accepted. What needs the mesh (the per-loop angle count, a vertex on the
     /// boundary, Taubin's pass band) is checked when the flow is built.
     pub fn validate(&self) -> Result<(), FlowError> {
-        let invalid = |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
+        let invalid =
+            |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
         if !(self.tau.is_finite() && self.tau > 0.0) {
             return Err(invalid(
                 "tau",
