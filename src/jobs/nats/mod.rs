@@ -75,6 +75,11 @@ fn nats_err(what: &str, e: impl std::fmt::Display) -> JobError {
         "connection",
         "no responders",
         "not connected",
+        // A server shutting down (SIGTERM) stops JetStream before it closes connections:
+        // publishes to the streams made at connect meet these for a moment.
+        "no stream found",
+        "jetstream not enabled",
+        "temporarily unavailable",
     ];
     if transient.iter().any(|t| lower.contains(t)) {
         JobError::Unavailable(text)
