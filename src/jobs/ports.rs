@@ -334,6 +334,8 @@ pub struct Fence {
     /// Cancelled when the store finds the job held by another fence (or finished by another
     /// worker): the run stops, and writes, acks and releases nothing more.
     pub lost: CancellationToken,
+    /// When (unix ms, taken before the write) the store last confirmed the hold.
+    renewed_at: std::sync::Arc<std::sync::atomic::AtomicU64>,
 }
 
 impl Fence {
@@ -342,7 +344,22 @@ impl Fence {
             token: uuid::Uuid::new_v4().simple().to_string(),
             ttl,
             lost: CancellationToken::new(),
+            renewed_at: Default::default(),
         }
+    }
+
+    /// The store confirmed the hold with a write that began at `at` (unix ms).
+    pub fn renewed(&self, at: u64) {
+        self.renewed_at
+            .fetch_max(at, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether the hold may have lapsed by `now` for all this worker knows: no confirmation
+    /// for half its length (frozen, or cut off). A worker checks with the store (`renew`)
+    /// before it writes more, so that one whose job was taken over meanwhile writes nothing.
+    pub fn stale(&self, now: u64) -> bool {
+        let half = u64::try_from(self.ttl.as_millis() / 2).unwrap_or(u64::MAX);
+        now.saturating_sub(self.renewed_at.load(std::sync::atomic::Ordering::Relaxed)) > half
     }
 
     /// The error of a write this fence may no longer make (and marks it lost).

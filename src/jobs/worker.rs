@@ -347,13 +347,16 @@ fn run_job(
     running: JobStatus,
 ) -> Result<Outcome, JobError> {
     let backend = &inner.backend;
-    // Before every write: a worker that lost the job writes nothing more.
+    // Before every write: a worker that lost the job writes nothing more. One that has had no
+    // word from the store for half a hold (frozen, or cut off) asks it first.
     let still_held = || -> Result<(), JobError> {
         if fence.lost.is_cancelled() {
-            Err(fence.lost_error(id))
-        } else {
-            Ok(())
+            return Err(fence.lost_error(id));
         }
+        if fence.stale(now_ms()) {
+            rt.block_on(backend.store.renew(id, fence))?;
+        }
+        Ok(())
     };
     let deadline_ms = running.created_at
         + running

@@ -631,7 +631,8 @@ impl JobStore for SqliteStore {
         .await
     }
 
-    async fn renew(&self, _id: &str, _fence: &Fence) -> Result<(), JobError> {
+    async fn renew(&self, _id: &str, fence: &Fence) -> Result<(), JobError> {
+        fence.renewed(super::super::now_ms());
         Ok(())
     }
 

@@ -763,6 +763,7 @@ impl JobStore for KvStore {
             rec.status.started_at.get_or_insert(at);
             rec.hold = Some(Hold::of(fence, at));
             if self.write(id, &rec, revision).await? {
+                fence.renewed(at);
                 return rec
                     .status()
                     .map(|s| self.settled(id, Started::Run(Box::new(s))));
@@ -777,6 +778,7 @@ impl JobStore for KvStore {
         // One try, no backoff: the heartbeat tries again soon, and a renewal right after an
         // outage is what keeps the hold.
         check_id(id)?;
+        let at = now_ms();
         for _ in 0..8 {
             let entry = self
                 .nats
@@ -795,7 +797,10 @@ impl JobStore for KvStore {
                 .update(job_key(id), to_json(&rec)?, entry.revision)
                 .await
             {
-                Ok(_) => return Ok(()),
+                Ok(_) => {
+                    fence.renewed(at);
+                    return Ok(());
+                }
                 Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => continue,
                 Err(e) => return Err(nats_err("renewing a job's hold", e)),
             }
@@ -830,6 +835,7 @@ impl JobStore for KvStore {
                 .map_err(|e| nats_err("storing a frame", e))
         })
         .await?;
+        let at = now_ms();
         self.update(id, |r| {
             fenced(id, r, fence)?;
             r.status.step = metrics.step;
@@ -837,6 +843,7 @@ impl JobStore for KvStore {
             Ok(true)
         })
         .await?;
+        fence.renewed(at);
         Ok(())
     }
 
