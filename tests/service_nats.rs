@@ -1071,8 +1071,7 @@ async fn a_frozen_worker_loses_its_job_and_stops_when_thawed() {
         .await;
     let log = std::fs::read_to_string(&frozen.log).unwrap_or_default();
     assert!(
-        log.contains("another worker holds the job now")
-            || log.contains("the job's hold was taken over"),
+        log.contains("another worker holds the job now") || log.contains("the job's hold is gone"),
         "the thawed worker saw that it lost the job"
     );
 }

@@ -222,10 +222,12 @@ async fn settle(
     fence: &Fence,
     outcome: Result<Outcome, JobError>,
 ) {
-    let outcome = if fence.lost.is_cancelled() {
-        Ok(Outcome::Lost)
-    } else {
-        outcome
+    // A run that made the job terminal, or handed it back, settles its delivery even if a
+    // renewal racing its last write has since found the hold gone.
+    let outcome = match outcome {
+        Ok(o @ (Outcome::Done | Outcome::Released)) => Ok(o),
+        _ if fence.lost.is_cancelled() => Ok(Outcome::Lost),
+        other => other,
     };
     let settled = match outcome {
         Ok(Outcome::Done) => lease.control.ack().await,
@@ -294,7 +296,7 @@ async fn heartbeat_loop(
         }
         if let Err(e) = store.renew(&id, &fence).await {
             if fence.lost.is_cancelled() {
-                tracing::warn!(job_id = %id, "the job's hold was taken over: stopping its run");
+                tracing::info!(job_id = %id, "the job's hold is gone (finished here, or taken over): heartbeats stop");
                 return;
             }
             tracing::warn!(job_id = %id, error = %e, "renewing the job's hold failed");
