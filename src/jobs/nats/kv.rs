@@ -6,6 +6,12 @@
 //! `cancel.{id}`. Every change of a record is a compare-and-set on its revision, so two nodes
 //! never overwrite each other's transitions.
 //!
+//! A running job's record holds its worker's [`Fence`] ([`Hold`]: token and lapse time), and a
+//! worker's writes (start, frames, rewind, finish, requeue, renew) also check the token: a
+//! worker that lost the job is refused. [`JobStore::start`] answers [`Started::Held`] while
+//! another worker's hold is live, and takes a hold over only once it has lapsed and the record
+//! has not moved for half a hold as seen from this node.
+//!
 //! A step's metrics are a message on `willow.frames.{id}.{step}`: one byte (positions kept or
 //! not) and the metrics in [`codec`](super::super::codec) form (JSON cannot carry NaN). The
 //! stream keeps one message per subject, so a job resumed from a checkpoint replaces the steps
