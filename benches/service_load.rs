@@ -832,10 +832,11 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
             return Err(format!("leased {} instead of {id}", lease.id));
         }
         out[5].push((leased - pushed).as_secs_f64() * 1e3);
+        let fence = willow_service::jobs::ports::Fence::new(Duration::from_secs(30));
         let t = Instant::now();
         backend
             .store
-            .start(&id, willow_service::jobs::now_ms())
+            .start(&id, &fence, willow_service::jobs::now_ms())
             .await
             .map_err(err)?;
         out[6].push(ms(t));
@@ -855,7 +856,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
         let t = Instant::now();
         backend
             .store
-            .record_frame(&id, metrics, true)
+            .record_frame(&id, metrics, true, &fence)
             .await
             .map_err(err)?;
         out[9].push(ms(t));
@@ -881,6 +882,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
                 None,
                 now,
                 now + 60_000,
+                Some(&fence),
             )
             .await
             .map_err(err)?;

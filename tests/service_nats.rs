@@ -675,3 +675,403 @@ async fn a_worker_drained_mid_job_hands_it_back_without_spending_a_delivery() {
         .wait_metric("willow_jobs_resumed_total", &[], 1.0, METRIC_PATIENCE)
         .await;
 }
+
+/// Consumers on the object store's stream (`OBJ_willow-blobs`), as the server counts them.
+async fn blob_consumers(js: &async_nats::jetstream::Context) -> usize {
+    let mut stream = js
+        .get_stream("OBJ_willow-blobs")
+        .await
+        .expect("the object store's stream");
+    stream
+        .info()
+        .await
+        .expect("stream info")
+        .state
+        .consumer_count
+}
+
+/// Blob reads leave no JetStream consumer behind: six SSE watchers on two long jobs read a
+/// frame's positions from the object store for every step, for 30 s, while the object
+/// store's consumer count is sampled every half second. It stays at 0 (each read used to
+/// leave an ordered consumer for ~30 s, and at the server's 1000 per stream every blob read
+/// failed: frames without positions, jobs failed `internal`). Every frame keeps its
+/// positions and both jobs are still running at the end.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sse_watchers_blob_reads_leave_no_consumers_behind() {
+    const WATCHERS_PER_JOB: usize = 3;
+    const WATCH: Duration = Duration::from_secs(30);
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let nats = Nats::start(d);
+    let url = nats.url();
+    let api = Node::spawn(d, "api", Some(&url), &NodeOpts::api());
+    let worker = Node::spawn(
+        d,
+        "worker",
+        Some(&url),
+        &NodeOpts {
+            workers: 2,
+            ..NodeOpts::worker()
+        },
+    );
+    all_ready(&[&api, &worker]).await;
+    let js = async_nats::jetstream::new(async_nats::connect(url.as_str()).await.expect("client"));
+
+    let mut ids = Vec::new();
+    for _ in 0..2 {
+        ids.push(api.submit(&slow_obj(), "steps=9000").await);
+    }
+    for id in &ids {
+        api.poll_until(id, |v| v["state"] == "running").await;
+    }
+    let started = Instant::now();
+    let mut watchers = Vec::new();
+    for id in &ids {
+        for _ in 0..WATCHERS_PER_JOB {
+            let mut sse = api.events(id, None).await;
+            watchers.push(tokio::spawn(async move {
+                // (frames, frames without positions, whether `done` came)
+                let (mut frames, mut bare, mut done) = (0usize, 0usize, false);
+                while started.elapsed() < WATCH {
+                    let left = WATCH.saturating_sub(started.elapsed());
+                    match sse.next(left).await {
+                        SseNext::Event(e) if e.event == "frame" => {
+                            frames += 1;
+                            if e.data["positions_b64"].as_str().is_none() {
+                                bare += 1;
+                            }
+                        }
+                        SseNext::Event(e) if e.event == "done" => {
+                            done = true;
+                            break;
+                        }
+                        SseNext::Event(_) => {}
+                        SseNext::TimedOut => break,
+                        other => panic!("the stream ended early: {other:?}"),
+                    }
+                }
+                (frames, bare, done)
+            }));
+        }
+    }
+    let mut samples = Vec::new();
+    while started.elapsed() < WATCH {
+        samples.push(blob_consumers(&js).await);
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    let (mut frames, mut bare) = (0, 0);
+    for w in watchers {
+        let (f, b, done) = w.await.expect("watcher task");
+        assert!(!done, "a job ended while watched");
+        frames += f;
+        bare += b;
+    }
+    let max = samples.iter().copied().max().unwrap_or(0);
+    eprintln!(
+        "{frames} frames to {} watchers; object store consumers sampled: {samples:?}",
+        ids.len() * WATCHERS_PER_JOB
+    );
+    assert!(
+        frames >= 200,
+        "too few frames ({frames}) to say anything: is the machine that slow?"
+    );
+    assert_eq!(bare, 0, "{bare} of {frames} frames came without positions");
+    assert!(
+        max <= 2,
+        "blob reads left consumers behind on the object store: {samples:?}"
+    );
+    for id in &ids {
+        let (_, v) = api.get_json(&format!("/v1/jobs/{id}")).await;
+        assert_eq!(v["state"], "running", "{v}");
+        let res = api
+            .client
+            .post(api.url(&format!("/v1/jobs/{id}/cancel")))
+            .send()
+            .await
+            .expect("cancel");
+        assert_eq!(res.status(), 202);
+    }
+    for id in &ids {
+        let v = api.poll_until(id, is_terminal).await;
+        assert_eq!(v["state"], "cancelled", "{v}");
+    }
+    // Deleting a job finds its blobs without a consumer either, and deletes them.
+    let blobs = js
+        .get_object_store("willow-blobs")
+        .await
+        .expect("object store");
+    let input = format!("jobs/{}/input.obj", ids[0]);
+    assert!(!blobs.info(&input).await.expect("input info").deleted);
+    let res = api
+        .client
+        .delete(api.url(&format!("/v1/jobs/{}", ids[0])))
+        .send()
+        .await
+        .expect("delete");
+    assert!(res.status().is_success(), "delete: {}", res.status());
+    assert!(
+        blobs.info(&input).await.expect("input info").deleted,
+        "the job's input is deleted with it"
+    );
+    assert_eq!(blob_consumers(&js).await, 0, "consumers after a delete");
+}
+
+/// Steps a worker took (its step-duration histogram's count; 0 when absent).
+async fn steps_taken(node: &Node) -> f64 {
+    metric(&node.metrics().await, "willow_step_seconds_count", &[]).unwrap_or(0.0)
+}
+
+/// Every (state, step) a client polling job `id` every 100 ms sees, until it is terminal and
+/// 8 s more (a second run would show as running again, or as progress going back).
+fn poll_states(api: &Node, id: &str) -> tokio::task::JoinHandle<Vec<(String, u64)>> {
+    let (client, base, id) = (api.client.clone(), api.base.clone(), id.to_string());
+    tokio::spawn(async move {
+        let mut seen: Vec<(String, u64)> = Vec::new();
+        let mut terminal_since = None;
+        let start = Instant::now();
+        while start.elapsed() < PATIENCE * 2 {
+            let got = client
+                .get(format!("{base}/v1/jobs/{id}"))
+                .timeout(Duration::from_secs(5))
+                .send()
+                .await;
+            if let Ok(res) = got {
+                if let Ok(v) = res.json::<serde_json::Value>().await {
+                    if let Some(state) = v["state"].as_str() {
+                        let step = v["progress"]["step"].as_u64().unwrap_or(0);
+                        seen.push((state.to_string(), step));
+                        if is_terminal(&v) {
+                            terminal_since.get_or_insert_with(Instant::now);
+                        }
+                    }
+                }
+            }
+            if terminal_since.is_some_and(|t| t.elapsed() > Duration::from_secs(8)) {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        seen
+    })
+}
+
+/// The states after the first terminal one are all `succeeded` at step `n`.
+fn assert_succeeded_once_at(seen: &[(String, u64)], n: u64) {
+    let first_terminal = seen
+        .iter()
+        .position(|(s, _)| s != "queued" && s != "running")
+        .expect("the poller saw the end");
+    assert!(
+        seen[first_terminal..]
+            .iter()
+            .all(|(s, step)| s == "succeeded" && *step == n),
+        "`succeeded` only at step {n}, and it stays: {:?}",
+        &seen[first_terminal.saturating_sub(3)..]
+    );
+}
+
+/// A running job is run by one worker at a time across a NATS restart: nats-server is stopped
+/// for ~3 s (longer than `ack_wait`) while a job runs on one worker and a second worker idles.
+/// The job's message is delivered again when NATS is back, but the first worker's fence still
+/// holds the job, so the duplicate is not run: one worker finishes it, `succeeded` appears
+/// once, at the last step, every step is taken once (no resume, no second run), and the
+/// watcher across the outage sees each frame once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_restart_mid_job_the_job_runs_once_on_one_worker() {
+    const N: u64 = 400;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let mut nats = Nats::start(d);
+    let url = nats.url();
+    let opts = |o: NodeOpts| o.checkpoint_steps(2).ack_wait_secs(3);
+    let api = Node::spawn(d, "api", Some(&url), &opts(NodeOpts::api()));
+    let w1 = Node::spawn(d, "worker-1", Some(&url), &opts(NodeOpts::worker()));
+    let w2 = Node::spawn(d, "worker-2", Some(&url), &opts(NodeOpts::worker()));
+    all_ready(&[&api, &w1, &w2]).await;
+
+    let id = api
+        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20"))
+        .await;
+    // A watcher that reconnects with `Last-Event-ID` when its stream ends (the API node ends
+    // it while NATS is away), as a client does.
+    let watcher = {
+        let (client, base, id) = (api.client.clone(), api.base.clone(), id.clone());
+        tokio::spawn(async move {
+            let mut events: Vec<Sse> = Vec::new();
+            let start = Instant::now();
+            while start.elapsed() < PATIENCE * 2 {
+                let mut req = client.get(format!("{base}/v1/jobs/{id}/events"));
+                if let Some(&last) = frame_steps(&events).last() {
+                    req = req.header("Last-Event-ID", last.to_string());
+                }
+                let res = match req.send().await {
+                    Ok(r) if r.status() == 200 => r,
+                    _ => {
+                        tokio::time::sleep(Duration::from_millis(200)).await;
+                        continue;
+                    }
+                };
+                let mut sse = SseStream::new(res);
+                while let SseNext::Event(e) = sse.next(PATIENCE).await {
+                    let done = e.event == "done";
+                    events.push(e);
+                    if done {
+                        return events;
+                    }
+                }
+            }
+            panic!("no `done` in time: {:?}", frame_steps(&events));
+        })
+    };
+    let poller = poll_states(&api, &id);
+    api.poll_until(&id, |v| {
+        v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 10
+    })
+    .await;
+    let t = Instant::now();
+    nats.terminate();
+    let stopped = t.elapsed();
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    nats.restart();
+    let restarted = t.elapsed();
+    all_ready(&[&api, &w1, &w2]).await;
+    eprintln!(
+        "nats-server stopped in {stopped:?}, up again after {restarted:?}, nodes ready after {:?}",
+        t.elapsed()
+    );
+
+    let done = api.poll_until(&id, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["progress"]["step"], N, "{done}");
+    assert_succeeded_once_at(&poller.await.expect("poller task"), N);
+    let events = watcher.await.expect("watcher task");
+    assert_eq!(
+        checked_frame_steps(&events),
+        steps(0..=N),
+        "the watcher across the outage sees each step once, in order"
+    );
+    assert_eq!(done_state(&events), "succeeded");
+    assert_eq!(
+        events.iter().filter(|e| e.event == "done").count(),
+        1,
+        "one `done`"
+    );
+
+    // One finisher, no resume, every step taken once over both workers, also after two
+    // more ack waits (a duplicate run would start over or resume meanwhile).
+    tokio::time::sleep(Duration::from_secs(6)).await;
+    let finishers = finished(&w1, "succeeded").await + finished(&w2, "succeeded").await;
+    assert_eq!(finishers, 1.0, "exactly one worker finished the job");
+    let (mut waited, mut gave_up) = (0, 0);
+    for w in [&w1, &w2] {
+        let log = std::fs::read_to_string(&w.log).unwrap_or_default();
+        waited += log
+            .matches("delivered while another worker holds it")
+            .count();
+        gave_up += log.matches("the job will be delivered again").count();
+    }
+    let resumed = metric(&w1.metrics().await, "willow_jobs_resumed_total", &[]).unwrap_or(0.0)
+        + metric(&w2.metrics().await, "willow_jobs_resumed_total", &[]).unwrap_or(0.0);
+    let taken = steps_taken(&w1).await + steps_taken(&w2).await;
+    eprintln!(
+        "duplicate deliveries waited out: {waited}; runs given up while NATS was away: \
+         {gave_up}; resumes: {resumed}; steps taken: {taken}"
+    );
+    if gave_up == 0 {
+        // The worker rode the outage out: nobody else ran or resumed the job.
+        assert_eq!(resumed, 0.0, "no worker resumed the job from a checkpoint");
+        assert_eq!(taken, N as f64, "every step taken once over both workers");
+    } else {
+        // NATS was away longer than the worker's retries (a slow restart on a loaded
+        // machine): its run was handed back and resumed once, from its checkpoint.
+        assert_eq!(resumed, 1.0, "the handed-back run resumed once");
+    }
+}
+
+/// Send `signal` (`STOP`, `CONT`) to a node's process.
+fn signal(node: &Node, signal: &str) {
+    let pid = node.pid().expect("a running node");
+    let status = std::process::Command::new("kill")
+        .args([format!("-{signal}"), pid.to_string()])
+        .status()
+        .expect("kill");
+    assert!(status.success(), "kill -{signal} {pid}");
+}
+
+/// A stale worker's writes are refused: the worker running a job is frozen (SIGSTOP) until its
+/// hold lapses and the other worker takes the job over and resumes it; thawed, the first
+/// worker finds at its next write that it lost the job and stops, writing nothing more. One
+/// worker finishes, `succeeded` appears once at the last step, and the frames are each step
+/// once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frozen_worker_loses_its_job_and_stops_when_thawed() {
+    const N: u64 = 300;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let nats = Nats::start(d);
+    let url = nats.url();
+    let opts = |o: NodeOpts| o.checkpoint_steps(2).ack_wait_secs(2);
+    let api = Node::spawn(d, "api", Some(&url), &opts(NodeOpts::api()));
+    let workers = [
+        Node::spawn(d, "worker-1", Some(&url), &opts(NodeOpts::worker())),
+        Node::spawn(d, "worker-2", Some(&url), &opts(NodeOpts::worker())),
+    ];
+    all_ready(&[&api, &workers[0], &workers[1]]).await;
+
+    let id = api
+        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20"))
+        .await;
+    let poller = poll_states(&api, &id);
+    api.poll_until(&id, |v| {
+        v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 5
+    })
+    .await;
+    let start = Instant::now();
+    let victim = loop {
+        let mut running = Vec::new();
+        for w in &workers {
+            running.push(metric(&w.metrics().await, "willow_jobs_running", &[]));
+        }
+        match running[..] {
+            [Some(1.0), Some(0.0)] => break 0,
+            [Some(0.0), Some(1.0)] => break 1,
+            _ if start.elapsed() > PATIENCE => {
+                panic!("no single worker reports willow_jobs_running 1: {running:?}")
+            }
+            _ => tokio::time::sleep(Duration::from_millis(20)).await,
+        }
+    };
+    let (frozen, other) = (&workers[victim], &workers[1 - victim]);
+    signal(frozen, "STOP");
+    // The other worker gets the message after ack_wait, waits out the hold, and resumes.
+    other
+        .wait_metric("willow_jobs_resumed_total", &[], 1.0, PATIENCE)
+        .await;
+    let (_, v) = api.get_json(&format!("/v1/jobs/{id}")).await;
+    assert_eq!(v["state"], "running", "still running when thawed: {v}");
+    signal(frozen, "CONT");
+
+    let done = api.poll_until(&id, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["progress"]["step"], N, "{done}");
+    assert_succeeded_once_at(&poller.await.expect("poller task"), N);
+    assert_eq!(api.frame_list(&id).await, steps(0..=N));
+    assert_eq!(
+        finished(frozen, "succeeded").await,
+        0.0,
+        "the thawed worker finished nothing"
+    );
+    assert_eq!(
+        finished(other, "succeeded").await,
+        1.0,
+        "the other worker finished it"
+    );
+    frozen
+        .wait_metric("willow_jobs_running", &[], 0.0, METRIC_PATIENCE)
+        .await;
+    let log = std::fs::read_to_string(&frozen.log).unwrap_or_default();
+    assert!(
+        log.contains("another worker holds the job now") || log.contains("the job's hold is gone"),
+        "the thawed worker saw that it lost the job"
+    );
+}

@@ -199,7 +199,7 @@ impl Jobs {
             let withdrawn = Some(("queue_full".to_string(), e.to_string()));
             let _ = backend
                 .store
-                .finish(&id, JobState::Failed, withdrawn, now, now)
+                .finish(&id, JobState::Failed, withdrawn, now, now, None)
                 .await;
             let _ = backend.store.delete(&tenant, &id).await;
             return Err(match e {

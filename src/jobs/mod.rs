@@ -260,6 +260,7 @@ impl Jobs {
                 id,
                 JobState::Cancelled,
                 Some(("cancelled", "cancelled while queued".to_string())),
+                None,
             )
             .await?;
             audit("cancel", caller, id);

@@ -241,19 +241,26 @@ pub trait JobStore: Send + Sync + 'static {
         size: usize,
         token: Option<String>,
     ) -> Result<(Vec<JobStatus>, Option<String>), JobError>;
-    /// A worker takes the job: queued → running, or running → running when it is delivered
-    /// again after its worker died. `None` when the job is terminal, deleted or unknown.
-    async fn start(&self, id: &str, at: u64) -> Result<Option<JobStatus>, JobError>;
-    /// A step's metrics; advances the job's progress to `metrics.step`.
+    /// A worker takes the job under `fence`: queued → running, or running → running when it
+    /// is delivered again after its worker died. [`Started::Gone`] when the job is terminal,
+    /// deleted or unknown; [`Started::Held`] when another worker's fence holds it and has not
+    /// lapsed (the job is not to be run: its holder is alive, or may be).
+    async fn start(&self, id: &str, fence: &Fence, at: u64) -> Result<Started, JobError>;
+    /// Keep `fence`'s hold on the running job (from the heartbeat). A hold that another
+    /// worker took cancels [`Fence::lost`] and is [`JobError::Conflict`].
+    async fn renew(&self, id: &str, fence: &Fence) -> Result<(), JobError>;
+    /// A step's metrics; advances the job's progress to `metrics.step`. Refused (and
+    /// [`Fence::lost`] cancelled) when `fence` no longer holds the job.
     async fn record_frame(
         &self,
         id: &str,
         metrics: StepMetrics,
         has_positions: bool,
+        fence: &Fence,
     ) -> Result<(), JobError>;
     /// Forget the frames after `step` and set the progress back to it (a job resumed from its
-    /// checkpoint at `step` takes the later steps again).
-    async fn rewind(&self, id: &str, step: usize) -> Result<(), JobError>;
+    /// checkpoint at `step` takes the later steps again). Fenced as `record_frame`.
+    async fn rewind(&self, id: &str, step: usize, fence: &Fence) -> Result<(), JobError>;
     /// Stored frames of steps `from..` in step order (at most `limit`), with whether each kept
     /// positions.
     async fn frame_rows(
@@ -263,6 +270,8 @@ pub trait JobStore: Send + Sync + 'static {
         limit: usize,
     ) -> Result<Vec<(StepMetrics, bool)>, JobError>;
     /// Move a queued or running job to a terminal state; `None` if it already was terminal.
+    /// A worker passes its fence (refused, as `record_frame`, once the fence lost the job);
+    /// `None` is the API's own transition (a job withdrawn from the queue).
     async fn finish(
         &self,
         id: &str,
@@ -270,9 +279,11 @@ pub trait JobStore: Send + Sync + 'static {
         error: Option<(String, String)>,
         at: u64,
         expires_at: u64,
+        fence: Option<&Fence>,
     ) -> Result<Option<JobStatus>, JobError>;
-    /// A running job goes back to queued (shutdown); its frames and checkpoint stay.
-    async fn requeue(&self, id: &str) -> Result<(), JobError>;
+    /// A running job goes back to queued (shutdown) and its fence lets go; its frames and
+    /// checkpoint stay. Nothing happens if `fence` no longer holds it.
+    async fn requeue(&self, id: &str, fence: &Fence) -> Result<(), JobError>;
     /// Remove `tenant`'s terminal (or expired) job's record and frames; `Conflict` if it is
     /// live. Its blobs are the caller's to delete.
     async fn delete(&self, tenant: &str, id: &str) -> Result<(), JobError>;
@@ -295,6 +306,69 @@ pub trait JobStore: Send + Sync + 'static {
     async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError>;
     /// What `tenant` holds at `now` (unix ms), with the meshes it sent in the minute before.
     async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError>;
+}
+
+/// What [`JobStore::start`] found.
+#[derive(Debug)]
+pub enum Started {
+    /// The job is the caller's to run, under its fence.
+    Run(Box<JobStatus>),
+    /// Terminal, deleted or unknown: nothing to run (ack the delivery).
+    Gone,
+    /// Another worker's fence holds the job and has not lapsed: do not run it.
+    Held,
+}
+
+/// A worker's hold on the job it runs, kept in the job's record by backends whose queue can
+/// hand one job to two workers (NATS: a message delivered again after a missed heartbeat,
+/// or after a server restart, while its first worker still runs it). Every write of the
+/// worker to the record checks the token, so a worker that lost the job is refused before it
+/// writes anything more; a hold not renewed for `ttl` (the worker died) may be taken over.
+/// The embedded backend, whose queue never hands out a running job, ignores it.
+#[derive(Clone, Debug)]
+pub struct Fence {
+    /// Unique for one run of one delivery.
+    pub token: String,
+    /// How long the hold lasts without a renewal.
+    pub ttl: std::time::Duration,
+    /// Cancelled when the store finds the job held by another fence (or finished by another
+    /// worker): the run stops, and writes, acks and releases nothing more.
+    pub lost: CancellationToken,
+    /// When (unix ms, taken before the write) the store last confirmed the hold.
+    renewed_at: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl Fence {
+    pub fn new(ttl: std::time::Duration) -> Fence {
+        Fence {
+            token: uuid::Uuid::new_v4().simple().to_string(),
+            ttl,
+            lost: CancellationToken::new(),
+            renewed_at: Default::default(),
+        }
+    }
+
+    /// The store confirmed the hold with a write that began at `at` (unix ms).
+    pub fn renewed(&self, at: u64) {
+        self.renewed_at
+            .fetch_max(at, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether the hold may have lapsed by `now` for all this worker knows: no confirmation
+    /// for half its length (frozen, or cut off). A worker checks with the store (`renew`)
+    /// before it writes more, so that one whose job was taken over meanwhile writes nothing.
+    pub fn stale(&self, now: u64) -> bool {
+        let half = u64::try_from(self.ttl.as_millis() / 2).unwrap_or(u64::MAX);
+        now.saturating_sub(self.renewed_at.load(std::sync::atomic::Ordering::Relaxed)) > half
+    }
+
+    /// The error of a write this fence may no longer make (and marks it lost).
+    pub fn lost_error(&self, id: &str) -> JobError {
+        self.lost.cancel();
+        JobError::Conflict(format!(
+            "job `{id}` is no longer held by this worker (another took it over, or it finished)"
+        ))
+    }
 }
 
 /// What a blob holds; the backend names it (file path, object name).

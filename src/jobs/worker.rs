@@ -19,7 +19,7 @@
 //! [`Config::checkpoint_interval`]: super::Config::checkpoint_interval
 
 use super::codec::{decode_checkpoint, encode_checkpoint, f32s_to_bytes, f64s_to_bytes};
-use super::ports::{BlobKey, Lease};
+use super::ports::{BlobKey, Fence, JobStore, Lease, LeaseControl, Started};
 use super::{mesh_error, now_ms, Frame, Inner, JobError, JobEvent, JobState, JobStatus, Jobs};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -45,6 +45,47 @@ enum Outcome {
     Done,
     /// Stopped for shutdown, checkpointed and re-queued: give the lease back.
     Released,
+    /// Another worker holds the job (its fence took over, or held it first): settle nothing,
+    /// the holder acks it.
+    Lost,
+}
+
+/// How often a worker given a job that another worker's live hold has looks again.
+const HELD_POLL: Duration = Duration::from_millis(500);
+/// How soon a failed renewal of a hold is tried again (a renewal right after a NATS outage
+/// keeps the hold from being taken over).
+const RENEW_RETRY: Duration = Duration::from_millis(250);
+
+/// What taking a delivered job under a fence gave.
+enum Acquired {
+    Run(Box<JobStatus>),
+    /// Terminal, deleted or unknown.
+    Gone,
+    /// Shutting down while another worker held it.
+    Abandoned,
+}
+
+/// Take job `id` under `fence`. While another worker's live hold has it, wait (the delivery
+/// is a duplicate: a redelivery while its first worker still runs it), until it is finished
+/// (gone) or the hold lapses (its worker died: then it is ours).
+async fn acquire(inner: &Inner, id: &str, fence: &Fence) -> Result<Acquired, JobError> {
+    let mut waiting = false;
+    loop {
+        match inner.backend.store.start(id, fence, now_ms()).await? {
+            Started::Run(s) => return Ok(Acquired::Run(s)),
+            Started::Gone => return Ok(Acquired::Gone),
+            Started::Held => {
+                if !waiting {
+                    tracing::info!(job_id = %id, "delivered while another worker holds it: not run, waiting for it to finish or lapse");
+                    waiting = true;
+                }
+                tokio::select! {
+                    _ = inner.shutdown.cancelled() => return Ok(Acquired::Abandoned),
+                    _ = tokio::time::sleep(HELD_POLL) => {}
+                }
+            }
+        }
+    }
 }
 
 /// One worker: lease a job, run it to the end on a blocking thread, repeat until `stop`.
@@ -82,35 +123,82 @@ pub(crate) async fn worker_loop(jobs: Jobs, n: usize, stop: CancellationToken) {
 async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
     let backend = &inner.backend;
     let id = lease.id.clone();
-    if lease.attempt > inner.config.max_deliveries {
-        let reason = format!(
-            "the job was delivered {} times and no worker finished it (each stopped without \
-             a word: killed, out of memory, or its node lost); it is not tried again",
-            lease.attempt - 1
-        );
-        tracing::error!(job_id = %id, attempt = lease.attempt, "giving up on a job");
-        if let Err(e) = finish(inner, &id, JobState::Failed, Some(("redelivered", reason))).await {
-            tracing::error!(job_id = %id, error = %e, "could not fail the job");
-        }
-        let _ = lease.control.ack().await;
-        return;
-    }
-    let token = backend.cancels.watch(&id).await;
-    let beat = CancellationToken::new();
+    let fence = Fence::new(inner.config.heartbeat_interval * 3);
+    // Heartbeats from the start (also while a duplicate delivery waits); the store's hold is
+    // renewed by them once it is ours (`held`).
+    let (beat, held) = (CancellationToken::new(), CancellationToken::new());
     let heartbeat = tokio::spawn(heartbeat_loop(
         lease.control.clone(),
+        backend.store.clone(),
+        id.clone(),
+        fence.clone(),
+        held.clone(),
         inner.config.heartbeat_interval,
         beat.clone(),
     ));
+    let running = match acquire(inner, &id, &fence).await {
+        Ok(Acquired::Run(s)) => Some(s),
+        Ok(Acquired::Gone) => None,
+        Ok(Acquired::Abandoned) => {
+            beat.cancel();
+            let _ = heartbeat.await;
+            return;
+        }
+        Err(e) => {
+            beat.cancel();
+            let _ = heartbeat.await;
+            settle(inner, &id, &lease, &fence, Err(e)).await;
+            return;
+        }
+    };
+    held.cancel();
+    let outcome = match running {
+        None => Ok(Outcome::Done), // cancelled, deleted or expired while waiting, or done
+        Some(_) if lease.attempt > inner.config.max_deliveries => {
+            let reason = format!(
+                "the job was delivered {} times and no worker finished it (each stopped \
+                 without a word: killed, out of memory, or its node lost); it is not tried again",
+                lease.attempt - 1
+            );
+            tracing::error!(job_id = %id, attempt = lease.attempt, "giving up on a job");
+            finish(
+                inner,
+                &id,
+                JobState::Failed,
+                Some(("redelivered", reason)),
+                Some(&fence),
+            )
+            .await
+            .map(|_| Outcome::Done)
+        }
+        Some(running) => run_held(inner, n, &lease, &fence, *running).await,
+    };
+    beat.cancel();
+    let _ = heartbeat.await;
+    settle(inner, &id, &lease, &fence, outcome).await;
+}
+
+/// Run a job this worker's fence holds, on a blocking thread.
+async fn run_held(
+    inner: &Arc<Inner>,
+    n: usize,
+    lease: &Lease,
+    fence: &Fence,
+    running: JobStatus,
+) -> Result<Outcome, JobError> {
+    let backend = &inner.backend;
+    let id = lease.id.clone();
+    let token = backend.cancels.watch(&id).await;
     inner.running.fetch_add(1, Ordering::SeqCst);
     inner
         .telemetry
         .running
         .set(inner.running.load(Ordering::SeqCst) as i64);
     let span = tracing::info_span!("job", job_id = %id, worker = n, attempt = lease.attempt);
-    let (run_inner, run_id, rt) = (inner.clone(), id.clone(), Handle::current());
+    let (run_inner, run_id, rt, run_fence) =
+        (inner.clone(), id.clone(), Handle::current(), fence.clone());
     let outcome = tokio::task::spawn_blocking(move || {
-        span.in_scope(|| run_job(&run_inner, &rt, &run_id, &token))
+        span.in_scope(|| run_job(&run_inner, &rt, &run_id, &token, &run_fence, running))
     })
     .await
     .map_err(super::join_err)
@@ -121,17 +209,40 @@ async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
         .running
         .set(inner.running.load(Ordering::SeqCst) as i64);
     inner.last_progress_ms.store(now_ms(), Ordering::SeqCst);
-    beat.cancel();
-    let _ = heartbeat.await;
     backend.cancels.forget(&id).await;
+    outcome
+}
+
+/// Settle the lease as the run ended. A worker whose fence was lost settles nothing: the job
+/// is another worker's, and so is its delivery.
+async fn settle(
+    inner: &Inner,
+    id: &str,
+    lease: &Lease,
+    fence: &Fence,
+    outcome: Result<Outcome, JobError>,
+) {
+    // A run that made the job terminal, or handed it back, settles its delivery even if a
+    // renewal racing its last write has since found the hold gone.
+    let outcome = match outcome {
+        Ok(o @ (Outcome::Done | Outcome::Released)) => Ok(o),
+        _ if fence.lost.is_cancelled() => Ok(Outcome::Lost),
+        other => other,
+    };
     let settled = match outcome {
         Ok(Outcome::Done) => lease.control.ack().await,
         Ok(Outcome::Released) => lease.control.release().await,
+        Ok(Outcome::Lost) => {
+            tracing::warn!(job_id = %id, "another worker holds the job now: this run stopped, writing nothing more");
+            Ok(())
+        }
         Err(JobError::Unavailable(e)) => {
             // The backend went away under the job: not the job's fault. Leave it to be
             // delivered again (here or elsewhere) once the backend is back; it resumes from
-            // its checkpoint.
+            // its checkpoint. Letting go of the hold (best effort) spares the next worker
+            // the wait for it to lapse.
             tracing::warn!(job_id = %id, error = %e, "backend unavailable: the job will be delivered again");
+            let _ = inner.backend.store.requeue(id, fence).await;
             lease.control.release().await
         }
         Err(e) => {
@@ -140,11 +251,15 @@ async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
             tracing::error!(job_id = %id, error = %e, "job aborted");
             let _ = finish(
                 inner,
-                &id,
+                id,
                 JobState::Failed,
                 Some(("internal", e.to_string())),
+                Some(fence),
             )
             .await;
+            if fence.lost.is_cancelled() {
+                return;
+            }
             lease.control.ack().await
         }
     };
@@ -154,19 +269,38 @@ async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
     }
 }
 
-/// Keep the lease while the job runs: a step may take longer than the queue's `ack_wait`.
+/// Keep the lease while the job runs (a step may take longer than the queue's `ack_wait`),
+/// and, once `held`, the fence's hold on the record. A renewal that finds the hold taken
+/// over cancels the fence's `lost` (the run stops at its next write) and ends the heartbeats.
 async fn heartbeat_loop(
-    control: Arc<dyn super::ports::LeaseControl>,
+    control: Arc<dyn LeaseControl>,
+    store: Arc<dyn JobStore>,
+    id: String,
+    fence: Fence,
+    held: CancellationToken,
     every: Duration,
     stop: CancellationToken,
 ) {
+    let mut pause = every;
     loop {
         tokio::select! {
             _ = stop.cancelled() => return,
-            _ = tokio::time::sleep(every) => {}
+            _ = tokio::time::sleep(pause) => {}
         }
+        pause = every;
         if let Err(e) = control.heartbeat().await {
             tracing::warn!(error = %e, "lease heartbeat failed");
+        }
+        if !held.is_cancelled() {
+            continue;
+        }
+        if let Err(e) = store.renew(&id, &fence).await {
+            if fence.lost.is_cancelled() {
+                tracing::info!(job_id = %id, "the job's hold is gone (finished here, or taken over): heartbeats stop");
+                return;
+            }
+            tracing::warn!(job_id = %id, error = %e, "renewing the job's hold failed");
+            pause = RENEW_RETRY.min(every);
         }
     }
 }
@@ -200,6 +334,8 @@ enum Stop {
     Cancelled(usize),
     Shutdown,
     Deadline(usize),
+    /// The fence lost the job to another worker.
+    Lost,
 }
 
 /// Run one job to a terminal state (or back to the queue on shutdown). Runs on a blocking
@@ -209,10 +345,20 @@ fn run_job(
     rt: &Handle,
     id: &str,
     token: &CancellationToken,
+    fence: &Fence,
+    running: JobStatus,
 ) -> Result<Outcome, JobError> {
     let backend = &inner.backend;
-    let Some(running) = rt.block_on(backend.store.start(id, now_ms()))? else {
-        return Ok(Outcome::Done); // cancelled, deleted or expired while waiting
+    // Before every write: a worker that lost the job writes nothing more. One that has had no
+    // word from the store for half a hold (frozen, or cut off) asks it first.
+    let still_held = || -> Result<(), JobError> {
+        if fence.lost.is_cancelled() {
+            return Err(fence.lost_error(id));
+        }
+        if fence.stale(now_ms()) {
+            rt.block_on(backend.store.renew(id, fence))?;
+        }
+        Ok(())
     };
     let deadline_ms = running.created_at
         + running
@@ -222,7 +368,9 @@ fn run_job(
             .unwrap_or(inner.config.default_deadline)
             .as_millis() as u64;
     let check = |step: usize| -> Option<Stop> {
-        if token.is_cancelled() {
+        if fence.lost.is_cancelled() {
+            Some(Stop::Lost)
+        } else if token.is_cancelled() {
             Some(Stop::Cancelled(step))
         } else if inner.shutdown.is_cancelled() {
             Some(Stop::Shutdown)
@@ -233,7 +381,7 @@ fn run_job(
         }
     };
     if let Some(stop) = check(0) {
-        return stopped(inner, rt, id, stop, &running, None);
+        return stopped(inner, rt, id, stop, &running, None, fence);
     }
     rt.block_on(backend.events.publish(id, JobEvent::State(running.clone())))?;
     let started = Instant::now();
@@ -246,6 +394,7 @@ fn run_job(
                 id,
                 JobState::Failed,
                 Some(("invalid_mesh", e.to_string())),
+                Some(fence),
             ))?;
             return Ok(Outcome::Done);
         }
@@ -268,6 +417,7 @@ fn run_job(
                 id,
                 JobState::Failed,
                 Some((flow_error_code(&e), e.to_string())),
+                Some(fence),
             ))?;
             return Ok(Outcome::Done);
         }
@@ -275,6 +425,7 @@ fn run_job(
 
     let emit = |step: usize, mut metrics: willow::metrics::StepMetrics, positions: &[[f64; 3]]| {
         metrics.step = step;
+        still_held()?;
         let payload = if spec.keeps_positions(step) {
             let file_order = asset.file_positions(positions);
             let (key, welded) = frame_keys(id, step);
@@ -295,7 +446,7 @@ fn run_job(
         rt.block_on(async {
             backend
                 .store
-                .record_frame(id, metrics, payload.is_some())
+                .record_frame(id, metrics, payload.is_some(), fence)
                 .await?;
             inner.last_progress_ms.store(now_ms(), Ordering::SeqCst);
             backend
@@ -315,13 +466,13 @@ fn run_job(
     let resumed_at = resume(inner, rt, id, flow.as_mut());
     let first = match resumed_at {
         Some(step) => {
-            rt.block_on(backend.store.rewind(id, step))?;
+            rt.block_on(backend.store.rewind(id, step, fence))?;
             inner.telemetry.resumed.inc();
             tracing::info!(step, "resumed from the checkpoint");
             step + 1
         }
         None => {
-            rt.block_on(backend.store.rewind(id, 0))?;
+            rt.block_on(backend.store.rewind(id, 0, fence))?;
             emit(0, flow.initial_metrics(), flow.positions())?;
             tracing::info!(steps = running.total_steps, "job started");
             1
@@ -333,7 +484,7 @@ fn run_job(
     let mut stopped_early = None;
     for step in first..=spec.steps {
         if let Some(stop) = check(step - 1) {
-            return stopped(inner, rt, id, stop, &running, Some(flow.as_ref()));
+            return stopped(inner, rt, id, stop, &running, Some(flow.as_ref()), fence);
         }
         let t = Instant::now();
         let metrics = match flow.step() {
@@ -353,6 +504,7 @@ fn run_job(
                     id,
                     JobState::Failed,
                     Some((flow_error_code(&e), e.to_string())),
+                    Some(fence),
                 ))?;
                 return Ok(Outcome::Done);
             }
@@ -372,6 +524,7 @@ fn run_job(
                     "numerical",
                     format!("numerical failure at step {step}: vertex {bad} is not finite"),
                 )),
+                Some(fence),
             ))?;
             return Ok(Outcome::Done);
         }
@@ -379,11 +532,13 @@ fn run_job(
         let due = step - last_checkpoint.0 >= inner.config.checkpoint_steps
             || last_checkpoint.1.elapsed() >= inner.config.checkpoint_interval;
         if due && step < spec.steps {
+            still_held()?;
             checkpoint(inner, rt, id, flow.as_ref())?;
             last_checkpoint = (step, Instant::now());
         }
     }
     debug_assert!(first_non_finite(flow.positions()).is_none());
+    still_held()?;
     rt.block_on(backend.blobs.put(
         BlobKey::Result { id: id.to_string() },
         f64s_to_bytes(flow.positions()).into(),
@@ -395,7 +550,13 @@ fn run_job(
     inner
         .avg_job_ms
         .store((prev * 3 + ms) / 4, Ordering::Relaxed);
-    rt.block_on(finish(inner, id, JobState::Succeeded, stopped_early))?;
+    rt.block_on(finish(
+        inner,
+        id,
+        JobState::Succeeded,
+        stopped_early,
+        Some(fence),
+    ))?;
     // The checkpoint has served: a finished job is never resumed.
     let _ = rt.block_on(
         backend
@@ -494,8 +655,10 @@ fn stopped(
     stop: Stop,
     status: &JobStatus,
     flow: Option<&dyn Flow>,
+    fence: &Fence,
 ) -> Result<Outcome, JobError> {
     match stop {
+        Stop::Lost => return Ok(Outcome::Lost),
         Stop::Cancelled(step) => {
             rt.block_on(finish(
                 inner,
@@ -505,6 +668,7 @@ fn stopped(
                     "cancelled",
                     format!("cancelled after step {step} of {}", status.total_steps),
                 )),
+                Some(fence),
             ))?;
         }
         Stop::Deadline(step) => {
@@ -523,15 +687,19 @@ fn stopped(
                         status.total_steps
                     ),
                 )),
+                Some(fence),
             ))?;
         }
         Stop::Shutdown => {
             // Keep every step taken: the next worker resumes right here.
             if let Some(flow) = flow {
+                if fence.lost.is_cancelled() {
+                    return Ok(Outcome::Lost);
+                }
                 checkpoint(inner, rt, id, flow)?;
             }
             let backend = &inner.backend;
-            rt.block_on(backend.store.requeue(id))?;
+            rt.block_on(backend.store.requeue(id, fence))?;
             if let Ok(s) = rt.block_on(backend.store.status(id, None)) {
                 let _ = rt.block_on(backend.events.publish(id, JobEvent::State(s)));
             }
@@ -558,13 +726,18 @@ pub(crate) async fn finish(
     id: &str,
     state: JobState,
     error: Option<(&str, String)>,
+    fence: Option<&Fence>,
 ) -> Result<JobStatus, JobError> {
     let backend = &inner.backend;
     let now = now_ms();
     let expires = now + inner.config.result_ttl.as_millis() as u64;
     let code = error.as_ref().map(|(c, _)| c.to_string());
     let error = error.map(|(c, m)| (c.to_string(), m));
-    let Some(status) = backend.store.finish(id, state, error, now, expires).await? else {
+    let Some(status) = backend
+        .store
+        .finish(id, state, error, now, expires, fence)
+        .await?
+    else {
         return backend.store.status(id, None).await;
     };
     backend

@@ -7,8 +7,8 @@
 
 use super::super::codec::{decode_metrics, encode_metrics};
 use super::super::ports::{
-    over_quota, Admitting, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage,
-    MINUTE_MS,
+    over_quota, Admitting, Fence, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Started,
+    Swept, Usage, MINUTE_MS,
 };
 use super::super::{
     format_name, join_err, now_ms, parse_format, poisoned, JobError, JobSpec, JobState, JobStatus,
@@ -613,7 +613,8 @@ impl JobStore for SqliteStore {
             .await
     }
 
-    async fn start(&self, id: &str, at: u64) -> Result<Option<JobStatus>, JobError> {
+    /// One process, one in-process queue that never hands out a running job: no fencing.
+    async fn start(&self, id: &str, _fence: &Fence, at: u64) -> Result<Started, JobError> {
         let id = id.to_string();
         self.blocking(move |s| {
             // `started_at` keeps the first start: a resumed job has been running since then.
@@ -623,11 +624,16 @@ impl JobStore for SqliteStore {
                 params![id, ms(at)],
             )?;
             if n == 0 {
-                return Ok(None);
+                return Ok(Started::Gone);
             }
-            s.status_now(&id, None).map(Some)
+            s.status_now(&id, None).map(|s| Started::Run(Box::new(s)))
         })
         .await
+    }
+
+    async fn renew(&self, _id: &str, fence: &Fence) -> Result<(), JobError> {
+        fence.renewed(super::super::now_ms());
+        Ok(())
     }
 
     async fn record_frame(
@@ -635,6 +641,7 @@ impl JobStore for SqliteStore {
         id: &str,
         m: StepMetrics,
         has_positions: bool,
+        _fence: &Fence,
     ) -> Result<(), JobError> {
         let id = id.to_string();
         self.blocking(move |s| {
@@ -655,7 +662,7 @@ impl JobStore for SqliteStore {
         .await
     }
 
-    async fn rewind(&self, id: &str, step: usize) -> Result<(), JobError> {
+    async fn rewind(&self, id: &str, step: usize, _fence: &Fence) -> Result<(), JobError> {
         let id = id.to_string();
         self.blocking(move |s| {
             let step = i64::try_from(step).unwrap_or(i64::MAX);
@@ -700,6 +707,7 @@ impl JobStore for SqliteStore {
         error: Option<(String, String)>,
         at: u64,
         expires_at: u64,
+        _fence: Option<&Fence>,
     ) -> Result<Option<JobStatus>, JobError> {
         let id = id.to_string();
         self.blocking(move |s| {
@@ -717,7 +725,7 @@ impl JobStore for SqliteStore {
         .await
     }
 
-    async fn requeue(&self, id: &str) -> Result<(), JobError> {
+    async fn requeue(&self, id: &str, _fence: &Fence) -> Result<(), JobError> {
         let id = id.to_string();
         self.blocking(move |s| {
             s.conn()?.execute(
@@ -958,19 +966,20 @@ mod tests {
             ..job("c", 25, now)
         };
         store.insert(stored).await.expect("insert");
-        store.start(&a[0], now).await.expect("start");
-        store.start(&a[1], now).await.expect("start");
-        store.requeue(&a[1]).await.expect("requeue");
+        let fence = Fence::new(std::time::Duration::from_secs(30));
+        store.start(&a[0], &fence, now).await.expect("start");
+        store.start(&a[1], &fence, now).await.expect("start");
+        store.requeue(&a[1], &fence).await.expect("requeue");
         store
-            .finish(&a[0], JobState::Succeeded, None, now, now + 1)
+            .finish(&a[0], JobState::Succeeded, None, now, now + 1, None)
             .await
             .expect("finish");
         store
-            .finish(&a[2], JobState::Failed, None, now, now + 10 * MIN)
+            .finish(&a[2], JobState::Failed, None, now, now + 10 * MIN, None)
             .await
             .expect("finish");
         store
-            .finish(&b, JobState::Cancelled, None, now, now + 10 * MIN)
+            .finish(&b, JobState::Cancelled, None, now, now + 10 * MIN, None)
             .await
             .expect("finish");
         store

@@ -6,6 +6,12 @@
 //! `cancel.{id}`. Every change of a record is a compare-and-set on its revision, so two nodes
 //! never overwrite each other's transitions.
 //!
+//! A running job's record holds its worker's [`Fence`] ([`Hold`]: token and lapse time), and a
+//! worker's writes (start, frames, rewind, finish, requeue, renew) also check the token: a
+//! worker that lost the job is refused. [`JobStore::start`] answers [`Started::Held`] while
+//! another worker's hold is live, and takes a hold over only once it has lapsed and the record
+//! has not moved for half a hold as seen from this node.
+//!
 //! A step's metrics are a message on `willow.frames.{id}.{step}`: one byte (positions kept or
 //! not) and the metrics in [`codec`](super::super::codec) form (JSON cannot carry NaN). The
 //! stream keeps one message per subject, so a job resumed from a checkpoint replaces the steps
@@ -14,7 +20,8 @@
 
 use super::super::codec::{decode_metrics, encode_metrics};
 use super::super::ports::{
-    over_quota, Admitting, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Swept, Usage,
+    over_quota, Admitting, Fence, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Started,
+    Swept, Usage,
 };
 use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
 use super::{nats_err, retry, Nats};
@@ -42,6 +49,38 @@ struct Record {
     idem: Option<String>,
     /// Retired by the sweeper: answers `Gone`.
     expired: bool,
+    /// The fence of the worker running the job (absent in records from before fencing, and
+    /// while the job waits).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    hold: Option<Hold>,
+}
+
+/// A worker's hold on a running job: its [`Fence`]'s token, and until when (unix ms, the
+/// holder's clock) the hold lasts without a renewal.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+struct Hold {
+    token: String,
+    until: u64,
+}
+
+impl Hold {
+    fn of(fence: &Fence, now: u64) -> Hold {
+        Hold {
+            token: fence.token.clone(),
+            until: now.saturating_add(u64::try_from(fence.ttl.as_millis()).unwrap_or(u64::MAX)),
+        }
+    }
+}
+
+/// A worker's write to a running job: refused (and its fence marked lost) unless the job is
+/// still live and held by `fence`; the hold is renewed by the write.
+fn fenced(id: &str, r: &mut Record, fence: &Fence) -> Result<(), JobError> {
+    let mine = r.hold.as_ref().is_some_and(|h| h.token == fence.token);
+    if !mine || r.expired || r.status.state != JobState::Running {
+        return Err(fence.lost_error(id));
+    }
+    r.hold = Some(Hold::of(fence, now_ms()));
+    Ok(())
 }
 
 impl Record {
@@ -130,6 +169,11 @@ fn default_tenant() -> String {
 
 pub(crate) struct KvStore {
     nats: Arc<Nats>,
+    /// Jobs this node found held by another worker's fence: the record's revision and when
+    /// it was first seen. A hold is taken over only once it has lapsed *and* its record has
+    /// not moved for a while as seen here, so a holder that was cut off with everyone else
+    /// (a NATS restart longer than its hold) gets the time to renew after the outage.
+    held_seen: std::sync::Mutex<std::collections::HashMap<String, (u64, std::time::Instant)>>,
     frames: async_nats::jetstream::stream::Stream,
     /// The stream behind the KV bucket, for listing keys.
     kv_stream: async_nats::jetstream::stream::Stream,
@@ -174,6 +218,7 @@ impl KvStore {
     ) -> KvStore {
         KvStore {
             nats,
+            held_seen: std::sync::Mutex::new(std::collections::HashMap::new()),
             frames,
             kv_stream,
         }
@@ -230,6 +275,51 @@ impl KvStore {
         Err(JobError::Internal(format!(
             "job `{id}` kept changing under 32 updates"
         )))
+    }
+
+    /// Compare-and-set `rec` over `revision`; `false` when another write came first.
+    async fn write(&self, id: &str, rec: &Record, revision: u64) -> Result<bool, JobError> {
+        let value = to_json(rec)?;
+        retry(|| async {
+            match self
+                .nats
+                .kv
+                .update(job_key(id), value.clone(), revision)
+                .await
+            {
+                Ok(_) => Ok(true),
+                Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => Ok(false),
+                Err(e) => Err(nats_err("updating a job", e)),
+            }
+        })
+        .await
+    }
+
+    /// Whether another worker's `hold` on `id` (its record at `revision`) may be taken over
+    /// at `now`: it lapsed, and the record has stayed at `revision` for half a hold's length
+    /// as seen from this node (a live holder renews at least every third of one).
+    fn may_take_over(&self, id: &str, hold: &Hold, revision: u64, ttl: Duration, now: u64) -> bool {
+        let mut seen = self.held_seen.lock().unwrap_or_else(|p| p.into_inner());
+        if seen.len() > 4096 {
+            seen.clear();
+        }
+        let first = match seen.get(id) {
+            Some(&(r, t)) if r == revision => t,
+            _ => {
+                seen.insert(id.to_string(), (revision, std::time::Instant::now()));
+                return false;
+            }
+        };
+        hold.until <= now && first.elapsed() >= ttl / 2
+    }
+
+    /// Forget what [`Self::may_take_over`] saw of `id`, and pass `started` on.
+    fn settled(&self, id: &str, started: Started) -> Started {
+        self.held_seen
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(id);
+        started
     }
 
     fn live(id: &str, rec: &Record) -> Result<JobStatus, JobError> {
@@ -491,6 +581,7 @@ impl KvStore {
             latest: None,
             idem,
             expired: false,
+            hold: None,
         };
         kv.create(job_key(&job.id), to_json(&rec)?)
             .await
@@ -658,23 +749,71 @@ impl JobStore for KvStore {
         Ok((page, next))
     }
 
-    async fn start(&self, id: &str, at: u64) -> Result<Option<JobStatus>, JobError> {
-        let rec = match self
-            .update(id, |r| {
-                if r.expired || r.status.state.is_terminal() {
-                    return Ok(false);
+    async fn start(&self, id: &str, fence: &Fence, at: u64) -> Result<Started, JobError> {
+        for _ in 0..32 {
+            let (mut rec, revision) = match self.record(id).await {
+                Ok(r) => r,
+                Err(JobError::NotFound(_)) => return Ok(self.settled(id, Started::Gone)),
+                Err(e) => return Err(e),
+            };
+            if rec.expired || rec.status.state.is_terminal() {
+                return Ok(self.settled(id, Started::Gone));
+            }
+            if let Some(h) = rec.hold.as_ref().filter(|h| h.token != fence.token) {
+                if !self.may_take_over(id, h, revision, fence.ttl, at) {
+                    return Ok(Started::Held);
                 }
-                r.status.state = JobState::Running;
-                r.status.started_at.get_or_insert(at);
-                Ok(true)
-            })
-            .await
-        {
-            Ok(r) => r,
-            Err(JobError::NotFound(_)) => None,
-            Err(e) => return Err(e),
-        };
-        rec.map(|r| r.status()).transpose()
+                tracing::warn!(job_id = %id, "taking over a lapsed hold: its worker is gone");
+            }
+            rec.status.state = JobState::Running;
+            rec.status.started_at.get_or_insert(at);
+            rec.hold = Some(Hold::of(fence, at));
+            if self.write(id, &rec, revision).await? {
+                fence.renewed(at);
+                return rec
+                    .status()
+                    .map(|s| self.settled(id, Started::Run(Box::new(s))));
+            }
+        }
+        Err(JobError::Unavailable(format!(
+            "job `{id}` kept changing under 32 starts"
+        )))
+    }
+
+    async fn renew(&self, id: &str, fence: &Fence) -> Result<(), JobError> {
+        // One try, no backoff: the heartbeat tries again soon, and a renewal right after an
+        // outage is what keeps the hold.
+        check_id(id)?;
+        let at = now_ms();
+        for _ in 0..8 {
+            let entry = self
+                .nats
+                .kv
+                .entry(job_key(id))
+                .await
+                .map_err(|e| nats_err("renewing a job's hold", e))?;
+            let Some(entry) = entry.filter(|e| !e.value.is_empty()) else {
+                return Err(fence.lost_error(id));
+            };
+            let mut rec: Record = from_json(&entry.value)?;
+            fenced(id, &mut rec, fence)?;
+            match self
+                .nats
+                .kv
+                .update(job_key(id), to_json(&rec)?, entry.revision)
+                .await
+            {
+                Ok(_) => {
+                    fence.renewed(at);
+                    return Ok(());
+                }
+                Err(e) if e.kind() == UpdateErrorKind::WrongLastRevision => continue,
+                Err(e) => return Err(nats_err("renewing a job's hold", e)),
+            }
+        }
+        Err(JobError::Unavailable(format!(
+            "job `{id}` kept changing under 8 renewals"
+        )))
     }
 
     async fn record_frame(
@@ -682,7 +821,11 @@ impl JobStore for KvStore {
         id: &str,
         metrics: StepMetrics,
         has_positions: bool,
+        fence: &Fence,
     ) -> Result<(), JobError> {
+        if fence.lost.is_cancelled() {
+            return Err(fence.lost_error(id));
+        }
         let mut payload = Vec::with_capacity(1 + 96);
         payload.push(u8::from(has_positions));
         payload.extend_from_slice(&encode_metrics(&metrics));
@@ -698,19 +841,23 @@ impl JobStore for KvStore {
                 .map_err(|e| nats_err("storing a frame", e))
         })
         .await?;
+        let at = now_ms();
         self.update(id, |r| {
+            fenced(id, r, fence)?;
             r.status.step = metrics.step;
             r.set_latest(Some(&metrics));
             Ok(true)
         })
         .await?;
+        fence.renewed(at);
         Ok(())
     }
 
-    async fn rewind(&self, id: &str, step: usize) -> Result<(), JobError> {
+    async fn rewind(&self, id: &str, step: usize, fence: &Fence) -> Result<(), JobError> {
         let kept = self.read_frames(id, step, step, 1).await?;
         let latest = kept.into_iter().next().map(|(m, _)| m);
         self.update(id, |r| {
+            fenced(id, r, fence)?;
             r.status.step = if latest.is_some() { step } else { 0 };
             r.set_latest(latest.as_ref());
             Ok(true)
@@ -739,12 +886,17 @@ impl JobStore for KvStore {
         error: Option<(String, String)>,
         at: u64,
         expires_at: u64,
+        fence: Option<&Fence>,
     ) -> Result<Option<JobStatus>, JobError> {
         let rec = self
             .update(id, |r| {
                 if r.status.state.is_terminal() {
                     return Ok(false);
                 }
+                if let Some(fence) = fence {
+                    fenced(id, r, fence)?;
+                }
+                r.hold = None;
                 r.status.state = state;
                 let (code, msg) = error.clone().unzip();
                 r.status.error_code = code;
@@ -765,11 +917,13 @@ impl JobStore for KvStore {
         rec.map(|r| r.status()).transpose()
     }
 
-    async fn requeue(&self, id: &str) -> Result<(), JobError> {
+    async fn requeue(&self, id: &str, fence: &Fence) -> Result<(), JobError> {
         self.update(id, |r| {
-            if r.status.state != JobState::Running {
+            let mine = r.hold.as_ref().is_some_and(|h| h.token == fence.token);
+            if r.status.state != JobState::Running || !mine {
                 return Ok(false);
             }
+            r.hold = None;
             r.status.state = JobState::Queued;
             Ok(true)
         })

@@ -75,6 +75,11 @@ fn nats_err(what: &str, e: impl std::fmt::Display) -> JobError {
         "connection",
         "no responders",
         "not connected",
+        // A server shutting down (SIGTERM) stops JetStream before it closes connections:
+        // publishes to the streams made at connect meet these for a moment.
+        "no stream found",
+        "jetstream not enabled",
+        "temporarily unavailable",
     ];
     if transient.iter().any(|t| lower.contains(t)) {
         JobError::Unavailable(text)
@@ -221,6 +226,23 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
             .await
             .map_err(|e| nats_err("creating the object store", e))?,
     };
+    // Blob reads are direct gets (see `objects`): a bucket made by an older client, or by
+    // hand, may not allow them yet.
+    let mut blobs_stream = js
+        .get_stream(format!("OBJ_{OBJECT_BUCKET}"))
+        .await
+        .map_err(|e| nats_err("opening the object store's stream", e))?;
+    if !blobs_stream.cached_info().config.allow_direct {
+        let mut config = blobs_stream.cached_info().config.clone();
+        config.allow_direct = true;
+        js.update_stream(&config)
+            .await
+            .map_err(|e| nats_err("allowing direct gets on the object store", e))?;
+        blobs_stream = js
+            .get_stream(format!("OBJ_{OBJECT_BUCKET}"))
+            .await
+            .map_err(|e| nats_err("opening the object store's stream", e))?;
+    }
     let frames = js
         .get_stream(FRAMES_STREAM)
         .await
@@ -249,7 +271,11 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
     store.heal_usage().await?;
     Ok(Backend {
         store: Arc::new(store),
-        blobs: Arc::new(objects::ObjectBlobs::new(objects)),
+        blobs: Arc::new(objects::ObjectBlobs::new(
+            objects,
+            blobs_stream,
+            OBJECT_BUCKET,
+        )),
         queue: Arc::new(queue),
         events: Arc::new(bus::NatsBus::new(nats)),
         cancels: Arc::new(cancels),
