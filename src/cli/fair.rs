@@ -213,6 +213,8 @@ pub fn run(args: FairArgs) -> ExitCode {
         preserve: args.preserve,
         max_deviation: args.max_deviation,
         until_willmore: args.until_willmore,
+        // One run, read by a person or a script: each step says how far it moved the surface.
+        measure_deviation: true,
         ..spec.flow_params()
     };
     // The job spec checked everything else; these the library checks, named as flags.
@@ -279,7 +281,7 @@ pub fn run(args: FairArgs) -> ExitCode {
                 "W {:.4}  Q mean {:.4}  dev {:.3e}  τ {}{}  {:.0} ms",
                 metrics.willmore_energy,
                 metrics.q_mean,
-                metrics.deviation_max,
+                metrics.deviation_max.unwrap_or(f64::NAN),
                 metrics.tau,
                 match metrics.rejected {
                     0 => String::new(),

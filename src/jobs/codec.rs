@@ -156,10 +156,11 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         step_ms: f(9),
         tau,
         rejected,
-        // Not stored in a metrics row yet: rows read back without volume and deviation.
-        volume: 0.0,
-        deviation_max: 0.0,
-        deviation_mean: 0.0,
+        // Not stored in a metrics row yet: a replayed frame has no volume and no deviation
+        // (the service does not measure the deviation).
+        volume: None,
+        deviation_max: None,
+        deviation_mean: None,
     })
 }
 
@@ -314,9 +315,9 @@ mod tests {
             step_ms: 3.25,
             tau: 0.125,
             rejected: 3,
-            volume: 0.0,
-            deviation_max: 0.0,
-            deviation_mean: 0.0,
+            volume: None,
+            deviation_max: None,
+            deviation_mean: None,
         };
         let blob = encode_metrics(&m);
         assert_eq!(blob.len(), METRICS_BYTES);
@@ -383,9 +384,9 @@ mod tests {
                 step_ms: 2.0,
                 tau: 0.25,
                 rejected: 1,
-                volume: 0.0,
-                deviation_max: 0.0,
-                deviation_mean: 0.0,
+                volume: None,
+                deviation_max: None,
+                deviation_mean: None,
             },
             positions: vec![[1.0, -2.0, 3.5], [0.1, 0.2, f64::MIN_POSITIVE]],
             next_tau: 0.25,

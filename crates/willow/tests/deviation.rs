@@ -263,26 +263,33 @@ fn flows_report_the_distance_of_the_returned_surface() {
     let mesh = bumpy_sphere(3, 0.15);
     let params = FlowParams {
         preserve: Preserve::Volume,
+        measure_deviation: true,
         ..FlowParams::default()
     };
     let mut flow = new_flow(&mesh, &params).expect("flow");
     let m0 = flow.initial_metrics();
-    assert_eq!((m0.deviation_max, m0.deviation_mean), (0.0, 0.0));
+    assert_eq!(
+        (m0.deviation_max, m0.deviation_mean),
+        (Some(0.0), Some(0.0))
+    );
     let mut previous = 0.0;
     for _ in 0..3 {
         let m = flow.step().expect("step");
         let (max, mean) = willow_two_sided(&mesh, flow.positions());
-        assert!(
-            (m.deviation_max - max).abs() < 1e-12,
-            "{} vs {max}",
-            m.deviation_max
+        let (m_max, m_mean) = (
+            m.deviation_max.expect("measured"),
+            m.deviation_mean.expect("measured"),
         );
-        assert!((m.deviation_mean - mean).abs() < 1e-12);
-        assert!(
-            m.deviation_max > previous,
-            "fairing moves the bumps further away"
-        );
-        assert!(m.deviation_mean < m.deviation_max);
-        previous = m.deviation_max;
+        assert!((m_max - max).abs() < 1e-12, "{m_max} vs {max}");
+        assert!((m_mean - mean).abs() < 1e-12);
+        assert!(m_max > previous, "fairing moves the bumps further away");
+        assert!(m_mean < m_max);
+        previous = m_max;
     }
+    // Off by default: a flow that is not asked measures nothing.
+    let mut quiet = new_flow(&mesh, &FlowParams::default()).expect("flow");
+    let m = quiet.step().expect("step");
+    assert_eq!((m.deviation_max, m.deviation_mean), (None, None));
+    let json = serde_json::to_value(m).expect("serializes");
+    assert!(json.get("deviation_max").is_none(), "{json}");
 }

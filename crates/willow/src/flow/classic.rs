@@ -54,7 +54,12 @@ impl ImplicitMeanCurvatureFlow {
         let pattern = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 1);
         let cholesky = laplacian_solver(&pattern, params)?;
         Ok(ImplicitMeanCurvatureFlow {
-            surface: ClassicSurface::new(mesh, &topology, Some(params.preserve)),
+            surface: ClassicSurface::new(
+                mesh,
+                &topology,
+                Some(params.preserve),
+                params.measures_deviation(),
+            ),
             tau: params.tau,
             values: vec![0.0; pattern.nnz()],
             pattern,
@@ -140,8 +145,14 @@ struct ClassicSurface {
 }
 
 impl ClassicSurface {
-    /// `preserve`: the scale policy to apply after every step, `None` for none at all.
-    fn new(mesh: &Mesh, topology: &Topology, preserve: Option<Preserve>) -> Self {
+    /// `preserve`: the scale policy to apply after every step, `None` for none at all;
+    /// `measure_deviation`: whether steps report their distance from the input.
+    fn new(
+        mesh: &Mesh,
+        topology: &Topology,
+        preserve: Option<Preserve>,
+        measure_deviation: bool,
+    ) -> Self {
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
         let scale = preserve.map(|preserve| {
             ScalePolicy::new(
@@ -152,7 +163,12 @@ impl ClassicSurface {
                 &geometry.vertex_areas,
             )
         });
-        let mut reporter = StepReporter::new(&mesh.positions, &mesh.triangles, topology);
+        let mut reporter = StepReporter::new(
+            &mesh.positions,
+            &mesh.triangles,
+            topology,
+            measure_deviation,
+        );
         let initial = reporter.initial(&mesh.positions, &mesh.triangles, &geometry);
         ClassicSurface {
             triangles: mesh.triangles.clone(),
@@ -281,7 +297,12 @@ impl ConformalizedMeanCurvatureFlow {
             }
         }
         let n = mesh.vertex_count();
-        let surface = ClassicSurface::new(mesh, &topology, Some(params.preserve));
+        let surface = ClassicSurface::new(
+            mesh,
+            &topology,
+            Some(params.preserve),
+            params.measures_deviation(),
+        );
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let cholesky = laplacian_solver(&pattern, params)?;
         let mut initial_laplacian = vec![0.0; pattern.nnz()];
@@ -379,7 +400,12 @@ impl ImplicitBilaplacianFlow {
         let setup_error = |reason: String| FlowError::Numerical { step: 0, reason };
         let topology = Topology::new(mesh);
         let n = mesh.vertex_count();
-        let surface = ClassicSurface::new(mesh, &topology, Some(params.preserve));
+        let surface = ClassicSurface::new(
+            mesh,
+            &topology,
+            Some(params.preserve),
+            params.measures_deviation(),
+        );
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let one_ring = pattern.symbolic.as_ref();
         let (symbolic, info) = sparse_sparse_matmul_symbolic(one_ring, one_ring)
@@ -539,13 +565,22 @@ impl TaubinSmoothing {
             });
         }
         let mu = -lambda / (1.0 - TAUBIN_PASS_BAND * lambda);
-        Self::with_factors(mesh, lambda, mu)
+        Self::build(mesh, lambda, mu, params.measures_deviation())
     }
 
     /// Explicit factors: `λ > 0`, `μ < −λ` (Taubin's condition for a positive pass band), and
     /// `(1 − 2λ)(1 − 2μ) ≥ −1` so the highest uniform-Laplacian frequency (k = 2) is not
     /// amplified.
     pub fn with_factors(mesh: &Mesh, lambda: f64, mu: f64) -> Result<Self, FlowError> {
+        Self::build(mesh, lambda, mu, false)
+    }
+
+    fn build(
+        mesh: &Mesh,
+        lambda: f64,
+        mu: f64,
+        measure_deviation: bool,
+    ) -> Result<Self, FlowError> {
         if !(lambda.is_finite() && lambda > 0.0) {
             return Err(FlowError::InvalidParameter {
                 name: "lambda",
@@ -590,7 +625,7 @@ impl TaubinSmoothing {
             fill[b] += 1;
         }
         Ok(TaubinSmoothing {
-            surface: ClassicSurface::new(mesh, &topology, None),
+            surface: ClassicSurface::new(mesh, &topology, None, measure_deviation),
             lambda,
             mu,
             neighbour_ptr,

@@ -137,7 +137,9 @@ impl Run {
             Err(e) => return Err(e),
         };
         if let Some(bound) = self.max_deviation {
-            if metrics.deviation_max > bound {
+            // `max_deviation` turns the measurement on (`FlowParams::measures_deviation`).
+            let deviation = metrics.deviation_max.unwrap_or(f64::INFINITY);
+            if deviation > bound {
                 let state = self.before.take().ok_or_else(|| {
                     FlowError::Unsupported("the flow gave no checkpoint to undo a step".into())
                 })?;
@@ -145,7 +147,10 @@ impl Run {
                 let reason = format!(
                     "step {} would move the surface {:.6e} from the input, past max_deviation \
                      {bound:.6e}; the result is the surface after step {} ({:.6e} from the input)",
-                    metrics.step, metrics.deviation_max, self.last.step, self.last.deviation_max
+                    metrics.step,
+                    deviation,
+                    self.last.step,
+                    self.last.deviation_max.unwrap_or(0.0)
                 );
                 return Ok(self.finish((Outcome::MaxDeviation, reason)));
             }
@@ -311,9 +316,14 @@ mod tests {
     #[test]
     fn max_deviation_never_returns_a_surface_past_the_bound() {
         let mesh = bumpy_sphere(3, 0.15);
-        let free = drive(&mesh, &FlowParams::default(), 4).0;
-        assert!(free[2].deviation_max > free[1].deviation_max);
-        let bound = 0.5 * (free[1].deviation_max + free[2].deviation_max);
+        let measured = FlowParams {
+            measure_deviation: true,
+            ..FlowParams::default()
+        };
+        let free = drive(&mesh, &measured, 4).0;
+        let d = |m: &StepMetrics| m.deviation_max.expect("measured");
+        assert!(d(&free[2]) > d(&free[1]));
+        let bound = 0.5 * (d(&free[1]) + d(&free[2]));
         let params = FlowParams {
             max_deviation: Some(bound),
             ..FlowParams::default()
@@ -321,7 +331,7 @@ mod tests {
         let (metrics, outcome, run) = drive(&mesh, &params, 10);
         assert_eq!(outcome, Outcome::MaxDeviation);
         assert_eq!(metrics.len(), 2);
-        assert!(metrics.iter().all(|m| m.deviation_max <= bound));
+        assert!(metrics.iter().all(|m| d(m) <= bound));
         let topology = Topology::new(&mesh);
         let mut areas = vec![0.0; mesh.face_count()];
         face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
@@ -333,7 +343,7 @@ mod tests {
             max <= bound,
             "the result is {max} from the input, bound {bound}"
         );
-        assert!((max - metrics[1].deviation_max).abs() < 1e-12);
+        assert!((max - d(&metrics[1])).abs() < 1e-12);
         assert_eq!(run.last_metrics().step, 2);
         // A bound of 0 keeps the input itself.
         let params = FlowParams {

@@ -341,7 +341,12 @@ impl ConformalFlow {
                     .into(),
             ));
         }
-        let mut reporter = StepReporter::new(&mesh.positions, &mesh.triangles, &topology);
+        let mut reporter = StepReporter::new(
+            &mesh.positions,
+            &mesh.triangles,
+            &topology,
+            params.measures_deviation(),
+        );
         let scale = ScalePolicy::new(
             params.preserve,
             &topology,
