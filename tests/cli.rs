@@ -525,3 +525,85 @@ fn fair_stops_on_its_rules_and_names_a_bad_flag() {
         assert!(out.stdout.is_empty(), "{extra:?}: nothing ran");
     }
 }
+
+/// `--region-sphere` and `--region-vertices` fair spot's ear alone: every `v` line outside is
+/// written back to the bit, and the outcome line closes the run; bad region flags exit 2
+/// naming the flag or the region.
+#[test]
+fn fair_moves_only_the_named_region() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let v_lines = |text: &str| -> Vec<[f64; 3]> {
+        text.lines()
+            .filter_map(|l| l.strip_prefix("v "))
+            .map(|l| {
+                let c: Vec<f64> = l
+                    .split_whitespace()
+                    .map(|t| t.parse().expect("a number"))
+                    .collect();
+                [c[0], c[1], c[2]]
+            })
+            .collect()
+    };
+    let input = v_lines(&std::fs::read_to_string(spot()).expect("spot"));
+    let (c, r) = ([0.40, 0.72, -0.20], 0.15);
+    let in_ear = |p: &[f64; 3]| (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>() <= r * r;
+    let ear: Vec<String> = (0..input.len())
+        .filter(|&k| in_ear(&input[k]))
+        .map(|k| k.to_string())
+        .collect();
+    let list = dir.path().join("ear.txt");
+    std::fs::write(&list, ear.join("\n")).expect("write list");
+    let out = dir.path().join("out.obj");
+    let sphere = format!("{},{},{},{r}", c[0], c[1], c[2]);
+    for region in [
+        vec!["--region-sphere", sphere.as_str()],
+        vec![
+            "--region-vertices",
+            list.to_str().expect("utf-8"),
+            "--seam",
+            "fixed",
+        ],
+    ] {
+        let run = willow()
+            .args(["fair", &spot(), "-o"])
+            .arg(&out)
+            .args(["--steps", "3", "--json"])
+            .args(&region)
+            .output()
+            .expect("run willow");
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let stdout = String::from_utf8_lossy(&run.stdout);
+        let last: serde_json::Value =
+            serde_json::from_str(stdout.lines().last().expect("lines")).expect("json");
+        assert!(last["outcome"].is_string(), "{last}");
+        let output = v_lines(&std::fs::read_to_string(&out).expect("out"));
+        let mut moved = 0;
+        for (p, q) in input.iter().zip(&output) {
+            if in_ear(p) {
+                moved += usize::from(p != q);
+            } else {
+                assert_eq!(p.map(f64::to_bits), q.map(f64::to_bits), "{region:?}");
+            }
+        }
+        assert!(moved > 10, "{region:?}: {moved} moved");
+    }
+    for (flags, needle) in [
+        (vec!["--region-sphere", "1,2,3"], "--region-sphere"),
+        (vec!["--seam", "wavy"], "--seam"),
+        (vec!["--region-sphere", "100,0,0,0.1"], "region"),
+    ] {
+        let run = willow()
+            .args(["fair", &spot(), "-o"])
+            .arg(&out)
+            .args(&flags)
+            .output()
+            .expect("run willow");
+        assert_eq!(run.status.code(), Some(2), "{flags:?}");
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert!(err.contains(needle), "{flags:?}: {err}");
+    }
+}

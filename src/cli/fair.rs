@@ -19,6 +19,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use willow::flow::region::{Region, Seam};
 use willow::flow::stopping::{Event, Outcome, Run};
 use willow::flow::{new_flow, FlowError, Method, Preserve};
 use willow::mesh::io::{Asset, Format, Limits};
@@ -106,6 +107,72 @@ pub struct FairArgs {
     /// Stop once the Willmore energy is at most W (4π for a round sphere).
     #[arg(long, value_name = "W", allow_negative_numbers = true)]
     pub until_willmore: Option<f64>,
+    /// Fair only a sphere of the surface, `x,y,z,r` (model units); everything outside the
+    /// regions stays bit-identical. Repeatable; all `--region-*` flags name their union.
+    #[arg(long, value_name = "X,Y,Z,R", allow_negative_numbers = true, value_parser = parse_sphere)]
+    pub region_sphere: Vec<Region>,
+    /// Fair only a box, `xmin,ymin,zmin,xmax,ymax,zmax`. Repeatable.
+    #[arg(long, value_name = "MIN,MAX", allow_negative_numbers = true, value_parser = parse_box)]
+    pub region_box: Vec<Region>,
+    /// Fair only the file vertices listed in FILE (numbers separated by commas, spaces or
+    /// lines: OBJ `v` lines from 0, glTF accessor vertices).
+    #[arg(long, value_name = "FILE")]
+    pub region_vertices: Option<PathBuf>,
+    /// How a region meets the surface around it: `smooth` (tangent-continuous) or `fixed`.
+    #[arg(long, default_value = "smooth", value_parser = parse_seam)]
+    pub seam: Seam,
+}
+
+/// Comma-separated numbers, exactly `N` of them.
+fn numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {
+    let v: Result<Vec<f64>, _> = text.split(',').map(|t| t.trim().parse::<f64>()).collect();
+    v.ok()
+        .and_then(|v| v.try_into().ok())
+        .ok_or_else(|| format!("expected {N} numbers {what}, got {text:?}"))
+}
+
+/// `--region-sphere x,y,z,r`.
+fn parse_sphere(text: &str) -> Result<Region, String> {
+    let v = numbers::<4>(text, "x,y,z,r")?;
+    Ok(Region::Sphere {
+        center: [v[0], v[1], v[2]],
+        radius: v[3],
+    })
+}
+
+/// `--region-box xmin,ymin,zmin,xmax,ymax,zmax`.
+fn parse_box(text: &str) -> Result<Region, String> {
+    let v = numbers::<6>(text, "xmin,ymin,zmin,xmax,ymax,zmax")?;
+    Ok(Region::Box {
+        min: [v[0], v[1], v[2]],
+        max: [v[3], v[4], v[5]],
+    })
+}
+
+/// `--seam fixed|smooth`.
+fn parse_seam(text: &str) -> Result<Seam, String> {
+    match text.to_ascii_lowercase().as_str() {
+        "fixed" => Ok(Seam::Fixed),
+        "smooth" => Ok(Seam::Smooth),
+        _ => Err(format!("expected `fixed` or `smooth`, got {text:?}")),
+    }
+}
+
+/// The vertex numbers of a `--region-vertices` file.
+fn read_vertex_list(path: &Path) -> Result<Vec<usize>, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("--region-vertices {}: {e}", path.display()))?;
+    text.split(|c: char| c == ',' || c.is_whitespace())
+        .filter(|t| !t.is_empty())
+        .map(|t| {
+            t.parse::<usize>().map_err(|_| {
+                format!(
+                    "--region-vertices {}: `{t}` is not a vertex number",
+                    path.display()
+                )
+            })
+        })
+        .collect()
 }
 
 /// `--boundary-axis`: `tangent` or `x,y,z`.
@@ -183,6 +250,18 @@ pub fn run(args: FairArgs) -> ExitCode {
             })
         }
     };
+    let mut region: Vec<Region> = args
+        .region_sphere
+        .iter()
+        .chain(&args.region_box)
+        .cloned()
+        .collect();
+    if let Some(path) = &args.region_vertices {
+        match read_vertex_list(path) {
+            Ok(list) => region.push(Region::Vertices(list)),
+            Err(e) => return fail(EXIT_BAD_INPUT, e),
+        }
+    }
     let spec = JobSpec {
         method: args.method,
         steps: args.steps,
@@ -196,14 +275,21 @@ pub fn run(args: FairArgs) -> ExitCode {
         },
         boundary,
         safeguard: !args.no_safeguard,
+        region,
+        seam: args.seam,
         ..JobSpec::default()
     };
     if let Err(e) = spec
         .validate_with(usize::MAX, f64::INFINITY)
-        .and_then(|()| spec.validate_for_mesh(asset.surface()))
+        .and_then(|()| spec.validate_for_asset(&asset))
     {
         return fail(EXIT_BAD_INPUT, e);
     }
+    // Vertex regions are renumbered from the file's numbering to the welded surface's.
+    let base = match spec.flow_params_for(&asset) {
+        Ok(p) => p,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
     let params = willow::flow::FlowParams {
         threads: match args.threads {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
@@ -215,7 +301,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         until_willmore: args.until_willmore,
         // One run, read by a person or a script: each step says how far it moved the surface.
         measure_deviation: true,
-        ..spec.flow_params()
+        ..base
     };
     // The job spec checked everything else; these the library checks, named as flags.
     if let Err(FlowError::InvalidParameter { name, reason }) = params.validate() {

@@ -86,7 +86,7 @@ impl Jobs {
             let asset =
                 Asset::read(&parse_data, format, &limits.mesh_limits()).map_err(mesh_error)?;
             let surface = asset.surface();
-            parse_spec.validate_for_mesh(surface)?;
+            parse_spec.validate_for_asset(&asset)?;
             if surface.vertex_count() > limits.max_vertices {
                 return Err(JobError::TooLarge {
                     what: "vertices",

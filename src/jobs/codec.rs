@@ -42,6 +42,14 @@ struct HashedSpec<'a> {
     boundary: &'a super::spec::BoundarySpec,
     #[serde(skip_serializing_if = "is_true")]
     safeguard: bool,
+    #[serde(skip_serializing_if = "<[_]>::is_empty")]
+    region: &'a [willow::flow::region::Region],
+    #[serde(skip_serializing_if = "is_smooth")]
+    seam: willow::flow::region::Seam,
+}
+
+fn is_smooth(s: &willow::flow::region::Seam) -> bool {
+    *s == willow::flow::region::Seam::Smooth
 }
 
 fn is_true(b: &bool) -> bool {
@@ -72,6 +80,8 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             filter,
             boundary,
             safeguard,
+            region,
+            seam,
         } = s;
         HashedSpec {
             method: *method,
@@ -86,6 +96,8 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             filter: *filter,
             boundary,
             safeguard: *safeguard,
+            region,
+            seam: *seam,
         }
     }
 }

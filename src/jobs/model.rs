@@ -9,7 +9,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use willow::curve::CurveError;
+use willow::flow::region::{Region, Seam};
 use willow::flow::{FlowParams, Method};
+use willow::mesh::io::Asset;
 use willow::mesh::io::Format;
 use willow::mesh::{Limits, MeshError};
 use willow::metrics::StepMetrics;
@@ -54,6 +56,14 @@ pub struct JobSpec {
     /// Safeguarded steps (see [`willow::flow::safeguard`]): a step that raises W or damages the
     /// mesh is retried at a smaller τ. Every method; default on.
     pub safeguard: bool,
+    /// The part of the surface that moves (see [`willow::flow::region`]): empty, the whole
+    /// surface. Vertex lists are in the file's numbering (OBJ `v` lines from 0, glTF accessor
+    /// vertices: the numbering of frames' positions); spheres and boxes in its world space.
+    /// JSON takes one region or a list. Conformal flow only.
+    #[serde(deserialize_with = "spec::one_or_many_regions::deserialize")]
+    pub region: Vec<Region>,
+    /// How a region meets the surface around it: `smooth` (default, G1) or `fixed` (C0).
+    pub seam: Seam,
 }
 
 impl Default for JobSpec {
@@ -72,6 +82,8 @@ impl Default for JobSpec {
             filter: None,
             boundary: spec::BoundarySpec::Free,
             safeguard: flow.safeguard,
+            region: Vec::new(),
+            seam: flow.seam,
         }
     }
 }
@@ -142,6 +154,28 @@ impl JobSpec {
                 return bad(field, reason);
             }
         }
+        for r in &self.region {
+            if let Err(reason) = r.validate() {
+                return bad("region", reason);
+            }
+        }
+        if !self.region.is_empty() {
+            if self.method != Method::Conformal {
+                return bad(
+                    "region",
+                    format!(
+                        "a region is faired by the conformal flow only, not by `{}`",
+                        self.method.name()
+                    ),
+                );
+            }
+            if !self.boundary.is_free() {
+                return bad(
+                    "region",
+                    "a region holds its surroundings itself: leave `boundary` free".into(),
+                );
+            }
+        }
         if let Err((field, reason)) = spec::check_boundary(&self.boundary) {
             return bad(field, reason);
         }
@@ -167,8 +201,33 @@ impl JobSpec {
         Ok(())
     }
 
-    /// Checks that need the uploaded surface: one per-loop boundary angle per boundary loop.
-    pub fn validate_for_mesh(&self, mesh: &willow::mesh::Mesh) -> Result<(), JobError> {
+    /// Checks that need the uploaded file: vertex regions name vertices of its triangles, the
+    /// regions select some but not every vertex, one per-loop boundary angle per boundary loop.
+    pub fn validate_for_asset(&self, asset: &Asset) -> Result<(), JobError> {
+        let mesh = asset.surface();
+        if !self.region.is_empty() {
+            let regions = self.surface_regions(asset)?;
+            let selected =
+                willow::flow::region::select(&mesh.positions, &regions).map_err(|reason| {
+                    JobError::InvalidSpec {
+                        field: "region",
+                        reason,
+                    }
+                })?;
+            let count = selected.iter().filter(|&&s| s).count();
+            if count == 0 || count == selected.len() {
+                return Err(JobError::InvalidSpec {
+                    field: "region",
+                    reason: if count == 0 {
+                        "the region selects no vertex of the mesh".into()
+                    } else {
+                        "the region selects every vertex: leave it out to fair the whole \
+                         surface"
+                            .into()
+                    },
+                });
+            }
+        }
         if let spec::BoundarySpec::Prescribed(p) = &self.boundary {
             if matches!(p.angles, spec::AnglesSpec::PerLoop(_)) {
                 let loops = willow::mesh::topology::Topology::new(mesh)
@@ -181,7 +240,37 @@ impl JobSpec {
         Ok(())
     }
 
-    /// The flow parameters this spec asks for: every field of [`FlowParams`].
+    /// The regions on the welded surface: vertex lists renumbered from the file's numbering.
+    pub fn surface_regions(&self, asset: &Asset) -> Result<Vec<Region>, JobError> {
+        self.region
+            .iter()
+            .map(|r| match r {
+                Region::Vertices(list) => asset
+                    .surface_vertices(list)
+                    .map(Region::Vertices)
+                    .map_err(|v| JobError::InvalidSpec {
+                        field: "region",
+                        reason: format!(
+                            "vertex {v} is not a vertex of a triangle of the file ({} vertices)",
+                            asset.file_vertex_count()
+                        ),
+                    }),
+                other => Ok(other.clone()),
+            })
+            .collect()
+    }
+
+    /// The flow parameters this spec asks for on `asset`: [`JobSpec::flow_params`] with the
+    /// regions on its welded surface.
+    pub fn flow_params_for(&self, asset: &Asset) -> Result<FlowParams, JobError> {
+        Ok(FlowParams {
+            regions: self.surface_regions(asset)?,
+            ..self.flow_params()
+        })
+    }
+
+    /// The flow parameters this spec asks for: every field of [`FlowParams`] (regions as the
+    /// spec holds them, in file numbering: see [`JobSpec::flow_params_for`]).
     pub fn flow_params(&self) -> FlowParams {
         FlowParams {
             method: self.method,
@@ -195,9 +284,8 @@ impl JobSpec {
             // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
             threads: 1,
             precision: willow::flow::Precision::Auto,
-            // Regions are the library's so far; the job spec does not carry them yet.
-            regions: Vec::new(),
-            seam: willow::flow::region::Seam::default(),
+            regions: self.region.clone(),
+            seam: self.seam,
             // Not in the job spec yet (the CLI sets it): today's behaviour.
             preserve: willow::flow::Preserve::Area,
             // The service has no stopping rules yet: a job runs its steps.

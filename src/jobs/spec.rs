@@ -182,6 +182,44 @@ pub fn check_loop_count(boundary: &BoundarySpec, loops: usize) -> Result<(), Spe
     Ok(())
 }
 
+/// `region` in JSON: one region (`{"sphere": {...}}`) or a list of them, serialized as a list.
+/// A visitor rather than an untagged enum, so a bad region gets the region's own error
+/// (`unknown variant `cube``) instead of "did not match any variant".
+pub mod one_or_many_regions {
+    use serde::de::{self, MapAccess, SeqAccess, Visitor};
+    use serde::{Deserialize, Deserializer};
+    use std::fmt;
+    use willow::flow::region::Region;
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Region>, D::Error> {
+        struct Regions;
+        impl<'de> Visitor<'de> for Regions {
+            type Value = Vec<Region>;
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("a region ({\"sphere\": ...}, {\"box\": ...}, {\"vertices\": [...]}) or a list of them")
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+                let mut out = Vec::new();
+                while let Some(r) = seq.next_element::<Region>()? {
+                    out.push(r);
+                }
+                Ok(out)
+            }
+            fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<Self::Value, A::Error> {
+                Region::deserialize(de::value::MapAccessDeserializer::new(map)).map(|r| vec![r])
+            }
+        }
+        d.deserialize_any(Regions)
+    }
+
+    /// [`deserialize`] for an optional field (with `#[serde(default)]`).
+    pub fn deserialize_opt<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> Result<Option<Vec<Region>>, D::Error> {
+        deserialize(d).map(Some)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

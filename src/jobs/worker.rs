@@ -401,7 +401,21 @@ fn run_job(
         Err(e) => return Err(e),
     };
     let spec = &running.spec;
-    let mut params = spec.flow_params();
+    let mut params = match spec.flow_params_for(&asset) {
+        Ok(p) => p,
+        // Admission checked the regions against this file; a stored job from before a change
+        // of numbering is the only way here.
+        Err(e) => {
+            rt.block_on(finish(
+                inner,
+                id,
+                JobState::Failed,
+                Some(("invalid_parameter", e.to_string())),
+                Some(fence),
+            ))?;
+            return Ok(Outcome::Done);
+        }
+    };
     params.threads = thread_budget(
         asset.surface().vertex_count(),
         inner.config.workers,

@@ -717,3 +717,32 @@ fn stale_tangents_are_dropped_from_written_gltf() {
         assert_eq!(b.corner_uvs(), a.corner_uvs());
     }
 }
+
+/// A vertex the user names by its `v` line is found on the welded surface at that line's
+/// position; a number past the file is returned as the error.
+#[test]
+fn file_vertices_map_to_the_surface_vertex_at_their_position() {
+    let bytes = include_bytes!("data/spot_triangulated.obj");
+    let asset = Asset::read(bytes, Format::Obj, &Limits::default()).expect("spot");
+    let v_lines: Vec<[f64; 3]> = std::str::from_utf8(bytes)
+        .expect("utf-8")
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .map(|t| t.parse().expect("number"))
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect();
+    let all: Vec<usize> = (0..v_lines.len()).collect();
+    let welded = asset.surface_vertices(&all).expect("every v line is used");
+    for (k, &w) in welded.iter().enumerate() {
+        assert_eq!(asset.surface().positions[w], v_lines[k], "v line {k}");
+    }
+    assert_eq!(
+        asset.surface_vertices(&[3, v_lines.len()]),
+        Err(v_lines.len())
+    );
+}

@@ -8,6 +8,7 @@ use crate::jobs::{parse_format, JobSpec};
 use axum::http::Uri;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
+use willow::flow::region::{Region, Seam};
 use willow::flow::Method;
 use willow::mesh::io::Format;
 
@@ -46,6 +47,19 @@ pub struct JobParams {
     /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
     /// (default true). Every method.
     pub safeguard: Option<bool>,
+    /// The part of the surface that moves, everything else bit-identical: one region or a
+    /// list, each `{"sphere": {"center": [x, y, z], "radius": r}}`, `{"box": {"min": [..],
+    /// "max": [..]}}` or `{"vertices": [i, ...]}` (the file's vertex numbers: OBJ `v` lines
+    /// from 0, glTF accessor vertices, as frames number them). Conformal flow only.
+    #[serde(
+        default,
+        deserialize_with = "crate::jobs::spec::one_or_many_regions::deserialize_opt"
+    )]
+    #[schema(value_type = Option<Object>)]
+    pub region: Option<Vec<Region>>,
+    /// How a region meets the surface around it: `smooth` (default, tangent-continuous) or
+    /// `fixed` (the border's positions only).
+    pub seam: Option<String>,
 }
 
 impl JobParams {
@@ -84,7 +98,25 @@ impl JobParams {
         if let Some(v) = self.safeguard {
             spec.safeguard = v;
         }
+        if let Some(v) = self.region {
+            spec.region = v;
+        }
+        if let Some(v) = self.seam {
+            spec.seam = parse_seam(&v)?;
+        }
         Ok(spec)
+    }
+}
+
+/// `fixed` or `smooth`, any case.
+fn parse_seam(text: &str) -> Result<Seam, Problem> {
+    match text.to_ascii_lowercase().as_str() {
+        "fixed" => Ok(Seam::Fixed),
+        "smooth" => Ok(Seam::Smooth),
+        _ => Err(bad_field(
+            "seam",
+            format!("expected `fixed` or `smooth`, got `{}`", clip(text)),
+        )),
     }
 }
 
@@ -158,6 +190,21 @@ pub struct JobQuery {
     /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
     /// (default true). Every method.
     pub safeguard: Option<bool>,
+    /// A spherical region that moves, `x,y,z,r` (everything else stays bit-identical).
+    #[serde(rename = "region.sphere")]
+    #[param(rename = "region.sphere")]
+    pub region_sphere: Option<String>,
+    /// A box region that moves, `xmin,ymin,zmin,xmax,ymax,zmax`.
+    #[serde(rename = "region.box")]
+    #[param(rename = "region.box")]
+    pub region_box: Option<String>,
+    /// A region of these file vertices, `i,j,k,...` (OBJ `v` lines from 0, glTF accessor
+    /// vertices). Several `region.*` parameters name their union.
+    #[serde(rename = "region.vertices")]
+    #[param(rename = "region.vertices")]
+    pub region_vertices: Option<String>,
+    /// `smooth` (default) or `fixed`: how a region meets the surface around it.
+    pub seam: Option<String>,
 }
 
 impl JobQuery {
@@ -265,8 +312,68 @@ impl JobQuery {
             filter,
             boundary,
             safeguard: self.safeguard,
+            region: query_regions(
+                self.region_sphere.as_deref(),
+                self.region_box.as_deref(),
+                self.region_vertices.as_deref(),
+            )?,
+            seam: self.seam,
         })
     }
+}
+
+/// The regions the `region.*` query parameters name (`None` if none is given).
+fn query_regions(
+    sphere: Option<&str>,
+    cuboid: Option<&str>,
+    vertices: Option<&str>,
+) -> Result<Option<Vec<Region>>, Problem> {
+    let mut regions = Vec::new();
+    if let Some(text) = sphere {
+        let field = "region.sphere";
+        let v: [f64; 4] = parse_list(field, text)?.try_into().map_err(|v: Vec<f64>| {
+            bad_field(
+                field,
+                format!("expected 4 numbers x,y,z,r, got {}", v.len()),
+            )
+        })?;
+        regions.push(Region::Sphere {
+            center: [v[0], v[1], v[2]],
+            radius: v[3],
+        });
+    }
+    if let Some(text) = cuboid {
+        let field = "region.box";
+        let v: [f64; 6] = parse_list(field, text)?.try_into().map_err(|v: Vec<f64>| {
+            bad_field(
+                field,
+                format!(
+                    "expected 6 numbers xmin,ymin,zmin,xmax,ymax,zmax, got {}",
+                    v.len()
+                ),
+            )
+        })?;
+        regions.push(Region::Box {
+            min: [v[0], v[1], v[2]],
+            max: [v[3], v[4], v[5]],
+        });
+    }
+    if let Some(text) = vertices {
+        let field = "region.vertices";
+        let list = text
+            .split(',')
+            .map(|t| {
+                t.trim().parse::<usize>().map_err(|_| {
+                    bad_field(
+                        field,
+                        format!("`{}` is not a vertex number", clip(t.trim())),
+                    )
+                })
+            })
+            .collect::<Result<Vec<usize>, Problem>>()?;
+        regions.push(Region::Vertices(list));
+    }
+    Ok((!regions.is_empty()).then_some(regions))
 }
 
 /// Comma-separated numbers (`0.1,-0.2`); empty text is an empty list.

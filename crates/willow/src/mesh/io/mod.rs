@@ -409,6 +409,38 @@ impl Asset {
         }
     }
 
+    /// The surface vertex of each of `file_vertices` (file numbering, see
+    /// [`Asset::file_vertex_count`]: OBJ `v` lines from 0, glTF accessor vertices in order):
+    /// how a vertex a user names in their file is found on the welded surface. `Err` names
+    /// the first index that is past the file or on no triangle.
+    pub fn surface_vertices(&self, file_vertices: &[usize]) -> Result<Vec<usize>, usize> {
+        let count = self.file_vertex_count();
+        let mut welded_of_file = vec![UNWELDED; count];
+        match &self.source {
+            Source::Obj(src) => {
+                for (split, &v) in src.v_of_split().iter().enumerate() {
+                    if let (Some(slot), Some(&w)) =
+                        (welded_of_file.get_mut(v), self.to_welded.get(split))
+                    {
+                        *slot = w;
+                    }
+                }
+            }
+            Source::Gltf(_) | Source::Code => {
+                for (slot, &w) in welded_of_file.iter_mut().zip(&self.to_welded) {
+                    *slot = w;
+                }
+            }
+        }
+        file_vertices
+            .iter()
+            .map(|&f| match welded_of_file.get(f) {
+                Some(&w) if w != UNWELDED => Ok(w),
+                _ => Err(f),
+            })
+            .collect()
+    }
+
     /// New welded world-space positions scattered to the file's vertex order (see
     /// [`Asset::file_vertex_count`]), in the file's local space (node transforms undone), as
     /// f32: what streamed frames carry. For OBJ, entry `k` is the new position of the k-th `v`
