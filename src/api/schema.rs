@@ -39,6 +39,38 @@ pub struct JobSpecSchema {
     pub boundary: BoundarySpecSchema,
     /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ.
     pub safeguard: bool,
+    /// The part of the surface that moves (their union); empty: the whole surface. Every
+    /// vertex outside stays bit-identical. Accepted as one region or a list; reported as a
+    /// list. Conformal flow only.
+    pub region: Vec<RegionSchema>,
+    /// How a region meets the surface around it: `smooth` (positions and tangent planes
+    /// held) or `fixed` (positions only).
+    pub seam: SeamSchema,
+}
+
+/// One way to name the vertices that move, in the file's units and numbering.
+#[derive(ToSchema)]
+#[schema(as = Region)]
+#[serde(rename_all = "snake_case")]
+pub enum RegionSchema {
+    /// Every vertex within `radius` of `center` (world space).
+    Sphere { center: [f64; 3], radius: f64 },
+    /// Every vertex with `min ≤ p ≤ max` in each coordinate.
+    Box { min: [f64; 3], max: [f64; 3] },
+    /// These file vertices: OBJ `v` lines from 0, glTF accessor vertices (the numbering of
+    /// frames' positions).
+    Vertices(Vec<usize>),
+}
+
+/// How a region meets the surface around it.
+#[derive(ToSchema)]
+#[schema(as = Seam)]
+#[serde(rename_all = "snake_case")]
+pub enum SeamSchema {
+    /// The border's positions stay (C0).
+    Fixed,
+    /// The border's positions and tangent planes stay (G1).
+    Smooth,
 }
 
 /// Spectral filter of the flow direction (§4): `v ← v − (id + σ(−Δ)^k)⁻¹ v`.
@@ -106,6 +138,7 @@ mod tests {
     use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, PrescribedSpec};
     use crate::jobs::JobSpec;
     use utoipa::OpenApi;
+    use willow::flow::region::{Region, Seam};
 
     /// The property names of schema `name` in the served OpenAPI document.
     fn properties(doc: &serde_json::Value, name: &str) -> Vec<String> {
@@ -152,6 +185,17 @@ mod tests {
             serde_json::to_value(AxisSpec::Fixed([0.0, 0.0, 1.0])),
             serde_json::to_value(AnglesSpec::PerLoop(vec![0.1])),
             serde_json::to_value(AnglesSpec::Uniform(0.1)),
+            serde_json::to_value(Region::Sphere {
+                center: [0.0; 3],
+                radius: 1.0,
+            }),
+            serde_json::to_value(Region::Box {
+                min: [0.0; 3],
+                max: [1.0; 3],
+            }),
+            serde_json::to_value(Region::Vertices(vec![1])),
+            serde_json::to_value(Seam::Fixed),
+            serde_json::to_value(Seam::Smooth),
         ] {
             let v = v.expect("json");
             let name = match &v {

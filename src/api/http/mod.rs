@@ -109,7 +109,7 @@ pub fn probe_routes(state: AppState) -> Router {
     info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
     paths(jobs::create_job, jobs::list_jobs, jobs::get_job, jobs::cancel_job, jobs::delete_job, events::job_events, jobs::list_frames, jobs::frame_mesh, jobs::job_result, curves::fair_curve, probes::healthz, probes::readyz, probes::metrics, super::auth::mint_stream_token),
     modifiers(&SecurityAddon),
-    components(schemas(super::auth::StreamToken, JobView, JobList, JobParams, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
+    components(schemas(super::auth::StreamToken, JobView, JobList, JobParams, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, super::schema::RegionSchema, super::schema::SeamSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
     tags((name = "jobs", description = "Fairing jobs"), (name = "curves", description = "Curve fairing (paper §5), synchronous"), (name = "ops", description = "Probes and metrics"))
 )]
 pub struct ApiDoc;

@@ -55,7 +55,7 @@ pub struct JobParams {
         default,
         deserialize_with = "crate::jobs::spec::one_or_many_regions::deserialize_opt"
     )]
-    #[schema(value_type = Option<Object>)]
+    #[schema(value_type = Option<Vec<crate::api::schema::RegionSchema>>)]
     pub region: Option<Vec<Region>>,
     /// How a region meets the surface around it: `smooth` (default, tangent-continuous) or
     /// `fixed` (the border's positions only).
