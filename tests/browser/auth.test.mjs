@@ -153,6 +153,14 @@ test('with --auth keys: the page asks for a key, then runs a job with streamed f
   assert.deepEqual(problems, []);
 });
 
+// Waits (bounded) until `streams` holds `count` requests; the assertions after it say what
+// they must be.
+async function streamsReach(streams, count, timeoutMs) {
+  for (const end = Date.now() + timeoutMs; streams.length < count && Date.now() < end;) {
+    await new Promise((resolve) => setTimeout(resolve, 50));
+  }
+}
+
 test('with --auth keys: a dropped stream resumes by itself while its token is fresh (Last-Event-ID), with a new token once it is about to expire, and asks for a key when refused', { skip }, async () => {
   await page.fill('#api-key', key);
   await page.press('#api-key', 'Enter');
@@ -183,6 +191,9 @@ test('with --auth keys: a dropped stream resumes by itself while its token is fr
   assert.ok(Date.now() - streams[0].at < TOKEN_TTL_S * 1000 / 3, 'the machine is too slow for this test\'s timing');
   proxy.dropAll();
   await page.waitForFunction(() => document.getElementById('state').textContent === 'running', null, { timeout: 15_000 });
+  // Frames already on their way when the stream dropped still arrive: progress alone does not
+  // show the reconnection, so wait for the new request itself first.
+  await streamsReach(streams, 2, 15_000);
   await waitStats(page, (n) => window.willowStats.lastStep > n + 2, s0.lastStep);
   assert.equal(streams.length, 2, streams.map((s) => s.url).join('\n'));
   assert.equal(streams[1].url, streams[0].url, 'the browser\'s own reconnection');
@@ -194,6 +205,7 @@ test('with --auth keys: a dropped stream resumes by itself while its token is fr
   if (wait > 0) await page.waitForTimeout(wait);
   const s1 = await stats(page);
   proxy.dropAll();
+  await streamsReach(streams, 3, 30_000);
   await waitStats(page, (n) => window.willowStats.lastStep > n + 2, s1.lastStep, 30_000);
   assert.equal(streams.length, 3, streams.map((s) => s.url).join('\n'));
   const reopened = new URL(streams[2].url);
