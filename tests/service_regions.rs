@@ -114,7 +114,9 @@ async fn a_region_in_the_query_or_the_json_moves_only_its_vertices() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_regions_are_refused_naming_their_field() {
     let srv = start(|_| {}).await;
-    let obj = spot();
+    // A small body: a bad query is answered before the body is read, and a large body still
+    // being written then may meet a closed connection instead of the 400 (seen once).
+    let obj = small_obj();
     for (query, field) in [
         ("region.sphere=1,2", "region.sphere"),
         ("region.box=0,0,0,1,1", "region.box"),
