@@ -109,70 +109,25 @@ pub struct FairArgs {
     pub until_willmore: Option<f64>,
     /// Fair only a sphere of the surface, `x,y,z,r` (model units); everything outside the
     /// regions stays bit-identical. Repeatable; all `--region-*` flags name their union.
-    #[arg(long, value_name = "X,Y,Z,R", allow_negative_numbers = true, value_parser = parse_sphere)]
+    #[arg(long, value_name = "X,Y,Z,R", allow_negative_numbers = true, value_parser = Region::parse_sphere)]
     pub region_sphere: Vec<Region>,
     /// Fair only a box, `xmin,ymin,zmin,xmax,ymax,zmax`. Repeatable.
-    #[arg(long, value_name = "MIN,MAX", allow_negative_numbers = true, value_parser = parse_box)]
+    #[arg(long, value_name = "MIN,MAX", allow_negative_numbers = true, value_parser = Region::parse_box)]
     pub region_box: Vec<Region>,
     /// Fair only the file vertices listed in FILE (numbers separated by commas, spaces or
     /// lines: OBJ `v` lines from 0, glTF accessor vertices).
     #[arg(long, value_name = "FILE")]
     pub region_vertices: Option<PathBuf>,
     /// How a region meets the surface around it: `smooth` (tangent-continuous) or `fixed`.
-    #[arg(long, default_value = "smooth", value_parser = parse_seam)]
+    #[arg(long, default_value = "smooth", value_parser = Seam::parse)]
     pub seam: Seam,
 }
 
-/// Comma-separated numbers, exactly `N` of them.
-fn numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {
-    let v: Result<Vec<f64>, _> = text.split(',').map(|t| t.trim().parse::<f64>()).collect();
-    v.ok()
-        .and_then(|v| v.try_into().ok())
-        .ok_or_else(|| format!("expected {N} numbers {what}, got {text:?}"))
-}
-
-/// `--region-sphere x,y,z,r`.
-fn parse_sphere(text: &str) -> Result<Region, String> {
-    let v = numbers::<4>(text, "x,y,z,r")?;
-    Ok(Region::Sphere {
-        center: [v[0], v[1], v[2]],
-        radius: v[3],
-    })
-}
-
-/// `--region-box xmin,ymin,zmin,xmax,ymax,zmax`.
-fn parse_box(text: &str) -> Result<Region, String> {
-    let v = numbers::<6>(text, "xmin,ymin,zmin,xmax,ymax,zmax")?;
-    Ok(Region::Box {
-        min: [v[0], v[1], v[2]],
-        max: [v[3], v[4], v[5]],
-    })
-}
-
-/// `--seam fixed|smooth`.
-fn parse_seam(text: &str) -> Result<Seam, String> {
-    match text.to_ascii_lowercase().as_str() {
-        "fixed" => Ok(Seam::Fixed),
-        "smooth" => Ok(Seam::Smooth),
-        _ => Err(format!("expected `fixed` or `smooth`, got {text:?}")),
-    }
-}
-
 /// The vertex numbers of a `--region-vertices` file.
-fn read_vertex_list(path: &Path) -> Result<Vec<usize>, String> {
+fn read_vertex_list(path: &Path) -> Result<Region, String> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| format!("--region-vertices {}: {e}", path.display()))?;
-    text.split(|c: char| c == ',' || c.is_whitespace())
-        .filter(|t| !t.is_empty())
-        .map(|t| {
-            t.parse::<usize>().map_err(|_| {
-                format!(
-                    "--region-vertices {}: `{t}` is not a vertex number",
-                    path.display()
-                )
-            })
-        })
-        .collect()
+    Region::parse_vertices(&text).map_err(|e| format!("--region-vertices {}: {e}", path.display()))
 }
 
 /// `--boundary-axis`: `tangent` or `x,y,z`.
@@ -258,7 +213,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         .collect();
     if let Some(path) = &args.region_vertices {
         match read_vertex_list(path) {
-            Ok(list) => region.push(Region::Vertices(list)),
+            Ok(list) => region.push(list),
             Err(e) => return fail(EXIT_BAD_INPUT, e),
         }
     }

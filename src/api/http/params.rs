@@ -102,21 +102,9 @@ impl JobParams {
             spec.region = v;
         }
         if let Some(v) = self.seam {
-            spec.seam = parse_seam(&v)?;
+            spec.seam = Seam::parse(&v).map_err(|e| bad_field("seam", clip(&e)))?;
         }
         Ok(spec)
-    }
-}
-
-/// `fixed` or `smooth`, any case.
-fn parse_seam(text: &str) -> Result<Seam, Problem> {
-    match text.to_ascii_lowercase().as_str() {
-        "fixed" => Ok(Seam::Fixed),
-        "smooth" => Ok(Seam::Smooth),
-        _ => Err(bad_field(
-            "seam",
-            format!("expected `fixed` or `smooth`, got `{}`", clip(text)),
-        )),
     }
 }
 
@@ -322,56 +310,24 @@ impl JobQuery {
     }
 }
 
-/// The regions the `region.*` query parameters name (`None` if none is given).
+/// The regions the `region.*` query parameters name (`None` if none is given), each in the
+/// library's text form.
 fn query_regions(
     sphere: Option<&str>,
     cuboid: Option<&str>,
     vertices: Option<&str>,
 ) -> Result<Option<Vec<Region>>, Problem> {
+    type Parse = fn(&str) -> Result<Region, String>;
+    let forms: [(&str, Option<&str>, Parse); 3] = [
+        ("region.sphere", sphere, Region::parse_sphere),
+        ("region.box", cuboid, Region::parse_box),
+        ("region.vertices", vertices, Region::parse_vertices),
+    ];
     let mut regions = Vec::new();
-    if let Some(text) = sphere {
-        let field = "region.sphere";
-        let v: [f64; 4] = parse_list(field, text)?.try_into().map_err(|v: Vec<f64>| {
-            bad_field(
-                field,
-                format!("expected 4 numbers x,y,z,r, got {}", v.len()),
-            )
-        })?;
-        regions.push(Region::Sphere {
-            center: [v[0], v[1], v[2]],
-            radius: v[3],
-        });
-    }
-    if let Some(text) = cuboid {
-        let field = "region.box";
-        let v: [f64; 6] = parse_list(field, text)?.try_into().map_err(|v: Vec<f64>| {
-            bad_field(
-                field,
-                format!(
-                    "expected 6 numbers xmin,ymin,zmin,xmax,ymax,zmax, got {}",
-                    v.len()
-                ),
-            )
-        })?;
-        regions.push(Region::Box {
-            min: [v[0], v[1], v[2]],
-            max: [v[3], v[4], v[5]],
-        });
-    }
-    if let Some(text) = vertices {
-        let field = "region.vertices";
-        let list = text
-            .split(',')
-            .map(|t| {
-                t.trim().parse::<usize>().map_err(|_| {
-                    bad_field(
-                        field,
-                        format!("`{}` is not a vertex number", clip(t.trim())),
-                    )
-                })
-            })
-            .collect::<Result<Vec<usize>, Problem>>()?;
-        regions.push(Region::Vertices(list));
+    for (field, text, parse) in forms {
+        if let Some(text) = text {
+            regions.push(parse(text).map_err(|e| bad_field(field, clip(&e)))?);
+        }
     }
     Ok((!regions.is_empty()).then_some(regions))
 }

@@ -47,6 +47,15 @@ pub enum Seam {
 }
 
 impl Seam {
+    /// `fixed` or `smooth`, any case: the one text form, for the CLI and the query string.
+    pub fn parse(name: &str) -> Result<Seam, String> {
+        match name.to_ascii_lowercase().as_str() {
+            "fixed" => Ok(Seam::Fixed),
+            "smooth" => Ok(Seam::Smooth),
+            _ => Err(format!("expected `fixed` or `smooth`, got `{name}`")),
+        }
+    }
+
     /// Rings of the surroundings held by Dirichlet conditions.
     pub const fn held_rings(self) -> usize {
         match self {
@@ -56,7 +65,54 @@ impl Seam {
     }
 }
 
+/// Exactly `N` comma-separated numbers.
+fn numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {
+    let values = text
+        .split(',')
+        .map(|t| {
+            t.trim()
+                .parse::<f64>()
+                .map_err(|_| format!("`{}` is not a number", t.trim()))
+        })
+        .collect::<Result<Vec<f64>, String>>()?;
+    let count = values.len();
+    values
+        .try_into()
+        .map_err(|_| format!("expected {N} numbers {what}, got {count}"))
+}
+
 impl Region {
+    /// The text form of a sphere, `x,y,z,r` (the CLI's `--region-sphere`, the query's
+    /// `region.sphere`).
+    pub fn parse_sphere(text: &str) -> Result<Region, String> {
+        let v = numbers::<4>(text, "x,y,z,r")?;
+        Ok(Region::Sphere {
+            center: [v[0], v[1], v[2]],
+            radius: v[3],
+        })
+    }
+
+    /// The text form of a box, `xmin,ymin,zmin,xmax,ymax,zmax`.
+    pub fn parse_box(text: &str) -> Result<Region, String> {
+        let v = numbers::<6>(text, "xmin,ymin,zmin,xmax,ymax,zmax")?;
+        Ok(Region::Box {
+            min: [v[0], v[1], v[2]],
+            max: [v[3], v[4], v[5]],
+        })
+    }
+
+    /// The text form of a vertex list: numbers separated by commas or white space.
+    pub fn parse_vertices(text: &str) -> Result<Region, String> {
+        text.split(|c: char| c == ',' || c.is_whitespace())
+            .filter(|t| !t.is_empty())
+            .map(|t| {
+                t.parse::<usize>()
+                    .map_err(|_| format!("`{t}` is not a vertex number"))
+            })
+            .collect::<Result<Vec<usize>, String>>()
+            .map(Region::Vertices)
+    }
+
     /// The checks that need no mesh: finite numbers, a positive radius, an ordered box.
     pub fn validate(&self) -> Result<(), String> {
         let finite = |p: &[f64; 3]| p.iter().all(|x| x.is_finite());
@@ -431,6 +487,34 @@ mod tests {
         let fixed = submesh(&mesh, &selected, 1).to_full.len();
         let smooth = submesh(&mesh, &selected, 2).to_full.len();
         assert!(smooth > fixed, "two held rings hold more than one");
+    }
+
+    #[test]
+    fn text_forms_parse_and_name_what_is_wrong() {
+        assert_eq!(
+            Region::parse_sphere("1, 2,3,0.5"),
+            Ok(Region::Sphere {
+                center: [1.0, 2.0, 3.0],
+                radius: 0.5
+            })
+        );
+        assert_eq!(
+            Region::parse_box("0,0,0,1,2,3"),
+            Ok(Region::Box {
+                min: [0.0; 3],
+                max: [1.0, 2.0, 3.0]
+            })
+        );
+        assert_eq!(
+            Region::parse_vertices("3, 4\n5 6"),
+            Ok(Region::Vertices(vec![3, 4, 5, 6]))
+        );
+        assert_eq!(Seam::parse("FIXED"), Ok(Seam::Fixed));
+        let err = |r: Result<Region, String>| r.expect_err("refused");
+        assert!(err(Region::parse_sphere("1,2,3")).contains("expected 4 numbers"));
+        assert!(err(Region::parse_box("0,0,0,1,1,x")).contains("`x`"));
+        assert!(err(Region::parse_vertices("1,-2")).contains("`-2`"));
+        assert!(Seam::parse("wavy").is_err());
     }
 
     #[test]
