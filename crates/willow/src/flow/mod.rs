@@ -22,8 +22,8 @@ use crate::mesh::Mesh;
 use crate::metrics::StepMetrics;
 use serde::{Deserialize, Serialize};
 
-/// Which flow to run.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+/// Which flow to run. Read from any case (as [`Method::parse`]), written by [`Method::name`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum Method {
     /// Conformal Willmore flow in curvature space (the paper).
@@ -84,9 +84,26 @@ impl std::str::FromStr for Method {
     }
 }
 
+/// Names in JSON are read as every other transport reads them: any case, and an unknown one
+/// is refused with the list of names.
+macro_rules! deserialize_by_parse {
+    ($t:ty) => {
+        impl<'de> Deserialize<'de> for $t {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                let name = std::borrow::Cow::<'de, str>::deserialize(d)?;
+                <$t>::parse(&name).map_err(serde::de::Error::custom)
+            }
+        }
+    };
+}
+pub(crate) use deserialize_by_parse;
+
+deserialize_by_parse!(Method);
+deserialize_by_parse!(Preserve);
+
 /// What the scale policy ([`scale`]) gives back to each connected component after every step.
 /// Every choice also puts the component's area-weighted centroid back where it was.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum Preserve {
     /// Each component keeps its input area (docs/algorithm.md §6): what a CAD pipeline expects.
@@ -279,8 +296,44 @@ impl FlowParams {
                 ),
             ));
         }
+        if self.method == Method::Conformal && self.tau >= 1.0 {
+            // §4: the curvature update u ← (1 − 2τ)u is only stable for τ < 1.
+            return Err(invalid(
+                "tau",
+                format!(
+                    "must be < 1 for the conformal flow (paper §4), got {}",
+                    self.tau
+                ),
+            ));
+        }
         if self.threads == 0 {
             return Err(invalid("threads", "must be at least 1, got 0".into()));
+        }
+        if self.method != Method::Conformal {
+            // The other flows would run and silently ignore these: a caller who asks for them
+            // should hear so.
+            let ignored = [
+                ("exactness", !self.exactness),
+                ("mobius_balancing", self.mobius_balancing),
+                ("filter", self.filter.is_some()),
+                ("boundary", self.boundary != Boundary::Free),
+                ("region", !self.regions.is_empty()),
+            ];
+            if let Some((name, _)) = ignored.iter().find(|(_, set)| *set) {
+                return Err(invalid(
+                    name,
+                    format!(
+                        "applies only to method `conformal`, got `{}`",
+                        self.method.name()
+                    ),
+                ));
+            }
+        }
+        if !self.regions.is_empty() && self.boundary != Boundary::Free {
+            return Err(invalid(
+                "region",
+                "a region holds its surroundings itself: leave `boundary` free".into(),
+            ));
         }
         if let Some(f) = self.filter {
             if f.k > filter::MAX_K {

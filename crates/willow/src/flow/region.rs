@@ -36,7 +36,7 @@ pub enum Region {
 }
 
 /// How the region meets the surface around it.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Seam {
     /// The border's positions stay (C0).
@@ -64,6 +64,8 @@ impl Seam {
         }
     }
 }
+
+super::deserialize_by_parse!(Seam);
 
 /// Exactly `N` comma-separated numbers.
 fn numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {

@@ -104,6 +104,20 @@ impl Run {
         })
     }
 
+    /// [`Run::new`] for a flow already put back on a checkpoint ([`Flow::resume`]) whose
+    /// surface has the metrics `at`: the run counts its steps from `at.step`, and the rules
+    /// that look back (convergence) start afresh there.
+    pub fn resumed(
+        flow: Box<dyn Flow>,
+        params: &FlowParams,
+        steps: usize,
+        at: StepMetrics,
+    ) -> Result<Run, FlowError> {
+        let mut run = Run::new(flow, params, steps)?;
+        run.last = at;
+        Ok(run)
+    }
+
     /// The flow, on the surface of the last step reported (or the input).
     pub fn flow(&self) -> &dyn Flow {
         self.flow.as_ref()
@@ -261,6 +275,33 @@ mod tests {
         assert_eq!(metrics.len(), 2);
         let (metrics, outcome, _) = drive(&mesh, &FlowParams::default(), 0);
         assert_eq!((metrics.len(), outcome), (0, Outcome::Completed));
+    }
+
+    /// A run resumed from a checkpoint after step 2 reports steps 3 and 4 of a 4-step run,
+    /// the surfaces of the run that never stopped, and completes.
+    #[test]
+    fn a_resumed_run_counts_from_its_checkpoint() {
+        let mesh = bumpy_sphere(2, 0.1);
+        let params = FlowParams::default();
+        let (whole, _, _) = drive(&mesh, &params, 4);
+        let mut first = Run::new(new_flow(&mesh, &params).expect("flow"), &params, 2).expect("run");
+        while let Event::Step(_) = first.advance().expect("steps") {}
+        let state = first.flow().checkpoint().expect("a checkpoint");
+        let mut flow = new_flow(&mesh, &params).expect("flow");
+        flow.resume(&state).expect("resumes");
+        let mut run = Run::resumed(flow, &params, 4, state.metrics).expect("run");
+        let mut steps = Vec::new();
+        let outcome = loop {
+            match run.advance().expect("steps") {
+                Event::Step(m) => steps.push(m),
+                Event::Stopped { outcome, .. } => break outcome,
+            }
+        };
+        assert_eq!(outcome, Outcome::Completed);
+        assert_eq!(steps.iter().map(|m| m.step).collect::<Vec<_>>(), [3, 4]);
+        // The same surface up to rounding (the resumed flow rebuilds its factorizations).
+        let (resumed, straight) = (steps[1].willmore_energy, whole[3].willmore_energy);
+        assert!((resumed - straight).abs() <= 1e-12 * straight, "{resumed} vs {straight}");
     }
 
     /// A slightly bumpy sphere at τ 0.5 reaches its round minimum within a few steps and
