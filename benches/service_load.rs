@@ -339,7 +339,10 @@ async fn memory_per_queued_job(obj_small: &str) {
     // Occupy the only worker with a long job so the others stay queued.
     let long = obj_text(&willow::mesh::generate::bumpy_sphere(4, 0.1));
     let res = client
-        .post(format!("{}/v1/jobs?steps=10000", srv.base))
+        .post(format!(
+            "{}/v1/jobs?steps=10000&until_converged=false",
+            srv.base
+        ))
         .header("content-type", "model/obj")
         .body(long)
         .send()
@@ -1078,7 +1081,7 @@ async fn submit_under_load(obj: &str) {
     for _ in 0..2 {
         let res = srv
             .client
-            .post(srv.url("/v1/jobs?steps=2000&include_positions=false"))
+            .post(srv.url("/v1/jobs?steps=2000&include_positions=false&until_converged=false"))
             .header("content-type", "model/obj")
             .body(slow_obj())
             .send()
@@ -1686,7 +1689,13 @@ async fn crash_nats_rounds(
         // A fresh job each round: a job delivered more than `max_deliveries` (3) times fails
         // with `redelivered` instead of being resumed again.
         let deadline = Instant::now() + PHASE_BUDGET;
-        let id = submit_obj(&client, &api, obj, "steps=10000&include_positions=false").await?;
+        let id = submit_obj(
+            &client,
+            &api,
+            obj,
+            "steps=10000&include_positions=false&until_converged=false",
+        )
+        .await?;
         let runner = poll("a worker to run the job", deadline, || async {
             for (i, (child, base, _)) in workers.iter().enumerate() {
                 if child.0.is_some()
@@ -1783,7 +1792,13 @@ async fn crash_embedded_rounds(
     let (mut process, mut base) = spawn_willow(args.clone(), &dir.path().join("0.log")).await?;
     for round in 0..CRASH_ROUNDS {
         let deadline = Instant::now() + PHASE_BUDGET;
-        let id = submit_obj(&client, &base, obj, "steps=10000&include_positions=false").await?;
+        let id = submit_obj(
+            &client,
+            &base,
+            obj,
+            "steps=10000&include_positions=false&until_converged=false",
+        )
+        .await?;
         wait_past(&client, &base, &id, 3 * checkpoint_steps, deadline).await?;
         let t0 = Instant::now();
         process.kill();

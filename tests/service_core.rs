@@ -292,7 +292,10 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
         .submit(
             &me(),
             obj(small_obj()),
-            spec(1),
+            JobSpec {
+                steps: 1,
+                ..JobSpec::default()
+            },
             Some("before-upgrade".into()),
         )
         .await
@@ -357,14 +360,24 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
 
     let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");
     let status = jobs.get(&me(), &job.id).await.expect("the old row loads");
-    assert_eq!(status.spec, spec(1), "new fields take their defaults");
+    assert_eq!(
+        status.spec,
+        JobSpec {
+            steps: 1,
+            ..JobSpec::default()
+        },
+        "new fields take their defaults"
+    );
     assert!(status.spec.safeguard, "an old row runs safeguarded");
     assert_eq!(status.state, JobState::Succeeded);
     let again = jobs
         .submit(
             &me(),
             obj(small_obj()),
-            spec(1),
+            JobSpec {
+                steps: 1,
+                ..JobSpec::default()
+            },
             Some("before-upgrade".into()),
         )
         .await

@@ -154,6 +154,15 @@ fn params(method: v1::Method, steps: u32) -> v1::JobParams {
     }
 }
 
+/// A conformal job that runs all its steps (no stopping at convergence): one that is still
+/// running when the test acts on it.
+fn long_running(steps: u32) -> v1::JobParams {
+    v1::JobParams {
+        until_converged: Some(false),
+        ..params(v1::Method::Conformal, steps)
+    }
+}
+
 async fn create(
     client: &mut FairingClient<Channel>,
     mesh: Option<v1::create_job_request::Mesh>,
@@ -493,7 +502,7 @@ async fn large_upload_queue_full_and_cancel() {
     let running = create(
         &mut client,
         inline(v1::MeshFormat::Obj, slow_obj()),
-        params(v1::Method::Conformal, 5000),
+        long_running(5000),
         "",
     )
     .await
@@ -991,7 +1000,7 @@ async fn job_deadline_gives_deadline_exceeded() {
                 seconds: 0,
                 nanos: 300_000_000,
             }),
-            ..params(v1::Method::Conformal, 5000)
+            ..long_running(5000)
         },
         "",
     )
@@ -1030,7 +1039,7 @@ async fn operations_list_pages_and_wait_times_out() {
     let slow = create(
         &mut client,
         inline(v1::MeshFormat::Obj, slow_obj()),
-        params(v1::Method::Conformal, 5000),
+        long_running(5000),
         "",
     )
     .await

@@ -326,7 +326,9 @@ async fn cancel_queued_and_running_jobs_and_full_queue_gets_429() {
     .await;
     let slow = slow_obj();
     // A: runs (many steps on a bigger sphere), B: waits, C: refused.
-    let (st, _, a) = srv.submit_obj(&slow, "steps=5000").await;
+    let (st, _, a) = srv
+        .submit_obj(&slow, "steps=5000&until_converged=false")
+        .await;
     assert_eq!(st, 202, "{a}");
     let a_id = a["id"].as_str().expect("id").to_string();
     srv.poll_until(&a_id, JOB_TIMEOUT, |v| v["state"] == "running")
@@ -634,7 +636,8 @@ async fn every_bad_input_gets_its_specific_problem() {
         .await
         .expect("send");
     let (st, p) = problem(res).await;
-    assert_eq!((st, p["field"].as_str()), (400, Some("params")), "{p}");
+    // A type error in the `params` part names the field, as in the query string.
+    assert_eq!((st, p["field"].as_str()), (400, Some("steps")), "{p}");
     let form = reqwest::multipart::Form::new().part(
         "mesh",
         reqwest::multipart::Part::text(obj.clone()).file_name("m.stl"),
@@ -1436,16 +1439,18 @@ async fn bad_flow_options_are_refused_with_the_field_named() {
             r#"{"boundary": {"prescribed": {"frame_angle": 2.0}}}"#,
             "boundary.prescribed.frame_angle",
         ),
+        // Shape errors in the JSON name their field too.
         (
             r#"{"boundary": {"prescribed": {"frame_angel": 0.1}}}"#,
-            "params",
+            "boundary.prescribed.frame_angel",
         ),
         (
             r#"{"boundary": {"prescribed": {"angles": {"per_vertex": [[0, 0.1]]}}}}"#,
-            "params",
+            "boundary.prescribed.angles",
         ),
-        (r#"{"filter": {"sigma": 0.1}}"#, "params"),
-        (r#"{"boundary": "clamped"}"#, "params"),
+        (r#"{"filter": {"sigma": 0.1}}"#, "filter"),
+        (r#"{"boundary": "clamped"}"#, "boundary"),
+        ("[1, 2]", "params"),
     ] {
         let form = reqwest::multipart::Form::new()
             .part(

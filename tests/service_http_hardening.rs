@@ -496,7 +496,9 @@ async fn sse_and_grpc_streams_outlive_the_timeouts() {
     }))
     .await;
     // The only worker is busy with a long job; the job under test waits behind it.
-    let (status, _, blocker) = srv.submit_obj(&slow_obj(), "steps=10000").await;
+    let (status, _, blocker) = srv
+        .submit_obj(&slow_obj(), "steps=10000&until_converged=false")
+        .await;
     assert_eq!(status, 202, "{blocker}");
     let blocker = blocker["id"].as_str().expect("id").to_string();
     srv.poll_until(&blocker, Duration::from_secs(60), |v| {

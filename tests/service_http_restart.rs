@@ -77,7 +77,13 @@ async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
     let finished = submit(&client, &base, &small_obj(), "steps=2").await;
     poll_until(&client, &base, &finished, JOB_TIMEOUT, is_terminal).await;
     // One job running when the process dies, two waiting behind it.
-    let running = submit(&client, &base, &slow_obj(), "steps=40&frame_interval=10").await;
+    let running = submit(
+        &client,
+        &base,
+        &slow_obj(),
+        "steps=40&frame_interval=10&until_converged=false",
+    )
+    .await;
     let queued: Vec<String> = vec![
         submit(&client, &base, &small_obj(), "steps=3").await,
         submit(&client, &base, &small_obj(), "steps=4").await,
@@ -189,7 +195,13 @@ async fn a_job_that_keeps_killing_the_server_fails_as_redelivered() {
     let client = reqwest::Client::new();
     let flags = ["--max-deliveries", "1"];
     let (mut server, base) = spawn_server_with(dir.path(), &flags);
-    let id = submit(&client, &base, &slow_obj(), "steps=400").await;
+    let id = submit(
+        &client,
+        &base,
+        &slow_obj(),
+        "steps=400&until_converged=false",
+    )
+    .await;
     poll_until(&client, &base, &id, JOB_TIMEOUT, |v| {
         v["state"] == "running"
     })

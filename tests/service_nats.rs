@@ -395,7 +395,9 @@ async fn cancel_through_api_b_a_job_running_from_api_a() {
     let worker = Node::spawn(d, "worker", Some(&url), &NodeOpts::worker());
     all_ready(&[&api_a, &api_b, &worker]).await;
 
-    let id = api_a.submit(&slow_obj(), "steps=5000").await;
+    let id = api_a
+        .submit(&slow_obj(), "steps=5000&until_converged=false")
+        .await;
     api_a
         .poll_until(&id, |v| {
             v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 1
@@ -450,7 +452,9 @@ async fn queue_full_across_nodes_429_and_resource_exhausted() {
     let worker = Node::spawn(d, "worker", Some(&url), &opts(NodeOpts::worker()));
     all_ready(&[&api_a, &api_b, &worker]).await;
 
-    let running = api_a.submit(&slow_obj(), "steps=5000").await;
+    let running = api_a
+        .submit(&slow_obj(), "steps=5000&until_converged=false")
+        .await;
     api_a
         .poll_until(&running, |v| v["state"] == "running")
         .await;
@@ -607,7 +611,12 @@ async fn a_job_delivered_too_often_fails_with_code_redelivered() {
     let api = Node::spawn(d, "api", Some(&url), &opts(NodeOpts::api()));
     let mut first = Node::spawn(d, "worker-1", Some(&url), &opts(NodeOpts::worker()));
     all_ready(&[&api, &first]).await;
-    let id = api.submit(&slow_obj(), "steps=120&frame_interval=20").await;
+    let id = api
+        .submit(
+            &slow_obj(),
+            "steps=120&frame_interval=20&until_converged=false",
+        )
+        .await;
     api.poll_until(&id, |v| {
         v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 2
     })
@@ -719,7 +728,10 @@ async fn sse_watchers_blob_reads_leave_no_consumers_behind() {
 
     let mut ids = Vec::new();
     for _ in 0..2 {
-        ids.push(api.submit(&slow_obj(), "steps=9000").await);
+        ids.push(
+            api.submit(&slow_obj(), "steps=9000&until_converged=false")
+                .await,
+        );
     }
     for id in &ids {
         api.poll_until(id, |v| v["state"] == "running").await;

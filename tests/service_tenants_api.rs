@@ -256,7 +256,12 @@ async fn http_quota_is_named_and_per_tenant() {
     let mut ids = Vec::new();
     for _ in 0..2 {
         let v = server
-            .submit(&keys.alpha, slow_obj(), "steps=5000", None)
+            .submit(
+                &keys.alpha,
+                slow_obj(),
+                "steps=5000&until_converged=false",
+                None,
+            )
             .await;
         ids.push(v["id"].as_str().expect("id").to_string());
     }
@@ -508,6 +513,7 @@ async fn grpc_tenants_cannot_reach_each_others_jobs_uploads_or_operations() {
         let mut req = create_request(slow(), &uuid());
         if let Some(p) = req.params.as_mut() {
             p.steps = Some(5000);
+            p.until_converged = Some(false);
         }
         match fa.create_job(req).await {
             Ok(op) => long.push(op.into_inner().name),

@@ -46,6 +46,35 @@ pub struct JobSpecSchema {
     /// How a region meets the surface around it: `smooth` (positions and tangent planes
     /// held) or `fixed` (positions only).
     pub seam: SeamSchema,
+    /// What each connected component keeps after every step: `area` (default), `volume`
+    /// (closed components keep their enclosed volume, by a uniform scale: Q is untouched) or
+    /// `none`. Taubin smoothing refuses `volume`.
+    pub preserve: PreserveSchema,
+    /// Stop once the Willmore energy is at most this (outcome `target_reached`); ≥ 0.
+    pub until_willmore: Option<f64>,
+    /// Stop once W has stopped falling: its relative change stayed below 1e-4 per step for 3
+    /// steps (outcome `converged`). Default true; false runs every step.
+    pub until_converged: bool,
+    /// Stop before the first step that would move the surface further than this from the
+    /// input, in model units (outcome `max_deviation`): the result is the last surface within
+    /// it. ≥ 0; turns `measure_deviation` on.
+    pub max_deviation: Option<f64>,
+    /// Report each frame's two-sided distance from the input (`deviation_max`,
+    /// `deviation_mean`, model units). Off by default: it costs a share of every step.
+    pub measure_deviation: bool,
+}
+
+/// What each component keeps after every step.
+#[derive(ToSchema)]
+#[schema(as = Preserve)]
+#[serde(rename_all = "snake_case")]
+pub enum PreserveSchema {
+    /// Its input area (the default).
+    Area,
+    /// Its enclosed volume (closed components; the others keep their area).
+    Volume,
+    /// Nothing: the size is the flow's.
+    None,
 }
 
 /// One way to name the vertices that move, in the file's units and numbering.
@@ -196,6 +225,8 @@ mod tests {
             serde_json::to_value(Region::Vertices(vec![1])),
             serde_json::to_value(Seam::Fixed),
             serde_json::to_value(Seam::Smooth),
+            serde_json::to_value(willow::flow::Preserve::Volume),
+            serde_json::to_value(willow::flow::Preserve::None),
         ] {
             let v = v.expect("json");
             let name = match &v {

@@ -1,9 +1,9 @@
 //! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
 //! [--frames-dir DIR] [--json] [--no-safeguard] [--preserve area|volume|none]
-//! [--max-deviation D] [--until-willmore W]`: the contract other tools rely on.
+//! [--max-deviation D] [--until-willmore W] [--all-steps]`: the contract other tools rely on.
 //!
 //! The run stops as `willow::flow::stopping` decides: after `--steps`, or earlier when W
-//! stops falling, reaches `--until-willmore`, or the next step would pass `--max-deviation`.
+//! stops falling (unless `--all-steps`), reaches `--until-willmore`, or the next step would pass `--max-deviation`.
 //! With `--json`, stdout has one JSON object per step, then one last line
 //! `{"outcome": "...", "reason": "..."}` (outcomes: `completed`, `converged`,
 //! `target_reached`, `max_deviation`, `no_progress`).
@@ -107,6 +107,9 @@ pub struct FairArgs {
     /// Stop once the Willmore energy is at most W (4π for a round sphere).
     #[arg(long, value_name = "W", allow_negative_numbers = true)]
     pub until_willmore: Option<f64>,
+    /// Run every step: do not stop when W has stopped falling (outcome `converged`).
+    #[arg(long)]
+    pub all_steps: bool,
     /// Fair only a sphere of the surface, `x,y,z,r` (model units); everything outside the
     /// regions stays bit-identical. Repeatable; all `--region-*` flags name their union.
     #[arg(long, value_name = "X,Y,Z,R", allow_negative_numbers = true, value_parser = Region::parse_sphere)]
@@ -254,6 +257,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         preserve: args.preserve,
         max_deviation: args.max_deviation,
         until_willmore: args.until_willmore,
+        until_converged: !args.all_steps,
         // One run, read by a person or a script: each step says how far it moved the surface.
         measure_deviation: true,
         ..base

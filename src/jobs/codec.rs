@@ -46,6 +46,20 @@ struct HashedSpec<'a> {
     region: &'a [willow::flow::region::Region],
     #[serde(skip_serializing_if = "is_smooth")]
     seam: willow::flow::region::Seam,
+    #[serde(skip_serializing_if = "is_area")]
+    preserve: willow::flow::Preserve,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    until_willmore: Option<f64>,
+    #[serde(skip_serializing_if = "is_true")]
+    until_converged: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    max_deviation: Option<f64>,
+    #[serde(skip_serializing_if = "is_false")]
+    measure_deviation: bool,
+}
+
+fn is_area(p: &willow::flow::Preserve) -> bool {
+    *p == willow::flow::Preserve::Area
 }
 
 fn is_smooth(s: &willow::flow::region::Seam) -> bool {
@@ -82,6 +96,11 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             safeguard,
             region,
             seam,
+            preserve,
+            until_willmore,
+            until_converged,
+            max_deviation,
+            measure_deviation,
         } = s;
         HashedSpec {
             method: *method,
@@ -98,6 +117,11 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             safeguard: *safeguard,
             region,
             seam: *seam,
+            preserve: *preserve,
+            until_willmore: *until_willmore,
+            until_converged: *until_converged,
+            max_deviation: *max_deviation,
+            measure_deviation: *measure_deviation,
         }
     }
 }
@@ -105,14 +129,24 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
 /// Bytes of a metrics row as the first release wrote it: step as u64, then nine f64
 /// (`willmore_energy` … `step_ms`), all little-endian.
 pub const METRICS_V1_BYTES: usize = 80;
-/// Bytes of a metrics row now: the first release's 80, then `tau` (f64) and `rejected` (u32),
-/// little-endian. Rows are only ever appended to, so an old row is a prefix of a new one.
+/// Bytes of a metrics row's fixed part now: the first release's 80, then `tau` (f64) and
+/// `rejected` (u32), little-endian. Rows are only ever appended to, so an old row is a prefix
+/// of a new one.
 pub const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
 
-/// The binary form of [`StepMetrics`] ([`METRICS_BYTES`]). Binary and not JSON because a
-/// metric may legitimately be NaN or infinite, which JSON cannot carry.
+/// The optional metrics, each stored after the fixed part as a tag byte and an f64 when the
+/// step has it: a metric added later takes the next tag, and a row without it reads as `None`.
+const OPTIONAL_METRICS: [(u8, fn(&StepMetrics) -> Option<f64>); 3] = [
+    (1, |m| m.volume),
+    (2, |m| m.deviation_max),
+    (3, |m| m.deviation_mean),
+];
+
+/// The binary form of [`StepMetrics`]: [`METRICS_BYTES`], then the optional metrics the step
+/// has ([`OPTIONAL_METRICS`]). Binary and not JSON because a metric may legitimately be NaN or
+/// infinite, which JSON cannot carry.
 pub fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
-    let mut out = Vec::with_capacity(METRICS_BYTES);
+    let mut out = Vec::with_capacity(METRICS_BYTES + 9 * OPTIONAL_METRICS.len());
     out.extend_from_slice(&(m.step as u64).to_le_bytes());
     for v in [
         m.willmore_energy,
@@ -129,16 +163,25 @@ pub fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
         out.extend_from_slice(&v.to_le_bytes());
     }
     out.extend_from_slice(&m.rejected.to_le_bytes());
+    for (tag, get) in OPTIONAL_METRICS {
+        if let Some(v) = get(m) {
+            out.push(tag);
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
     out
 }
 
-/// Reads a row of either length: one written before the safeguard existed
-/// ([`METRICS_V1_BYTES`]) has `tau = 0` and `rejected = 0`, as [`StepMetrics`] documents.
+/// Reads a row of any length written so far: one written before the safeguard existed
+/// ([`METRICS_V1_BYTES`]) has `tau = 0` and `rejected = 0`, as [`StepMetrics`] documents; one
+/// written before the optional metrics has none of them.
 pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
-    if b.len() != METRICS_BYTES && b.len() != METRICS_V1_BYTES {
-        return Err(JobError::Internal(format!(
-            "stored metrics have {} bytes, expected {METRICS_BYTES} (or {METRICS_V1_BYTES} for \
-             rows written before the safeguard)",
+    let bad = |what: String| JobError::Internal(format!("stored metrics: {what}"));
+    let tail = b.len().checked_sub(METRICS_BYTES);
+    if b.len() != METRICS_V1_BYTES && !tail.is_some_and(|t| t % 9 == 0) {
+        return Err(bad(format!(
+            "{} bytes, expected {METRICS_BYTES} and 9 per optional metric (or \
+             {METRICS_V1_BYTES} for rows written before the safeguard)",
             b.len()
         )));
     }
@@ -148,14 +191,14 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         a
     };
     let f = |i: usize| f64::from_le_bytes(u(i));
-    let (tau, rejected) = if b.len() == METRICS_BYTES {
+    let (tau, rejected) = if b.len() >= METRICS_BYTES {
         let mut r = [0u8; 4];
-        r.copy_from_slice(&b[METRICS_V1_BYTES + 8..]);
+        r.copy_from_slice(&b[METRICS_V1_BYTES + 8..METRICS_BYTES]);
         (f(10), u32::from_le_bytes(r))
     } else {
         (0.0, 0)
     };
-    Ok(StepMetrics {
+    let mut m = StepMetrics {
         step: u64::from_le_bytes(u(0)) as usize,
         willmore_energy: f(1),
         q_mean: f(2),
@@ -168,12 +211,24 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         step_ms: f(9),
         tau,
         rejected,
-        // Not stored in a metrics row yet: a replayed frame has no volume and no deviation
-        // (the service does not measure the deviation).
         volume: None,
         deviation_max: None,
         deviation_mean: None,
-    })
+    };
+    if b.len() > METRICS_BYTES {
+        for entry in b[METRICS_BYTES..].chunks_exact(9) {
+            let mut v = [0u8; 8];
+            v.copy_from_slice(&entry[1..]);
+            let v = Some(f64::from_le_bytes(v));
+            match entry[0] {
+                1 => m.volume = v,
+                2 => m.deviation_max = v,
+                3 => m.deviation_mean = v,
+                tag => return Err(bad(format!("unknown optional metric {tag}"))),
+            }
+        }
+    }
+    Ok(m)
 }
 
 pub fn f64s_to_bytes(p: &[[f64; 3]]) -> Vec<u8> {
@@ -228,15 +283,18 @@ pub fn bytes_to_f32s(b: &[u8]) -> Result<Vec<[f32; 3]>, JobError> {
 
 /// First bytes of a checkpoint blob, with its version: a checkpoint some other version wrote
 /// is not trusted (the job then restarts from step 0, which is always correct).
-const CHECKPOINT_MAGIC: &[u8; 8] = b"WLWCKP01";
+const CHECKPOINT_MAGIC: &[u8; 8] = b"WLWCKP02";
+/// The first version: metrics of exactly [`METRICS_BYTES`], with no length before them.
+const CHECKPOINT_MAGIC_V1: &[u8; 8] = b"WLWCKP01";
 
-/// A flow's state as a blob: magic, the step's metrics ([`encode_metrics`]), `next_tau` (f64),
-/// `clean_steps` (u32), the vertex count (u64), then the welded positions as f64 xyz, all
-/// little-endian.
+/// A flow's state as a blob: magic, the length of the step's metrics (u32) and the metrics
+/// ([`encode_metrics`]), `next_tau` (f64), `clean_steps` (u32), the vertex count (u64), then
+/// the welded positions as f64 xyz, all little-endian.
 pub fn encode_checkpoint(state: &FlowState) -> Vec<u8> {
     let metrics = encode_metrics(&state.metrics);
-    let mut out = Vec::with_capacity(8 + metrics.len() + 20 + state.positions.len() * 24);
+    let mut out = Vec::with_capacity(12 + metrics.len() + 20 + state.positions.len() * 24);
     out.extend_from_slice(CHECKPOINT_MAGIC);
+    out.extend_from_slice(&(metrics.len() as u32).to_le_bytes());
     out.extend_from_slice(&metrics);
     out.extend_from_slice(&state.next_tau.to_le_bytes());
     out.extend_from_slice(&state.clean_steps.to_le_bytes());
@@ -245,18 +303,24 @@ pub fn encode_checkpoint(state: &FlowState) -> Vec<u8> {
     out
 }
 
-/// The inverse of [`encode_checkpoint`]; an error for anything else (truncated, another
-/// version), never a panic.
+/// The inverse of [`encode_checkpoint`] (and of the first version's, whose jobs resume after
+/// an upgrade); an error for anything else (truncated, another version), never a panic.
 pub fn decode_checkpoint(b: &[u8]) -> Result<FlowState, JobError> {
     let bad = |why: &str| JobError::Internal(format!("checkpoint: {why}"));
-    let rest = b
-        .strip_prefix(CHECKPOINT_MAGIC.as_slice())
-        .ok_or_else(|| bad("not a checkpoint of this version"))?;
-    if rest.len() < METRICS_BYTES + 20 {
+    let (metrics_len, rest) = if let Some(rest) = b.strip_prefix(CHECKPOINT_MAGIC.as_slice()) {
+        let mut n = [0u8; 4];
+        n.copy_from_slice(rest.get(..4).ok_or_else(|| bad("truncated header"))?);
+        (u32::from_le_bytes(n) as usize, &rest[4..])
+    } else if let Some(rest) = b.strip_prefix(CHECKPOINT_MAGIC_V1.as_slice()) {
+        (METRICS_BYTES, rest)
+    } else {
+        return Err(bad("not a checkpoint of this version"));
+    };
+    if rest.len() < metrics_len.saturating_add(20) {
         return Err(bad("truncated header"));
     }
-    let metrics = decode_metrics(&rest[..METRICS_BYTES])?;
-    let rest = &rest[METRICS_BYTES..];
+    let metrics = decode_metrics(&rest[..metrics_len])?;
+    let rest = &rest[metrics_len..];
     let mut f = [0u8; 8];
     f.copy_from_slice(&rest[..8]);
     let next_tau = f64::from_le_bytes(f);
@@ -368,6 +432,49 @@ mod tests {
                 "{bad} bytes accepted"
             );
         }
+    }
+
+    /// Volume and deviation survive a row and a checkpoint; a row without them (as the
+    /// service wrote before it stored them) reads as `None`; an unknown tag is an error.
+    #[test]
+    fn optional_metrics_round_trip_and_old_rows_have_none() {
+        let mut m = decode_metrics(&[0; METRICS_BYTES]).expect("zeros decode");
+        m.step = 3;
+        m.willmore_energy = 12.6;
+        m.volume = Some(4.1887);
+        m.deviation_max = Some(0.25);
+        m.deviation_mean = Some(f64::NAN);
+        let blob = encode_metrics(&m);
+        assert_eq!(blob.len(), METRICS_BYTES + 3 * 9);
+        let back = decode_metrics(&blob).expect("decodes");
+        assert_eq!(back.volume, Some(4.1887));
+        assert_eq!(back.deviation_max, Some(0.25));
+        assert!(back.deviation_mean.is_some_and(f64::is_nan));
+        let state = FlowState {
+            metrics: back,
+            positions: vec![[1.0, 2.0, 3.0]],
+            next_tau: 0.25,
+            clean_steps: 2,
+        };
+        let again = decode_checkpoint(&encode_checkpoint(&state)).expect("checkpoint");
+        assert_eq!(again.metrics.volume, Some(4.1887));
+        assert_eq!(again.positions, state.positions);
+        // A first-version checkpoint: the fixed-length metrics and no length before them.
+        m.volume = None;
+        m.deviation_max = None;
+        m.deviation_mean = None;
+        let mut v1 = CHECKPOINT_MAGIC_V1.to_vec();
+        v1.extend_from_slice(&encode_metrics(&m));
+        v1.extend_from_slice(&encode_checkpoint(&state)[12 + blob.len()..]);
+        let old = decode_checkpoint(&v1).expect("a v1 checkpoint resumes");
+        assert_eq!((old.metrics.step, old.metrics.volume), (3, None));
+        assert_eq!(old.next_tau, 0.25);
+        let plain = decode_metrics(&blob[..METRICS_BYTES]).expect("a row without them");
+        assert_eq!(plain.volume, None);
+        let mut unknown = blob[..METRICS_BYTES].to_vec();
+        unknown.push(200);
+        unknown.extend_from_slice(&1.0f64.to_le_bytes());
+        assert!(decode_metrics(&unknown).is_err());
     }
 
     #[test]

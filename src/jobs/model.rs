@@ -10,7 +10,7 @@ use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use willow::curve::CurveError;
 use willow::flow::region::{Region, Seam};
-use willow::flow::{FlowParams, Method};
+use willow::flow::{FlowParams, Method, Preserve};
 use willow::mesh::io::Asset;
 use willow::mesh::io::Format;
 use willow::mesh::{Limits, MeshError};
@@ -64,6 +64,19 @@ pub struct JobSpec {
     pub region: Vec<Region>,
     /// How a region meets the surface around it: `smooth` (default, G1) or `fixed` (C0).
     pub seam: Seam,
+    /// What each component keeps after every step: `area` (default), `volume` or `none`.
+    pub preserve: Preserve,
+    /// Stop once the Willmore energy is at most this (outcome `target_reached`).
+    pub until_willmore: Option<f64>,
+    /// Stop once W has stopped falling (outcome `converged`); default true. False runs every
+    /// step.
+    pub until_converged: bool,
+    /// Stop before the first step that would move the surface further than this from the input
+    /// (model units; outcome `max_deviation`): the result is the last surface within it.
+    pub max_deviation: Option<f64>,
+    /// Report each frame's distance from the input (`deviation_max`, `deviation_mean`); on
+    /// with `max_deviation`. Off by default: it costs a share of every step.
+    pub measure_deviation: bool,
 }
 
 impl Default for JobSpec {
@@ -84,6 +97,11 @@ impl Default for JobSpec {
             safeguard: flow.safeguard,
             region: Vec::new(),
             seam: flow.seam,
+            preserve: flow.preserve,
+            until_willmore: flow.until_willmore,
+            until_converged: flow.until_converged,
+            max_deviation: flow.max_deviation,
+            measure_deviation: flow.measure_deviation,
         }
     }
 }
@@ -107,31 +125,6 @@ impl JobSpec {
                 limit: max_steps as u64,
             });
         }
-        if !self.tau.is_finite() || self.tau <= 0.0 {
-            return bad(
-                "tau",
-                format!("must be a finite number > 0, got {}", self.tau),
-            );
-        }
-        if self.method == Method::Conformal && self.tau >= 1.0 {
-            // Paper §4: the curvature update u ← (1 − 2τ)u is only stable for τ < 1.
-            return bad(
-                "tau",
-                format!(
-                    "must be < 1 for the conformal flow (paper §4), got {}",
-                    self.tau
-                ),
-            );
-        }
-        if self.iterations == 0 || self.iterations > MAX_ITERATIONS {
-            return bad(
-                "iterations",
-                format!(
-                    "must be between 1 and {MAX_ITERATIONS}, got {}",
-                    self.iterations
-                ),
-            );
-        }
         if self.frame_interval == 0 {
             return bad("frame_interval", "must be at least 1".into());
         }
@@ -149,56 +142,22 @@ impl JobSpec {
                 );
             }
         }
-        if let Some(filter) = &self.filter {
-            if let Err((field, reason)) = spec::check_filter(filter) {
-                return bad(field, reason);
-            }
-        }
-        for r in &self.region {
-            if let Err(reason) = r.validate() {
-                return bad("region", reason);
-            }
-        }
-        if !self.region.is_empty() {
-            if self.method != Method::Conformal {
-                return bad(
-                    "region",
-                    format!(
-                        "a region is faired by the conformal flow only, not by `{}`",
-                        self.method.name()
-                    ),
-                );
-            }
-            if !self.boundary.is_free() {
-                return bad(
-                    "region",
-                    "a region holds its surroundings itself: leave `boundary` free".into(),
-                );
-            }
-        }
+        // The boundary first: its checks name the field path inside it, where the library
+        // names `boundary` as a whole.
         if let Err((field, reason)) = spec::check_boundary(&self.boundary) {
             return bad(field, reason);
         }
-        if self.method != Method::Conformal {
-            // The other flows would run and silently ignore these (the library only reads them
-            // in the conformal flow); a client that asks for them should hear so.
-            let ignored = [
-                ("exactness", !self.exactness),
-                ("mobius_balancing", self.mobius_balancing),
-                ("filter", self.filter.is_some()),
-                ("boundary", !self.boundary.is_free()),
-            ];
-            if let Some((field, _)) = ignored.iter().find(|(_, set)| *set) {
-                return bad(
-                    field,
-                    format!(
-                        "applies only to method `conformal`, got `{}`",
-                        self.method.name()
-                    ),
-                );
-            }
-        }
-        Ok(())
+        // Everything else about the flow is the library's to judge, by the same names.
+        self.flow_params().validate().map_err(|e| match e {
+            willow::flow::FlowError::InvalidParameter { name, reason } => JobError::InvalidSpec {
+                field: name,
+                reason,
+            },
+            other => JobError::InvalidSpec {
+                field: "params",
+                reason: other.to_string(),
+            },
+        })
     }
 
     /// Checks that need the uploaded file: vertex regions name vertices of its triangles, the
@@ -286,13 +245,11 @@ impl JobSpec {
             precision: willow::flow::Precision::Auto,
             regions: self.region.clone(),
             seam: self.seam,
-            // Not in the job spec yet (the CLI sets it): today's behaviour.
-            preserve: willow::flow::Preserve::Area,
-            // The service has no stopping rules yet: a job runs its steps.
-            until_willmore: None,
-            max_deviation: None,
-            // Not stored with a frame yet, and 12–32% of a step at 100k triangles: off.
-            measure_deviation: false,
+            preserve: self.preserve,
+            until_willmore: self.until_willmore,
+            until_converged: self.until_converged,
+            max_deviation: self.max_deviation,
+            measure_deviation: self.measure_deviation,
         }
     }
 
@@ -419,18 +376,37 @@ pub struct JobStatus {
     /// Metrics of the latest completed step (step 0 = the input) once the job has started.
     pub latest: Option<StepMetrics>,
     /// Why the job failed or was cancelled, for people; on a succeeded job, why it stopped
-    /// before `total_steps` (code `no_progress`).
+    /// before `total_steps` (see [`JobStatus::outcome`]).
     pub error: Option<String>,
     /// The same, for programs: `deadline_exceeded`, `cancelled`, `numerical`, `invalid_mesh`,
-    /// `unsupported`, `invalid_parameter`, `internal`; and `no_progress` on a **succeeded** job
-    /// the safeguard stopped early (no acceptable step, even at τ/1024): its result is the
-    /// last accepted surface, the one after step `step`.
+    /// `unsupported`, `invalid_parameter`, `internal`; and on a **succeeded** job that stopped
+    /// before `total_steps` the outcome of its run: `converged`, `target_reached`,
+    /// `max_deviation`, or `no_progress` (the safeguard found no acceptable step, even at
+    /// τ/1024). Its result is then the surface after step `step`.
     pub error_code: Option<String>,
     pub created_at: u64,
     pub started_at: Option<u64>,
     pub finished_at: Option<u64>,
     /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
     pub expires_at: Option<u64>,
+}
+
+impl JobStatus {
+    /// How a succeeded job's run ended, by the name of [`willow::flow::stopping::Outcome`]
+    /// (`completed`, `converged`, `target_reached`, `max_deviation`, `no_progress`, …), and
+    /// why, for people. A run that ended before its steps keeps the two as its note
+    /// (`error_code`, `error`); one that ran them all has none. `None` unless succeeded.
+    pub fn outcome(&self) -> Option<(String, String)> {
+        (self.state == JobState::Succeeded).then(|| match &self.error_code {
+            Some(code) => (code.clone(), self.error.clone().unwrap_or_default()),
+            None => (
+                willow::flow::stopping::Outcome::Completed
+                    .name()
+                    .to_string(),
+                format!("ran its {} steps", self.total_steps),
+            ),
+        })
+    }
 }
 
 fn default_tenant() -> String {

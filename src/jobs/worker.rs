@@ -26,8 +26,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::runtime::Handle;
 use tokio_util::sync::CancellationToken;
+use willow::flow::stopping::{Event, Outcome as RunOutcome, Run};
 use willow::flow::{new_flow, Flow, FlowError};
 use willow::mesh::io::Asset;
+use willow::metrics::StepMetrics;
 
 /// Decrements the live-worker count however the loop ends (return or panic), so readiness
 /// reports a dead pool.
@@ -478,12 +480,12 @@ fn run_job(
     };
 
     let resumed_at = resume(inner, rt, id, flow.as_mut());
-    let first = match resumed_at {
-        Some(step) => {
-            rt.block_on(backend.store.rewind(id, step, fence))?;
+    let first = match &resumed_at {
+        Some(at) => {
+            rt.block_on(backend.store.rewind(id, at.step, fence))?;
             inner.telemetry.resumed.inc();
-            tracing::info!(step, "resumed from the checkpoint");
-            step + 1
+            tracing::info!(step = at.step, "resumed from the checkpoint");
+            at.step + 1
         }
         None => {
             rt.block_on(backend.store.rewind(id, 0, fence))?;
@@ -492,25 +494,40 @@ fn run_job(
             1
         }
     };
+    // The stopping rules (`willow::flow::stopping`): the steps, convergence, `until_willmore`,
+    // `max_deviation`, and the safeguard's "no acceptable step".
+    let run = match resumed_at {
+        Some(at) => Run::resumed(flow, &params, spec.steps, at),
+        None => Run::new(flow, &params, spec.steps),
+    };
+    let mut run = match run {
+        Ok(r) => r,
+        Err(e) => {
+            rt.block_on(finish(
+                inner,
+                id,
+                JobState::Failed,
+                Some((flow_error_code(&e), e.to_string())),
+                Some(fence),
+            ))?;
+            return Ok(Outcome::Done);
+        }
+    };
     let mut last_checkpoint = (first - 1, Instant::now());
-    // Set when the safeguard finds no acceptable step: the job then ends early, succeeded,
-    // with this (code, reason) as its note (see `JobStatus::error_code`).
-    let mut stopped_early = None;
-    for step in first..=spec.steps {
-        if let Some(stop) = check(step - 1) {
-            return stopped(inner, rt, id, stop, &running, Some(flow.as_ref()), fence);
+    let mut step = first;
+    let (outcome, reason) = loop {
+        if let Some(stop) = check(step - 1).filter(|_| !run.is_over()) {
+            return stopped(inner, rt, id, stop, &running, Some(run.flow()), fence);
         }
         let t = Instant::now();
-        let metrics = match flow.step() {
-            Ok(m) => m,
-            // The safeguard put the flow back on the last accepted surface (step − 1), whose
-            // frame is already stored: that surface is the result. Succeeded rather than failed,
-            // so "succeeded ⇔ has a result" stays true for the store and for every client.
-            Err(e @ FlowError::NoProgress { .. }) => {
-                tracing::info!(step, reason = %e, "flow stopped early");
-                stopped_early = Some((flow_error_code(&e), e.to_string()));
-                break;
-            }
+        let metrics = match run.advance() {
+            Ok(Event::Step(m)) => m,
+            // The run is over. On `no_progress` the safeguard put the flow back on the last
+            // accepted surface; on `max_deviation` the run undid the step past the bound:
+            // either way the flow is on the surface of the last frame stored, which is the
+            // result. Succeeded rather than failed, so "succeeded ⇔ has a result" stays true
+            // for the store and for every client.
+            Ok(Event::Stopped { outcome, reason }) => break (outcome, reason),
             Err(e) => {
                 tracing::warn!(step, error = %e, "flow failed");
                 rt.block_on(finish(
@@ -529,7 +546,7 @@ fn run_job(
             .observe(t.elapsed().as_secs_f64());
         // Accepted safeguarded steps are finite by construction; with the safeguard off a
         // diverging flow may not be, and nothing non-finite is streamed or stored.
-        if let Some(bad) = first_non_finite(flow.positions()) {
+        if let Some(bad) = first_non_finite(run.flow().positions()) {
             rt.block_on(finish(
                 inner,
                 id,
@@ -542,15 +559,21 @@ fn run_job(
             ))?;
             return Ok(Outcome::Done);
         }
-        emit(step, metrics, flow.positions())?;
+        emit(step, metrics, run.flow().positions())?;
         let due = step - last_checkpoint.0 >= inner.config.checkpoint_steps
             || last_checkpoint.1.elapsed() >= inner.config.checkpoint_interval;
         if due && step < spec.steps {
             still_held()?;
-            checkpoint(inner, rt, id, flow.as_ref())?;
+            checkpoint(inner, rt, id, run.flow())?;
             last_checkpoint = (step, Instant::now());
         }
-    }
+        step += 1;
+    };
+    let flow = run.flow();
+    tracing::info!(outcome = outcome.name(), %reason, "flow ended");
+    // A run that took all its steps says nothing more; any other ending is the job's note
+    // (`JobStatus::error_code` on a succeeded job, and so its `outcome`).
+    let stopped_early = (outcome != RunOutcome::Completed).then(|| (outcome.name(), reason));
     debug_assert!(first_non_finite(flow.positions()).is_none());
     still_held()?;
     rt.block_on(backend.blobs.put(
@@ -608,8 +631,8 @@ fn read_asset(inner: &Inner, rt: &Handle, status: &JobStatus) -> Result<Asset, J
     .map_err(mesh_error)
 }
 
-/// Put `flow` on the job's checkpoint, if it has a usable one; the step it is at.
-fn resume(inner: &Inner, rt: &Handle, id: &str, flow: &mut dyn Flow) -> Option<usize> {
+/// Put `flow` on the job's checkpoint, if it has a usable one; the metrics of the step it is at.
+fn resume(inner: &Inner, rt: &Handle, id: &str, flow: &mut dyn Flow) -> Option<StepMetrics> {
     let key = BlobKey::Checkpoint { id: id.to_string() };
     let bytes = match rt.block_on(inner.backend.blobs.get(key)) {
         Ok(Some(b)) => b,
@@ -627,7 +650,7 @@ fn resume(inner: &Inner, rt: &Handle, id: &str, flow: &mut dyn Flow) -> Option<u
         }
     };
     match flow.resume(&state) {
-        Ok(()) => Some(state.metrics.step),
+        Ok(()) => Some(state.metrics),
         Err(e) => {
             tracing::warn!(error = %e, "checkpoint does not fit the flow: the job starts from step 0");
             None

@@ -366,7 +366,10 @@ class Suite:
         assert status.code == code_pb2.INVALID_ARGUMENT
 
     def test_queue_full_and_cancel(self):
-        running = self.create_inline(self.slow_obj, method=pb.METHOD_CONFORMAL, steps=5000)
+        running = self.create_inline(
+            self.slow_obj, method=pb.METHOD_CONFORMAL, steps=5000,
+            until_converged=False,
+        )
         deadline = time.monotonic() + PATIENCE_S
         while self.fairing.GetJob(pb.GetJobRequest(name=running.name), timeout=10).step < 1:
             assert time.monotonic() < deadline, "the slow job never started"

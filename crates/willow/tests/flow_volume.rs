@@ -287,10 +287,15 @@ fn volume_is_refused_where_the_flow_never_rescales() {
         preserve: Preserve::Volume,
         ..FlowParams::default()
     };
+    // Taubin is known without the mesh: the parameters are invalid, naming the field.
     assert!(matches!(
         new_flow(&bumpy_sphere(2, 0.1), &params),
-        Err(FlowError::Unsupported(_))
+        Err(FlowError::InvalidParameter {
+            name: "preserve",
+            ..
+        })
     ));
+    // A fixed boundary needs a mesh with a boundary to mean anything.
     let fixed = FlowParams {
         boundary: willow::flow::Boundary::Fixed,
         preserve: Preserve::Volume,

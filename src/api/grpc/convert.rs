@@ -15,7 +15,8 @@ use super::pb::willow::v1;
 use crate::jobs::curve::CurveOutcome;
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{Frame, JobSpec, JobState, JobStatus};
-use willow::flow::Method;
+use willow::flow::region::{Region, Seam};
+use willow::flow::{Method, Preserve};
 use willow::mesh::io::Format;
 use willow::metrics::StepMetrics;
 
@@ -154,7 +155,99 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
     if let Some(safeguard) = p.safeguard {
         spec.safeguard = safeguard;
     }
+    spec.region = p
+        .region
+        .into_iter()
+        .enumerate()
+        .map(|(i, r)| region_from_pb(i, r))
+        .collect::<Result<_, _>>()?;
+    spec.seam = match v1::Seam::try_from(p.seam) {
+        Ok(v1::Seam::Unspecified) => spec.seam,
+        Ok(v1::Seam::Smooth) => Seam::Smooth,
+        Ok(v1::Seam::Fixed) => Seam::Fixed,
+        Err(_) => {
+            return Err(bad_request(
+                "params.seam",
+                format!("unknown seam {}", p.seam),
+            ))
+        }
+    };
+    spec.preserve = match v1::Preserve::try_from(p.preserve) {
+        Ok(v1::Preserve::Unspecified) => spec.preserve,
+        Ok(v1::Preserve::Area) => Preserve::Area,
+        Ok(v1::Preserve::Volume) => Preserve::Volume,
+        Ok(v1::Preserve::None) => Preserve::None,
+        Err(_) => {
+            return Err(bad_request(
+                "params.preserve",
+                format!("unknown preserve {}", p.preserve),
+            ))
+        }
+    };
+    spec.until_willmore = p.until_willmore;
+    if let Some(v) = p.until_converged {
+        spec.until_converged = v;
+    }
+    spec.max_deviation = p.max_deviation;
+    if let Some(v) = p.measure_deviation {
+        spec.measure_deviation = v;
+    }
     Ok(spec)
+}
+
+/// Wire region → [`Region`]; an empty oneof or a missing vector names the field.
+fn region_from_pb(i: usize, r: v1::Region) -> Result<Region, Status> {
+    use v1::region::Shape;
+    let field = |name: &str| format!("params.region[{i}]{name}");
+    let xyz = |v: Option<v1::Vector3>, name: &str| {
+        v.map(|v| [v.x, v.y, v.z])
+            .ok_or_else(|| bad_request(&field(name), "must be set"))
+    };
+    match r.shape {
+        None => Err(bad_request(
+            &field(""),
+            "set one of `sphere`, `box` or `vertices`",
+        )),
+        Some(Shape::Sphere(s)) => Ok(Region::Sphere {
+            center: xyz(s.center, ".sphere.center")?,
+            radius: s.radius,
+        }),
+        Some(Shape::Box(b)) => Ok(Region::Box {
+            min: xyz(b.min, ".box.min")?,
+            max: xyz(b.max, ".box.max")?,
+        }),
+        Some(Shape::Vertices(list)) => list
+            .indices
+            .into_iter()
+            .map(|v| {
+                usize::try_from(v).map_err(|_| {
+                    bad_request(&field(".vertices"), format!("vertex {v} is out of range"))
+                })
+            })
+            .collect::<Result<_, _>>()
+            .map(Region::Vertices),
+    }
+}
+
+/// [`Region`] → wire.
+fn region_pb(r: &Region) -> v1::Region {
+    use v1::region::{Box as PbBox, Shape, Sphere, VertexList};
+    let v = |[x, y, z]: [f64; 3]| Some(v1::Vector3 { x, y, z });
+    v1::Region {
+        shape: Some(match r {
+            Region::Sphere { center, radius } => Shape::Sphere(Sphere {
+                center: v(*center),
+                radius: *radius,
+            }),
+            Region::Box { min, max } => Shape::Box(PbBox {
+                min: v(*min),
+                max: v(*max),
+            }),
+            Region::Vertices(list) => Shape::Vertices(VertexList {
+                indices: list.iter().map(|&i| i as u64).collect(),
+            }),
+        }),
+    }
 }
 
 /// Wire boundary → [`BoundarySpec`]. Unset oneofs take the defaults the proto documents
@@ -334,6 +427,20 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
         }),
         boundary: Some(boundary_pb(&spec.boundary)),
         safeguard: Some(spec.safeguard),
+        region: spec.region.iter().map(region_pb).collect(),
+        seam: match spec.seam {
+            Seam::Smooth => v1::Seam::Smooth,
+            Seam::Fixed => v1::Seam::Fixed,
+        } as i32,
+        preserve: match spec.preserve {
+            Preserve::Area => v1::Preserve::Area,
+            Preserve::Volume => v1::Preserve::Volume,
+            Preserve::None => v1::Preserve::None,
+        } as i32,
+        until_willmore: spec.until_willmore,
+        until_converged: Some(spec.until_converged),
+        max_deviation: spec.max_deviation,
+        measure_deviation: Some(spec.measure_deviation),
     }
 }
 
@@ -396,6 +503,9 @@ fn metrics_pb(m: &StepMetrics) -> v1::StepMetrics {
         step_ms: m.step_ms,
         tau: m.tau,
         rejected: m.rejected,
+        volume: m.volume,
+        deviation_max: m.deviation_max,
+        deviation_mean: m.deviation_mean,
     }
 }
 
@@ -495,6 +605,8 @@ pub(super) fn job_pb(status: &JobStatus) -> v1::Job {
         vertex_count: status.vertex_count as u64,
         face_count: status.face_count as u64,
         stopped_early: job_stopped_early(status),
+        outcome: status.outcome().map(|o| o.0).unwrap_or_default(),
+        outcome_reason: status.outcome().map(|o| o.1).unwrap_or_default(),
     }
 }
 

@@ -3,7 +3,7 @@
 
 use super::body::{drain_refused, read_limited, MULTIPART_SLACK};
 use super::params::{
-    parse_out_format, query, FormatQuery, FramesQuery, JobParams, JobQuery, ListQuery,
+    parse_out_format, query, spec_from_json, FormatQuery, FramesQuery, JobQuery, ListQuery,
 };
 use crate::api::problem::{clip, Problem};
 use crate::api::state::AppState;
@@ -52,14 +52,23 @@ pub struct JobView {
     pub progress: Progress,
     pub metrics: LatestMetrics,
     /// Why the job failed or was cancelled; on a `succeeded` job, why it stopped before
-    /// `total_steps` (then `error_code` is `no_progress`).
+    /// `total_steps` (then `error_code` is its `outcome`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
-    /// `deadline_exceeded`, `cancelled`, `numerical`, … for a failed or cancelled job;
-    /// `no_progress` on a succeeded job the safeguard stopped early (no acceptable step even at
-    /// τ/1024): its result is the last accepted surface, the one after `progress.step`.
+    /// `deadline_exceeded`, `cancelled`, `numerical`, … for a failed or cancelled job; on a
+    /// succeeded job that stopped before `total_steps`, its `outcome` (`converged`,
+    /// `no_progress`, …): its result is the surface after `progress.step`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error_code: Option<String>,
+    /// How a succeeded job's run ended: `completed` (ran its steps), `converged` (W stopped
+    /// falling), `target_reached` (`until_willmore`), `max_deviation` (the next step would have
+    /// passed it; the result is the step before), `no_progress` (the safeguard found no
+    /// acceptable step), …. Absent until the job has succeeded.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub outcome: Option<String>,
+    /// Why, for people.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub outcome_reason: Option<String>,
     /// The parameters the job runs with, defaults filled in.
     #[schema(value_type = crate::api::schema::JobSpecSchema)]
     pub params: JobSpec,
@@ -80,7 +89,10 @@ pub struct JobView {
 impl From<JobStatus> for JobView {
     fn from(s: JobStatus) -> JobView {
         let base = format!("/v1/jobs/{}", s.id);
+        let (outcome, outcome_reason) = s.outcome().unzip();
         JobView {
+            outcome,
+            outcome_reason,
             state: s.state.as_str().to_string(),
             progress: Progress {
                 step: s.step,
@@ -263,13 +275,13 @@ async fn create_job_inner(
         }
     }
     let query_given = req.uri().query().is_some_and(|q| !q.is_empty());
-    let query_params = query::<JobQuery>(req.uri())?.into_params()?;
+    let query_spec = query::<JobQuery>(req.uri())?.into_spec()?;
 
-    let (data, format, params) = if let Some(format) = format_of_media_type(&content_type) {
+    let (data, format, spec) = if let Some(format) = format_of_media_type(&content_type) {
         let data = read_limited(req.into_body(), limit)
             .await
             .map_err(|_| Problem::too_large("upload bytes", limit))?;
-        (data, format, query_params)
+        (data, format, query_spec)
     } else if content_type
         .to_ascii_lowercase()
         .starts_with("multipart/form-data")
@@ -283,11 +295,10 @@ async fn create_job_inner(
             .await
             .map_err(|_| Problem::too_large("upload bytes", limit))?;
         let req = Request::from_parts(parts, Body::from(data));
-        read_multipart(req, limit, query_params, query_given).await?
+        read_multipart(req, limit, query_spec, query_given).await?
     } else {
         return Err(unsupported_media_type(&content_type));
     };
-    let spec = params.into_spec()?;
     st.jobs
         .submit(caller, UploadRef::Bytes { data, format }, spec, key)
         .await
@@ -297,14 +308,14 @@ async fn create_job_inner(
 async fn read_multipart(
     req: Request,
     limit: u64,
-    query_params: JobParams,
+    query_spec: JobSpec,
     query_given: bool,
-) -> Result<(bytes::Bytes, Format, JobParams), Problem> {
+) -> Result<(bytes::Bytes, Format, JobSpec), Problem> {
     let mut mp = axum::extract::Multipart::from_request(req, &())
         .await
         .map_err(|e| Problem::bad_request("invalid_multipart", e.body_text()))?;
     let mut mesh: Option<(bytes::Bytes, Format)> = None;
-    let mut params: Option<JobParams> = None;
+    let mut params: Option<JobSpec> = None;
     loop {
         let field = match mp.next_field().await {
             Ok(Some(f)) => f,
@@ -377,13 +388,7 @@ async fn read_multipart(
                     .bytes()
                     .await
                     .map_err(|e| Problem::bad_request("invalid_multipart", e.body_text()))?;
-                let p: JobParams = serde_json::from_slice(&text).map_err(|e| {
-                    Problem::bad_request(
-                        "invalid_parameter",
-                        format!("the `params` part is not valid job parameters: {e}"),
-                    )
-                    .with("field", "params")
-                })?;
+                let p = spec_from_json(&text)?;
                 params = Some(p);
             }
             other => {
@@ -400,7 +405,7 @@ async fn read_multipart(
     let (data, format) = mesh.ok_or_else(|| {
         Problem::bad_request("missing_mesh", "the multipart body has no `mesh` file part")
     })?;
-    Ok((data, format, params.unwrap_or(query_params)))
+    Ok((data, format, params.unwrap_or(query_spec)))
 }
 
 /// The job's status (poll this).

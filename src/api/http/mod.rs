@@ -4,7 +4,7 @@
 //! Each handler parses its request into the job core's terms
 //! ([`JobSpec`](crate::jobs::JobSpec), [`UploadRef`](crate::jobs::UploadRef)), calls one
 //! [`Jobs`](crate::jobs::Jobs) method, and renders the result; every error leaves as a
-//! [`Problem`]. The wire shapes here ([`JobView`], [`JobParams`]…) are the contract clients
+//! [`Problem`]. The wire shapes here ([`JobView`], [`JobSpec`](crate::jobs::JobSpec)…) are the contract clients
 //! outside the repo rely on (issue 3), so they are separate from the core's types and change
 //! only deliberately.
 //!
@@ -39,7 +39,7 @@ pub use jobs::{
     cancel_job, create_job, delete_job, frame_mesh, get_job, job_result, list_frames, list_jobs,
     FrameList, JobList, JobView, LatestMetrics, Links, Progress,
 };
-pub use params::{EventsQuery, FormatQuery, FramesQuery, JobParams, JobQuery, ListQuery};
+pub use params::{EventsQuery, FormatQuery, FramesQuery, JobQuery, ListQuery};
 pub use probes::{healthz, metrics, readyz};
 
 use super::auth::SecurityAddon;
@@ -109,7 +109,7 @@ pub fn probe_routes(state: AppState) -> Router {
     info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
     paths(jobs::create_job, jobs::list_jobs, jobs::get_job, jobs::cancel_job, jobs::delete_job, events::job_events, jobs::list_frames, jobs::frame_mesh, jobs::job_result, curves::fair_curve, probes::healthz, probes::readyz, probes::metrics, super::auth::mint_stream_token),
     modifiers(&SecurityAddon),
-    components(schemas(super::auth::StreamToken, JobView, JobList, JobParams, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, super::schema::RegionSchema, super::schema::SeamSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
+    components(schemas(super::auth::StreamToken, JobView, JobList, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, super::schema::RegionSchema, super::schema::SeamSchema, super::schema::PreserveSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
     tags((name = "jobs", description = "Fairing jobs"), (name = "curves", description = "Curve fairing (paper §5), synchronous"), (name = "ops", description = "Probes and metrics"))
 )]
 pub struct ApiDoc;
@@ -160,9 +160,7 @@ pub async fn no_route(req: Request<Body>) -> Response {
 /// at any time). They run the same code `create_job` runs, minus the network and the job core.
 #[doc(hidden)]
 pub mod fuzzing {
-    use super::{JobParams, JobQuery, Problem};
-    use crate::api::problem::clip;
-    use crate::jobs::JobSpec;
+    use super::{JobQuery, Problem};
 
     /// `POST /v1/jobs?{query}` with, when `params` is given, a multipart `params` part holding
     /// those bytes: the validated job spec, or the problem the client gets. A query that does
@@ -171,13 +169,13 @@ pub mod fuzzing {
     pub fn create_job_params(
         query: &str,
         params: Option<&[u8]>,
-    ) -> Result<Option<JobSpec>, Problem> {
+    ) -> Result<Option<crate::jobs::JobSpec>, Problem> {
         let Ok(uri) = format!("/v1/jobs?{query}").parse::<axum::http::Uri>() else {
             return Ok(None);
         };
-        let query_params = super::params::query::<JobQuery>(&uri)?.into_params()?;
-        let params = match params {
-            None => query_params,
+        let query_spec = super::params::query::<JobQuery>(&uri)?.into_spec()?;
+        let spec = match params {
+            None => query_spec,
             Some(text) => {
                 if !query.is_empty() {
                     return Err(Problem::bad_request(
@@ -185,11 +183,9 @@ pub mod fuzzing {
                         "parameters in both places",
                     ));
                 }
-                serde_json::from_slice::<JobParams>(text)
-                    .map_err(|e| Problem::bad_request("invalid_parameter", clip(&e.to_string())))?
+                super::params::spec_from_json(text)?
             }
         };
-        let spec = params.into_spec()?;
         spec.validate(crate::api::grpc::fuzzing::default_config())
             .map_err(Problem::from)?;
         Ok(Some(spec))

@@ -6,106 +6,44 @@ use crate::api::problem::{clip, Problem};
 use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use crate::jobs::{parse_format, JobSpec};
 use axum::http::Uri;
-use serde::{Deserialize, Serialize};
-use utoipa::{IntoParams, ToSchema};
+use serde::Deserialize;
+use utoipa::IntoParams;
 use willow::flow::region::{Region, Seam};
-use willow::flow::Method;
+use willow::flow::{Method, Preserve};
 use willow::mesh::io::Format;
 
-/// Job parameters as JSON: the `params` part of a multipart upload. Every field is optional;
-/// the server's defaults fill the rest. The shape is that of a job's reported `params`, so
-/// those can be sent again as they are. (A raw upload takes the same parameters in the query
-/// string: [`JobQuery`].)
-#[derive(Debug, Default, Clone, Deserialize, Serialize, ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct JobParams {
-    /// `conformal` (default), `mcf`, `cmcf`, `bilaplacian` or `taubin`.
-    pub method: Option<String>,
-    /// Flow steps to take (default 20).
-    #[schema(minimum = 1)]
-    pub steps: Option<usize>,
-    /// Time step τ (default 0.5; conformal needs 0 < τ < 1).
-    pub tau: Option<f64>,
-    /// Inverse iterations per step (default 1).
-    pub iterations: Option<usize>,
-    /// Keep positions every this many steps (default 1).
-    pub frame_interval: Option<usize>,
-    /// Send positions in frames (default true).
-    pub include_positions: Option<bool>,
-    /// Deadline in seconds from submission (default: the server's).
-    pub deadline_secs: Option<f64>,
-    /// Exactness constraints for genus > 0 (default true). Conformal flow only.
-    pub exactness: Option<bool>,
-    /// Möbius balancing (default false). Conformal flow only.
-    pub mobius_balancing: Option<bool>,
-    /// Spectral filter `{"sigma": σ, "k": k}` (default none). Conformal flow only.
-    #[schema(value_type = Option<crate::api::schema::FilterSpecSchema>)]
-    pub filter: Option<FilterSpec>,
-    /// `"free"` (default), `"fixed"`, `"cmc"` or `{"prescribed": {…}}`. Conformal flow only.
-    #[schema(value_type = Option<crate::api::schema::BoundarySpecSchema>)]
-    pub boundary: Option<BoundarySpec>,
-    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ
-    /// (default true). Every method.
-    pub safeguard: Option<bool>,
-    /// The part of the surface that moves, everything else bit-identical: one region or a
-    /// list, each `{"sphere": {"center": [x, y, z], "radius": r}}`, `{"box": {"min": [..],
-    /// "max": [..]}}` or `{"vertices": [i, ...]}` (the file's vertex numbers: OBJ `v` lines
-    /// from 0, glTF accessor vertices, as frames number them). Conformal flow only.
-    #[serde(
-        default,
-        deserialize_with = "crate::jobs::spec::one_or_many_regions::deserialize_opt"
-    )]
-    #[schema(value_type = Option<Vec<crate::api::schema::RegionSchema>>)]
-    pub region: Option<Vec<Region>>,
-    /// How a region meets the surface around it: `smooth` (default, tangent-continuous) or
-    /// `fixed` (the border's positions only).
-    pub seam: Option<String>,
+/// The `params` part of a multipart upload: a [`JobSpec`] in JSON, every field optional (the
+/// server's defaults fill the rest), unknown fields refused. It is the shape of a job's
+/// reported `params`, so those can be sent again as they are. A type error names its field
+/// (`filter.k`, `region[0].sphere.radius`).
+pub fn spec_from_json(text: &[u8]) -> Result<JobSpec, Problem> {
+    if text.trim_ascii_start().first() != Some(&b'{') {
+        return Err(bad_field(
+            "params",
+            "the `params` part must be a JSON object",
+        ));
+    }
+    let mut de = serde_json::Deserializer::from_slice(text);
+    let spec: JobSpec = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        // The path names the field, an unknown one included (`filter.x`); a document that is
+        // not a JSON object at all has none.
+        let field = e.path().to_string();
+        let reason = clip(&e.into_inner().to_string());
+        let field = if field == "." || field.is_empty() {
+            "params".to_string()
+        } else {
+            field
+        };
+        bad_field(&field, format!("in the `params` part: {reason}"))
+    })?;
+    de.end()
+        .map_err(|e| bad_field("params", format!("trailing characters after the JSON: {e}")))?;
+    Ok(spec)
 }
 
-impl JobParams {
-    /// The job spec these parameters ask for (validated later by the core).
-    pub fn into_spec(self) -> Result<JobSpec, Problem> {
-        let mut spec = JobSpec::default();
-        if let Some(m) = self.method {
-            spec.method = Method::parse(&m).map_err(|e| bad_field("method", e))?;
-        }
-        if let Some(v) = self.steps {
-            spec.steps = v;
-        }
-        if let Some(v) = self.tau {
-            spec.tau = v;
-        }
-        if let Some(v) = self.iterations {
-            spec.iterations = v;
-        }
-        if let Some(v) = self.frame_interval {
-            spec.frame_interval = v;
-        }
-        if let Some(v) = self.include_positions {
-            spec.include_positions = v;
-        }
-        spec.deadline_secs = self.deadline_secs;
-        if let Some(v) = self.exactness {
-            spec.exactness = v;
-        }
-        if let Some(v) = self.mobius_balancing {
-            spec.mobius_balancing = v;
-        }
-        spec.filter = self.filter;
-        if let Some(v) = self.boundary {
-            spec.boundary = v;
-        }
-        if let Some(v) = self.safeguard {
-            spec.safeguard = v;
-        }
-        if let Some(v) = self.region {
-            spec.region = v;
-        }
-        if let Some(v) = self.seam {
-            spec.seam = Seam::parse(&v).map_err(|e| bad_field("seam", clip(&e)))?;
-        }
-        Ok(spec)
-    }
+/// A parsed name, or 400 naming the field it came from.
+fn named<T>(field: &str, parsed: Result<T, String>) -> Result<T, Problem> {
+    parsed.map_err(|e| bad_field(field, clip(&e)))
 }
 
 /// 400 `invalid_parameter` naming `field`, as the core's own parameter errors do.
@@ -117,8 +55,8 @@ fn bad_field(field: &str, reason: impl std::fmt::Display) -> Problem {
     .with("field", field)
 }
 
-/// Job parameters in the query string of a raw upload. The names are those of [`JobParams`];
-/// nested fields are dotted paths (as Google's HTTP transcoding spells them), lists are comma
+/// Job parameters in the query string of a raw upload: the [`JobSpec`] flattened, since a query
+/// string has no nesting. The names are the JSON ones; nested fields are dotted paths (as Google's HTTP transcoding spells them), lists are comma
 /// separated: `?filter.sigma=0.01&filter.k=2`,
 /// `?boundary=prescribed&boundary.prescribed.frame_angle=0.2&boundary.prescribed.angles.per_loop=0.1,-0.1`.
 /// Any `boundary.prescribed.*` parameter implies `boundary=prescribed`.
@@ -193,11 +131,22 @@ pub struct JobQuery {
     pub region_vertices: Option<String>,
     /// `smooth` (default) or `fixed`: how a region meets the surface around it.
     pub seam: Option<String>,
+    /// What each component keeps after every step: `area` (default), `volume` or `none`.
+    pub preserve: Option<String>,
+    /// Stop once the Willmore energy is at most this (outcome `target_reached`).
+    pub until_willmore: Option<f64>,
+    /// Stop once W has stopped falling (default true; outcome `converged`).
+    pub until_converged: Option<bool>,
+    /// Stop before the first step that would move the surface further than this from the
+    /// input, in model units (outcome `max_deviation`).
+    pub max_deviation: Option<f64>,
+    /// Report each frame's distance from the input (default false; on with `max_deviation`).
+    pub measure_deviation: Option<bool>,
 }
 
 impl JobQuery {
-    /// The same parameters in their JSON shape.
-    pub fn into_params(self) -> Result<JobParams, Problem> {
+    /// The job spec these parameters ask for (validated later by the core).
+    pub fn into_spec(self) -> Result<JobSpec, Problem> {
         let filter = match (self.filter_sigma, self.filter_k) {
             (None, None) => None,
             (Some(sigma), Some(k)) => Some(FilterSpec { sigma, k }),
@@ -287,25 +236,41 @@ impl JobQuery {
             }
             other => other,
         };
-        Ok(JobParams {
-            method: self.method,
-            steps: self.steps,
-            tau: self.tau,
-            iterations: self.iterations,
-            frame_interval: self.frame_interval,
-            include_positions: self.include_positions,
+        let defaults = JobSpec::default();
+        Ok(JobSpec {
+            method: match self.method {
+                Some(m) => named("method", Method::parse(&m))?,
+                None => defaults.method,
+            },
+            steps: self.steps.unwrap_or(defaults.steps),
+            tau: self.tau.unwrap_or(defaults.tau),
+            iterations: self.iterations.unwrap_or(defaults.iterations),
+            frame_interval: self.frame_interval.unwrap_or(defaults.frame_interval),
+            include_positions: self.include_positions.unwrap_or(defaults.include_positions),
             deadline_secs: self.deadline_secs,
-            exactness: self.exactness,
-            mobius_balancing: self.mobius_balancing,
+            exactness: self.exactness.unwrap_or(defaults.exactness),
+            mobius_balancing: self.mobius_balancing.unwrap_or(defaults.mobius_balancing),
             filter,
-            boundary,
-            safeguard: self.safeguard,
+            boundary: boundary.unwrap_or(defaults.boundary),
+            safeguard: self.safeguard.unwrap_or(defaults.safeguard),
             region: query_regions(
                 self.region_sphere.as_deref(),
                 self.region_box.as_deref(),
                 self.region_vertices.as_deref(),
-            )?,
-            seam: self.seam,
+            )?
+            .unwrap_or_default(),
+            seam: match self.seam {
+                Some(v) => named("seam", Seam::parse(&v))?,
+                None => defaults.seam,
+            },
+            preserve: match self.preserve {
+                Some(v) => named("preserve", Preserve::parse(&v))?,
+                None => defaults.preserve,
+            },
+            until_willmore: self.until_willmore,
+            until_converged: self.until_converged.unwrap_or(defaults.until_converged),
+            max_deviation: self.max_deviation,
+            measure_deviation: self.measure_deviation.unwrap_or(defaults.measure_deviation),
         })
     }
 }

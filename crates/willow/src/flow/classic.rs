@@ -546,14 +546,8 @@ pub struct TaubinSmoothing {
 impl TaubinSmoothing {
     /// λ = τ and μ from the default pass band (see the type's docs).
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
+        // `FlowParams::validate` refuses `preserve: volume` here: λ|μ is never rescaled.
         params.validate()?;
-        if params.preserve == Preserve::Volume {
-            return Err(FlowError::Unsupported(
-                "preserve `volume` with Taubin smoothing: λ|μ is never rescaled (keeping the \
-                 volume without rescaling is what it is for); use `area` or `none`"
-                    .into(),
-            ));
-        }
         let lambda = params.tau;
         if lambda * TAUBIN_PASS_BAND >= 1.0 {
             return Err(FlowError::InvalidParameter {

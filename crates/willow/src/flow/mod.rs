@@ -256,6 +256,9 @@ pub struct FlowParams {
     pub preserve: Preserve,
     /// Stop once the Willmore energy is at most this ([`stopping::Run`]); `None`: no target.
     pub until_willmore: Option<f64>,
+    /// Stop once W has stopped falling ([`stopping::Run`], outcome `converged`); on by
+    /// default. Off, a run takes all its steps (a fixed-length animation, a benchmark).
+    pub until_converged: bool,
     /// Stop before the first step that would move the surface further than this from the
     /// input (`StepMetrics::deviation_max`, model units); the result is the last surface
     /// within it ([`stopping::Run`]). `None`: no bound.
@@ -328,6 +331,14 @@ impl FlowParams {
                     ),
                 ));
             }
+        }
+        if self.method == Method::Taubin && self.preserve == Preserve::Volume {
+            return Err(invalid(
+                "preserve",
+                "`volume` does not apply to Taubin smoothing: λ|μ is never rescaled (keeping \
+                 the volume without rescaling is what it is for); use `area` or `none`"
+                    .into(),
+            ));
         }
         if !self.regions.is_empty() && self.boundary != Boundary::Free {
             return Err(invalid(
@@ -410,6 +421,7 @@ impl Default for FlowParams {
             seam: region::Seam::default(),
             preserve: Preserve::Area,
             until_willmore: None,
+            until_converged: true,
             max_deviation: None,
             measure_deviation: false,
         }

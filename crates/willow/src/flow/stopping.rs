@@ -3,7 +3,7 @@
 //! [`Run`] drives a flow for at most a number of steps and stops earlier when
 //!
 //! - the Willmore energy reaches `FlowParams::until_willmore` ([`Outcome::TargetReached`]);
-//! - W stopped falling: its relative change `|W_k − W_{k−1}| / W_{k−1}` stayed below
+//! - W stopped falling (unless `FlowParams::until_converged` is off): its relative change `|W_k − W_{k−1}| / W_{k−1}` stayed below
 //!   [`CONVERGED_TOLERANCE`] for [`CONVERGED_WINDOW`] steps in a row ([`Outcome::Converged`]).
 //!   A window, not one step, because one small step can also be the safeguard trying a small
 //!   τ; three quiet steps in a row span a τ doubling (`safeguard::GROW_AFTER`);
@@ -69,6 +69,7 @@ pub struct Run {
     flow: Box<dyn Flow>,
     steps: usize,
     until_willmore: Option<f64>,
+    until_converged: bool,
     max_deviation: Option<f64>,
     /// The metrics of the surface the flow is on.
     last: StepMetrics,
@@ -97,6 +98,7 @@ impl Run {
             flow,
             steps,
             until_willmore: params.until_willmore,
+            until_converged: params.until_converged,
             max_deviation: params.max_deviation,
             quiet: 0,
             stop: None,
@@ -116,6 +118,12 @@ impl Run {
         let mut run = Run::new(flow, params, steps)?;
         run.last = at;
         Ok(run)
+    }
+
+    /// Whether the run has decided to stop: the next [`Run::advance`] takes no step and says
+    /// why. (A caller that checks for cancellation between steps has nothing to cancel then.)
+    pub fn is_over(&self) -> bool {
+        self.stop.is_some() || self.stop_before_stepping().is_some()
     }
 
     /// The flow, on the surface of the last step reported (or the input).
@@ -212,7 +220,7 @@ impl Run {
                 ));
             }
         }
-        if self.quiet >= CONVERGED_WINDOW {
+        if self.until_converged && self.quiet >= CONVERGED_WINDOW {
             return Some((
                 Outcome::Converged,
                 format!(
@@ -301,7 +309,10 @@ mod tests {
         assert_eq!(steps.iter().map(|m| m.step).collect::<Vec<_>>(), [3, 4]);
         // The same surface up to rounding (the resumed flow rebuilds its factorizations).
         let (resumed, straight) = (steps[1].willmore_energy, whole[3].willmore_energy);
-        assert!((resumed - straight).abs() <= 1e-12 * straight, "{resumed} vs {straight}");
+        assert!(
+            (resumed - straight).abs() <= 1e-12 * straight,
+            "{resumed} vs {straight}"
+        );
     }
 
     /// A slightly bumpy sphere at τ 0.5 reaches its round minimum within a few steps and

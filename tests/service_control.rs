@@ -1,0 +1,337 @@
+//! The shape controls and stopping rules over HTTP and gRPC: `preserve`, `measure_deviation`,
+//! `max_deviation`, `until_willmore`, `until_converged`, and the outcome every succeeded job
+//! reports. Volumes and distances are checked against computations in this file, not the
+//! server's own.
+
+mod service_http_support;
+
+use service_http_support::*;
+use std::time::Duration;
+use willow::mesh::{generate, Mesh};
+
+const JOB_TIMEOUT: Duration = Duration::from_secs(120);
+
+fn bumpy() -> Mesh {
+    generate::bumpy_sphere(3, 0.15)
+}
+
+/// Submits `obj` with `params` as the multipart JSON part and waits for it to end.
+async fn run_json(srv: &TestServer, obj: &str, params: serde_json::Value) -> serde_json::Value {
+    let form = reqwest::multipart::Form::new()
+        .part(
+            "mesh",
+            reqwest::multipart::Part::text(obj.to_string()).file_name("m.obj"),
+        )
+        .text("params", params.to_string());
+    let res = srv
+        .client
+        .post(srv.url("/v1/jobs"))
+        .multipart(form)
+        .send()
+        .await
+        .expect("send");
+    assert_eq!(
+        res.status(),
+        202,
+        "{}",
+        res.text().await.unwrap_or_default()
+    );
+    let job: serde_json::Value = res.json().await.expect("json");
+    let id = job["id"].as_str().expect("id").to_string();
+    srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await
+}
+
+async fn frames(srv: &TestServer, id: &str) -> Vec<serde_json::Value> {
+    let (st, v) = srv.get_json(&format!("/v1/jobs/{id}/frames")).await;
+    assert_eq!(st, 200, "{v}");
+    v["frames"].as_array().expect("frames").clone()
+}
+
+async fn result_positions(srv: &TestServer, id: &str) -> Vec<[f64; 3]> {
+    let text = srv
+        .client
+        .get(srv.url(&format!("/v1/jobs/{id}/result?format=obj")))
+        .send()
+        .await
+        .expect("GET result")
+        .text()
+        .await
+        .expect("body");
+    obj_vertices(&text)
+}
+
+fn num(v: &serde_json::Value) -> f64 {
+    v.as_f64().unwrap_or_else(|| panic!("a number, got {v}"))
+}
+
+/// Enclosed volume by the divergence theorem: Σ p0 · (p1 × p2) / 6.
+fn volume(p: &[[f64; 3]], triangles: &[[usize; 3]]) -> f64 {
+    triangles
+        .iter()
+        .map(|t| {
+            let (a, b, c) = (p[t[0]], p[t[1]], p[t[2]]);
+            let cross = [
+                b[1] * c[2] - b[2] * c[1],
+                b[2] * c[0] - b[0] * c[2],
+                b[0] * c[1] - b[1] * c[0],
+            ];
+            (a[0] * cross[0] + a[1] * cross[1] + a[2] * cross[2]) / 6.0
+        })
+        .sum()
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// Distance from `p` to triangle `abc`, by the Voronoi regions of its vertices, edges and face
+/// (Ericson, Real-Time Collision Detection §5.1.5).
+fn point_triangle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
+    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
+    let (d1, d2) = (dot(ab, ap), dot(ac, ap));
+    let at = |s: f64, t: f64| {
+        let q = [
+            a[0] + s * ab[0] + t * ac[0],
+            a[1] + s * ab[1] + t * ac[1],
+            a[2] + s * ab[2] + t * ac[2],
+        ];
+        dot(sub(p, q), sub(p, q)).sqrt()
+    };
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return at(0.0, 0.0);
+    }
+    let bp = sub(p, b);
+    let (d3, d4) = (dot(ab, bp), dot(ac, bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return at(1.0, 0.0);
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return at(d1 / (d1 - d3), 0.0);
+    }
+    let cp = sub(p, c);
+    let (d5, d6) = (dot(ab, cp), dot(ac, cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return at(0.0, 1.0);
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return at(0.0, d2 / (d2 - d6));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return at(1.0 - w, w);
+    }
+    let denom = 1.0 / (va + vb + vc);
+    at(vb * denom, vc * denom)
+}
+
+/// The largest distance from a vertex of one surface to the other surface, both ways (brute
+/// force): a lower bound of the two-sided distance the server samples more densely.
+fn vertex_hausdorff(a: &[[f64; 3]], b: &[[f64; 3]], triangles: &[[usize; 3]]) -> f64 {
+    let one_way = |from: &[[f64; 3]], to: &[[f64; 3]]| {
+        from.iter()
+            .map(|&p| {
+                triangles
+                    .iter()
+                    .map(|t| point_triangle(p, to[t[0]], to[t[1]], to[t[2]]))
+                    .fold(f64::INFINITY, f64::min)
+            })
+            .fold(0.0, f64::max)
+    };
+    one_way(a, b).max(one_way(b, a))
+}
+
+/// `preserve: volume` keeps the enclosed volume at every frame and in the result; a flow
+/// that settles ends `converged` before its steps, with a reason; frames carry the distance.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn volume_is_kept_and_a_settling_flow_ends_converged() {
+    let srv = start(|_| {}).await;
+    let mesh = bumpy();
+    let v0 = volume(&mesh.positions, &mesh.triangles);
+    let done = run_json(
+        &srv,
+        &obj_text(&mesh),
+        serde_json::json!({"steps": 60, "preserve": "volume", "measure_deviation": true}),
+    )
+    .await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["outcome"], "converged", "{done}");
+    assert!(done["outcome_reason"]
+        .as_str()
+        .is_some_and(|r| r.contains("changed by less than")));
+    assert_eq!(done["params"]["preserve"], "volume");
+    let id = done["id"].as_str().expect("id");
+    let steps = num(&done["progress"]["step"]) as usize;
+    assert!(steps < 60, "converged at step {steps}");
+    let frames = frames(&srv, id).await;
+    assert_eq!(frames.len(), steps + 1);
+    for f in &frames {
+        let v = num(&f["volume"]);
+        assert!(
+            (v / v0 - 1.0).abs() < 1e-6,
+            "step {}: volume {v} vs {v0}",
+            f["step"]
+        );
+        let (max, mean) = (num(&f["deviation_max"]), num(&f["deviation_mean"]));
+        assert!(0.0 <= mean && mean <= max, "{f}");
+    }
+    assert_eq!(num(&frames[0]["deviation_max"]), 0.0);
+    // The SSE stream replays the frames, then `done` with the same outcome.
+    let res = srv
+        .client
+        .get(srv.url(&format!("/v1/jobs/{id}/events")))
+        .send()
+        .await
+        .expect("events");
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    let last = events.last().expect("events");
+    assert_eq!(last.event, "done");
+    assert_eq!(last.data["outcome"], "converged", "{:?}", last.data);
+    assert!(events
+        .iter()
+        .filter(|e| e.event == "frame")
+        .all(|e| e.data["metrics"]["volume"].is_number() || e.data["volume"].is_number()));
+    let out = result_positions(&srv, id).await;
+    let v1 = volume(&out, &mesh.triangles);
+    assert!((v1 / v0 - 1.0).abs() < 1e-6, "result volume {v1} vs {v0}");
+    srv.stop().await;
+}
+
+/// `max_deviation` between the distances after steps 2 and 3 of the free flow: the job ends
+/// `max_deviation` after step 2, no frame passes the bound, and the result's distance from the
+/// input, measured here, is within the bound too.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn max_deviation_ends_on_the_last_surface_within_the_bound() {
+    let srv = start(|_| {}).await;
+    let mesh = bumpy();
+    let obj = obj_text(&mesh);
+    let free = run_json(
+        &srv,
+        &obj,
+        serde_json::json!({"steps": 5, "until_converged": false, "measure_deviation": true}),
+    )
+    .await;
+    assert_eq!(free["outcome"], "completed", "{free}");
+    let free_frames = frames(&srv, free["id"].as_str().expect("id")).await;
+    let d: Vec<f64> = free_frames
+        .iter()
+        .map(|f| num(&f["deviation_max"]))
+        .collect();
+    assert!(d[2] < d[3], "the surface keeps moving away: {d:?}");
+    let bound = 0.5 * (d[2] + d[3]);
+
+    // The query string form this time.
+    let (st, _, job) = srv
+        .submit_obj(
+            &obj,
+            &format!("steps=5&until_converged=false&max_deviation={bound}"),
+        )
+        .await;
+    assert_eq!(st, 202);
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["outcome"], "max_deviation", "{done}");
+    assert_eq!(done["error_code"], "max_deviation");
+    assert_eq!(num(&done["progress"]["step"]), 2.0);
+    let bounded = frames(&srv, &id).await;
+    assert_eq!(bounded.len(), 3);
+    for f in &bounded {
+        assert!(num(&f["deviation_max"]) <= bound, "{f}");
+    }
+    let out = result_positions(&srv, &id).await;
+    let measured = vertex_hausdorff(&mesh.positions, &out, &mesh.triangles);
+    let reported = num(&bounded[2]["deviation_max"]);
+    assert!(measured <= bound, "measured {measured} > bound {bound}");
+    assert!(
+        measured <= reported * 1.02 && measured >= reported * 0.5,
+        "measured {measured} vs reported {reported}"
+    );
+    srv.stop().await;
+}
+
+/// `until_willmore` stops at the first step at or below the target; `until_converged: false`
+/// runs every step and ends `completed`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn until_willmore_ends_target_reached() {
+    let srv = start(|_| {}).await;
+    let obj = obj_text(&bumpy());
+    let target = 4.0 * std::f64::consts::PI * 1.05;
+    let done = run_json(
+        &srv,
+        &obj,
+        serde_json::json!({"steps": 40, "until_willmore": target}),
+    )
+    .await;
+    assert_eq!(done["outcome"], "target_reached", "{done}");
+    let frames = frames(&srv, done["id"].as_str().expect("id")).await;
+    let n = frames.len();
+    assert!(num(&frames[n - 1]["willmore_energy"]) <= target);
+    assert!(num(&frames[n - 2]["willmore_energy"]) > target);
+
+    let done = run_json(
+        &srv,
+        &obj,
+        serde_json::json!({"steps": 12, "until_converged": false}),
+    )
+    .await;
+    assert_eq!(done["outcome"], "completed", "{done}");
+    assert_eq!(done["outcome_reason"], "ran its 12 steps");
+    assert_eq!(num(&done["progress"]["step"]), 12.0);
+    assert!(done.get("error_code").is_none(), "{done}");
+    srv.stop().await;
+}
+
+/// Bad values are 400s naming the parameter, in JSON and in the query.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_controls_are_refused_naming_their_field() {
+    let srv = start(|_| {}).await;
+    let obj = small_obj();
+    for (query, field) in [
+        ("max_deviation=-1", "max_deviation"),
+        ("until_willmore=nan", "until_willmore"),
+        ("preserve=mass", "preserve"),
+        ("method=taubin&preserve=volume", "preserve"),
+        ("until_converged=maybe", "until_converged"),
+    ] {
+        let (st, _, p) = srv.submit_obj(&obj, query).await;
+        assert_eq!(st, 400, "{query}: {p}");
+        assert_eq!(p["field"], field, "{query}: {p}");
+    }
+    for (params, field) in [
+        (serde_json::json!({"preserve": "mass"}), "preserve"),
+        (serde_json::json!({"max_deviation": "far"}), "max_deviation"),
+        (serde_json::json!({"until_wilmore": 3}), "until_wilmore"),
+        (
+            serde_json::json!({"filter": {"sigma": 1e-3, "k": 2, "x": 1}}),
+            "filter.x",
+        ),
+    ] {
+        let form = reqwest::multipart::Form::new()
+            .part(
+                "mesh",
+                reqwest::multipart::Part::text(obj.clone()).file_name("m.obj"),
+            )
+            .text("params", params.to_string());
+        let res = srv
+            .client
+            .post(srv.url("/v1/jobs"))
+            .multipart(form)
+            .send()
+            .await
+            .expect("send");
+        let st = res.status();
+        let p: serde_json::Value = res.json().await.expect("problem json");
+        assert_eq!(
+            (st.as_u16(), p["field"].as_str()),
+            (400, Some(field)),
+            "{params}: {p}"
+        );
+    }
+    srv.stop().await;
+}
