@@ -48,14 +48,13 @@ fn spec_field(core_field: &str) -> String {
         "boundary.prescribed.angles.per_loop" => {
             "params.boundary.prescribed.angles.per_loop.values".into()
         }
-        "method" | "steps" | "tau" | "iterations" | "frame_interval" | "include_positions"
-        | "exactness" | "mobius_balancing" | "filter" | "boundary" | "safeguard" => {
-            format!("params.{core_field}")
-        }
-        nested if nested.starts_with("filter.") || nested.starts_with("boundary.") => {
-            format!("params.{nested}")
-        }
-        other => other.into(),
+        // Fields of the request itself rather than of its JobParams.
+        "page_token" => core_field.into(),
+        // The job spec as a whole.
+        "params" => "params".into(),
+        // Every other field is a JobSpec field, named as in JobParams: a new flow option
+        // needs no entry here.
+        spec_field => format!("params.{spec_field}"),
     }
 }
 
@@ -301,6 +300,9 @@ mod tests {
         for (core, wire) in [
             ("filter.k", "params.filter.k"),
             ("exactness", "params.exactness"),
+            ("max_deviation", "params.max_deviation"),
+            ("region", "params.region"),
+            ("page_token", "page_token"),
             (
                 "boundary.prescribed.axis.fixed",
                 "params.boundary.prescribed.axis.fixed",
