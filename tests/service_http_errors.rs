@@ -91,6 +91,12 @@ async fn method_not_allowed_is_a_problem_and_keeps_allow() {
         allow.contains("GET") && allow.contains("POST"),
         "Allow: {allow}"
     );
+    // The problem names the same methods as the header.
+    let detail = p["detail"].as_str().unwrap_or("");
+    assert!(
+        detail.contains("allowed: ") && detail.contains("GET") && detail.contains("POST"),
+        "{p}"
+    );
     srv.stop().await;
 }
 

@@ -371,12 +371,6 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) ->
         .layer(RequestBodyLimitLayer::new(
             body_limit.saturating_add(http::DRAIN_MAX_BYTES),
         ))
-        // Outside the body limit: a Content-Length over it is refused by that layer itself, before
-        // any inner layer runs, and that plain-text 413 must become a problem too.
-        .layer(axum::middleware::from_fn_with_state(
-            limit.saturating_add(MULTIPART_SLACK),
-            http::problem_for_plain_413,
-        ))
         .layer(DefaultBodyLimit::max(body_limit));
     let rest = if options.cors_origins.is_empty() {
         rest
@@ -391,6 +385,16 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) ->
     let app = rest
         .merge(super::grpc::routes(jobs.clone()))
         .fallback(http::no_route);
+    // Outside the body limit: a Content-Length over it is refused by that layer itself, before
+    // any inner layer runs, and that plain-text 413 must become a problem too. And outside the
+    // whole router: axum sets a 405's `Allow` header after every layer `Router::layer` adds
+    // (those wrap each route's handlers), so only a router around this one sees it.
+    let app = Router::new()
+        .fallback_service(app)
+        .layer(axum::middleware::from_fn_with_state(
+            limit.saturating_add(MULTIPART_SLACK),
+            http::problem_for_plain_413,
+        ));
     // Authentication: one layer for REST, SSE and gRPC alike, inside the request span (so a
     // refusal is logged with its request id) and outside everything else.
     let app = auth.wrap(app);

@@ -15,7 +15,8 @@ pub const MULTIPART_SLACK: u64 = 1 << 20;
 
 /// Turn the errors produced below the handlers into problems: a 413 from tower-http's body
 /// limit (plain text, no limit named) and axum's 405 for a known path with another method
-/// (empty body). The 405 keeps its `Allow` header.
+/// (empty body). The 405 keeps its `Allow` header, which axum adds outside the routes' own
+/// layers: so this runs around the whole router (`server::app`), where the header is set.
 pub async fn problem_for_plain_413(
     State(limit): State<u64>,
     req: Request<Body>,
@@ -31,31 +32,33 @@ pub async fn problem_for_plain_413(
     if is_problem {
         return res;
     }
-    match res.status() {
-        StatusCode::PAYLOAD_TOO_LARGE => Problem::too_large("request body bytes", limit)
-            .instance(path)
-            .into_response(),
+    let problem = match res.status() {
+        StatusCode::PAYLOAD_TOO_LARGE => {
+            Problem::too_large("request body bytes", limit).instance(path)
+        }
         StatusCode::METHOD_NOT_ALLOWED => {
-            let allow = res.headers().get(header::ALLOW).cloned();
-            let allowed = allow
-                .as_ref()
+            let allowed = res
+                .headers()
+                .get(header::ALLOW)
                 .and_then(|v| v.to_str().ok())
-                .unwrap_or("")
-                .to_string();
-            let mut out = Problem::new(
+                .unwrap_or("");
+            Problem::new(
                 StatusCode::METHOD_NOT_ALLOWED,
                 "method_not_allowed",
                 format!("{method} is not allowed on {path}; allowed: {allowed}"),
             )
             .instance(path)
-            .into_response();
-            if let Some(v) = allow {
-                out.headers_mut().insert(header::ALLOW, v);
-            }
-            out
         }
-        _ => res,
+        _ => return res,
+    };
+    // The problem replaces the body; every other header stays (`Allow`, CORS, request id).
+    let mut out = problem.into_response();
+    for (name, value) in res.headers() {
+        if name != header::CONTENT_TYPE && name != header::CONTENT_LENGTH {
+            out.headers_mut().insert(name.clone(), value.clone());
+        }
     }
+    out
 }
 
 /// How much of a refused oversized body the server still reads before it answers, and for
