@@ -15,6 +15,14 @@ const SERIES = [
     series: [{ label: 'closure', key: 'closure_residual', stroke: '#6a1b9a' }] },
   { el: 'plot-tau', title: 'τ used per step', log: false,
     series: [{ label: 'τ', key: 'tau', stroke: '#00838f', points: { show: true, size: 5 } }] },
+  // Shown once a frame carries them (`measure_deviation`, `max_deviation`; `volume`).
+  { el: 'plot-deviation', title: 'distance from the input', log: false, optional: true,
+    series: [
+      { label: 'max', key: 'deviation_max', stroke: '#c62828' },
+      { label: 'mean', key: 'deviation_mean', stroke: '#2f6fd6' },
+    ] },
+  { el: 'plot-volume', title: 'enclosed volume', log: false, optional: true,
+    series: [{ label: 'volume', key: 'volume', stroke: '#5d4037' }] },
 ];
 
 /** Tick labels of a log axis: plain numbers from 0.01 up, powers of ten below (uPlot's default
@@ -52,7 +60,10 @@ export class Plots {
   }
 
   clear() {
-    for (const c of this.charts) for (const a of c.data) a.length = 0;
+    for (const c of this.charts) {
+      for (const a of c.data) a.length = 0;
+      if (c.spec.optional) c.el.hidden = true;
+    }
     this.points = 0;
     this.redraw();
   }
@@ -67,6 +78,7 @@ export class Plots {
         let v = m[s.key];
         // Log scales cannot show 0 (step 0's residual, a flow without closure); τ is 0 at step 0.
         if (!(Number.isFinite(v)) || ((c.spec.log || s.key === 'tau') && v <= 0)) v = null;
+        if (v !== null && c.el.hidden) { c.el.hidden = false; c.chart.setSize({ width: Math.max(200, c.el.clientWidth), height: 170 }); }
         c.data[i + 1].push(v);
       });
     }

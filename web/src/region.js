@@ -1,0 +1,229 @@
+// The region and shape controls of the form (issue 29 item 6): pick a region on the 3D view
+// (press on the model, drag out a radius: a sphere, or a cube of that half-size in box mode),
+// its numbers editable in the form; the detail size shown as a ring on the model; preserve,
+// max_deviation, until_willmore, falloff. Each parameter is sent only when the user set it:
+// leaving a field empty leaves the server's default (and a server that does not know the
+// parameter is never asked about it).
+import { Vector3 } from 'three';
+import { Overlays } from './overlay.js';
+
+/** Lengths and numbers sent only when typed in. */
+const OPTIONAL_NUMBERS = ['falloff', 'feature_size', 'max_deviation', 'until_willmore'];
+
+class FieldError extends Error {
+  constructor(field, detail) { super(detail); this.problem = { field, detail }; }
+}
+
+export class RegionControls {
+  constructor(view, form) {
+    this.view = view;
+    this.form = form;
+    this.overlays = new Overlays(view);
+    // The picked part's world matrix (glTF nodes) and the surface normal at the centre.
+    this.matrix = null;
+    this.anchor = null; // { point: Vector3 world, normal: Vector3 world }
+    this.picking = false;
+    this.drag = null;
+    const $ = (id) => document.getElementById(id);
+    this.info = $('region-info');
+    this.pickButton = $('region-pick');
+    this.pickButton.addEventListener('click', () => this.setPicking(!this.picking));
+    $('region-clear').addEventListener('click', () => this.clear());
+    form.addEventListener('input', (e) => { if (this.owns(e.target)) this.fromForm(); });
+    form.addEventListener('change', (e) => { if (this.owns(e.target)) this.fromForm(); });
+    const canvas = view.canvas;
+    canvas.addEventListener('pointerdown', (e) => this.down(e));
+    canvas.addEventListener('pointermove', (e) => this.move(e));
+    canvas.addEventListener('pointerup', (e) => this.up(e));
+    canvas.addEventListener('pointercancel', (e) => this.up(e));
+    view.onModel(() => { this.anchor = null; this.matrix = null; this.setPicking(false); queueMicrotask(() => this.fromForm()); });
+    this.fromForm();
+  }
+
+  owns(el) {
+    return el.name === 'region' || el.name?.startsWith('region.') || el.name === 'feature_size';
+  }
+
+  setPicking(on) {
+    this.picking = on && !!this.view.model;
+    this.view.controls.enabled = !this.picking;
+    this.view.canvas.classList.toggle('picking', this.picking);
+    this.pickButton.setAttribute('aria-pressed', String(this.picking));
+    this.pickButton.classList.toggle('active', this.picking);
+    if (this.picking && this.form.elements.region.value === '') {
+      this.form.elements.region.value = 'sphere';
+      this.updateVisibility();
+    }
+    if (this.picking) this.info.textContent = 'press on the model at the centre and drag out the radius';
+  }
+
+  down(e) {
+    if (!this.picking || e.button !== 0) return;
+    const hit = this.view.pick(e.clientX, e.clientY);
+    if (!hit) { this.info.textContent = 'that is not on the model: press on the surface'; return; }
+    e.preventDefault();
+    this.view.canvas.setPointerCapture(e.pointerId);
+    this.matrix = hit.matrix;
+    this.anchor = { point: hit.point, normal: hit.normal };
+    this.drag = { centre: hit.local, scale: hit.matrix.getMaxScaleOnAxis() || 1, radius: 0 };
+    this.setShape(hit.local, 0);
+  }
+
+  move(e) {
+    if (!this.drag) return;
+    const p = this.view.onViewPlane(e.clientX, e.clientY, this.anchor.point);
+    if (!p) return;
+    // The radius is measured in the view's plane through the centre: the circle dragged out on
+    // the screen, in the file's units.
+    this.drag.radius = p.distanceTo(this.anchor.point) / this.drag.scale;
+    this.setShape(this.drag.centre, this.drag.radius);
+  }
+
+  up(e) {
+    if (!this.drag) return;
+    this.move(e);
+    // A click without a drag: a small region (2% of the model) to start from.
+    if (!(this.drag.radius > 0)) this.setShape(this.drag.centre, 0.02 * this.view.modelSize());
+    this.drag = null;
+    this.setPicking(false);
+    this.fromForm();
+  }
+
+  /** A sphere of `radius` at `centre`, or in box mode the cube of half-size `radius`. */
+  setShape(centre, radius) {
+    const e = this.form.elements;
+    const fmt = (v) => String(+v.toPrecision(7));
+    if (e.region.value === 'box') {
+      e['region.box.min'].value = centre.map((c) => fmt(c - radius)).join(',');
+      e['region.box.max'].value = centre.map((c) => fmt(c + radius)).join(',');
+    } else {
+      e['region.sphere.center'].value = centre.map(fmt).join(',');
+      e['region.sphere.radius'].value = fmt(radius);
+    }
+    this.fromForm();
+  }
+
+  clear() {
+    const e = this.form.elements;
+    this.setPicking(false);
+    e.region.value = '';
+    for (const name of ['region.sphere.center', 'region.sphere.radius', 'region.box.min', 'region.box.max']) e[name].value = '';
+    this.anchor = null;
+    this.fromForm();
+  }
+
+  updateVisibility() {
+    const mode = this.form.elements.region.value;
+    document.getElementById('region-sphere').hidden = mode !== 'sphere';
+    document.getElementById('region-box').hidden = mode !== 'box';
+  }
+
+  /** The region the form describes, or null (none, or not yet complete). */
+  region() {
+    const e = this.form.elements;
+    const mode = e.region.value;
+    const triple = (name) => {
+      const t = e[name].value.split(',').map((s) => s.trim()).filter((s) => s !== '');
+      const v = t.map(Number);
+      return v.length === 3 && v.every(Number.isFinite) ? v : null;
+    };
+    if (mode === 'sphere') {
+      const center = triple('region.sphere.center');
+      const radius = e['region.sphere.radius'].value.trim() === '' ? NaN : Number(e['region.sphere.radius'].value);
+      return center && Number.isFinite(radius) ? { kind: 'sphere', center, radius, matrix: this.matrix } : null;
+    }
+    if (mode === 'box') {
+      const min = triple('region.box.min'), max = triple('region.box.max');
+      return min && max ? { kind: 'box', min, max, matrix: this.matrix } : null;
+    }
+    return null;
+  }
+
+  /** Redraw the region and the ring from what the form says. */
+  fromForm() {
+    this.updateVisibility();
+    const region = this.region();
+    const count = this.overlays.setRegion(region);
+    const n = this.view.model?.fileVertexCount || 0;
+    if (!this.picking) {
+      this.info.textContent = region && n ? `${count} of ${n} vertices move; the rest stay exactly where they are` : '';
+    }
+    this.info.dataset.inside = region ? String(count) : '';
+    this.updateRing(region);
+  }
+
+  /** The detail size as a ring of that diameter on the model, facing the camera (so it reads
+   * at its true length there): at the region's centre or, without a region, where the view's
+   * centre meets the surface. Its caption gives the model's own size for scale. */
+  updateRing(region) {
+    const el = this.form.elements.feature_size;
+    const caption = document.getElementById('ring-label');
+    const length = Number(el.value);
+    let point = null;
+    if (el.value.trim() !== '' && length > 0 && this.view.model) {
+      if (region && this.anchor) {
+        point = this.anchor.point;
+      } else if (region) {
+        const c = region.kind === 'sphere' ? region.center : region.min.map((v, d) => (v + region.max[d]) / 2);
+        point = new Vector3().fromArray(c);
+        if (this.matrix) point.applyMatrix4(this.matrix);
+      } else {
+        const r = this.view.canvas.getBoundingClientRect();
+        point = this.view.pick(r.left + r.width / 2, r.top + r.height / 2)?.point ?? null;
+      }
+    }
+    caption.hidden = !point;
+    if (!point) { this.overlays.setRing(null); return; }
+    caption.textContent = `cyan ring: detail size ${length} (the model is ${this.view.modelSize().toPrecision(3)} across)`;
+    this.overlays.setRing({ point, length, matrix: this.matrix });
+  }
+
+  /** The parameters these controls set, each only when set (added to the job's `params`). */
+  params() {
+    const e = this.form.elements;
+    const out = {};
+    const mode = e.region.value;
+    if (mode) {
+      const region = this.region();
+      if (!region) {
+        const field = mode === 'sphere' ? 'region.sphere.center' : 'region.box.min';
+        throw new FieldError(field, `the ${mode} region needs its numbers: pick it on the view or type them (x,y,z)`);
+      }
+      out.region = region.kind === 'sphere'
+        ? { sphere: { center: region.center, radius: region.radius } }
+        : { box: { min: region.min, max: region.max } };
+      out.seam = e.seam.value;
+    }
+    for (const name of OPTIONAL_NUMBERS) {
+      const el = e[name];
+      if (el.validity.badInput) throw new FieldError(name, `invalid parameter \`${name}\`: not a number`);
+      if (el.value.trim() !== '') out[name] = Number(el.value);
+    }
+    if (e.preserve.value) out.preserve = e.preserve.value;
+    return out;
+  }
+
+  /** Show a job's parameters (as the API reports them) in these controls. */
+  fill(p) {
+    const e = this.form.elements;
+    const first = Array.isArray(p.region) ? p.region[0] : p.region;
+    this.matrix = null;
+    this.anchor = null;
+    for (const name of ['region.sphere.center', 'region.sphere.radius', 'region.box.min', 'region.box.max']) e[name].value = '';
+    if (first?.sphere) {
+      e.region.value = 'sphere';
+      e['region.sphere.center'].value = first.sphere.center.join(',');
+      e['region.sphere.radius'].value = first.sphere.radius;
+    } else if (first?.box) {
+      e.region.value = 'box';
+      e['region.box.min'].value = first.box.min.join(',');
+      e['region.box.max'].value = first.box.max.join(',');
+    } else {
+      e.region.value = '';
+    }
+    if (p.seam) e.seam.value = p.seam;
+    for (const name of OPTIONAL_NUMBERS) e[name].value = p[name] ?? '';
+    e.preserve.value = typeof p.preserve === 'string' ? p.preserve : '';
+    this.fromForm();
+  }
+}
