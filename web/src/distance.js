@@ -1,9 +1,10 @@
 // Distance from a point to a triangle surface (the input), for the page's "distance from the
 // input" colours (issue 29 item 3). Nearest point on the input's *triangles*, not the nearest
 // input vertex nor the vertex's own displacement: a vertex that slid along the surface is at
-// distance 0. Triangles are binned in a uniform grid over their bounding boxes; a query visits
-// cells in growing shells around its own and stops once no unvisited cell can hold anything
-// nearer than the best found. Pure JS, no three.js: the unit test runs it in node.
+// distance 0. The triangles sit in a bounding-volume hierarchy (median splits, a few triangles
+// per leaf); a query descends nearer boxes first and skips any box no nearer than the best
+// found, so points far from the surface (a flow that moved a lot) cost no more than near ones.
+// Pure JS, no three.js: the unit test runs it in node.
 
 /**
  * Squared distance from p to the triangle (a, b, c): Ericson, "Real-Time Collision Detection"
@@ -50,6 +51,9 @@ export function pointTriangleDistance2(px, py, pz, P, a, b, c) {
   return (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2;
 }
 
+/** Triangles per BVH leaf. */
+const LEAF = 4;
+
 /** The input surface, ready for nearest-point queries. */
 export class SurfaceDistance {
   /** `positions`: 3 numbers per vertex; `faces`: 3 vertex indices per triangle (copied). */
@@ -57,103 +61,133 @@ export class SurfaceDistance {
     this.P = Float64Array.from(positions);
     this.faces = Uint32Array.from(faces);
     const P = this.P, F = this.faces, nf = F.length / 3;
-    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-    let edge = 0;
-    for (let f = 0; f < F.length; f += 3) {
-      for (let k = 0; k < 3; k++) {
-        const s = 3 * F[f + k];
-        for (let d = 0; d < 3; d++) { lo[d] = Math.min(lo[d], P[s + d]); hi[d] = Math.max(hi[d], P[s + d]); }
-      }
-      const a = 3 * F[f], b = 3 * F[f + 1];
-      edge += Math.hypot(P[b] - P[a], P[b + 1] - P[a + 1], P[b + 2] - P[a + 2]);
-    }
     if (nf === 0) throw new Error('no triangles to measure the distance to');
-    // Cells about two mean edges wide: a few triangles each. The cell count is capped (4 per
-    // triangle, at least 64) so a long thin mesh cannot ask for a huge grid.
-    const ext = [0, 1, 2].map((d) => Math.max(hi[d] - lo[d], 1e-12));
-    let cell = Math.max(2 * edge / nf, 1e-12);
-    const cap = Math.max(64, 4 * nf);
-    while (Math.ceil(ext[0] / cell) * Math.ceil(ext[1] / cell) * Math.ceil(ext[2] / cell) > cap) cell *= 1.25;
-    this.cell = cell;
-    this.lo = lo;
-    this.n = ext.map((e) => Math.max(1, Math.ceil(e / cell)));
-    const [nx, ny, nz] = this.n;
-    // Two passes (count, fill): a compact cell → triangles table.
-    const count = new Uint32Array(nx * ny * nz + 1);
-    const range = new Int32Array(6);
-    const visit = (f, fn) => {
-      for (let d = 0; d < 3; d++) { range[d] = Infinity; range[d + 3] = -Infinity; }
-      for (let k = 0; k < 3; k++) {
-        const s = 3 * F[f + k];
-        for (let d = 0; d < 3; d++) {
-          const c = this.cellOf(P[s + d], d);
-          if (c < range[d]) range[d] = c;
-          if (c > range[d + 3]) range[d + 3] = c;
-        }
-      }
-      for (let i = range[0]; i <= range[3]; i++)
-        for (let j = range[1]; j <= range[4]; j++)
-          for (let k = range[2]; k <= range[5]; k++) fn((k * ny + j) * nx + i);
-    };
-    for (let f = 0; f < F.length; f += 3) visit(f, (c) => count[c + 1]++);
-    for (let c = 0; c < nx * ny * nz; c++) count[c + 1] += count[c];
-    this.start = count;
-    this.items = new Uint32Array(count[nx * ny * nz]);
-    const fill = count.slice(0, nx * ny * nz);
-    for (let f = 0; f < F.length; f += 3) visit(f, (c) => { this.items[fill[c]++] = f; });
-    this.stamp = new Uint32Array(nf);
-    this.query = 0;
-  }
-
-  cellOf(x, d) {
-    const c = Math.floor((x - this.lo[d]) / this.cell);
-    return c < 0 ? 0 : c >= this.n[d] ? this.n[d] - 1 : c;
-  }
-
-  /** Distance from (x, y, z) to the nearest point of the surface. */
-  distance(x, y, z) {
-    const { P, faces, items, start, stamp, cell, lo } = this;
-    const [nx, ny, nz] = this.n;
-    if (++this.query === 0xffffffff) { stamp.fill(0); this.query = 1; }
-    const q = this.query;
-    const ci = this.cellOf(x, 0), cj = this.cellOf(y, 1), ck = this.cellOf(z, 2);
-    let best = Infinity;
-    const rmax = Math.max(nx, ny, nz);
-    for (let r = 0; r <= rmax; r++) {
-      // Shell r: the cells at Chebyshev distance r from (ci, cj, ck).
-      for (let k = ck - r; k <= ck + r; k++) {
-        if (k < 0 || k >= nz) continue;
-        for (let j = cj - r; j <= cj + r; j++) {
-          if (j < 0 || j >= ny) continue;
-          const onFace = k === ck - r || k === ck + r || j === cj - r || j === cj + r;
-          for (let i = ci - r; i <= ci + r; i += onFace ? 1 : 2 * r || 1) {
-            if (i < 0 || i >= nx) continue;
-            const c = (k * ny + j) * nx + i;
-            for (let t = start[c]; t < start[c + 1]; t++) {
-              const f = items[t];
-              if (stamp[f / 3] === q) continue;
-              stamp[f / 3] = q;
-              const d2 = pointTriangleDistance2(x, y, z, P, 3 * faces[f], 3 * faces[f + 1], 3 * faces[f + 2]);
-              if (d2 < best) best = d2;
-            }
-          }
-        }
-      }
-      if (best === Infinity) continue;
-      // Everything not yet visited lies outside the block of cells [c−r, c+r]: at least as far
-      // as the block's nearest face from the point (0 if the point is outside the block).
-      let bound = Infinity;
-      const p = [x, y, z], c0 = [ci, cj, ck];
+    const centroid = new Float64Array(3 * nf);
+    const tbox = new Float64Array(6 * nf);
+    for (let t = 0; t < nf; t++) {
       for (let d = 0; d < 3; d++) {
-        const blo = lo[d] + (c0[d] - r) * cell, bhi = lo[d] + (c0[d] + r + 1) * cell;
-        // A side at the grid's edge has nothing beyond it.
-        const below = c0[d] - r <= 0 ? Infinity : p[d] - blo;
-        const above = c0[d] + r >= this.n[d] - 1 ? Infinity : bhi - p[d];
-        bound = Math.min(bound, below, above);
+        const a = P[3 * F[3 * t] + d], b = P[3 * F[3 * t + 1] + d], c = P[3 * F[3 * t + 2] + d];
+        centroid[3 * t + d] = (a + b + c) / 3;
+        tbox[6 * t + d] = Math.min(a, b, c);
+        tbox[6 * t + 3 + d] = Math.max(a, b, c);
       }
-      if (bound < 0) bound = 0;
-      if (bound * bound >= best) break;
+    }
+    const order = new Uint32Array(nf);
+    for (let t = 0; t < nf; t++) order[t] = t;
+    // Nodes: box (6 numbers), then either children (left, right) or a leaf's range of `order`.
+    const maxNodes = 2 * Math.ceil(nf / LEAF) * 2 + 1;
+    const box = new Float64Array(6 * maxNodes);
+    const child = new Int32Array(2 * maxNodes); // left, right; left = −1 − start for a leaf
+    const count = new Uint32Array(maxNodes);
+    let nodes = 0;
+    const work = [[0, nf, nodes++]];
+    while (work.length) {
+      const [start, end, node] = work.pop();
+      const b = 6 * node;
+      for (let d = 0; d < 3; d++) { box[b + d] = Infinity; box[b + 3 + d] = -Infinity; }
+      const clo = [Infinity, Infinity, Infinity], chi = [-Infinity, -Infinity, -Infinity];
+      for (let k = start; k < end; k++) {
+        const t = order[k];
+        for (let d = 0; d < 3; d++) {
+          box[b + d] = Math.min(box[b + d], tbox[6 * t + d]);
+          box[b + 3 + d] = Math.max(box[b + 3 + d], tbox[6 * t + 3 + d]);
+          clo[d] = Math.min(clo[d], centroid[3 * t + d]);
+          chi[d] = Math.max(chi[d], centroid[3 * t + d]);
+        }
+      }
+      if (end - start <= LEAF) {
+        child[2 * node] = -1 - start;
+        count[node] = end - start;
+        continue;
+      }
+      // Split at the median centroid along the centroids' longest extent.
+      const ext = [0, 1, 2].map((d) => chi[d] - clo[d]);
+      const axis = ext[0] >= ext[1] && ext[0] >= ext[2] ? 0 : ext[1] >= ext[2] ? 1 : 2;
+      const mid = (start + end) >> 1;
+      select(order, start, end - 1, mid, (t) => centroid[3 * t + axis]);
+      const left = nodes++, right = nodes++;
+      child[2 * node] = left;
+      child[2 * node + 1] = right;
+      work.push([start, mid, left], [mid, end, right]);
+    }
+    this.order = order;
+    this.box = box;
+    this.child = child;
+    this.count = count;
+    this.stack = new Int32Array(128);
+    this.near = new Float64Array(128);
+  }
+
+  /** Squared distance from (x, y, z) to node `n`'s box (0 inside it). */
+  boxDistance2(n, x, y, z) {
+    const b = this.box, o = 6 * n;
+    const dx = Math.max(b[o] - x, 0, x - b[o + 3]);
+    const dy = Math.max(b[o + 1] - y, 0, y - b[o + 4]);
+    const dz = Math.max(b[o + 2] - z, 0, z - b[o + 5]);
+    return dx * dx + dy * dy + dz * dz;
+  }
+
+  /**
+   * Distance from (x, y, z) to the nearest point of the surface. `known2`, if given, is the
+   * squared distance to some point known to lie on the surface (a moved vertex's own input
+   * position): the search then only looks for something nearer, and a vertex that has not
+   * moved costs nothing.
+   */
+  distance(x, y, z, known2 = Infinity) {
+    if (known2 === 0) return 0;
+    const { P, faces, order, child, count } = this;
+    let stack = this.stack, near = this.near;
+    let best = known2;
+    let top = 0;
+    stack[top] = 0;
+    near[top++] = this.boxDistance2(0, x, y, z);
+    while (top > 0) {
+      const n = stack[--top];
+      // Its box's distance, from when it was pushed: skipped if something nearer was found since.
+      if (near[top] >= best) continue;
+      const left = child[2 * n];
+      if (left < 0) {
+        const start = -1 - left;
+        for (let k = start; k < start + count[n]; k++) {
+          const t = 3 * order[k];
+          const d2 = pointTriangleDistance2(x, y, z, P, 3 * faces[t], 3 * faces[t + 1], 3 * faces[t + 2]);
+          if (d2 < best) best = d2;
+        }
+        continue;
+      }
+      const right = child[2 * n + 1];
+      const dl = this.boxDistance2(left, x, y, z), dr = this.boxDistance2(right, x, y, z);
+      if (top + 2 > stack.length) {
+        const s2 = new Int32Array(2 * stack.length), n2 = new Float64Array(2 * stack.length);
+        s2.set(stack); n2.set(near);
+        stack = this.stack = s2; near = this.near = n2;
+      }
+      // The nearer child is searched first (pushed last).
+      if (dl < dr) {
+        if (dr < best) { stack[top] = right; near[top++] = dr; }
+        if (dl < best) { stack[top] = left; near[top++] = dl; }
+      } else {
+        if (dl < best) { stack[top] = left; near[top++] = dl; }
+        if (dr < best) { stack[top] = right; near[top++] = dr; }
+      }
     }
     return Math.sqrt(best);
+  }
+}
+
+/** Reorder `a[lo..=hi]` so that `a[k]` holds the element of rank k by `key`, smaller keys
+ * before it and larger after (Hoare's selection). */
+function select(a, lo, hi, k, key) {
+  while (hi > lo) {
+    const pivot = key(a[(lo + hi) >> 1]);
+    let i = lo, j = hi;
+    while (i <= j) {
+      while (key(a[i]) < pivot) i++;
+      while (key(a[j]) > pivot) j--;
+      if (i <= j) { const t = a[i]; a[i] = a[j]; a[j] = t; i++; j--; }
+    }
+    if (k <= j) hi = j;
+    else if (k >= i) lo = i;
+    else return;
   }
 }

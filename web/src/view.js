@@ -151,6 +151,7 @@ export class View {
     this.inputSurface = null;
     this.distanceScale = 0;
     this.distance = new Float32Array(nw);
+    this.distanceIdleAt = 0;
     this.stats.vertexCount = n;
     this.stats.triangleCount = faceCount;
     this.showingInput = false;
@@ -296,6 +297,16 @@ export class View {
    * largest distance shown so far), so a colour means the same distance in every frame.
    */
   updateDistance() {
+    // At most a fifth of the time goes here while frames stream (a 100k-triangle surface takes
+    // a few hundred ms); the latest surface is coloured once the pause is over.
+    const t0 = performance.now();
+    if (t0 < this.distanceIdleAt) {
+      this.distanceTimer ??= setTimeout(() => {
+        this.distanceTimer = null;
+        if (this.colour === 'distance' && this.lastPositions) { this.updateDistance(); this.requestRender(); }
+      }, this.distanceIdleAt - t0);
+      return;
+    }
     const { count, rep, faces } = this.weld;
     if (!this.inputSurface) {
       const fp = this.model.filePositions;
@@ -305,12 +316,17 @@ export class View {
         input[3 * w] = fp[s]; input[3 * w + 1] = fp[s + 1]; input[3 * w + 2] = fp[s + 2];
       }
       this.inputSurface = new SurfaceDistance(input, faces);
+      this.inputWelded = input;
     }
     const { wpos } = this.scratch;
-    const d = this.distance;
+    const d = this.distance, input = this.inputWelded;
     let max = 0, sum = 0;
     for (let w = 0; w < count; w++) {
-      const v = this.inputSurface.distance(wpos[3 * w], wpos[3 * w + 1], wpos[3 * w + 2]);
+      const x = wpos[3 * w], y = wpos[3 * w + 1], z = wpos[3 * w + 2];
+      // The vertex's own input position is a point of the input surface: a bound to beat (0
+      // for a vertex that did not move, outside a region).
+      const own = (x - input[3 * w]) ** 2 + (y - input[3 * w + 1]) ** 2 + (z - input[3 * w + 2]) ** 2;
+      const v = this.inputSurface.distance(x, y, z, own);
       d[w] = v;
       sum += v;
       if (v > max) max = v;
@@ -329,6 +345,7 @@ export class View {
       legend.innerHTML = `distance from the input 0<i></i>${this.distanceScale.toPrecision(3)}` +
         `<br><span>this surface: max ${max.toPrecision(3)}, mean ${(sum / Math.max(count, 1)).toPrecision(3)}</span>`;
     }
+    this.distanceIdleAt = performance.now() + 4 * (performance.now() - t0);
   }
 
   /** Point the raycaster through the client position (x, y) of the canvas. */
