@@ -230,3 +230,48 @@ test('a sphere region picked by mouse on the view moves only what it holds; befo
   await shot('13-region-distance');
   assert.deepEqual(problems, [], 'console errors or requests to other hosts');
 });
+
+test('the outcome and its reason are shown when the job ends; distance and volume plots appear once frames carry them', { skip }, async () => {
+  // Until the server reports them, its answers are given the fields of the API's contract
+  // (job: `outcome`, `outcome_reason`; frames: `deviation_max`, `deviation_mean`, `volume`):
+  // the job JSON, the stream's `done` event (the same JSON) and the frames' metrics.
+  const id = await page.evaluate(() => location.hash.slice(5));
+  assert.match(id, /^[0-9a-f-]{36}$/, 'the previous test left its job in the URL');
+  const outcome = { outcome: 'max_deviation', outcome_reason: 'the next step would move the surface 0.03 from the input, beyond max_deviation 0.02' };
+  const withOutcome = (job) => (job.id === id ? { ...job, ...outcome } : job);
+  const routes = [
+    [(u) => u.pathname === `/v1/jobs/${id}`, (body) => JSON.stringify(withOutcome(JSON.parse(body)))],
+    [(u) => u.pathname === `/v1/jobs/${id}/events`, (body) => body.replace(/^(event: ?done\ndata: ?)(.*)$/m,
+      (_, head, data) => head + JSON.stringify(withOutcome(JSON.parse(data))))],
+    [(u) => u.pathname === `/v1/jobs/${id}/frames`, (body) => {
+      const page1 = JSON.parse(body);
+      for (const m of page1.frames) Object.assign(m, { deviation_max: 0.01 * m.step, deviation_mean: 0.002 * m.step, volume: 0.5 + 0.001 * m.step });
+      return JSON.stringify(page1);
+    }],
+  ];
+  for (const [match, rewrite] of routes) {
+    await page.route(match, async (route) => {
+      const res = await route.fetch();
+      route.fulfill({ response: res, body: rewrite(await res.text()) });
+    });
+  }
+  await page.reload();
+  await waitStats(page, (id) => window.willowStats.jobId === id && window.willowStats.state === 'succeeded', id);
+  const el = page.locator('#outcome');
+  await el.filter({ hasText: 'max deviation' }).waitFor({ timeout: 30_000 });
+  // The stream's `done` comes after the job JSON: the outcome is still there once it has.
+  await page.waitForFunction(() => window.willowStats.framesApplied >= 1);
+  await page.waitForTimeout(500);
+  assert.equal(await el.getAttribute('data-outcome'), 'max_deviation');
+  assert.equal(await el.textContent(), `ended: max deviation — ${outcome.outcome_reason}`);
+  assert.ok(await page.locator('#plot-deviation').isVisible(), 'the distance plot appears');
+  assert.ok(await page.locator('#plot-volume').isVisible(), 'the volume plot appears');
+  // The form shows the job's region again, tinted on the model it fetched back.
+  assert.equal(await page.locator('[name="region"]').inputValue(), 'sphere');
+  await page.waitForFunction(() => Number(document.getElementById('region-info').dataset.inside) > 0);
+  await page.locator('#view-panel').scrollIntoViewIfNeeded();
+  await shot('14-outcome');
+  await page.locator('#plots').screenshot({ path: join(ARTIFACTS, '15-distance-volume-plots.png') });
+  await page.unrouteAll();
+  assert.deepEqual(problems, [], 'console errors or requests to other hosts');
+});
