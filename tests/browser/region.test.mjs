@@ -275,3 +275,59 @@ test('the outcome and its reason are shown when the job ends; distance and volum
   await page.unrouteAll();
   assert.deepEqual(problems, [], 'console errors or requests to other hosts');
 });
+
+const duck = sharedMesh('Duck.glb');
+
+test('a region picked on a glTF with a scaled node is in world space: the server moves what the page tints', { skip: !duck && 'Duck.glb is not on this machine' }, async () => {
+  await page.goto(URL_BASE + '/');
+  await page.setInputFiles('#files', [duck]);
+  await page.waitForFunction(() => /texture \(embedded\)/.test(document.getElementById('file-info').textContent));
+  await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  await page.fill('[name="steps"]', '3');
+  await page.click('#region-pick');
+  const box = await page.locator('#canvas').boundingBox();
+  const x = box.x + box.width / 2, y = box.y + box.height / 2;
+  await page.mouse.move(x, y);
+  await page.mouse.down();
+  await page.mouse.move(x + 50, y, { steps: 5 });
+  await page.mouse.up();
+  const center = (await page.locator('[name="region.sphere.center"]').inputValue()).split(',').map(Number);
+  const radius = Number(await page.locator('[name="region.sphere.radius"]').inputValue());
+  // The file's positions and each one's node matrix (Duck's node scales by 0.01): the test's
+  // own world-space selection.
+  const model = await page.evaluate(() => {
+    const m = window.willow.view.model;
+    const matrixOf = new Array(m.fileVertexCount).fill(null);
+    for (const p of m.parts) for (const i of p.gather) matrixOf[i] = p.matrix;
+    return { input: Array.from(m.filePositions), matrixOf };
+  });
+  assert.ok(model.matrixOf.some((m) => m && m[0] !== 1), 'Duck has a scaled node');
+  const n = model.matrixOf.length;
+  const world = (i) => {
+    const m = model.matrixOf[i] || [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
+    const [px, py, pz] = model.input.slice(3 * i, 3 * i + 3);
+    return [0, 1, 2].map((d) => m[d] * px + m[4 + d] * py + m[8 + d] * pz + m[12 + d]);
+  };
+  const inside = [];
+  for (let i = 0; i < n; i++) if (Math.hypot(...world(i).map((v, d) => v - center[d])) <= radius) inside.push(i);
+  assert.ok(inside.length > 0 && inside.length < n, `${inside.length} of ${n} inside`);
+  assert.equal(Number(await page.locator('#region-info').getAttribute('data-inside')), inside.length, 'the page tints the world-space selection');
+
+  await page.click('#submit');
+  await page.waitForFunction(() => /^#job=/.test(location.hash));
+  const done = await waitStats(page, () => ['succeeded', 'failed', 'cancelled'].includes(window.willowStats.state));
+  assert.equal(done.state, 'succeeded', await page.locator('#view-error').textContent());
+  await page.waitForFunction(() => /step 3\//.test(document.getElementById('frame-counter').textContent));
+  const current = await page.evaluate(() => Array.from(window.willow.view.current));
+  const isInside = new Set(inside);
+  let moved = 0;
+  for (let i = 0; i < n; i++) {
+    const changed = [0, 1, 2].some((d) => current[3 * i + d] !== model.input[3 * i + d]);
+    if (!isInside.has(i)) assert.ok(!changed, `vertex ${i} lies outside the region and moved`);
+    else if (changed) moved++;
+  }
+  assert.ok(moved > inside.length / 2, `${moved} of the ${inside.length} vertices inside moved`);
+  await page.locator('#view-panel').scrollIntoViewIfNeeded();
+  await shot('16-duck-region');
+  assert.deepEqual(problems, [], 'console errors or requests to other hosts');
+});

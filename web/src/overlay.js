@@ -4,7 +4,7 @@
 // surface, facing the camera. Tints share the surface's own position buffers, so they follow every frame.
 import {
   BoxGeometry, BufferAttribute, BufferGeometry, EdgesGeometry, Group, LineBasicMaterial, LineLoop,
-  LineSegments, Matrix4, Mesh, MeshBasicMaterial, SphereGeometry,
+  LineSegments, Mesh, MeshBasicMaterial, SphereGeometry,
 } from 'three';
 
 /** Is file vertex `i` of `P` (3 numbers per vertex) inside `region`? As the server decides it:
@@ -25,18 +25,17 @@ export class Overlays {
     this.group = new Group();
     view.scene.add(this.group);
     this.tintMaterial = new MeshBasicMaterial({
-      color: 0xff8a00, transparent: true, opacity: 0.5, depthWrite: false,
+      color: 0xff2bd6, transparent: true, opacity: 0.45, depthWrite: false,
       polygonOffset: true, polygonOffsetFactor: -2, polygonOffsetUnits: -2,
     });
     this.tints = [];
     this.tinted = true;
-    // The region's shape, in the picked part's coordinates (`frame` carries its matrix).
+    // The region's shape (world space).
     this.frame = new Group();
-    this.frame.matrixAutoUpdate = false;
     this.group.add(this.frame);
     this.sphere = new Mesh(new SphereGeometry(1, 32, 16),
-      new MeshBasicMaterial({ color: 0xffc266, wireframe: true, transparent: true, opacity: 0.18, depthWrite: false }));
-    this.box = new LineSegments(new EdgesGeometry(new BoxGeometry(1, 1, 1)), new LineBasicMaterial({ color: 0xffc266 }));
+      new MeshBasicMaterial({ color: 0xff8af0, wireframe: true, transparent: true, opacity: 0.18, depthWrite: false }));
+    this.box = new LineSegments(new EdgesGeometry(new BoxGeometry(1, 1, 1)), new LineBasicMaterial({ color: 0xff8af0 }));
     this.frame.add(this.sphere, this.box);
     this.sphere.visible = this.box.visible = false;
     // The detail-size ring: a unit circle and one diameter across it, scaled to the length.
@@ -61,9 +60,9 @@ export class Overlays {
   }
 
   /**
-   * Tint and outline `region` ({kind: 'sphere', center, radius} or {kind: 'box', min, max}, file
-   * coordinates; `matrix`: the picked part's world matrix, or null), or nothing. Returns how
-   * many file vertices it selects.
+   * Tint and outline `region` ({kind: 'sphere', center, radius} or {kind: 'box', min, max}, in
+   * world space as the server reads regions), or nothing. Returns how many file vertices it
+   * selects.
    */
   setRegion(region) {
     for (const t of this.tints) { this.view.scene.remove(t); t.geometry.dispose(); }
@@ -72,7 +71,8 @@ export class Overlays {
     this.sphere.visible = this.box.visible = false;
     const view = this.view;
     if (!region || !view.model) { this.inside = null; view.requestRender(); return 0; }
-    const P = view.model.filePositions;
+    if (this.worldFor !== view.model) { this.world = view.toWorld(view.model.filePositions); this.worldFor = view.model; }
+    const P = this.world;
     const n = view.model.fileVertexCount;
     const inside = new Uint8Array(n);
     let count = 0;
@@ -97,8 +97,6 @@ export class Overlays {
       view.scene.add(tint);
       this.tints.push(tint);
     }
-    this.frame.matrix.copy(region.matrix || new Matrix4());
-    this.frame.matrixWorldNeedsUpdate = true;
     if (region.kind === 'sphere') {
       this.sphere.position.fromArray(region.center);
       this.sphere.scale.setScalar(Math.max(region.radius, 1e-9));
@@ -120,14 +118,13 @@ export class Overlays {
     this.view.requestRender();
   }
 
-  /** The detail-size ring: diameter `length` (file units, scaled by `matrix` when given),
-   * centred at `point` (world), facing the camera; null hides it. */
+  /** The detail-size ring: diameter `length` (world units), centred at `point` (world),
+   * facing the camera; null hides it. */
   setRing(at) {
     this.ring.visible = !!at;
     if (at) {
-      const scale = at.matrix ? at.matrix.getMaxScaleOnAxis() : 1;
       this.ring.position.copy(at.point);
-      this.ring.scale.setScalar(at.length * scale);
+      this.ring.scale.setScalar(at.length);
       this.ring.quaternion.copy(this.view.camera.quaternion);
     }
     this.view.requestRender();

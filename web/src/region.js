@@ -19,9 +19,8 @@ export class RegionControls {
     this.view = view;
     this.form = form;
     this.overlays = new Overlays(view);
-    // The picked part's world matrix (glTF nodes) and the surface normal at the centre.
-    this.matrix = null;
-    this.anchor = null; // { point: Vector3 world, normal: Vector3 world }
+    // Where the region was picked on the surface (world space, as regions are).
+    this.anchor = null; // { point: Vector3, normal: Vector3 }
     this.picking = false;
     this.drag = null;
     const $ = (id) => document.getElementById(id);
@@ -36,7 +35,7 @@ export class RegionControls {
     canvas.addEventListener('pointermove', (e) => this.move(e));
     canvas.addEventListener('pointerup', (e) => this.up(e));
     canvas.addEventListener('pointercancel', (e) => this.up(e));
-    view.onModel(() => { this.anchor = null; this.matrix = null; this.setPicking(false); queueMicrotask(() => this.fromForm()); });
+    view.onModel(() => { this.anchor = null; this.setPicking(false); queueMicrotask(() => this.fromForm()); });
     this.fromForm();
   }
 
@@ -63,10 +62,9 @@ export class RegionControls {
     if (!hit) { this.info.textContent = 'that is not on the model: press on the surface'; return; }
     e.preventDefault();
     this.view.canvas.setPointerCapture(e.pointerId);
-    this.matrix = hit.matrix;
     this.anchor = { point: hit.point, normal: hit.normal };
-    this.drag = { centre: hit.local, scale: hit.matrix.getMaxScaleOnAxis() || 1, radius: 0 };
-    this.setShape(hit.local, 0);
+    this.drag = { centre: hit.point.toArray(), radius: 0 };
+    this.setShape(this.drag.centre, 0);
   }
 
   move(e) {
@@ -74,8 +72,8 @@ export class RegionControls {
     const p = this.view.onViewPlane(e.clientX, e.clientY, this.anchor.point);
     if (!p) return;
     // The radius is measured in the view's plane through the centre: the circle dragged out on
-    // the screen, in the file's units.
-    this.drag.radius = p.distanceTo(this.anchor.point) / this.drag.scale;
+    // the screen, in the model's (world) units.
+    this.drag.radius = p.distanceTo(this.anchor.point);
     this.setShape(this.drag.centre, this.drag.radius);
   }
 
@@ -130,11 +128,11 @@ export class RegionControls {
     if (mode === 'sphere') {
       const center = triple('region.sphere.center');
       const radius = e['region.sphere.radius'].value.trim() === '' ? NaN : Number(e['region.sphere.radius'].value);
-      return center && Number.isFinite(radius) ? { kind: 'sphere', center, radius, matrix: this.matrix } : null;
+      return center && Number.isFinite(radius) ? { kind: 'sphere', center, radius } : null;
     }
     if (mode === 'box') {
       const min = triple('region.box.min'), max = triple('region.box.max');
-      return min && max ? { kind: 'box', min, max, matrix: this.matrix } : null;
+      return min && max ? { kind: 'box', min, max } : null;
     }
     return null;
   }
@@ -166,7 +164,6 @@ export class RegionControls {
       } else if (region) {
         const c = region.kind === 'sphere' ? region.center : region.min.map((v, d) => (v + region.max[d]) / 2);
         point = new Vector3().fromArray(c);
-        if (this.matrix) point.applyMatrix4(this.matrix);
       } else {
         const r = this.view.canvas.getBoundingClientRect();
         point = this.view.pick(r.left + r.width / 2, r.top + r.height / 2)?.point ?? null;
@@ -175,7 +172,7 @@ export class RegionControls {
     caption.hidden = !point;
     if (!point) { this.overlays.setRing(null); return; }
     caption.textContent = `cyan ring: detail size ${length} (the model is ${this.view.modelSize().toPrecision(3)} across)`;
-    this.overlays.setRing({ point, length, matrix: this.matrix });
+    this.overlays.setRing({ point, length });
   }
 
   /** The parameters these controls set, each only when set (added to the job's `params`). */
@@ -207,7 +204,6 @@ export class RegionControls {
   fill(p) {
     const e = this.form.elements;
     const first = Array.isArray(p.region) ? p.region[0] : p.region;
-    this.matrix = null;
     this.anchor = null;
     for (const name of ['region.sphere.center', 'region.sphere.radius', 'region.box.min', 'region.box.max']) e[name].value = '';
     if (first?.sphere) {

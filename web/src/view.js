@@ -142,6 +142,11 @@ export class View {
       return { part, geometry: g, pos, nor, col, welded, textured, mesh };
     });
     this.weld = { count: nw, rep, faces };
+    // Each file vertex's local→world matrix (glTF nodes; null for OBJ): regions and distances
+    // are in world space, as the server reads them (willow::mesh::io, "spheres and boxes in its
+    // world space").
+    this.matrixOf = new Array(n).fill(null);
+    for (const part of model.parts) if (part.matrix) for (const i of part.gather) this.matrixOf[i] = part.matrix;
     this.scratch = {
       wpos: new Float32Array(nw * 3), normal: new Float32Array(nw * 3),
       lap: new Float32Array(nw * 3), area: new Float32Array(nw), h: new Float32Array(nw),
@@ -309,7 +314,7 @@ export class View {
     }
     const { count, rep, faces } = this.weld;
     if (!this.inputSurface) {
-      const fp = this.model.filePositions;
+      const fp = this.toWorld(this.model.filePositions);
       const input = new Float64Array(3 * count);
       for (let w = 0; w < count; w++) {
         const s = 3 * rep[w];
@@ -322,7 +327,11 @@ export class View {
     const d = this.distance, input = this.inputWelded;
     let max = 0, sum = 0;
     for (let w = 0; w < count; w++) {
-      const x = wpos[3 * w], y = wpos[3 * w + 1], z = wpos[3 * w + 2];
+      let x = wpos[3 * w], y = wpos[3 * w + 1], z = wpos[3 * w + 2];
+      const m = this.matrixOf[rep[w]];
+      if (m) {
+        [x, y, z] = [m[0] * x + m[4] * y + m[8] * z + m[12], m[1] * x + m[5] * y + m[9] * z + m[13], m[2] * x + m[6] * y + m[10] * z + m[14]];
+      }
       // The vertex's own input position is a point of the input surface: a bound to beat (0
       // for a vertex that did not move, outside a region).
       const own = (x - input[3 * w]) ** 2 + (y - input[3 * w + 1]) ** 2 + (z - input[3 * w + 2]) ** 2;
@@ -356,11 +365,8 @@ export class View {
     return this.raycaster.ray;
   }
 
-  /**
-   * The surface under the client position (x, y), as shown: `{ point, normal }` in world space
-   * and `local`, the point in the hit part's own (file) coordinates, with that part's `matrix`;
-   * null where the ray misses.
-   */
+  /** The surface under the client position (x, y), as shown: `{ point, normal }` in world
+   * space; null where the ray misses. */
   pick(x, y) {
     if (!this.parts) return null;
     this.rayAt(x, y);
@@ -369,10 +375,8 @@ export class View {
     for (const p of this.parts) { p.geometry.boundingSphere = null; p.geometry.boundingBox = null; }
     const hit = this.raycaster.intersectObjects(this.meshes, false)[0];
     if (!hit) return null;
-    const matrix = hit.object.matrixWorld.clone();
-    const local = hit.point.clone().applyMatrix4(matrix.clone().invert());
-    const normal = hit.face ? hit.face.normal.clone().transformDirection(matrix) : new Vector3(0, 0, 1);
-    return { point: hit.point.clone(), normal, local: local.toArray(), matrix };
+    const normal = hit.face ? hit.face.normal.clone().transformDirection(hit.object.matrixWorld) : new Vector3(0, 0, 1);
+    return { point: hit.point.clone(), normal };
   }
 
   /** Where the ray through (x, y) meets the plane through `point` (world) facing the camera. */
@@ -382,10 +386,17 @@ export class View {
     return ray.intersectPlane(new Plane().setFromNormalAndCoplanarPoint(n, point), new Vector3());
   }
 
-  /** The model's size: the diagonal of its bounding box in file coordinates. */
+  /** `filePositions` (3 per file vertex) in world space, as a new Float64Array. */
+  toWorld(filePositions) {
+    const out = Float64Array.from(filePositions);
+    for (let i = 0; i < this.matrixOf.length; i++) if (this.matrixOf[i]) worldInPlace(out, 3 * i, this.matrixOf[i]);
+    return out;
+  }
+
+  /** The model's size: the diagonal of its bounding box (world space). */
   modelSize() {
-    const p = this.model?.filePositions;
-    if (!p) return 0;
+    if (!this.model) return 0;
+    const p = this.toWorld(this.model.filePositions);
     const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
     for (let i = 0; i < p.length; i += 3) {
       for (let d = 0; d < 3; d++) { lo[d] = Math.min(lo[d], p[i + d]); hi[d] = Math.max(hi[d], p[i + d]); }
@@ -481,4 +492,12 @@ function rampSequential(t, out, o) {
   out[o] = a[0] + (b[0] - a[0]) * f;
   out[o + 1] = a[1] + (b[1] - a[1]) * f;
   out[o + 2] = a[2] + (b[2] - a[2]) * f;
+}
+
+/** p[o..o+3] ← m·p (m: a column-major 4×4 affine matrix, as glTF stores it). */
+function worldInPlace(p, o, m) {
+  const x = p[o], y = p[o + 1], z = p[o + 2];
+  p[o] = m[0] * x + m[4] * y + m[8] * z + m[12];
+  p[o + 1] = m[1] * x + m[5] * y + m[9] * z + m[13];
+  p[o + 2] = m[2] * x + m[6] * y + m[10] * z + m[14];
 }
