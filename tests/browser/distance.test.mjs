@@ -1,6 +1,6 @@
 // The page's distance-from-the-input colours (web/src/distance.js), checked in node without a
 // browser: analytic cases on a flat square, and a brute force over every triangle of a bumpy
-// sphere for points off the surface, beyond the grid and inside it.
+// sphere for points off the surface, far outside and inside it.
 import { test } from 'node:test';
 import assert from 'node:assert/strict';
 import { SurfaceDistance, pointTriangleDistance2 } from '../../web/src/distance.js';
@@ -36,14 +36,14 @@ function bumpySphere(rings, segments) {
   return { P, F };
 }
 
-test('grid distance equals the brute-force minimum over every triangle', () => {
+test('BVH distance equals the brute-force minimum over every triangle', () => {
   const { P, F } = bumpySphere(24, 32);
-  const grid = new SurfaceDistance(P, F);
+  const bvh = new SurfaceDistance(P, F);
   let seed = 12345;
   const rand = () => ((seed = (seed * 1103515245 + 12345) % 2 ** 31) / 2 ** 31);
   let checked = 0;
   for (let n = 0; n < 400; n++) {
-    // Radii from well inside to well outside the grid (which spans about ±1.05).
+    // Radii from well inside to well outside the surface (which spans about ±1.05).
     const r = 0.1 + 2.4 * rand();
     const th = Math.acos(2 * rand() - 1), ph = 2 * Math.PI * rand();
     const x = r * Math.sin(th) * Math.cos(ph), y = r * Math.sin(th) * Math.sin(ph), z = r * Math.cos(th);
@@ -51,14 +51,14 @@ test('grid distance equals the brute-force minimum over every triangle', () => {
     for (let f = 0; f < F.length; f += 3) {
       brute = Math.min(brute, pointTriangleDistance2(x, y, z, P, 3 * F[f], 3 * F[f + 1], 3 * F[f + 2]));
     }
-    const got = grid.distance(x, y, z);
-    assert.ok(Math.abs(got - Math.sqrt(brute)) <= 1e-12, `at (${x}, ${y}, ${z}): grid ${got}, brute force ${Math.sqrt(brute)}`);
+    const got = bvh.distance(x, y, z);
+    assert.ok(Math.abs(got - Math.sqrt(brute)) <= 1e-12, `at (${x}, ${y}, ${z}): BVH ${got}, brute force ${Math.sqrt(brute)}`);
     checked++;
   }
   assert.equal(checked, 400);
   // A vertex of the surface itself is at distance 0, and so is a point inside a triangle.
-  assert.equal(grid.distance(P[300], P[301], P[302]), 0);
+  assert.equal(bvh.distance(P[300], P[301], P[302]), 0);
   const [a, b, c] = [F[600], F[601], F[602]];
   const mid = [0, 1, 2].map((d) => (P[3 * a + d] + P[3 * b + d] + P[3 * c + d]) / 3);
-  assert.ok(grid.distance(...mid) < 1e-12);
+  assert.ok(bvh.distance(...mid) < 1e-12);
 });

@@ -298,8 +298,9 @@ export class View {
 
   /**
    * Distance of each vertex of the shown surface to the input *surface* (nearest point on its
-   * triangles, distance.js), in the file's units. Coloured on a scale that only grows (the
-   * largest distance shown so far), so a colour means the same distance in every frame.
+   * triangles, distance.js), in world units. Coloured from 0 to the 98th percentile (the
+   * largest seen so far: the scale only grows, so a colour means the same distance in every
+   * frame); beyond it, the top colour.
    */
   updateDistance() {
     // At most a fifth of the time goes here while frames stream (a 100k-triangle surface takes
@@ -340,7 +341,13 @@ export class View {
       sum += v;
       if (v > max) max = v;
     }
-    this.distanceScale = Math.max(this.distanceScale, max);
+    // The top of the scale: the 98th percentile (a few outlying vertices would otherwise
+    // leave everything else dark), and it only grows, so colours mean the same in every frame.
+    const sample = [];
+    const stride = Math.max(1, Math.floor(count / 4000));
+    for (let w = 0; w < count; w += stride) sample.push(d[w]);
+    sample.sort((a, b) => a - b);
+    this.distanceScale = Math.max(this.distanceScale, sample[Math.floor(0.98 * (sample.length - 1))] || 0);
     const inv = this.distanceScale > 0 ? 1 / this.distanceScale : 0;
     for (const p of this.parts) {
       const a = p.col.array, wd = p.welded;
@@ -351,7 +358,7 @@ export class View {
     this.stats.distanceMean = count ? sum / count : 0;
     const legend = document.getElementById('legend');
     if (legend) {
-      legend.innerHTML = `distance from the input 0<i></i>${this.distanceScale.toPrecision(3)}` +
+      legend.innerHTML = `distance from the input 0<i></i>≥ ${this.distanceScale.toPrecision(3)}` +
         `<br><span>this surface: max ${max.toPrecision(3)}, mean ${(sum / Math.max(count, 1)).toPrecision(3)}</span>`;
     }
     this.distanceIdleAt = performance.now() + 4 * (performance.now() - t0);
