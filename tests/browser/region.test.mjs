@@ -347,6 +347,12 @@ test('shape and stopping controls: each is sent only once set, the detail size i
   await page.selectOption('[name="preserve"]', 'volume');
   await page.fill('[name="max_deviation"]', '0.02');
   await page.fill('[name="until_willmore"]', '13');
+  await page.check('[name="measure_deviation"]');
+  const outer = await page.evaluate(() => {
+    const o = window.willow.regionControls.overlays.outer;
+    return { visible: o.visible, scale: o.scale.x };
+  });
+  assert.ok(outer.visible && Math.abs(outer.scale - 0.35) < 1e-12, `the falloff's sphere: ${JSON.stringify(outer)}`);
   const ring = await page.evaluate(() => {
     const r = window.willow.regionControls.overlays.ring;
     return { visible: r.visible, scale: r.scale.x, at: r.position.toArray() };
@@ -382,11 +388,13 @@ test('shape and stopping controls: each is sent only once set, the detail size i
   assert.equal(params.preserve, 'volume');
   assert.equal(params.max_deviation, 0.02);
   assert.equal(params.until_willmore, 13);
+  assert.equal(params.measure_deviation, true);
   assert.ok(await page.locator('input[name="max_deviation"]').evaluate((el) => el.classList.contains('invalid')), 'the field is highlighted');
 
   // Emptied again: not sent. Clear: no region, no seam, nothing tinted.
   for (const name of ['falloff', 'feature_size', 'max_deviation', 'until_willmore']) await page.fill(`[name="${name}"]`, '');
   await page.selectOption('[name="preserve"]', '');
+  await page.uncheck('[name="measure_deviation"]');
   await page.click('#region-clear');
   assert.equal(await page.locator('[name="region"]').inputValue(), '');
   assert.equal(await page.locator('#region-info').getAttribute('data-inside'), '');

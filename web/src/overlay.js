@@ -36,8 +36,11 @@ export class Overlays {
     this.sphere = new Mesh(new SphereGeometry(1, 32, 16),
       new MeshBasicMaterial({ color: 0xff8af0, wireframe: true, transparent: true, opacity: 0.18, depthWrite: false }));
     this.box = new LineSegments(new EdgesGeometry(new BoxGeometry(1, 1, 1)), new LineBasicMaterial({ color: 0xff8af0 }));
-    this.frame.add(this.sphere, this.box);
-    this.sphere.visible = this.box.visible = false;
+    // The falloff: the width beyond the sphere over which the motion blends to zero.
+    this.outer = new Mesh(new SphereGeometry(1, 32, 16),
+      new MeshBasicMaterial({ color: 0xff8af0, wireframe: true, transparent: true, opacity: 0.07, depthWrite: false }));
+    this.frame.add(this.sphere, this.box, this.outer);
+    this.sphere.visible = this.box.visible = this.outer.visible = false;
     // The detail-size ring: a unit circle and one diameter across it, scaled to the length.
     const ring = [];
     for (let k = 0; k < 64; k++) ring.push(0.5 * Math.cos((2 * Math.PI * k) / 64), 0.5 * Math.sin((2 * Math.PI * k) / 64), 0);
@@ -61,14 +64,14 @@ export class Overlays {
 
   /**
    * Tint and outline `region` ({kind: 'sphere', center, radius} or {kind: 'box', min, max}, in
-   * world space as the server reads regions), or nothing. Returns how many file vertices it
-   * selects.
+   * world space as the server reads regions), or nothing; a sphere's `falloff` (> 0) is drawn
+   * as a fainter sphere that much wider. Returns how many file vertices it selects.
    */
-  setRegion(region) {
+  setRegion(region, falloff = 0) {
     for (const t of this.tints) { this.view.scene.remove(t); t.geometry.dispose(); }
     this.tints = [];
     this.region = region;
-    this.sphere.visible = this.box.visible = false;
+    this.sphere.visible = this.box.visible = this.outer.visible = false;
     const view = this.view;
     if (!region || !view.model) { this.inside = null; view.requestRender(); return 0; }
     if (this.worldFor !== view.model) { this.world = view.toWorld(view.model.filePositions); this.worldFor = view.model; }
@@ -101,6 +104,11 @@ export class Overlays {
       this.sphere.position.fromArray(region.center);
       this.sphere.scale.setScalar(Math.max(region.radius, 1e-9));
       this.sphere.visible = true;
+      if (falloff > 0) {
+        this.outer.position.fromArray(region.center);
+        this.outer.scale.setScalar(region.radius + falloff);
+        this.outer.visible = true;
+      }
     } else {
       const { min, max } = region;
       this.box.position.set((min[0] + max[0]) / 2, (min[1] + max[1]) / 2, (min[2] + max[2]) / 2);

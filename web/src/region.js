@@ -35,12 +35,13 @@ export class RegionControls {
     canvas.addEventListener('pointermove', (e) => this.move(e));
     canvas.addEventListener('pointerup', (e) => this.up(e));
     canvas.addEventListener('pointercancel', (e) => this.up(e));
+    window.addEventListener('keydown', (e) => { if (e.key === 'Escape' && this.picking && !this.drag) { this.setPicking(false); this.fromForm(); } });
     view.onModel(() => { this.anchor = null; this.setPicking(false); queueMicrotask(() => this.fromForm()); });
     this.fromForm();
   }
 
   owns(el) {
-    return el.name === 'region' || el.name?.startsWith('region.') || el.name === 'feature_size';
+    return el.name === 'region' || el.name?.startsWith('region.') || el.name === 'feature_size' || el.name === 'falloff';
   }
 
   setPicking(on) {
@@ -141,7 +142,8 @@ export class RegionControls {
   fromForm() {
     this.updateVisibility();
     const region = this.region();
-    const count = this.overlays.setRegion(region);
+    const falloff = Number(this.form.elements.falloff.value);
+    const count = this.overlays.setRegion(region, falloff > 0 ? falloff : 0);
     const n = this.view.model?.fileVertexCount || 0;
     if (!this.picking) {
       this.info.textContent = region && n ? `${count} of ${n} vertices move; the rest stay exactly where they are` : '';
@@ -197,6 +199,7 @@ export class RegionControls {
       if (el.value.trim() !== '') out[name] = Number(el.value);
     }
     if (e.preserve.value) out.preserve = e.preserve.value;
+    if (e.measure_deviation.checked) out.measure_deviation = true;
     return out;
   }
 
@@ -220,6 +223,7 @@ export class RegionControls {
     if (p.seam) e.seam.value = p.seam;
     for (const name of OPTIONAL_NUMBERS) e[name].value = p[name] ?? '';
     e.preserve.value = typeof p.preserve === 'string' ? p.preserve : '';
+    e.measure_deviation.checked = p.measure_deviation === true;
     this.fromForm();
   }
 }
