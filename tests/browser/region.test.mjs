@@ -155,6 +155,11 @@ test('a sphere region picked by mouse on the view moves only what it holds; befo
   await page.waitForFunction(() => /step 4\//.test(document.getElementById('frame-counter').textContent));
   await page.waitForTimeout(300);
   await shot('11-region-faired');
+  // Metrics the frames do not carry are not plotted.
+  const shownPlots = await page.evaluate(() => window.willow.plots.charts.filter((c) => !c.el.hidden).map((c) => c.el.id));
+  const carried = (key) => job.metrics.latest && key in job.metrics.latest;
+  assert.equal(shownPlots.includes('plot-deviation'), carried('deviation_max'));
+  assert.equal(shownPlots.includes('plot-scale'), carried('log_area_ratio_p1'));
 
   // The final frame, as the server stores it: every vertex outside the region bit-identical to
   // the input file's, and the region itself moved.
@@ -231,7 +236,7 @@ test('a sphere region picked by mouse on the view moves only what it holds; befo
   assert.deepEqual(problems, [], 'console errors or requests to other hosts');
 });
 
-test('the outcome and its reason are shown when the job ends; distance and volume plots appear once frames carry them', { skip }, async () => {
+test('the outcome and its reason are shown when the job ends; distance, volume, scale-distortion and W-vector plots appear once frames carry them', { skip }, async () => {
   // Until the server reports them, its answers are given the fields of the API's contract
   // (job: `outcome`, `outcome_reason`; frames: `deviation_max`, `deviation_mean`, `volume`):
   // the job JSON, the stream's `done` event (the same JSON) and the frames' metrics.
@@ -245,7 +250,14 @@ test('the outcome and its reason are shown when the job ends; distance and volum
       (_, head, data) => head + JSON.stringify(withOutcome(JSON.parse(data))))],
     [(u) => u.pathname === `/v1/jobs/${id}/frames`, (body) => {
       const page1 = JSON.parse(body);
-      for (const m of page1.frames) Object.assign(m, { deviation_max: 0.01 * m.step, deviation_mean: 0.002 * m.step, volume: 0.5 + 0.001 * m.step });
+      for (const m of page1.frames) {
+        Object.assign(m, {
+          deviation_max: 0.01 * m.step, deviation_mean: 0.002 * m.step, volume: 0.5 + 0.001 * m.step,
+          // Issue 26's metrics (the robust branch's names).
+          willmore_energy_vector: 2 * m.willmore_energy, log_area_ratio_p1: -0.1 * m.step, log_area_ratio_p99: 0.2 * m.step,
+          collapsed_triangles: m.step,
+        });
+      }
       return JSON.stringify(page1);
     }],
   ];
@@ -266,12 +278,16 @@ test('the outcome and its reason are shown when the job ends; distance and volum
   assert.equal(await el.textContent(), `ended: max deviation — ${outcome.outcome_reason}`);
   assert.ok(await page.locator('#plot-deviation').isVisible(), 'the distance plot appears');
   assert.ok(await page.locator('#plot-volume').isVisible(), 'the volume plot appears');
+  assert.ok(await page.locator('#plot-scale').isVisible(), 'the scale distortion plot appears');
+  assert.ok(await page.locator('#plot-collapsed').isVisible(), 'the collapsed triangles plot appears');
+  const wSeries = await page.evaluate(() => window.willow.plots.charts[0].chart.series.map((s) => [s.label, s.show]));
+  assert.deepEqual(wSeries.slice(1), [['W', true], ['W vector |Δf|²/4A', true]], 'both forms of W are plotted');
   // The form shows the job's region again, tinted on the model it fetched back.
   assert.equal(await page.locator('[name="region"]').inputValue(), 'sphere');
   await page.waitForFunction(() => Number(document.getElementById('region-info').dataset.inside) > 0);
   await page.locator('#view-panel').scrollIntoViewIfNeeded();
   await shot('14-outcome');
-  await page.locator('#plots').screenshot({ path: join(ARTIFACTS, '15-distance-volume-plots.png') });
+  await page.locator('#plots').screenshot({ path: join(ARTIFACTS, '15-metric-plots.png') });
   await page.unrouteAll();
   assert.deepEqual(problems, [], 'console errors or requests to other hosts');
 });
