@@ -160,6 +160,8 @@ test('a sphere region picked by mouse on the view moves only what it holds; befo
   const carried = (key) => job.metrics.latest && key in job.metrics.latest;
   assert.equal(shownPlots.includes('plot-deviation'), carried('deviation_max'));
   assert.equal(shownPlots.includes('plot-scale'), carried('log_area_ratio_p1'));
+  const wLegend = await page.locator('#plot-w .u-legend .u-series:visible').allTextContents();
+  assert.deepEqual(wLegend.map((t) => t.trim()), carried('willmore_energy_vector') ? ['W', 'W vector |Δf|²/4A'] : ['W']);
 
   // The final frame, as the server stores it: every vertex outside the region bit-identical to
   // the input file's, and the region itself moved.
@@ -282,6 +284,7 @@ test('the outcome and its reason are shown when the job ends; distance, volume, 
   assert.ok(await page.locator('#plot-collapsed').isVisible(), 'the collapsed triangles plot appears');
   const wSeries = await page.evaluate(() => window.willow.plots.charts[0].chart.series.map((s) => [s.label, s.show]));
   assert.deepEqual(wSeries.slice(1), [['W', true], ['W vector |Δf|²/4A', true]], 'both forms of W are plotted');
+  assert.deepEqual((await page.locator('#plot-w .u-legend .u-series:visible').allTextContents()).map((t) => t.trim()), ['W', 'W vector |Δf|²/4A']);
   // The form shows the job's region again, tinted on the model it fetched back.
   assert.equal(await page.locator('[name="region"]').inputValue(), 'sphere');
   await page.waitForFunction(() => Number(document.getElementById('region-info').dataset.inside) > 0);
@@ -348,7 +351,7 @@ test('a region picked on a glTF with a scaled node is in world space: the server
   assert.deepEqual(problems, [], 'console errors or requests to other hosts');
 });
 
-test('shape and stopping controls: each is sent only once set, the detail size is a ring of that diameter, an error names its field, Clear drops the region', { skip }, async () => {
+test('shape and stopping controls: each is sent only once set, the detail size is a ring of that diameter, two regions go as a list, an error names its field, Clear drops the regions', { skip }, async () => {
   await page.goto(URL_BASE + '/');
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
@@ -364,11 +367,9 @@ test('shape and stopping controls: each is sent only once set, the detail size i
   await page.fill('[name="max_deviation"]', '0.02');
   await page.fill('[name="until_willmore"]', '13');
   await page.check('[name="measure_deviation"]');
-  const outer = await page.evaluate(() => {
-    const o = window.willow.regionControls.overlays.outer;
-    return { visible: o.visible, scale: o.scale.x };
-  });
-  assert.ok(outer.visible && Math.abs(outer.scale - 0.35) < 1e-12, `the falloff's sphere: ${JSON.stringify(outer)}`);
+  const outer = await page.evaluate(() => window.willow.regionControls.overlays.outlines
+    .filter((o) => o.userData.falloff).map((o) => o.scale.x));
+  assert.deepEqual(outer.map((r) => +r.toFixed(12)), [0.35], 'the falloff drawn as a sphere 0.05 wider');
   const ring = await page.evaluate(() => {
     const r = window.willow.regionControls.overlays.ring;
     return { visible: r.visible, scale: r.scale.x, at: r.position.toArray() };
@@ -377,6 +378,20 @@ test('shape and stopping controls: each is sent only once set, the detail size i
   assert.ok(Math.abs(ring.scale - 0.125) < 1e-12, `ring diameter ${ring.scale}`);
   assert.deepEqual(ring.at.map((v) => +v.toFixed(6)), [0.1, 0.2, 0], 'the ring sits at the region\'s centre');
   assert.match(await page.locator('#ring-label').textContent(), /detail size 0\.125/);
+  // A second region: the sphere is kept in the list, a box typed beside it; the job gets both
+  // and the page tints their union.
+  await page.click('#region-add');
+  assert.equal(await page.locator('#region-list li').count(), 1);
+  assert.equal(await page.locator('[name="region.sphere.center"]').inputValue(), '', 'the form is free for another region');
+  await page.selectOption('[name="region"]', 'box');
+  await page.fill('[name="region.box.min"]', '-0.3,-0.5,-0.6');
+  await page.fill('[name="region.box.max"]', '0.3,-0.1,-0.2');
+  const input = objVertices(readFileSync(spot, 'utf8'));
+  const union = input.filter((p) => Math.hypot(p[0] - 0.1, p[1] - 0.2, p[2]) <= 0.3
+    || (p[0] >= -0.3 && p[0] <= 0.3 && p[1] >= -0.5 && p[1] <= -0.1 && p[2] >= -0.6 && p[2] <= -0.2)).length;
+  const sphereOnly = input.filter((p) => Math.hypot(p[0] - 0.1, p[1] - 0.2, p[2]) <= 0.3).length;
+  assert.ok(union > sphereOnly, `the box adds vertices (${sphereOnly} → ${union})`);
+  assert.equal(Number(await page.locator('#region-info').getAttribute('data-inside')), union);
   await page.locator('#view-panel').scrollIntoViewIfNeeded();
   await shot('17-shape-controls');
 
@@ -397,7 +412,10 @@ test('shape and stopping controls: each is sent only once set, the detail size i
   await page.locator('#form-error').filter({ hasText: 'max_deviation' }).waitFor();
   await page.unroute(jobsUrl);
   const params = paramsPart(body);
-  assert.deepEqual(params.region, { sphere: { center: [0.1, 0.2, 0], radius: 0.3 } });
+  assert.deepEqual(params.region, [
+    { sphere: { center: [0.1, 0.2, 0], radius: 0.3 } },
+    { box: { min: [-0.3, -0.5, -0.6], max: [0.3, -0.1, -0.2] } },
+  ]);
   assert.equal(params.seam, 'fixed');
   assert.equal(params.falloff, 0.05);
   assert.equal(params.feature_size, 0.125);
@@ -411,6 +429,10 @@ test('shape and stopping controls: each is sent only once set, the detail size i
   for (const name of ['falloff', 'feature_size', 'max_deviation', 'until_willmore']) await page.fill(`[name="${name}"]`, '');
   await page.selectOption('[name="preserve"]', '');
   await page.uncheck('[name="measure_deviation"]');
+  // Removing the kept sphere leaves the box alone.
+  await page.click('#region-list button[data-remove="0"]');
+  assert.equal(await page.locator('#region-list li').count(), 0);
+  assert.deepEqual(await page.evaluate(() => window.willow.regionControls.params().region), { box: { min: [-0.3, -0.5, -0.6], max: [0.3, -0.1, -0.2] } });
   await page.click('#region-clear');
   assert.equal(await page.locator('[name="region"]').inputValue(), '');
   assert.equal(await page.locator('#region-info').getAttribute('data-inside'), '');

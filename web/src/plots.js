@@ -48,6 +48,15 @@ function logTicks(u, splits) {
   });
 }
 
+/** Show or hide the legend row of series `i` of chart `c` (an optional series has none until
+ * its data arrives). uPlot's own CSS sets the rows' display, so `hidden` would not do. */
+function showLegendRow(c, i, on) {
+  // Found by label: without a live legend uPlot draws no row for the x series.
+  const label = c.spec.series[i].label;
+  const row = [...c.chart.root.querySelectorAll('.u-legend .u-series')].find((r) => r.textContent.trim() === label);
+  if (row) row.style.display = on ? '' : 'none';
+}
+
 export class Plots {
   constructor() {
     this.charts = SERIES.map((spec) => {
@@ -65,7 +74,9 @@ export class Plots {
         series: [{ label: 'step' }, ...spec.series.map((s) => ({ label: s.label, stroke: s.stroke, width: 1.5, points: s.points, show: !s.optional }))],
       };
       const chart = new uPlot(opts, data, el);
-      return { spec, el, data, chart, shown: spec.series.map((s) => !s.optional) };
+      const c = { spec, el, data, chart, shown: spec.series.map((s) => !s.optional) };
+      spec.series.forEach((s, i) => { if (s.optional) showLegendRow(c, i, false); });
+      return c;
     });
     this.pending = false;
     this.points = 0;
@@ -79,7 +90,7 @@ export class Plots {
       for (const a of c.data) a.length = 0;
       if (c.spec.optional) c.el.hidden = true;
       c.spec.series.forEach((s, i) => {
-        if (s.optional && c.shown[i]) { c.shown[i] = false; c.chart.setSeries(i + 1, { show: false }); }
+        if (s.optional && c.shown[i]) { c.shown[i] = false; c.chart.setSeries(i + 1, { show: false }); showLegendRow(c, i, false); }
       });
     }
     this.points = 0;
@@ -97,7 +108,7 @@ export class Plots {
         // Log scales cannot show 0 (step 0's residual, a flow without closure); τ is 0 at step 0.
         if (!(Number.isFinite(v)) || ((c.spec.log || s.key === 'tau') && v <= 0)) v = null;
         if (v !== null && c.el.hidden) { c.el.hidden = false; c.chart.setSize({ width: Math.max(200, c.el.clientWidth), height: 170 }); }
-        if (v !== null && !c.shown[i]) { c.shown[i] = true; c.chart.setSeries(i + 1, { show: true }); }
+        if (v !== null && !c.shown[i]) { c.shown[i] = true; c.chart.setSeries(i + 1, { show: true }); showLegendRow(c, i, true); }
         c.data[i + 1].push(v);
       });
     }

@@ -14,6 +14,28 @@ class FieldError extends Error {
   constructor(field, detail) { super(detail); this.problem = { field, detail }; }
 }
 
+/** A region as the API's JSON names it. */
+function toWire(r) {
+  if (r.kind === 'sphere') return { sphere: { center: r.center, radius: r.radius } };
+  if (r.kind === 'box') return { box: { min: r.min, max: r.max } };
+  return { vertices: r.vertices };
+}
+
+/** A region of the API's JSON as the page holds it, or null for a kind it does not know. */
+function fromWire(w) {
+  if (w?.sphere) return { kind: 'sphere', center: w.sphere.center, radius: w.sphere.radius };
+  if (w?.box) return { kind: 'box', min: w.box.min, max: w.box.max };
+  if (Array.isArray(w?.vertices)) return { kind: 'vertices', vertices: w.vertices, set: new Set(w.vertices) };
+  return null;
+}
+
+function describe(r) {
+  const v = (a) => a.map((x) => +x.toPrecision(4)).join(', ');
+  if (r.kind === 'sphere') return `sphere at (${v(r.center)}), radius ${+r.radius.toPrecision(4)}`;
+  if (r.kind === 'box') return `box (${v(r.min)}) – (${v(r.max)})`;
+  return `${r.vertices.length} listed vertices`;
+}
+
 export class RegionControls {
   constructor(view, form) {
     this.view = view;
@@ -23,11 +45,21 @@ export class RegionControls {
     this.anchor = null; // { point: Vector3, normal: Vector3 }
     this.picking = false;
     this.drag = null;
+    // Regions kept with "Add another": the job moves their union with the form's own.
+    this.kept = [];
+    this.list = document.getElementById('region-list');
     const $ = (id) => document.getElementById(id);
     this.info = $('region-info');
     this.pickButton = $('region-pick');
     this.pickButton.addEventListener('click', () => this.setPicking(!this.picking));
     $('region-clear').addEventListener('click', () => this.clear());
+    $('region-add').addEventListener('click', () => this.keep());
+    this.list.addEventListener('click', (e) => {
+      const i = e.target.dataset?.remove;
+      if (i === undefined) return;
+      this.kept.splice(Number(i), 1);
+      this.fromForm();
+    });
     form.addEventListener('input', (e) => { if (this.owns(e.target)) this.fromForm(); });
     form.addEventListener('change', (e) => { if (this.owns(e.target)) this.fromForm(); });
     const canvas = view.canvas;
@@ -102,9 +134,20 @@ export class RegionControls {
     this.fromForm();
   }
 
+  /** Keep the form's region in the list and empty the form for another. */
+  keep() {
+    const region = this.region();
+    if (!region) { this.info.textContent = 'pick or type a region first, then add another'; return; }
+    this.kept.push(region);
+    const e = this.form.elements;
+    for (const name of ['region.sphere.center', 'region.sphere.radius', 'region.box.min', 'region.box.max']) e[name].value = '';
+    this.fromForm();
+  }
+
   clear() {
     const e = this.form.elements;
     this.setPicking(false);
+    this.kept = [];
     e.region.value = '';
     for (const name of ['region.sphere.center', 'region.sphere.radius', 'region.box.min', 'region.box.max']) e[name].value = '';
     this.anchor = null;
@@ -138,18 +181,38 @@ export class RegionControls {
     return null;
   }
 
-  /** Redraw the region and the ring from what the form says. */
+  /** The regions the job will get: those kept, then the form's own (if complete). */
+  regions() {
+    const current = this.region();
+    return current ? [...this.kept, current] : [...this.kept];
+  }
+
+  /** Redraw the regions, their list and the ring from what the form says. */
   fromForm() {
+    const e = this.form.elements;
+    // With regions kept, the form edits one more of them, never "the whole surface".
+    if (this.kept.length && e.region.value === '') e.region.value = this.kept[this.kept.length - 1].kind === 'box' ? 'box' : 'sphere';
     this.updateVisibility();
-    const region = this.region();
-    const falloff = Number(this.form.elements.falloff.value);
-    const count = this.overlays.setRegion(region, falloff > 0 ? falloff : 0);
+    const regions = this.regions();
+    const falloff = Number(e.falloff.value);
+    const count = this.overlays.setRegions(regions, falloff > 0 ? falloff : 0);
     const n = this.view.model?.fileVertexCount || 0;
     if (!this.picking) {
-      this.info.textContent = region && n ? `${count} of ${n} vertices move; the rest stay exactly where they are` : '';
+      this.info.textContent = regions.length && n ? `${count} of ${n} vertices move; the rest stay exactly where they are` : '';
     }
-    this.info.dataset.inside = region ? String(count) : '';
-    this.updateRing(region);
+    this.info.dataset.inside = regions.length ? String(count) : '';
+    this.list.hidden = !this.kept.length;
+    this.list.replaceChildren(...this.kept.map((r, i) => {
+      const li = document.createElement('li');
+      const x = document.createElement('button');
+      x.type = 'button';
+      x.dataset.remove = String(i);
+      x.title = 'remove this region';
+      x.textContent = '×';
+      li.append(describe(r), x);
+      return li;
+    }));
+    this.updateRing(regions[regions.length - 1] || null);
   }
 
   /** The detail size as a ring of that diameter on the model, facing the camera (so it reads
@@ -161,9 +224,9 @@ export class RegionControls {
     const length = Number(el.value);
     let point = null;
     if (el.value.trim() !== '' && length > 0 && this.view.model) {
-      if (region && this.anchor) {
+      if (region && region === this.region() && this.anchor) {
         point = this.anchor.point;
-      } else if (region) {
+      } else if (region && region.kind !== 'vertices') {
         const c = region.kind === 'sphere' ? region.center : region.min.map((v, d) => (v + region.max[d]) / 2);
         point = new Vector3().fromArray(c);
       } else {
@@ -182,15 +245,16 @@ export class RegionControls {
     const e = this.form.elements;
     const out = {};
     const mode = e.region.value;
-    if (mode) {
-      const region = this.region();
-      if (!region) {
-        const field = mode === 'sphere' ? 'region.sphere.center' : 'region.box.min';
-        throw new FieldError(field, `the ${mode} region needs its numbers: pick it on the view or type them (x,y,z)`);
+    if (mode && !this.region()) {
+      // An empty form beside kept regions is fine; a half-typed region is not.
+      const fields = mode === 'sphere' ? ['region.sphere.center', 'region.sphere.radius'] : ['region.box.min', 'region.box.max'];
+      if (!this.kept.length || fields.some((f) => e[f].value.trim() !== '')) {
+        throw new FieldError(fields[0], `the ${mode} region needs its numbers: pick it on the view or type them (x,y,z)`);
       }
-      out.region = region.kind === 'sphere'
-        ? { sphere: { center: region.center, radius: region.radius } }
-        : { box: { min: region.min, max: region.max } };
+    }
+    const regions = this.regions();
+    if (regions.length) {
+      out.region = regions.length === 1 ? toWire(regions[0]) : regions.map(toWire);
       out.seam = e.seam.value;
     }
     for (const name of OPTIONAL_NUMBERS) {
@@ -206,7 +270,11 @@ export class RegionControls {
   /** Show a job's parameters (as the API reports them) in these controls. */
   fill(p) {
     const e = this.form.elements;
-    const first = Array.isArray(p.region) ? p.region[0] : p.region;
+    const regions = (Array.isArray(p.region) ? p.region : p.region ? [p.region] : []).map(fromWire).filter(Boolean);
+    // The first sphere or box goes in the form, the rest in the list.
+    const at = regions.findIndex((r) => r.kind !== 'vertices');
+    const first = at >= 0 ? toWire(regions[at]) : null;
+    this.kept = regions.filter((_, i) => i !== at);
     this.anchor = null;
     for (const name of ['region.sphere.center', 'region.sphere.radius', 'region.box.min', 'region.box.max']) e[name].value = '';
     if (first?.sphere) {
