@@ -3,7 +3,7 @@
 import { chromium } from 'playwright-core';
 import { createServer, connect } from 'node:net';
 import { execFileSync, spawn } from 'node:child_process';
-import { existsSync, mkdtempSync, rmSync } from 'node:fs';
+import { existsSync, mkdtempSync, readFileSync, rmSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { dirname, join, resolve } from 'node:path';
 import { fileURLToPath } from 'node:url';
@@ -39,6 +39,17 @@ export async function launch() {
       '--enable-unsafe-swiftshader',
     ],
   });
+  // A page bundle built by hand (`node web/build.mjs DIR`) served in place of the one in the
+  // binary: trying a change to web/src without rebuilding the server.
+  const dev = process.env.WILLOW_WEB_OUT;
+  if (dev) {
+    const types = { 'index.html': 'text/html', 'app.js': 'text/javascript', 'app.css': 'text/css' };
+    await context.route(/\/(ui\/app\.(js|css))?$/, (route) => {
+      const path = new URL(route.request().url()).pathname;
+      const name = path === '/' ? 'index.html' : path.slice(4);
+      route.fulfill({ contentType: types[name], body: readFileSync(join(dev, name)) });
+    });
+  }
   const close = async () => {
     await context.close();
     rmSync(profile, { recursive: true, force: true });

@@ -1,6 +1,6 @@
 // The 100k-triangle case (issue 13): how long the page takes to apply a frame (decode the
 // base64 positions, gather them into the GPU buffer, normals, curvature colours) and to render
-// it, per frame, on nefertiti (99 938 triangles). Prints figures; not a pass/fail test.
+// it, per frame, on nefertiti (99 938 triangles), and the distance colours' cost. Prints figures; not a pass/fail test.
 // Run by `scripts/browser-test.sh --timing` (which starts the server).
 //
 // The flow is Taubin smoothing: explicit and cheap, so frames arrive as fast as the server
@@ -60,8 +60,22 @@ await waitStats(page, () => ['succeeded', 'failed', 'cancelled'].includes(window
 const b = await snapshot();
 await page.screenshot({ path: join(ARTIFACTS, 'timing-100k-curvature.png') });
 
+// The distance-from-the-input colours on the last frame: building the input's BVH once, then
+// one colouring pass (nearest input triangle for every vertex), each timed alone.
+await page.selectOption('#colour', 'distance');
+const distance = await page.evaluate(() => {
+  const v = window.willow.view;
+  const time = () => { v.distanceIdleAt = 0; const t = performance.now(); v.updateDistance(); return performance.now() - t; };
+  v.inputSurface = null;
+  const first = time();
+  const passes = [time(), time(), time()].sort((x, y) => x - y);
+  return { first, pass: passes[1], max: v.stats.distanceMax };
+});
+await page.screenshot({ path: join(ARTIFACTS, 'timing-100k-distance.png') });
+
 console.log(`nefertiti.obj: ${half.vertexCount} vertices, ${half.triangleCount} triangles; read and shown in ${loadMs} ms (file chosen to first render)`);
 summary('plain shading', a);
 summary('mean-curvature colours', b);
+console.log(`distance colours after ${STEPS} steps: BVH build + first pass ${distance.first.toFixed(0)} ms, a pass ${distance.pass.toFixed(0)} ms (median of 3; largest distance ${distance.max.toPrecision(3)})`);
 if (problems.length) console.log('problems:', problems);
 await close();

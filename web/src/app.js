@@ -4,6 +4,7 @@
 import { ApiError, api, apiKey, bytes, json, onUnauthorized, setApiKey } from './api.js';
 import { MEDIA_TYPES, decodeBase64Into, formatOf, parseMesh } from './meshio.js';
 import { Plots } from './plots.js';
+import { RegionControls } from './region.js';
 import { View } from './view.js';
 
 /** Timings and counters, read by the browser tests and the 100k-triangle timing script. */
@@ -23,8 +24,10 @@ const $ = (id) => document.getElementById(id);
 const form = $('params');
 const view = new View($('canvas'), stats);
 const plots = new Plots();
-/** For the timing script and debugging in the console. */
-window.willow = { view, plots };
+const regionControls = new RegionControls(view, form);
+view.onModel(() => { $('show-input').checked = false; });
+/** For the timing script, the browser tests and debugging in the console. */
+window.willow = { view, plots, regionControls };
 
 /** Positions of kept frames held in memory for the scrub slider, up to this many bytes. */
 const FRAME_CACHE_BYTES = 256 << 20;
@@ -92,6 +95,7 @@ function fillForm(p) {
     e['boundary.prescribed.angles.per_loop'].value = perLoop ? perLoop.join(',') : '';
     e['boundary.prescribed.angles.uniform'].value = perLoop ? 0 : b.angles?.uniform ?? 0;
   }
+  regionControls.fill(p);
   updateFormVisibility();
 }
 
@@ -156,6 +160,7 @@ function readParams() {
   } else {
     p.boundary = b;
   }
+  Object.assign(p, regionControls.params());
   for (const k of Object.keys(p)) if (p[k] === undefined) delete p[k];
   return p;
 }
@@ -298,6 +303,7 @@ function resetJobUi() {
   $('downloads').classList.add('disabled');
   $('scrub').disabled = true;
   $('scrub-label').textContent = '';
+  $('outcome').hidden = true;
   updateCounter();
 }
 
@@ -547,7 +553,22 @@ function updateJob(job) {
     if (ok) a.href = `${job.links.result}?format=${f}`; else a.removeAttribute('href');
   }
   if (job.error && job.state !== 'succeeded') $('view-error').textContent = job.error;
+  showOutcome(job);
   updateCounter();
+}
+
+/** How the job ended and why (`outcome`, `outcome_reason`), once it has: absent fields (a
+ * server without them) show the state alone, or nothing. */
+function showOutcome(job) {
+  const el = $('outcome');
+  const outcome = isTerminal(job) ? job.outcome || (job.state === 'succeeded' ? null : job.state) : null;
+  el.hidden = !outcome;
+  el.dataset.outcome = outcome || '';
+  if (!outcome) return;
+  const b = document.createElement('b');
+  b.textContent = `ended: ${outcome.replaceAll('_', ' ')}`;
+  const why = job.outcome_reason || (job.outcome ? '' : job.error) || '';
+  el.replaceChildren(b, why ? ` — ${why}` : '');
 }
 
 /** A result download link, clicked. Without a key it is the plain link, as ever; with one the
@@ -745,8 +766,13 @@ function wire() {
     e.target.classList?.remove('invalid');
     e.target.closest('label')?.querySelector('.field-error')?.remove();
   });
-  $('colour').addEventListener('change', (e) => view.setColour(e.target.value));
+  $('colour').addEventListener('change', (e) => {
+    view.setColour(e.target.value);
+    // The distance colours are the point there: the region keeps its outline, not its tint.
+    regionControls.overlays.setTinted(e.target.value !== 'distance');
+  });
   $('wireframe').addEventListener('change', (e) => view.setWireframe(e.target.checked));
+  $('show-input').addEventListener('change', (e) => view.setShowInput(e.target.checked));
   $('cancel').addEventListener('click', cancelJob);
   $('scrub').addEventListener('input', (e) => scrubTo(+e.target.value));
   $('jobs-state').addEventListener('change', () => { dash.tokens = [null]; dash.page = 0; refreshJobs(); });

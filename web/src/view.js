@@ -3,9 +3,11 @@
 // colours when shown) are recomputed in place. Index and UVs are never touched again.
 import {
   BufferAttribute, BufferGeometry, Color, DirectionalLight, HemisphereLight, Matrix4, Mesh,
-  MeshLambertMaterial, PerspectiveCamera, Scene, SRGBColorSpace, Texture, Vector3, WebGLRenderer,
+  MeshLambertMaterial, PerspectiveCamera, Plane, Raycaster, Scene, SRGBColorSpace, Texture, Vector2,
+  Vector3, WebGLRenderer,
 } from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { SurfaceDistance } from './distance.js';
 
 export class View {
   constructor(canvas, stats) {
@@ -36,6 +38,12 @@ export class View {
     this.model = null;
     this.colour = 'texture';
     this.wireframe = false;
+    // Before/after: `current` is the last frame given; while `showingInput` the input is drawn
+    // instead (frames still arrive and are kept in `current`).
+    this.current = null;
+    this.showingInput = false;
+    this.raycaster = new Raycaster();
+    this.modelListeners = [];
     this.dirty = false;
     new ResizeObserver(() => this.resize()).observe(canvas.parentElement);
     this.resize();
@@ -134,31 +142,59 @@ export class View {
       return { part, geometry: g, pos, nor, col, welded, textured, mesh };
     });
     this.weld = { count: nw, rep, faces };
+    // Each file vertex's local→world matrix (glTF nodes; null for OBJ): regions and distances
+    // are in world space, as the server reads them (willow::mesh::io, "spheres and boxes in its
+    // world space").
+    this.matrixOf = new Array(n).fill(null);
+    for (const part of model.parts) if (part.matrix) for (const i of part.gather) this.matrixOf[i] = part.matrix;
     this.scratch = {
       wpos: new Float32Array(nw * 3), normal: new Float32Array(nw * 3),
       lap: new Float32Array(nw * 3), area: new Float32Array(nw), h: new Float32Array(nw),
     };
     this.curvatureRange = null;
+    // The input surface for the distance colours, built when first shown.
+    this.inputSurface = null;
+    this.distanceScale = 0;
+    this.distance = new Float32Array(nw);
+    this.distanceIdleAt = 0;
     this.stats.vertexCount = n;
     this.stats.triangleCount = faceCount;
+    this.showingInput = false;
     this.applyPositions(model.filePositions);
     this.fitCamera();
     this.setColour(this.colour);
+    for (const fn of this.modelListeners) fn(model);
   }
+
+  /** `fn(model)` after every new model. */
+  onModel(fn) { this.modelListeners.push(fn); }
 
   hasTexture() { return this.parts?.some((p) => p.textured); }
 
   setColour(mode) {
     this.colour = mode;
+    const vertexColours = mode === 'curvature' || mode === 'distance';
     for (const p of this.parts || []) {
-      p.mesh.material = mode === 'curvature' ? this.materials.curvature
+      p.mesh.material = vertexColours ? this.materials.curvature
         : mode === 'texture' && p.textured ? p.textured : this.materials.plain;
       p.mesh.material.wireframe = this.wireframe;
     }
-    if (mode === 'curvature' && this.lastPositions) this.updateColours();
     const legend = document.getElementById('legend');
-    if (legend) legend.hidden = mode !== 'curvature';
+    if (legend) {
+      legend.hidden = !vertexColours;
+      legend.className = mode;
+      legend.innerHTML = '';
+    }
+    if (mode === 'curvature' && this.lastPositions) { this.curvatureLegend(); this.updateColours(); }
+    if (mode === 'distance' && this.lastPositions) this.updateDistance();
     this.requestRender();
+  }
+
+  /** Show the input (`true`) or the last frame given (`false`). */
+  setShowInput(on) {
+    if (!this.model) return;
+    this.showingInput = on;
+    this.draw(on ? this.model.filePositions : this.current);
   }
 
   setWireframe(on) {
@@ -192,8 +228,15 @@ export class View {
     this.controls.update();
   }
 
-  /** Move the surface to `filePositions` (3 floats per file vertex). */
+  /** A new frame: `filePositions` (3 floats per file vertex), drawn unless the input is shown. */
   applyPositions(filePositions) {
+    this.current = filePositions;
+    if (this.showingInput) return 0;
+    return this.draw(filePositions);
+  }
+
+  /** Move the surface to `filePositions`. */
+  draw(filePositions) {
     const t0 = performance.now();
     this.lastPositions = filePositions;
     for (const p of this.parts) {
@@ -206,6 +249,7 @@ export class View {
     }
     this.updateNormals();
     if (this.colour === 'curvature') this.updateColours();
+    if (this.colour === 'distance') this.updateDistance();
     const ms = performance.now() - t0;
     this.stats.lastApplyMs = ms;
     this.requestRender();
@@ -243,6 +287,128 @@ export class View {
       }
       p.nor.needsUpdate = true;
     }
+  }
+
+  curvatureLegend() {
+    const legend = document.getElementById('legend');
+    if (!legend || !this.curvatureRange) return;
+    const [lo, hi] = this.curvatureRange;
+    legend.innerHTML = `H ${lo.toPrecision(3)}<i></i>${hi.toPrecision(3)}`;
+  }
+
+  /**
+   * Distance of each vertex of the shown surface to the input *surface* (nearest point on its
+   * triangles, distance.js), in world units. Coloured from 0 to the 98th percentile (the
+   * largest seen so far: the scale only grows, so a colour means the same distance in every
+   * frame); beyond it, the top colour.
+   */
+  updateDistance() {
+    // At most a fifth of the time goes here while frames stream (a 100k-triangle surface takes
+    // a few hundred ms); the latest surface is coloured once the pause is over.
+    const t0 = performance.now();
+    if (t0 < this.distanceIdleAt) {
+      this.distanceTimer ??= setTimeout(() => {
+        this.distanceTimer = null;
+        if (this.colour === 'distance' && this.lastPositions) { this.updateDistance(); this.requestRender(); }
+      }, this.distanceIdleAt - t0);
+      return;
+    }
+    const { count, rep, faces } = this.weld;
+    if (!this.inputSurface) {
+      const fp = this.toWorld(this.model.filePositions);
+      const input = new Float64Array(3 * count);
+      for (let w = 0; w < count; w++) {
+        const s = 3 * rep[w];
+        input[3 * w] = fp[s]; input[3 * w + 1] = fp[s + 1]; input[3 * w + 2] = fp[s + 2];
+      }
+      this.inputSurface = new SurfaceDistance(input, faces);
+      this.inputWelded = input;
+    }
+    const { wpos } = this.scratch;
+    const d = this.distance, input = this.inputWelded;
+    let max = 0, sum = 0;
+    for (let w = 0; w < count; w++) {
+      let x = wpos[3 * w], y = wpos[3 * w + 1], z = wpos[3 * w + 2];
+      const m = this.matrixOf[rep[w]];
+      if (m) {
+        [x, y, z] = [m[0] * x + m[4] * y + m[8] * z + m[12], m[1] * x + m[5] * y + m[9] * z + m[13], m[2] * x + m[6] * y + m[10] * z + m[14]];
+      }
+      // The vertex's own input position is a point of the input surface: a bound to beat (0
+      // for a vertex that did not move, outside a region).
+      const own = (x - input[3 * w]) ** 2 + (y - input[3 * w + 1]) ** 2 + (z - input[3 * w + 2]) ** 2;
+      const v = this.inputSurface.distance(x, y, z, own);
+      d[w] = v;
+      sum += v;
+      if (v > max) max = v;
+    }
+    // The top of the scale: the 98th percentile (a few outlying vertices would otherwise
+    // leave everything else dark), and it only grows, so colours mean the same in every frame.
+    const sample = [];
+    const stride = Math.max(1, Math.floor(count / 4000));
+    for (let w = 0; w < count; w += stride) sample.push(d[w]);
+    sample.sort((a, b) => a - b);
+    this.distanceScale = Math.max(this.distanceScale, sample[Math.floor(0.98 * (sample.length - 1))] || 0);
+    const inv = this.distanceScale > 0 ? 1 / this.distanceScale : 0;
+    for (const p of this.parts) {
+      const a = p.col.array, wd = p.welded;
+      for (let r = 0, o = 0; r < wd.length; r++, o += 3) rampSequential(Math.min(1, d[wd[r]] * inv), a, o);
+      p.col.needsUpdate = true;
+    }
+    this.stats.distanceMax = max;
+    this.stats.distanceMean = count ? sum / count : 0;
+    const legend = document.getElementById('legend');
+    if (legend) {
+      legend.innerHTML = `distance from the input 0<i></i>≥ ${this.distanceScale.toPrecision(3)}` +
+        `<br><span>this surface: max ${max.toPrecision(3)}, mean ${(sum / Math.max(count, 1)).toPrecision(3)}</span>`;
+    }
+    this.distanceIdleAt = performance.now() + 4 * (performance.now() - t0);
+  }
+
+  /** Point the raycaster through the client position (x, y) of the canvas. */
+  rayAt(x, y) {
+    const r = this.canvas.getBoundingClientRect();
+    const ndc = new Vector2(((x - r.left) / r.width) * 2 - 1, -((y - r.top) / r.height) * 2 + 1);
+    this.raycaster.setFromCamera(ndc, this.camera);
+    return this.raycaster.ray;
+  }
+
+  /** The surface under the client position (x, y), as shown: `{ point, normal }` in world
+   * space; null where the ray misses. */
+  pick(x, y) {
+    if (!this.parts) return null;
+    this.rayAt(x, y);
+    this.scene.updateMatrixWorld();
+    // The surface moves: bounds from an earlier frame would make the ray miss it.
+    for (const p of this.parts) { p.geometry.boundingSphere = null; p.geometry.boundingBox = null; }
+    const hit = this.raycaster.intersectObjects(this.meshes, false)[0];
+    if (!hit) return null;
+    const normal = hit.face ? hit.face.normal.clone().transformDirection(hit.object.matrixWorld) : new Vector3(0, 0, 1);
+    return { point: hit.point.clone(), normal };
+  }
+
+  /** Where the ray through (x, y) meets the plane through `point` (world) facing the camera. */
+  onViewPlane(x, y, point) {
+    const ray = this.rayAt(x, y);
+    const n = this.camera.getWorldDirection(new Vector3());
+    return ray.intersectPlane(new Plane().setFromNormalAndCoplanarPoint(n, point), new Vector3());
+  }
+
+  /** `filePositions` (3 per file vertex) in world space, as a new Float64Array. */
+  toWorld(filePositions) {
+    const out = Float64Array.from(filePositions);
+    for (let i = 0; i < this.matrixOf.length; i++) if (this.matrixOf[i]) worldInPlace(out, 3 * i, this.matrixOf[i]);
+    return out;
+  }
+
+  /** The model's size: the diagonal of its bounding box (world space). */
+  modelSize() {
+    if (!this.model) return 0;
+    const p = this.toWorld(this.model.filePositions);
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (let i = 0; i < p.length; i += 3) {
+      for (let d = 0; d < 3; d++) { lo[d] = Math.min(lo[d], p[i + d]); hi[d] = Math.max(hi[d], p[i + d]); }
+    }
+    return Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
   }
 
   /**
@@ -291,8 +457,7 @@ export class View {
       let hi = sample[Math.floor(0.95 * (sample.length - 1))] ?? 1;
       if (!(hi > lo)) hi = lo + 1;
       this.curvatureRange = [lo, hi];
-      const legend = document.getElementById('legend');
-      if (legend) legend.innerHTML = `H ${lo.toPrecision(3)}<i></i>${hi.toPrecision(3)}`;
+      this.curvatureLegend();
     }
     const [lo, hi] = this.curvatureRange;
     const inv = 1 / (hi - lo);
@@ -320,4 +485,26 @@ function ramp(t, out, o) {
   out[o] = a[0] + (b[0] - a[0]) * f;
   out[o + 1] = a[1] + (b[1] - a[1]) * f;
   out[o + 2] = a[2] + (b[2] - a[2]) * f;
+}
+
+// A sequential map for distances (viridis, 5 stops): dark is 0, yellow the scale's top.
+const SEQ = [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]].map((c) =>
+  c.map((v) => Math.pow(v / 255, 2.2)),
+);
+function rampSequential(t, out, o) {
+  const x = (t || 0) * 4;
+  const i = Math.min(3, Math.floor(x));
+  const f = x - i;
+  const a = SEQ[i], b = SEQ[i + 1];
+  out[o] = a[0] + (b[0] - a[0]) * f;
+  out[o + 1] = a[1] + (b[1] - a[1]) * f;
+  out[o + 2] = a[2] + (b[2] - a[2]) * f;
+}
+
+/** p[o..o+3] ← m·p (m: a column-major 4×4 affine matrix, as glTF stores it). */
+function worldInPlace(p, o, m) {
+  const x = p[o], y = p[o + 1], z = p[o + 2];
+  p[o] = m[0] * x + m[4] * y + m[8] * z + m[12];
+  p[o + 1] = m[1] * x + m[5] * y + m[9] * z + m[13];
+  p[o + 2] = m[2] * x + m[6] * y + m[10] * z + m[14];
 }
