@@ -170,6 +170,8 @@ test('with --auth keys: a dropped stream resumes by itself while its token is fr
   // Long enough to run through all of this on a fast machine too; cancelled at the end.
   await page.fill('[name="steps"]', '10000');
   await page.fill('[name="tau"]', '0.02');
+  // Every step: a flow that has settled would otherwise end `converged` before the test acts.
+  await page.check('[name=all_steps]');
   const streams = [];
   const onRequest = async (r) => {
     if (!r.url().includes('/events')) return;

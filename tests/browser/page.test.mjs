@@ -144,6 +144,8 @@ test('the API\'s error is shown, its field highlighted', { skip }, async () => {
 test('a dropped connection and a reload mid-run resume the stream; cancel the job; the dashboard shows the states', { skip }, async () => {
   // Long enough to reload and cancel while it runs: small steps.
   await uploadSpot({ steps: 2000, tau: 0.02 });
+  // Every step: a flow that has settled would otherwise end `converged` before the test acts.
+  await page.check('[name=all_steps]');
   await page.click('#submit');
   await page.waitForFunction(() => /^#job=/.test(location.hash));
   const id = await page.evaluate(() => location.hash.slice(5));

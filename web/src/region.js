@@ -264,6 +264,7 @@ export class RegionControls {
     }
     if (e.preserve.value) out.preserve = e.preserve.value;
     if (e.measure_deviation.checked) out.measure_deviation = true;
+    if (e.all_steps.checked) out.until_converged = false;
     return out;
   }
 
@@ -292,6 +293,7 @@ export class RegionControls {
     for (const name of OPTIONAL_NUMBERS) e[name].value = p[name] ?? '';
     e.preserve.value = typeof p.preserve === 'string' ? p.preserve : '';
     e.measure_deviation.checked = p.measure_deviation === true;
+    e.all_steps.checked = p.until_converged === false;
     this.fromForm();
   }
 }
