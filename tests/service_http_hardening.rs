@@ -783,3 +783,40 @@ fn serve_flags_have_defaults_and_are_validated() {
         assert!(e.contains(name), "{flag} {value}: {e}");
     }
 }
+
+/// A client's `X-Request-Id` is echoed when it is a plausible id, and replaced by a fresh one
+/// when it is long (8 KB was seen echoed and logged) or carries other characters.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn implausible_request_ids_are_replaced_not_echoed() {
+    let srv = start(ServeOptions::default()).await;
+    let client = reqwest::Client::new();
+    let id_for = |given: Option<String>| {
+        let mut req = client.get(srv.url("/healthz"));
+        if let Some(g) = given {
+            req = req.header("x-request-id", g);
+        }
+        async move {
+            let res = req.send().await.expect("healthz");
+            assert_eq!(res.status(), 200);
+            res.headers()["x-request-id"]
+                .to_str()
+                .expect("ascii")
+                .to_string()
+        }
+    };
+    let fine = "00-4bf92f3577b34da6a3ce929d0e0e4736-00f067aa0ba902b7-01".to_string();
+    assert_eq!(id_for(Some(fine.clone())).await, fine);
+    let longest = "a".repeat(willow_service::api::server::MAX_REQUEST_ID_LEN);
+    assert_eq!(id_for(Some(longest.clone())).await, longest);
+    for bad in [
+        "a".repeat(8192),
+        "a".repeat(willow_service::api::server::MAX_REQUEST_ID_LEN + 1),
+        "id with spaces".to_string(),
+        "id\"quoted\"".to_string(),
+    ] {
+        let got = id_for(Some(bad.clone())).await;
+        assert_ne!(got, bad);
+        assert_eq!(got.len(), 36, "a fresh UUID: {got}");
+    }
+    srv.stop().await;
+}

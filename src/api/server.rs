@@ -418,6 +418,32 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) ->
     )
     .layer(PropagateRequestIdLayer::new(REQUEST_ID))
     .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
+    // Outermost: a client's id that is not a plausible id is dropped before the layer above
+    // would keep it, so it is replaced by a fresh one instead of being echoed and logged.
+    .layer(axum::middleware::map_request(drop_implausible_request_id))
+}
+
+/// Longest client-chosen `X-Request-Id` kept (a UUID is 36; a trace id with a prefix fits).
+pub const MAX_REQUEST_ID_LEN: usize = 128;
+
+/// Removes an `X-Request-Id` longer than [`MAX_REQUEST_ID_LEN`] or with characters outside
+/// `A-Za-z0-9-_.:/+=`: every response and log line carries the id, so a client must not be
+/// able to make either large or to inject text into them.
+async fn drop_implausible_request_id(
+    mut req: Request<axum::body::Body>,
+) -> Request<axum::body::Body> {
+    let plausible = |v: &axum::http::HeaderValue| {
+        let b = v.as_bytes();
+        !b.is_empty()
+            && b.len() <= MAX_REQUEST_ID_LEN
+            && b.iter()
+                .all(|c| c.is_ascii_alphanumeric() || b"-_.:/+=".contains(c))
+    };
+    let all_plausible = req.headers().get_all(REQUEST_ID).iter().all(plausible);
+    if !all_plausible || req.headers().get_all(REQUEST_ID).iter().count() > 1 {
+        req.headers_mut().remove(REQUEST_ID);
+    }
+    req
 }
 
 /// Serve `jobs` on `listener` until `shutdown` resolves; then drain the job core for `grace`
