@@ -265,13 +265,12 @@ impl Jobs {
         }
     }
 
-    /// `Retry-After` estimate: the time for the workers to drain the queue once, from the
-    /// moving average of job durations, clamped to 1..=300 s.
+    /// `Retry-After` estimate ([`retry_after_estimate`]) from this node's job durations.
     fn retry_after_secs(&self) -> u64 {
-        let avg_ms = self.inner.avg_job_ms.load(Ordering::Relaxed);
-        let workers = self.inner.config.workers.max(1) as u64;
-        let depth = self.inner.backend.queue.depth().max(1) as u64;
-        (avg_ms * depth / workers / 1000).clamp(1, 300)
+        retry_after_estimate(
+            self.inner.avg_job_ms.load(Ordering::Relaxed),
+            self.inner.config.workers,
+        )
     }
 
     /// Store an upload for later use by [`UploadRef::Stored`]. The mesh is validated now, so a
@@ -317,5 +316,34 @@ impl Jobs {
         }
         audit("upload", caller, &id);
         Ok(id)
+    }
+}
+
+/// `Retry-After` for a full queue (or a tenant's live jobs): a place opens when the first
+/// running job ends, about one job's time over the workers running them. Not the whole
+/// queue's drain time: the client needs one place, and a queue of short jobs advised tens of
+/// seconds. No job ended on this node yet (or an API-only node, which runs none): 1 s.
+/// Clamped to 1..=300 s.
+pub(crate) fn retry_after_estimate(avg_job_ms: u64, workers: usize) -> u64 {
+    if avg_job_ms == 0 {
+        return 1;
+    }
+    (avg_job_ms / workers.max(1) as u64)
+        .div_ceil(1000)
+        .clamp(1, 300)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::retry_after_estimate;
+
+    #[test]
+    fn retry_after_is_one_job_over_the_workers() {
+        assert_eq!(retry_after_estimate(0, 1), 1, "nothing measured yet");
+        assert_eq!(retry_after_estimate(120, 1), 1, "short jobs: a second");
+        assert_eq!(retry_after_estimate(12_000, 4), 3);
+        assert_eq!(retry_after_estimate(12_004, 4), 4, "rounded up");
+        assert_eq!(retry_after_estimate(10_000_000, 1), 300, "at most five minutes");
+        assert_eq!(retry_after_estimate(5_000, 0), 5, "no workers counts as one");
     }
 }

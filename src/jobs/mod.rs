@@ -83,7 +83,8 @@ pub(crate) struct Inner {
     pub last_progress_ms: AtomicU64,
     pub running: AtomicUsize,
     pub workers_alive: AtomicUsize,
-    /// Exponential moving average of job wall time in ms, for `Retry-After` estimates.
+    /// Exponential moving average of job wall time in ms, for `Retry-After` estimates; 0
+    /// until a job has ended on this node.
     pub avg_job_ms: AtomicU64,
     /// Permits for curve requests ([`Config::curve_slots`]).
     pub curve_slots: Arc<tokio::sync::Semaphore>,
@@ -153,7 +154,7 @@ impl Jobs {
             last_progress_ms: AtomicU64::new(now_ms()),
             running: AtomicUsize::new(0),
             workers_alive: AtomicUsize::new(0),
-            avg_job_ms: AtomicU64::new(5_000),
+            avg_job_ms: AtomicU64::new(0),
             curve_slots: Arc::new(tokio::sync::Semaphore::new(config.curve_slots)),
         });
         let jobs = Jobs { inner };

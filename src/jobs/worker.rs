@@ -581,12 +581,12 @@ fn run_job(
         f64s_to_bytes(flow.positions()).into(),
     ))?;
     let elapsed = started.elapsed();
-    // Moving average with weight 1/4 for the newest job: reacts within a few jobs.
+    // Moving average with weight 1/4 for the newest job: reacts within a few jobs. The first
+    // job sets it (0 is "none yet").
     let prev = inner.avg_job_ms.load(Ordering::Relaxed);
-    let ms = elapsed.as_millis() as u64;
-    inner
-        .avg_job_ms
-        .store((prev * 3 + ms) / 4, Ordering::Relaxed);
+    let ms = (elapsed.as_millis() as u64).max(1);
+    let avg = if prev == 0 { ms } else { (prev * 3 + ms) / 4 };
+    inner.avg_job_ms.store(avg, Ordering::Relaxed);
     rt.block_on(finish(
         inner,
         id,
