@@ -476,6 +476,28 @@ mod grpc {
         );
     }
 
+    /// A message over the server's limit is RESOURCE_EXHAUSTED with a QuotaFailure, as the
+    /// proto promises (tonic alone says OUT_OF_RANGE, without details).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn an_oversized_message_is_resource_exhausted_with_a_quota_failure() {
+        let (mut client, _dir) = client().await;
+        let request = v1::CreateJobRequest {
+            mesh: Some(v1::create_job_request::Mesh::InlineMesh(v1::InlineMesh {
+                format: v1::MeshFormat::Obj as i32,
+                data: vec![b'#'; 5 << 20].into(),
+            })),
+            ..Default::default()
+        };
+        let status = client.create_job(request).await.expect_err("refused");
+        assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+        let quota = status.get_details_quota_failure().expect("a QuotaFailure");
+        assert_eq!(quota.violations[0].subject, "request message bytes");
+        assert!(
+            status.message().contains("UploadMesh")
+                || quota.violations[0].description.contains("UploadMesh")
+        );
+    }
+
     /// Bad controls are INVALID_ARGUMENT naming the field.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn bad_controls_are_invalid_arguments_naming_the_field() {

@@ -343,7 +343,15 @@ mod tests {
         assert_eq!(retry_after_estimate(120, 1), 1, "short jobs: a second");
         assert_eq!(retry_after_estimate(12_000, 4), 3);
         assert_eq!(retry_after_estimate(12_004, 4), 4, "rounded up");
-        assert_eq!(retry_after_estimate(10_000_000, 1), 300, "at most five minutes");
-        assert_eq!(retry_after_estimate(5_000, 0), 5, "no workers counts as one");
+        assert_eq!(
+            retry_after_estimate(10_000_000, 1),
+            300,
+            "at most five minutes"
+        );
+        assert_eq!(
+            retry_after_estimate(5_000, 0),
+            5,
+            "no workers counts as one"
+        );
     }
 }

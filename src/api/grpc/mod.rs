@@ -88,6 +88,97 @@ pub fn routes(jobs: Jobs) -> axum::Router {
     .add_service(reflection_v1alpha())
     .prepare()
     .into_axum_router()
+    .layer(axum::middleware::map_response(client_faults))
+}
+
+/// tonic's own verdicts on a request's framing, in the codes the proto promises: a message
+/// over the size limit is RESOURCE_EXHAUSTED with a QuotaFailure (tonic says OUT_OF_RANGE,
+/// with no details), and a frame with an invalid compression flag or cut short is the
+/// client's INVALID_ARGUMENT (tonic says INTERNAL, which invites a retry of the same bytes).
+/// A compressed flag without `grpc-encoding` stays INTERNAL: the gRPC spec requires it. Only
+/// trailers-only answers carry these (the call fails before any response message).
+async fn client_faults(mut res: axum::response::Response) -> axum::response::Response {
+    use tonic::Code;
+    use tonic_types::{ErrorDetails, StatusExt};
+    let Some(status) = Status::from_header_map(res.headers()) else {
+        return res;
+    };
+    let message = status.message();
+    let fixed = match status.code() {
+        Code::OutOfRange if message.starts_with("Error, decoded message length too large") => {
+            Status::with_error_details(
+                Code::ResourceExhausted,
+                format!("the request message is over the server's limit: {message}"),
+                ErrorDetails::with_quota_failure_violation(
+                    "request message bytes",
+                    format!(
+                        "a message may hold at most {MAX_DECODING_MESSAGE_BYTES} bytes; send \
+                         larger meshes with UploadMesh"
+                    ),
+                ),
+            )
+        }
+        Code::Internal
+            if message
+                .starts_with("protocol error: received message with invalid compression flag")
+                || message == "Unexpected EOF decoding stream." =>
+        {
+            Status::with_error_details(
+                Code::InvalidArgument,
+                format!("the request is not well-framed gRPC: {message}"),
+                ErrorDetails::with_bad_request_violation("request", message.to_string()),
+            )
+        }
+        _ => return res,
+    };
+    let mut fresh = axum::http::HeaderMap::new();
+    if fixed.add_header(&mut fresh).is_err() {
+        tracing::warn!("could not write a gRPC status fix-up; the original status stands");
+        return res;
+    }
+    let headers = res.headers_mut();
+    for name in ["grpc-status", "grpc-message", "grpc-status-details-bin"] {
+        headers.remove(name);
+    }
+    headers.extend(fresh);
+    res
+}
+
+#[cfg(test)]
+mod framing_tests {
+    use super::*;
+    use tonic::Code;
+    use tonic_types::StatusExt;
+
+    async fn fixed(status: Status) -> Status {
+        let mut res = axum::response::Response::new(axum::body::Body::empty());
+        status.add_header(res.headers_mut()).expect("headers");
+        let res = client_faults(res).await;
+        Status::from_header_map(res.headers()).expect("a status")
+    }
+
+    #[tokio::test]
+    async fn framing_faults_get_the_codes_the_proto_promises() {
+        let big = fixed(Status::out_of_range(
+            "Error, decoded message length too large: found 9000000 bytes, the limit is: 4259840 bytes",
+        ))
+        .await;
+        assert_eq!(big.code(), Code::ResourceExhausted);
+        assert!(big.get_details_quota_failure().is_some(), "{big:?}");
+        let flag = fixed(Status::internal(
+            "protocol error: received message with invalid compression flag: 7 (valid flags are 0 and 1), while sending request",
+        ))
+        .await;
+        assert_eq!(flag.code(), Code::InvalidArgument);
+        assert!(flag.get_details_bad_request().is_some());
+        let cut = fixed(Status::internal("Unexpected EOF decoding stream.")).await;
+        assert_eq!(cut.code(), Code::InvalidArgument);
+        // The spec's own INTERNAL and every other status pass as they are.
+        let spec = "protocol error: received message with compressed-flag but no grpc-encoding was specified";
+        assert_eq!(fixed(Status::internal(spec)).await.code(), Code::Internal);
+        let other = fixed(Status::not_found("jobs/x")).await;
+        assert_eq!((other.code(), other.message()), (Code::NotFound, "jobs/x"));
+    }
 }
 
 /// The fully qualified names of the services [`routes`] serves (health and reflection aside),
