@@ -607,3 +607,75 @@ fn fair_moves_only_the_named_region() {
         assert!(err.contains(needle), "{flags:?}: {err}");
     }
 }
+
+/// `--feature-size` on a 2:1:1 ellipsoid (icosphere level 5) carrying bumps 0.13 across: the
+/// run ends by itself `feature_scale_reached`, the extents keep 2:1:1 within 5%, and a bad
+/// length is refused naming the flag.
+#[test]
+fn fair_removes_detail_below_the_feature_size() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let input = dir.path().join("ellipsoid.obj");
+    let mut mesh = willow::mesh::generate::icosphere(5);
+    for p in &mut mesh.positions {
+        let e = [2.0 * p[0], p[1], p[2]];
+        let r = 1.0 + 0.02 * (24.0 * e[0]).sin() * (24.0 * e[1]).sin() * (24.0 * e[2]).sin();
+        *p = [e[0] * r, e[1] * r, e[2] * r];
+    }
+    let mut text = String::new();
+    for p in &mesh.positions {
+        text += &format!("v {} {} {}\n", p[0], p[1], p[2]);
+    }
+    for t in &mesh.triangles {
+        text += &format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1);
+    }
+    std::fs::write(&input, text).expect("write mesh");
+    let output = dir.path().join("out.obj");
+    let run = |extra: &[&str]| {
+        willow()
+            .arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(&output)
+            .args(["--json", "--steps", "40"])
+            .args(extra)
+            .output()
+            .expect("run willow")
+    };
+    let out = run(&["--feature-size", "0.2"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let end = outcome(&out);
+    assert_eq!(end["outcome"], "feature_scale_reached", "{end}");
+    assert!(json_lines(&out).len() < 40);
+    let written: Vec<[f64; 3]> = std::fs::read_to_string(&output)
+        .expect("output")
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .filter_map(|t| t.parse().ok())
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect();
+    let extent = |axis: usize| {
+        let (lo, hi) = written.iter().fold((f64::MAX, f64::MIN), |(lo, hi), q| {
+            (lo.min(q[axis]), hi.max(q[axis]))
+        });
+        hi - lo
+    };
+    let ratio = extent(0) / (0.5 * (extent(1) + extent(2)));
+    assert!((ratio / 2.0 - 1.0).abs() < 0.05, "elongation {ratio}");
+    for bad in ["0", "-1", "nan"] {
+        let out = run(&["--feature-size", bad]);
+        assert_eq!(out.status.code(), Some(2), "{bad}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("--feature-size"), "{bad}: {err}");
+    }
+    let out = run(&["--feature-size", "0.2", "--method", "mcf"]);
+    assert_eq!(out.status.code(), Some(2));
+}

@@ -1,12 +1,15 @@
 //! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
 //! [--frames-dir DIR] [--json] [--no-safeguard] [--preserve area|volume|none]
-//! [--max-deviation D] [--until-willmore W]`: the contract other tools rely on.
+//! [--max-deviation D] [--until-willmore W] [--feature-size L] [--falloff F]
+//! [--region-sphere X,Y,Z,R] [--region-box ..] [--region-vertices FILE] [--region-group NAME]
+//! [--seam fixed|smooth]`: the contract other tools rely on.
 //!
 //! The run stops as `willow::flow::stopping` decides: after `--steps`, or earlier when W
-//! stops falling, reaches `--until-willmore`, or the next step would pass `--max-deviation`.
+//! stops falling, reaches `--until-willmore`, the detail below `--feature-size` is gone, or
+//! the next step would pass `--max-deviation`.
 //! With `--json`, stdout has one JSON object per step, then one last line
 //! `{"outcome": "...", "reason": "..."}` (outcomes: `completed`, `converged`,
-//! `target_reached`, `max_deviation`, `no_progress`).
+//! `target_reached`, `max_deviation`, `no_progress`, `feature_scale_reached`).
 //!
 //! Exit codes: 0 done (any outcome but `no_progress`); 2 input refused; 1 failure while
 //! running (no output written); 3 the safeguard found no acceptable step
@@ -121,6 +124,11 @@ pub struct FairArgs {
     /// How a region meets the surface around it: `smooth` (tangent-continuous) or `fixed`.
     #[arg(long, default_value = "smooth", value_parser = Seam::parse)]
     pub seam: Seam,
+    /// Remove the detail smaller than L (model units) and keep the shape above it; the run
+    /// ends `feature_scale_reached` once that detail is gone (conformal flow only; with
+    /// --filter-sigma/--filter-k those replace the σ and k derived from L).
+    #[arg(long, value_name = "L", allow_negative_numbers = true)]
+    pub feature_size: Option<f64>,
 }
 
 /// The vertex numbers of a `--region-vertices` file.
@@ -254,6 +262,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         preserve: args.preserve,
         max_deviation: args.max_deviation,
         until_willmore: args.until_willmore,
+        feature_size: args.feature_size,
         // One run, read by a person or a script: each step says how far it moved the surface.
         measure_deviation: true,
         ..base

@@ -293,6 +293,9 @@ impl JobSpec {
             max_deviation: None,
             // Not stored with a frame yet, and 12–32% of a step at 100k triangles: off.
             measure_deviation: false,
+            // Not in the job spec yet (the CLI sets them; issue 29).
+            feature_size: None,
+            falloff: None,
         }
     }
 

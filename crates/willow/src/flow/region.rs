@@ -379,6 +379,10 @@ impl Flow for RegionFlow {
         self.inner.setup_profile()
     }
 
+    fn feature_detail(&self) -> Option<super::feature::FeatureDetail> {
+        self.inner.feature_detail()
+    }
+
     /// The whole surface's positions (so a resumed job writes the whole file), with the inner
     /// flow's metrics and step-size control.
     fn checkpoint(&self) -> Option<FlowState> {
