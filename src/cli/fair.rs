@@ -129,6 +129,9 @@ pub struct FairArgs {
     /// --filter-sigma/--filter-k those replace the σ and k derived from L).
     #[arg(long, value_name = "L", allow_negative_numbers = true)]
     pub feature_size: Option<f64>,
+    /// Blend a region's motion to zero over this width (model units) toward its border.
+    #[arg(long, value_name = "F", allow_negative_numbers = true)]
+    pub falloff: Option<f64>,
 }
 
 /// The vertex numbers of a `--region-vertices` file.
@@ -263,6 +266,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         max_deviation: args.max_deviation,
         until_willmore: args.until_willmore,
         feature_size: args.feature_size,
+        falloff: args.falloff,
         // One run, read by a person or a script: each step says how far it moved the surface.
         measure_deviation: true,
         ..base

@@ -315,3 +315,120 @@ fn regions_that_cannot_be_faired_are_refused_by_name() {
         "radius",
     );
 }
+
+/// Euclidean distance from each vertex to the nearest vertex outside the region (an
+/// independent stand-in for the flow's distance along edges, which can only be longer).
+fn distance_to_outside(mesh: &Mesh, moving: &[bool]) -> Vec<f64> {
+    let outside: Vec<[f64; 3]> = mesh
+        .positions
+        .iter()
+        .zip(moving)
+        .filter(|(_, &m)| !m)
+        .map(|(p, _)| *p)
+        .collect();
+    mesh.positions
+        .iter()
+        .map(|p| {
+            outside
+                .iter()
+                .map(|q| dot(sub(*p, *q), sub(*p, *q)).sqrt())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect()
+}
+
+/// Mean displacement of the region's vertices within `near` of the outside, and of those
+/// farther in.
+fn displacement_near_and_far(mesh: &Mesh, moving: &[bool], out: &Outcome, near: f64) -> (f64, f64) {
+    let distance = distance_to_outside(mesh, moving);
+    let (mut a, mut na, mut b, mut nb) = (0.0, 0usize, 0.0, 0usize);
+    for v in (0..mesh.vertex_count()).filter(|&v| moving[v]) {
+        let d = sub(out.positions[v], mesh.positions[v]);
+        let len = dot(d, d).sqrt();
+        if distance[v] < near {
+            a += len;
+            na += 1;
+        } else {
+            b += len;
+            nb += 1;
+        }
+    }
+    assert!(na > 0 && nb > 0, "both bands hold vertices");
+    (a / na as f64, b / nb as f64)
+}
+
+/// `falloff`: the motion fades toward the border. On spot's ear, the region's vertices near
+/// its border move far less than without a falloff, those farther in still move, and every
+/// check of a region holds (outside bit-identical, W down, no fold, Q, the seam); the same on
+/// the genus-2 surface and the open cap.
+#[test]
+fn a_falloff_blends_the_motion_to_zero_at_the_border() {
+    let mesh = spot().surface().clone();
+    let moving = select(&mesh.positions, &[EAR]).expect("valid");
+    let width = 0.08;
+    let with = |falloff: Option<f64>| FlowParams {
+        falloff,
+        ..params(vec![EAR], Seam::Smooth)
+    };
+    let sharp = run(&mesh, &with(None), 5);
+    let blended = run(&mesh, &with(Some(width)), 5);
+    check("spot ear, falloff", &mesh, &[EAR], &blended, 2.0);
+    let near = 0.3 * width;
+    let (sharp_near, sharp_far) = displacement_near_and_far(&mesh, &moving, &sharp, near);
+    let (blend_near, blend_far) = displacement_near_and_far(&mesh, &moving, &blended, near);
+    eprintln!(
+        "mean motion within {near} of the border: {sharp_near:.3e} → {blend_near:.3e}; \
+         farther in {sharp_far:.3e} → {blend_far:.3e}"
+    );
+    // Within 0.3 of the width the smoothstep weight is at most 0.22 (less along edges).
+    assert!(
+        blend_near < 0.5 * sharp_near,
+        "{blend_near} vs {sharp_near}"
+    );
+    assert!(blend_far > 0.2 * sharp_far, "{blend_far} vs {sharp_far}");
+
+    let pretzel_mesh = with_noise(pretzel(2, 24), 0.05, 7);
+    let far = (0..pretzel_mesh.vertex_count())
+        .max_by(|&a, &b| pretzel_mesh.positions[a][0].total_cmp(&pretzel_mesh.positions[b][0]))
+        .expect("vertices");
+    let region = Region::Sphere {
+        center: pretzel_mesh.positions[far],
+        radius: 0.35,
+    };
+    let p = FlowParams {
+        falloff: Some(0.1),
+        ..params(vec![region.clone()], Seam::Smooth)
+    };
+    let out = run(&pretzel_mesh, &p, 4);
+    check("genus-2 rim, falloff", &pretzel_mesh, &[region], &out, 2.0);
+
+    let cap = with_noise(bumpy_cap(4, 0.06), 0.05, 11);
+    let region = Region::Box {
+        min: [-0.4, -0.4, -2.0],
+        max: [0.4, 0.4, 2.0],
+    };
+    let p = FlowParams {
+        falloff: Some(0.1),
+        ..params(vec![region.clone()], Seam::Fixed)
+    };
+    let out = run(&cap, &p, 4);
+    check(
+        "bumpy cap centre, fixed, falloff",
+        &cap,
+        &[region],
+        &out,
+        3.0,
+    );
+
+    // A falloff needs a region, and a positive finite width.
+    for (falloff, regions) in [(0.0, vec![EAR]), (f64::NAN, vec![EAR]), (0.1, vec![])] {
+        let p = FlowParams {
+            falloff: Some(falloff),
+            ..params(regions, Seam::Smooth)
+        };
+        match new_flow(&mesh, &p) {
+            Err(FlowError::InvalidParameter { name, .. }) => assert_eq!(name, "falloff"),
+            other => panic!("falloff {falloff}: {:?}", other.err()),
+        }
+    }
+}

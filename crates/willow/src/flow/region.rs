@@ -12,6 +12,10 @@
 //!   vectors at the surrounding surface's frame (§6.3.1), so the faired surface leaves the
 //!   border tangent to the surface around it (G1 up to the mesh's resolution).
 //!
+//! With a `falloff` width (`FlowParams::falloff`) each step's motion is weighted by a
+//! smoothstep of the distance from the border along the mesh's edges ([`falloff_weights`]):
+//! the region fades into its surroundings instead of moving up to the held ring.
+//!
 //! Vertices outside the region are never written: they are bit-identical to the input. The
 //! metrics a region flow reports are those of the submesh (the region and its held rings).
 
@@ -268,6 +272,56 @@ pub fn submesh(mesh: &Mesh, moving: &[bool], rings: usize) -> Submesh {
     }
 }
 
+/// The weight of each vertex's motion under a falloff of `width` (model units): the
+/// smoothstep `t²(3 − 2t)` of `t = min(d / width, 1)`, with `d` the distance from the nearest
+/// `held` vertex along the mesh's edges (Dijkstra on the input surface, so a thin part does
+/// not take its distance across the gap). Held vertices get 0, vertices `width` or more
+/// inside the region 1; the slope is zero at both ends, so a smooth seam stays smooth.
+pub fn falloff_weights(mesh: &Mesh, held: &[bool], width: f64) -> Vec<f64> {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    let n = mesh.vertex_count();
+    let mut neighbours: Vec<Vec<usize>> = vec![Vec::new(); n];
+    for t in &mesh.triangles {
+        for c in 0..3 {
+            let (a, b) = (t[c], t[(c + 1) % 3]);
+            neighbours[a].push(b);
+            neighbours[b].push(a);
+        }
+    }
+    // Distances are non-negative finite floats: their bit patterns order as the values do.
+    let mut distance = vec![f64::INFINITY; n];
+    let mut queue = BinaryHeap::new();
+    for (v, _) in held.iter().enumerate().filter(|(_, &h)| h) {
+        distance[v] = 0.0;
+        queue.push(Reverse((0u64, v)));
+    }
+    while let Some(Reverse((bits, v))) = queue.pop() {
+        let d = f64::from_bits(bits);
+        if d > distance[v] {
+            continue;
+        }
+        for &u in &neighbours[v] {
+            let p = mesh.positions[v];
+            let q = mesh.positions[u];
+            let edge =
+                ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt();
+            let next = d + edge;
+            if next < distance[u] {
+                distance[u] = next;
+                queue.push(Reverse((next.to_bits(), u)));
+            }
+        }
+    }
+    distance
+        .iter()
+        .map(|&d| {
+            let t = (d / width).min(1.0);
+            t * t * (3.0 - 2.0 * t)
+        })
+        .collect()
+}
+
 /// Vertices where the faces marked `in_sub` meet in more than one fan: more than two of their
 /// edges are boundary edges of the marked set.
 fn pinched_vertices(mesh: &Mesh, in_sub: &[bool]) -> Vec<usize> {
@@ -330,10 +384,15 @@ impl RegionFlow {
         let sub = submesh(mesh, &selected, params.seam.held_rings());
         let inner_params = FlowParams {
             regions: Vec::new(),
+            // The falloff reaches the inner flow as its weights (`blend` below).
+            falloff: None,
             boundary: Boundary::Fixed,
             ..params.clone()
         };
-        let flow = ConformalFlow::with_pinned(&sub.mesh, &inner_params, sub.held.clone())?;
+        let blend = params
+            .falloff
+            .map(|width| falloff_weights(&sub.mesh, &sub.held, width));
+        let flow = ConformalFlow::with_pinned(&sub.mesh, &inner_params, sub.held.clone(), blend)?;
         let inner: Box<dyn Flow> = Box::new(Safeguarded::new(
             flow,
             &sub.mesh.triangles,

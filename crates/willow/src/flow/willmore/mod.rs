@@ -118,6 +118,10 @@ pub struct ConformalFlow {
     filter: Option<FilterSolver>,
     /// The feature scale's state (`FlowParams::feature_size`, [`crate::flow::feature`]).
     feature: Option<FeatureScale>,
+    /// Per-vertex weight of each step's motion (a region's falloff); `None`: full motion.
+    blend: Option<Vec<f64>>,
+    /// The surface a step started from, kept when the step's motion is filtered or blended.
+    step_start: Vec<[f64; 3]>,
     /// The filtered flow direction of the current surface, when the end of the last step
     /// already computed it (a feature scale measures its band there): the next step starts
     /// from it instead of filtering again. Cleared whenever the surface is set from outside.
@@ -150,12 +154,31 @@ impl ConformalFlow {
     /// conditions of a fixed boundary (§6.3.2: λ = 1 and the input position there) wherever
     /// the pinned vertices lie: what a region of a larger surface flows with
     /// ([`super::region`]), its surroundings pinned.
+    ///
+    /// `blend`, when given, weighs each vertex's motion in every step (1 moves fully, 0 not
+    /// at all): a region's falloff toward its border ([`super::region::falloff_weights`]).
     pub(crate) fn with_pinned(
         mesh: &Mesh,
         params: &FlowParams,
         pinned: Vec<bool>,
+        blend: Option<Vec<f64>>,
     ) -> Result<Self, FlowError> {
-        Self::build(mesh, params, Some(pinned))
+        let mut flow = Self::build(mesh, params, Some(pinned))?;
+        if let Some(weights) = blend {
+            if weights.len() != flow.positions.len() {
+                return Err(FlowError::InvalidParameter {
+                    name: "falloff",
+                    reason: format!(
+                        "{} weights for {} vertices",
+                        weights.len(),
+                        flow.positions.len()
+                    ),
+                });
+            }
+            flow.step_start = flow.positions.clone();
+            flow.blend = Some(weights);
+        }
+        Ok(flow)
     }
 
     fn build(
@@ -394,8 +417,13 @@ impl ConformalFlow {
             laplace_values: vec![0.0; laplace_pattern.nnz()],
             laplace_unshifted: vec![0.0; laplace_pattern.nnz()],
             filter,
+            blend: None,
+            step_start: if params.feature_size.is_some() {
+                vec![[0.0; 3]; n]
+            } else {
+                Vec::new()
+            },
             feature: params.feature_size.map(|_| FeatureScale {
-                before: vec![[0.0; 3]; n],
                 column: vec![0.0; n],
                 detail: FeatureDetail {
                     initial: 0.0,
@@ -448,8 +476,6 @@ impl ConformalFlow {
 
 /// What a feature scale keeps between steps ([`crate::flow::feature`]).
 struct FeatureScale {
-    /// The surface a step started from, to filter the step's motion.
-    before: Vec<[f64; 3]>,
     /// Scratch: one coordinate of the motion.
     column: Vec<f64>,
     detail: FeatureDetail,
@@ -491,8 +517,8 @@ impl Flow for ConformalFlow {
         self.curvature_change()?;
         self.profile.lap("curvature");
         let eigen_residual = self.solve_lambda()?;
-        if let Some(f) = &mut self.feature {
-            f.before.copy_from_slice(&self.positions);
+        if !self.step_start.is_empty() {
+            self.step_start.copy_from_slice(&self.positions);
         }
         let closure_residual = self.integrate()?;
         self.profile.lap("closure");
@@ -503,7 +529,7 @@ impl Flow for ConformalFlow {
             remove_low_frequency(
                 filter,
                 &self.geometry.vertex_areas,
-                &f.before,
+                &self.step_start,
                 &mut self.positions,
                 self.fixed.as_deref(),
                 &mut f.column,
@@ -513,6 +539,14 @@ impl Flow for ConformalFlow {
                 reason: e.to_string(),
             })?;
             self.profile.lap("feature scale");
+        }
+        if let Some(weights) = &self.blend {
+            // A region's falloff: the motion fades to zero toward the border.
+            for ((p, b), &w) in self.positions.iter_mut().zip(&self.step_start).zip(weights) {
+                for axis in 0..3 {
+                    p[axis] = b[axis] + w * (p[axis] - b[axis]);
+                }
+            }
         }
         // New geometry, then the scale policy on it, then the geometry again for the metrics
         // and the next step (the rescale changes areas and H).
