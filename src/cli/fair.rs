@@ -22,7 +22,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use willow::flow::region::{Region, Seam};
+use willow::flow::region::{resolve_groups, Region, Seam};
 use willow::flow::stopping::{Event, Outcome, Run};
 use willow::flow::{new_flow, FlowError, Method, Preserve};
 use willow::mesh::io::{Asset, Format, Limits};
@@ -121,6 +121,10 @@ pub struct FairArgs {
     /// lines: OBJ `v` lines from 0, glTF accessor vertices).
     #[arg(long, value_name = "FILE")]
     pub region_vertices: Option<PathBuf>,
+    /// Fair only the faces of a named group of the file: an OBJ `g` or `o` name, a glTF node
+    /// or mesh name. Repeatable.
+    #[arg(long, value_name = "NAME")]
+    pub region_group: Vec<String>,
     /// How a region meets the surface around it: `smooth` (tangent-continuous) or `fixed`.
     #[arg(long, default_value = "smooth", value_parser = Seam::parse)]
     pub seam: Seam,
@@ -256,7 +260,20 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(p) => p,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
+    // Groups are the file's own names: looked up here, on the welded surface (the job spec
+    // holds file-numbered regions only).
+    let groups: Vec<Region> = args
+        .region_group
+        .iter()
+        .cloned()
+        .map(Region::Group)
+        .collect();
+    let groups = match resolve_groups(&groups, &asset) {
+        Ok(g) => g,
+        Err(e) => return fail(EXIT_BAD_INPUT, format!("--region-group: {e}")),
+    };
     let params = willow::flow::FlowParams {
+        regions: base.regions.iter().cloned().chain(groups).collect(),
         threads: match args.threads {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
             n => n,

@@ -3,7 +3,9 @@
 //! Every check here is computed in the test from positions and faces (face normals, areas,
 //! the triangle's affine map), not from Willow's metrics, except W, which the flow reports.
 
-use willow::flow::region::{select, Region, Seam};
+mod mesh_support;
+
+use willow::flow::region::{resolve_groups, select, Region, Seam};
 use willow::flow::{new_flow, FlowError, FlowParams, Method};
 use willow::mesh::generate::{bumpy_cap, pretzel, with_noise};
 use willow::mesh::io::{Asset, Format, Limits};
@@ -431,4 +433,103 @@ fn a_falloff_blends_the_motion_to_zero_at_the_border() {
             other => panic!("falloff {falloff}: {:?}", other.err()),
         }
     }
+}
+
+/// spot with its faces in two OBJ groups: `g ear` before the faces with every corner in the
+/// ear sphere, `g body` before the rest (and an `o spot` line first).
+fn spot_with_groups() -> String {
+    let text = include_str!("data/spot_triangulated.obj");
+    let mut v: Vec<[f64; 3]> = Vec::new();
+    let (mut ear, mut body) = (String::new(), String::new());
+    let (c, r) = ([0.40, 0.72, -0.20], 0.15);
+    let mut head = String::from("o spot\n");
+    for line in text.lines() {
+        if let Some(rest) = line.strip_prefix("v ") {
+            let p: Vec<f64> = rest
+                .split_whitespace()
+                .filter_map(|t| t.parse().ok())
+                .collect();
+            v.push([p[0], p[1], p[2]]);
+            head += line;
+            head += "\n";
+        } else if let Some(rest) = line.strip_prefix("f ") {
+            let inside = rest.split_whitespace().all(|w| {
+                let k: usize = w
+                    .split('/')
+                    .next()
+                    .and_then(|i| i.parse().ok())
+                    .unwrap_or(0);
+                let p = v[k - 1];
+                (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>() <= r * r
+            });
+            let target = if inside { &mut ear } else { &mut body };
+            *target += line;
+            *target += "\n";
+        } else {
+            head += line;
+            head += "\n";
+        }
+    }
+    format!("{head}g ear\n{ear}g body\n{body}")
+}
+
+/// `{"group": "ear"}`: the OBJ group's faces are the region. Everything a region must show
+/// holds (outside bit-identical, W down, no fold, Q, the seam); an unknown group is refused
+/// naming it and listing the file's groups; glTF node and mesh names are groups too.
+#[test]
+fn a_named_group_of_the_file_is_a_region() {
+    let text = spot_with_groups();
+    let asset = Asset::read(text.as_bytes(), Format::Obj, &Limits::default()).expect("reads");
+    assert_eq!(asset.group_names(), vec!["spot", "ear", "body"]);
+    let mesh = asset.surface().clone();
+    let regions = resolve_groups(&[Region::Group("ear".into())], &asset).expect("the group exists");
+    let Region::Vertices(list) = &regions[0] else {
+        panic!("a group resolves to vertices: {regions:?}");
+    };
+    // The group's vertices are the corners of the faces under `g ear`, counted here from the
+    // text: every vertex within the ear sphere that a face wholly inside it uses.
+    let in_ear = |p: &[f64; 3]| {
+        let c = [0.40, 0.72, -0.20];
+        (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>() <= 0.15 * 0.15
+    };
+    assert!(list.iter().all(|&v| in_ear(&mesh.positions[v])));
+    assert!(list.len() > 20, "{} vertices", list.len());
+    for seam in [Seam::Smooth, Seam::Fixed] {
+        let out = run(&mesh, &params(regions.clone(), seam), 5);
+        check(
+            &format!("spot ear group, {seam:?}"),
+            &mesh,
+            &regions,
+            &out,
+            3.0,
+        );
+    }
+
+    let err = resolve_groups(&[Region::Group("tail".into())], &asset).expect_err("unknown");
+    assert!(err.contains("`tail`") && err.contains("`ear`"), "{err}");
+    // An unresolved group cannot select vertices: a flow built on it is refused by name.
+    match new_flow(
+        &mesh,
+        &params(vec![Region::Group("ear".into())], Seam::Smooth),
+    ) {
+        Err(FlowError::InvalidParameter { name, reason }) => {
+            assert_eq!(name, "region");
+            assert!(reason.contains("ear"), "{reason}");
+        }
+        other => panic!("{:?}", other.err()),
+    }
+
+    let (mut json, bin, _, _) = mesh_support::textured_cube_gltf();
+    json["meshes"][0]["name"] = serde_json::json!("box");
+    let glb = mesh_support::glb_bytes(&json, &bin);
+    let cube = Asset::read(&glb, Format::Glb, &Limits::default()).expect("cube reads");
+    assert_eq!(cube.group_names(), vec!["child", "box"]);
+    let all: Vec<usize> = (0..cube.surface().vertex_count()).collect();
+    assert_eq!(cube.group_vertices("child"), Some(all.clone()));
+    assert_eq!(cube.group_vertices("box"), Some(all));
+    assert_eq!(
+        cube.group_vertices("parent"),
+        None,
+        "a node without a mesh has no faces"
+    );
 }

@@ -1,6 +1,7 @@
 //! Fairing a part of a surface: the region moves, everything else stays exactly where it was.
 //!
-//! A region is a set of vertices (a sphere, a box, a list, or several of them together). The
+//! A region is a set of vertices (a sphere, a box, a list, a named group of the file's faces,
+//! or several of them together). The
 //! flow runs on the *submesh* around it, with the surrounding vertices held by the Dirichlet
 //! conditions of a fixed boundary (§6.3.2: λ = 1 and the input position there), so a step
 //! costs what the region costs, not what the whole mesh does. The seam decides how many rings
@@ -22,6 +23,7 @@
 use super::safeguard::Safeguarded;
 use super::willmore::ConformalFlow;
 use super::{Boundary, Flow, FlowError, FlowParams, FlowState, Method, StepProfile};
+use crate::mesh::io::Asset;
 use crate::mesh::Mesh;
 use crate::metrics::StepMetrics;
 use serde::{Deserialize, Serialize};
@@ -37,6 +39,10 @@ pub enum Region {
     Box { min: [f64; 3], max: [f64; 3] },
     /// These vertices (indices into the mesh's vertices).
     Vertices(Vec<usize>),
+    /// The vertices of a named group of the file's faces: an OBJ `g` or `o` name, a glTF
+    /// node or mesh name. Only a file knows its groups: [`resolve_groups`] turns this into
+    /// [`Region::Vertices`] against the [`Asset`] before a flow is built.
+    Group(String),
 }
 
 /// How the region meets the surface around it.
@@ -144,6 +150,11 @@ impl Region {
                     return Err("the vertex list is empty".into());
                 }
             }
+            Region::Group(name) => {
+                if name.trim().is_empty() {
+                    return Err("the group name is empty".into());
+                }
+            }
         }
         Ok(())
     }
@@ -173,9 +184,45 @@ impl Region {
                     *s = true;
                 }
             }
+            Region::Group(name) => {
+                return Err(format!(
+                    "group `{name}` must be looked up in its file first (region::resolve_groups)"
+                ))
+            }
         }
         Ok(())
     }
+}
+
+/// `regions` with every [`Region::Group`] replaced by the surface vertices of its faces in
+/// `asset` ([`Asset::group_vertices`]; the other regions as they are). The vertices are in
+/// the surface's numbering, so this comes after any renumbering of file vertex lists. An
+/// unknown group is an error that names it and the groups the file has.
+pub fn resolve_groups(regions: &[Region], asset: &Asset) -> Result<Vec<Region>, String> {
+    regions
+        .iter()
+        .map(|r| match r {
+            Region::Group(name) => {
+                asset
+                    .group_vertices(name)
+                    .map(Region::Vertices)
+                    .ok_or_else(|| {
+                        let names = asset.group_names();
+                        if names.is_empty() {
+                            format!("unknown group `{name}`: the file names no groups")
+                        } else {
+                            let list: Vec<String> =
+                                names.iter().map(|n| format!("`{n}`")).collect();
+                            format!(
+                                "unknown group `{name}`: the file's groups are {}",
+                                list.join(", ")
+                            )
+                        }
+                    })
+            }
+            other => Ok(other.clone()),
+        })
+        .collect()
 }
 
 /// The vertices the union of `regions` names.
