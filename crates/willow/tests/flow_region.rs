@@ -241,8 +241,9 @@ fn spot_ear_fairs_alone_with_a_smooth_seam() {
 fn a_fixed_seam_and_a_vertex_list_hold_the_outside_too() {
     let mesh = spot().surface().clone();
     let out = run(&mesh, &params(vec![EAR], Seam::Fixed), 5);
-    // A fixed seam holds positions only: the surface may meet its border at an angle.
-    check("spot ear, fixed", &mesh, &[EAR], &out, 3.0);
+    // A fixed seam holds positions only: the surface may meet its border at an angle, but
+    // on the ear it stays within twice the input's normal jump too (measured: 1.09×).
+    check("spot ear, fixed", &mesh, &[EAR], &out, 2.0);
 
     // The same vertices named one by one flow the same, bit for bit.
     let moving = select(&mesh.positions, &[EAR]).expect("valid");
@@ -263,7 +264,9 @@ fn a_region_of_a_genus_two_surface_and_of_an_open_one() {
         radius: 0.35,
     };
     let out = run(&mesh, &params(vec![region.clone()], Seam::Smooth), 4);
-    check("genus-2 rim, smooth", &mesh, &[region], &out, 2.0);
+    check("genus-2 rim, smooth", &mesh, &[region.clone()], &out, 2.0);
+    let out = run(&mesh, &params(vec![region.clone()], Seam::Fixed), 4);
+    check("genus-2 rim, fixed", &mesh, &[region], &out, 2.0);
 
     let cap = with_noise(bumpy_cap(4, 0.06), 0.05, 11);
     let region = Region::Box {
@@ -271,7 +274,24 @@ fn a_region_of_a_genus_two_surface_and_of_an_open_one() {
         max: [0.4, 0.4, 2.0],
     };
     let out = run(&cap, &params(vec![region.clone()], Seam::Smooth), 4);
-    check("bumpy cap centre, smooth", &cap, &[region], &out, 2.0);
+    check(
+        "bumpy cap centre, smooth",
+        &cap,
+        &[region.clone()],
+        &out,
+        2.0,
+    );
+    // The same vertices as a list, with a fixed seam.
+    let moving = select(&cap.positions, &[region]).expect("valid");
+    let list = Region::Vertices((0..moving.len()).filter(|&v| moving[v]).collect());
+    let out = run(&cap, &params(vec![list.clone()], Seam::Fixed), 4);
+    check(
+        "bumpy cap centre, vertices, fixed",
+        &cap,
+        &[list],
+        &out,
+        2.0,
+    );
 }
 
 #[test]
