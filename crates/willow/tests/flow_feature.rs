@@ -250,3 +250,46 @@ fn bad_feature_sizes_are_refused_by_name() {
     let flow = new_flow(&mesh, &params).expect("flow");
     assert!(flow.feature_detail().is_some());
 }
+
+/// A feature scale on a region: the bumps of the ellipsoid's +x half go, every vertex of the
+/// other half is bit-identical, and the run still ends by itself.
+#[test]
+fn a_feature_scale_on_a_region() {
+    use willow::flow::region::{select, Region};
+    let mesh = bumpy_ellipsoid(0.02);
+    let region = Region::Box {
+        min: [0.3, -2.0, -2.0],
+        max: [3.0, 2.0, 2.0],
+    };
+    let params = FlowParams {
+        feature_size: Some(0.2),
+        regions: vec![region.clone()],
+        ..FlowParams::default()
+    };
+    let (after, outcome, steps) = run(&mesh, &params, 40);
+    eprintln!("region: {outcome:?} after {steps} steps");
+    assert_eq!(outcome, Outcome::FeatureScaleReached);
+    let moving = select(&mesh.positions, &[region]).expect("valid");
+    // Radial bump amplitude inside, before and after: the RMS of r/r_ellipsoid − 1, with the
+    // ellipsoid the input's own 2:1:1 one (the region cannot move the rest, so it stays).
+    let bumps = |p: &[[f64; 3]]| {
+        let (mut sum, mut n) = (0.0, 0);
+        for (v, q) in p.iter().enumerate() {
+            if !moving[v] || q[0] < 0.6 {
+                continue; // deep inside the region only, away from its held border
+            }
+            let on = 1.0 / ((q[0] / 2.0).powi(2) + q[1] * q[1] + q[2] * q[2]).sqrt();
+            sum += (on - 1.0).powi(2);
+            n += 1;
+        }
+        (sum / n as f64).sqrt()
+    };
+    let (b0, b1) = (bumps(&mesh.positions), bumps(&after));
+    eprintln!("bump amplitude inside: {b0:.3e} → {b1:.3e}");
+    assert!(b1 < b0 / 3.0, "{b0} → {b1}");
+    for (v, (p, q)) in after.iter().zip(&mesh.positions).enumerate() {
+        if !moving[v] {
+            assert_eq!(p.map(f64::to_bits), q.map(f64::to_bits), "vertex {v} moved");
+        }
+    }
+}
