@@ -135,6 +135,17 @@ fn bumps_go_and_the_ellipsoid_stays() {
         "residual {before:.3e} → {residual:.3e}"
     );
     assert!((ratio / 2.0 - 1.0).abs() < 0.05, "elongation {ratio}");
+    // The size is the ellipsoid's (4 × 2 × 2), not the bumpy input's area blown up.
+    for (axis, size) in [(0, 4.0), (1, 2.0), (2, 2.0)] {
+        let (lo, hi) = after.iter().fold((f64::MAX, f64::MIN), |(lo, hi), q| {
+            (lo.min(q[axis]), hi.max(q[axis]))
+        });
+        assert!(
+            ((hi - lo) / size - 1.0).abs() < 0.005,
+            "extent {axis}: {}",
+            hi - lo
+        );
+    }
 }
 
 /// Without the bumps there is nothing below the scale: the ellipsoid does not move.

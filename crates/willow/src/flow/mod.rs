@@ -236,7 +236,9 @@ pub struct FlowParams {
     pub seam: region::Seam,
     /// What each component keeps after every step: area (the default), enclosed volume, or
     /// nothing ([`Preserve`]). Taubin smoothing is never rescaled and a fixed boundary pins
-    /// the size already: both refuse `volume` ([`FlowError::Unsupported`]).
+    /// the size already: both refuse `volume` ([`FlowError::Unsupported`]). Under a
+    /// `feature_size`, `area` keeps only the centroid: the area lost is the detail's
+    /// ([`feature::scale_policy`]).
     pub preserve: Preserve,
     /// Stop once the Willmore energy is at most this ([`stopping::Run`]); `None`: no target.
     pub until_willmore: Option<f64>,

@@ -18,7 +18,7 @@
 use super::constraints::ConstraintBasis;
 use super::dirac::TriangleAssembly;
 use super::exactness::Exactness;
-use super::feature::{band_energy, feature_filter, remove_low_frequency, FeatureDetail};
+use super::feature::{self, band_energy, feature_filter, remove_low_frequency, FeatureDetail};
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
 use super::prescribed::{PrescribedError, PrescribedSolver};
@@ -273,7 +273,7 @@ impl ConformalFlow {
             params.measures_deviation(),
         );
         let scale = ScalePolicy::new(
-            params.preserve,
+            feature::scale_policy(params.preserve, params.feature_size),
             &topology,
             &mesh.positions,
             &mesh.triangles,
