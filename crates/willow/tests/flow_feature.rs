@@ -304,3 +304,44 @@ fn a_feature_scale_on_a_region() {
         }
     }
 }
+
+/// A feature-scale flow resumed from a checkpoint takes the steps the uninterrupted one takes,
+/// up to rounding (the filtered direction it keeps between steps is recomputed from the
+/// surface, whose cached geometry the uninterrupted flow updated in place), as
+/// `flow_resume.rs` asks of every flow.
+#[test]
+fn a_feature_scale_flow_resumes_where_it_stopped() {
+    let mesh = bumpy_ellipsoid(0.02);
+    let params = FlowParams {
+        feature_size: Some(0.2),
+        ..FlowParams::default()
+    };
+    let mut whole = new_flow(&mesh, &params).expect("flow");
+    let mut first = new_flow(&mesh, &params).expect("flow");
+    for _ in 0..2 {
+        whole.step().expect("step");
+        first.step().expect("step");
+    }
+    let state = first.checkpoint().expect("checkpoint");
+    let mut resumed = new_flow(&mesh, &params).expect("flow");
+    resumed.resume(&state).expect("resume");
+    for _ in 0..2 {
+        let a = whole.step().expect("step");
+        let b = resumed.step().expect("step");
+        assert!((a.willmore_energy / b.willmore_energy - 1.0).abs() < 1e-9);
+    }
+    let apart = whole
+        .positions()
+        .iter()
+        .zip(resumed.positions())
+        .flat_map(|(p, q)| (0..3).map(move |a| (p[a] - q[a]).abs()))
+        .fold(0.0, f64::max);
+    assert!(apart < 1e-7, "resumed steps differ by {apart:e}");
+    let (d, e) = (
+        whole.feature_detail().expect("detail"),
+        resumed.feature_detail().expect("detail"),
+    );
+    assert_eq!(d.initial, e.initial);
+    assert!((d.current / e.current - 1.0).abs() < 1e-6, "{d:?} vs {e:?}");
+    assert!(d.current < 0.5 * d.initial, "{d:?}");
+}
