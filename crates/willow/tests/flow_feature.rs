@@ -252,9 +252,23 @@ fn bad_feature_sizes_are_refused_by_name() {
             other => panic!("{params:?}: {other:?}"),
         }
     }
+    // Below the mesh's resolution (icosphere(1): edges about 0.6 long) there is no detail.
+    match new_flow(
+        &mesh,
+        &FlowParams {
+            feature_size: Some(0.5),
+            ..FlowParams::default()
+        },
+    ) {
+        Err(FlowError::InvalidParameter { name, reason }) => {
+            assert_eq!(name, "feature_size");
+            assert!(reason.contains("resolution"), "{reason}");
+        }
+        other => panic!("{:?}", other.err()),
+    }
     // An expert's σ and k replace the derived ones; the feature scale still applies.
     let params = FlowParams {
-        feature_size: Some(0.5),
+        feature_size: Some(1.5),
         filter: Some(SpectralFilter { sigma: 1e-3, k: 3 }),
         ..FlowParams::default()
     };

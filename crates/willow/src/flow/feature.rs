@@ -23,7 +23,7 @@
 //! has fallen to [`DETAIL_TOLERANCE`] of the input's.
 
 use super::filter::{FilterError, FilterSolver, SpectralFilter};
-use super::Preserve;
+use super::{FlowError, Preserve};
 
 /// Filter order of a feature scale: k = 2 approximates the norm that position-based Willmore
 /// flow uses (§4, Figure 19), and its pattern (two rings) keeps the filter system cheap.
@@ -48,6 +48,27 @@ impl FeatureDetail {
         self.current <= DETAIL_TOLERANCE * self.initial
     }
 }
+
+/// A feature size must be one the mesh can hold: at least [`MIN_EDGES_PER_FEATURE`] mean
+/// edge lengths. Below that the filter's crossover lies past the mesh's highest frequency,
+/// so the flow would pass on nothing and the request would silently do nothing.
+pub fn check_resolution(length: f64, mean_edge: f64) -> Result<(), FlowError> {
+    if length < MIN_EDGES_PER_FEATURE * mean_edge {
+        return Err(FlowError::InvalidParameter {
+            name: "feature_size",
+            reason: format!(
+                "{length} is below the mesh's resolution: its mean edge is {mean_edge:.6}, \
+                 so the smallest detail it holds is about {:.6} across",
+                MIN_EDGES_PER_FEATURE * mean_edge
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The smallest feature size, in mean edge lengths: a bump needs about two edges across to
+/// exist on the mesh at all.
+pub const MIN_EDGES_PER_FEATURE: f64 = 2.0;
 
 /// What the scale policy keeps under a feature scale: `area` (the default) keeps only the
 /// centroid. The detail carries area (bumps 0.13 across and 2% high add about 3% to the

@@ -347,6 +347,9 @@ impl ConformalFlow {
             None => Vec::new(),
         };
         setup.lap("X and L analysis");
+        if let Some(length) = params.feature_size {
+            feature::check_resolution(length, crate::mesh::generate::mean_edge_length(mesh))?;
+        }
         // A feature scale derives the filter from its length and the surface's size (an
         // explicit `filter` overrides the derived σ and k: the expert's choice).
         let filter_params = match (params.filter, params.feature_size) {
