@@ -287,6 +287,76 @@ async fn until_willmore_ends_target_reached() {
     srv.stop().await;
 }
 
+/// An OBJ of `mesh` with its faces in two groups, `top` (centroid above z = 0.3) and `rest`.
+fn grouped_obj(mesh: &Mesh) -> String {
+    let mut out = String::new();
+    for p in &mesh.positions {
+        out.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
+    }
+    let top = |t: &[usize; 3]| t.iter().map(|&v| mesh.positions[v][2]).sum::<f64>() / 3.0 > 0.3;
+    for (name, want) in [("top", true), ("rest", false)] {
+        out.push_str(&format!("g {name}\n"));
+        for t in mesh.triangles.iter().filter(|t| top(t) == want) {
+            out.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+        }
+    }
+    out
+}
+
+/// `region.group` names a group of the file's faces: only vertices of its faces move; an
+/// unknown group is refused naming the file's groups. `feature_size` reaches the flow and the
+/// job ends by itself with `feature_scale_reached`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_group_region_and_a_feature_size_reach_the_flow() {
+    let srv = start(|_| {}).await;
+    let mesh = bumpy();
+    let obj = grouped_obj(&mesh);
+    let (st, _, job) = srv
+        .submit_obj(&obj, "steps=3&region.group=top&seam=fixed&falloff=0.1")
+        .await;
+    assert_eq!(st, 202, "{job}");
+    let id = job["id"].as_str().expect("id").to_string();
+    assert_eq!(
+        job["params"]["region"],
+        serde_json::json!([{"group": "top"}])
+    );
+    assert_eq!(num(&job["params"]["falloff"]), 0.1);
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let out = result_positions(&srv, &id).await;
+    let mut in_top = vec![false; mesh.positions.len()];
+    for t in &mesh.triangles {
+        if t.iter().map(|&v| mesh.positions[v][2]).sum::<f64>() / 3.0 > 0.3 {
+            t.iter().for_each(|&v| in_top[v] = true);
+        }
+    }
+    let mut moved = 0;
+    for (k, (p, q)) in mesh.positions.iter().zip(&out).enumerate() {
+        if in_top[k] {
+            moved += usize::from(p != q);
+        } else {
+            assert_eq!(p.map(f64::to_bits), q.map(f64::to_bits), "vertex {k} moved");
+        }
+    }
+    assert!(moved > 10, "{moved} vertices of the group moved");
+    let (st, _, p) = srv.submit_obj(&obj, "region.group=ears").await;
+    assert_eq!(st, 400, "{p}");
+    assert_eq!(p["field"], "region");
+    assert!(p["detail"]
+        .as_str()
+        .is_some_and(|d| d.contains("`top`") && d.contains("`rest`")));
+
+    let done = run_json(
+        &srv,
+        &obj_text(&mesh),
+        serde_json::json!({"steps": 60, "feature_size": 0.5}),
+    )
+    .await;
+    assert_eq!(done["outcome"], "feature_scale_reached", "{done}");
+    assert!(num(&done["progress"]["step"]) < 60.0);
+    srv.stop().await;
+}
+
 /// Bad values are 400s naming the parameter, in JSON and in the query.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_controls_are_refused_naming_their_field() {
@@ -298,6 +368,9 @@ async fn bad_controls_are_refused_naming_their_field() {
         ("preserve=mass", "preserve"),
         ("method=taubin&preserve=volume", "preserve"),
         ("until_converged=maybe", "until_converged"),
+        ("feature_size=0", "feature_size"),
+        ("falloff=0.1", "falloff"),
+        ("method=mcf&feature_size=1", "feature_size"),
     ] {
         let (st, _, p) = srv.submit_obj(&obj, query).await;
         assert_eq!(st, 400, "{query}: {p}");
@@ -532,6 +605,22 @@ mod grpc {
                     ..Default::default()
                 },
                 "params.seam",
+            ),
+            (
+                v1::JobParams {
+                    region: vec![v1::Region {
+                        shape: Some(v1::region::Shape::Group("ears".into())),
+                    }],
+                    ..Default::default()
+                },
+                "params.region",
+            ),
+            (
+                v1::JobParams {
+                    feature_size: Some(-1.0),
+                    ..Default::default()
+                },
+                "params.feature_size",
             ),
         ];
         for (params, field) in cases {

@@ -62,6 +62,14 @@ pub struct JobSpecSchema {
     /// Report each frame's two-sided distance from the input (`deviation_max`,
     /// `deviation_mean`, model units). Off by default: it costs a share of every step.
     pub measure_deviation: bool,
+    /// Remove the detail smaller than this length (model units, > 0, at least two mean edge
+    /// lengths) and keep the shape above it: the spectral filter (§4) with its crossover at
+    /// this size; the job ends `feature_scale_reached` once the detail is gone. Conformal flow
+    /// only; `filter`, when given, replaces the derived σ and k.
+    pub feature_size: Option<f64>,
+    /// Width (model units, > 0) over which a region's motion blends to zero toward its
+    /// border. Needs a region.
+    pub falloff: Option<f64>,
 }
 
 /// What each component keeps after every step.
@@ -89,6 +97,9 @@ pub enum RegionSchema {
     /// These file vertices: OBJ `v` lines from 0, glTF accessor vertices (the numbering of
     /// frames' positions).
     Vertices(Vec<usize>),
+    /// The faces of a named group of the file: an OBJ `g` or `o` name, a glTF node or mesh
+    /// name.
+    Group(String),
 }
 
 /// How a region meets the surface around it.
@@ -223,6 +234,7 @@ mod tests {
                 max: [1.0; 3],
             }),
             serde_json::to_value(Region::Vertices(vec![1])),
+            serde_json::to_value(Region::Group("ear".into())),
             serde_json::to_value(Seam::Fixed),
             serde_json::to_value(Seam::Smooth),
             serde_json::to_value(willow::flow::Preserve::Volume),

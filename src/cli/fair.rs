@@ -1,12 +1,15 @@
 //! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
 //! [--frames-dir DIR] [--json] [--no-safeguard] [--preserve area|volume|none]
-//! [--max-deviation D] [--until-willmore W] [--all-steps]`: the contract other tools rely on.
+//! [--max-deviation D] [--until-willmore W] [--all-steps] [--feature-size L] [--falloff F]
+//! [--region-sphere X,Y,Z,R] [--region-box ..] [--region-vertices FILE] [--region-group NAME]
+//! [--seam fixed|smooth]`: the contract other tools rely on.
 //!
 //! The run stops as `willow::flow::stopping` decides: after `--steps`, or earlier when W
-//! stops falling (unless `--all-steps`), reaches `--until-willmore`, or the next step would pass `--max-deviation`.
+//! stops falling (unless `--all-steps`), reaches `--until-willmore`, the detail below
+//! `--feature-size` is gone, or the next step would pass `--max-deviation`.
 //! With `--json`, stdout has one JSON object per step, then one last line
 //! `{"outcome": "...", "reason": "..."}` (outcomes: `completed`, `converged`,
-//! `target_reached`, `max_deviation`, `no_progress`).
+//! `target_reached`, `max_deviation`, `no_progress`, `feature_scale_reached`).
 //!
 //! Exit codes: 0 done (any outcome but `no_progress`); 2 input refused; 1 failure while
 //! running (no output written); 3 the safeguard found no acceptable step
@@ -19,7 +22,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use willow::flow::region::{Region, Seam};
+use willow::flow::region::{resolve_groups, Region, Seam};
 use willow::flow::stopping::{Event, Outcome, Run};
 use willow::flow::{new_flow, FlowError, Method, Preserve};
 use willow::mesh::io::{Asset, Format, Limits};
@@ -121,9 +124,21 @@ pub struct FairArgs {
     /// lines: OBJ `v` lines from 0, glTF accessor vertices).
     #[arg(long, value_name = "FILE")]
     pub region_vertices: Option<PathBuf>,
+    /// Fair only the faces of a named group of the file: an OBJ `g` or `o` name, a glTF node
+    /// or mesh name. Repeatable.
+    #[arg(long, value_name = "NAME")]
+    pub region_group: Vec<String>,
     /// How a region meets the surface around it: `smooth` (tangent-continuous) or `fixed`.
     #[arg(long, default_value = "smooth", value_parser = Seam::parse)]
     pub seam: Seam,
+    /// Remove the detail smaller than L (model units) and keep the shape above it; the run
+    /// ends `feature_scale_reached` once that detail is gone (conformal flow only; with
+    /// --filter-sigma/--filter-k those replace the σ and k derived from L).
+    #[arg(long, value_name = "L", allow_negative_numbers = true)]
+    pub feature_size: Option<f64>,
+    /// Blend a region's motion to zero over this width (model units) toward its border.
+    #[arg(long, value_name = "F", allow_negative_numbers = true)]
+    pub falloff: Option<f64>,
 }
 
 /// The vertex numbers of a `--region-vertices` file.
@@ -248,7 +263,20 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(p) => p,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
+    // Groups are the file's own names: looked up here, on the welded surface (the job spec
+    // holds file-numbered regions only).
+    let groups: Vec<Region> = args
+        .region_group
+        .iter()
+        .cloned()
+        .map(Region::Group)
+        .collect();
+    let groups = match resolve_groups(&groups, &asset) {
+        Ok(g) => g,
+        Err(e) => return fail(EXIT_BAD_INPUT, format!("--region-group: {e}")),
+    };
     let params = willow::flow::FlowParams {
+        regions: base.regions.iter().cloned().chain(groups).collect(),
         threads: match args.threads {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
             n => n,
@@ -258,6 +286,8 @@ pub fn run(args: FairArgs) -> ExitCode {
         max_deviation: args.max_deviation,
         until_willmore: args.until_willmore,
         until_converged: !args.all_steps,
+        feature_size: args.feature_size,
+        falloff: args.falloff,
         // One run, read by a person or a script: each step says how far it moved the surface.
         measure_deviation: true,
         ..base

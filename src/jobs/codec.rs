@@ -56,6 +56,10 @@ struct HashedSpec<'a> {
     max_deviation: Option<f64>,
     #[serde(skip_serializing_if = "is_false")]
     measure_deviation: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    feature_size: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    falloff: Option<f64>,
 }
 
 fn is_area(p: &willow::flow::Preserve) -> bool {
@@ -101,6 +105,8 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             until_converged,
             max_deviation,
             measure_deviation,
+            feature_size,
+            falloff,
         } = s;
         HashedSpec {
             method: *method,
@@ -122,6 +128,8 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             until_converged: *until_converged,
             max_deviation: *max_deviation,
             measure_deviation: *measure_deviation,
+            feature_size: *feature_size,
+            falloff: *falloff,
         }
     }
 }

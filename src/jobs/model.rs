@@ -77,6 +77,11 @@ pub struct JobSpec {
     /// Report each frame's distance from the input (`deviation_max`, `deviation_mean`); on
     /// with `max_deviation`. Off by default: it costs a share of every step.
     pub measure_deviation: bool,
+    /// Remove the detail smaller than this length (model units) and keep the shape above it
+    /// (`willow::flow::feature`); the job ends `feature_scale_reached` once it is gone.
+    pub feature_size: Option<f64>,
+    /// Width (model units) over which a region's motion blends to zero toward its border.
+    pub falloff: Option<f64>,
 }
 
 impl Default for JobSpec {
@@ -102,6 +107,8 @@ impl Default for JobSpec {
             until_converged: flow.until_converged,
             max_deviation: flow.max_deviation,
             measure_deviation: flow.measure_deviation,
+            feature_size: flow.feature_size,
+            falloff: flow.falloff,
         }
     }
 }
@@ -214,6 +221,15 @@ impl JobSpec {
                             asset.file_vertex_count()
                         ),
                     }),
+                // A group names faces of the file: its vertices on the welded surface.
+                Region::Group(_) => {
+                    willow::flow::region::resolve_groups(std::slice::from_ref(r), asset)
+                        .map(|mut resolved| resolved.remove(0))
+                        .map_err(|reason| JobError::InvalidSpec {
+                            field: "region",
+                            reason,
+                        })
+                }
                 other => Ok(other.clone()),
             })
             .collect()
@@ -250,6 +266,8 @@ impl JobSpec {
             until_converged: self.until_converged,
             max_deviation: self.max_deviation,
             measure_deviation: self.measure_deviation,
+            feature_size: self.feature_size,
+            falloff: self.falloff,
         }
     }
 

@@ -196,7 +196,7 @@ pub mod one_or_many_regions {
         impl<'de> Visitor<'de> for Regions {
             type Value = Vec<Region>;
             fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-                f.write_str("a region ({\"sphere\": ...}, {\"box\": ...}, {\"vertices\": [...]}) or a list of them")
+                f.write_str("a region ({\"sphere\": ...}, {\"box\": ...}, {\"vertices\": [...]}, {\"group\": \"name\"}) or a list of them")
             }
             fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
                 let mut out = Vec::new();

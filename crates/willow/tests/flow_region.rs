@@ -3,7 +3,9 @@
 //! Every check here is computed in the test from positions and faces (face normals, areas,
 //! the triangle's affine map), not from Willow's metrics, except W, which the flow reports.
 
-use willow::flow::region::{select, Region, Seam};
+mod mesh_support;
+
+use willow::flow::region::{resolve_groups, select, Region, Seam};
 use willow::flow::{new_flow, FlowError, FlowParams, Method};
 use willow::mesh::generate::{bumpy_cap, pretzel, with_noise};
 use willow::mesh::io::{Asset, Format, Limits};
@@ -239,8 +241,9 @@ fn spot_ear_fairs_alone_with_a_smooth_seam() {
 fn a_fixed_seam_and_a_vertex_list_hold_the_outside_too() {
     let mesh = spot().surface().clone();
     let out = run(&mesh, &params(vec![EAR], Seam::Fixed), 5);
-    // A fixed seam holds positions only: the surface may meet its border at an angle.
-    check("spot ear, fixed", &mesh, &[EAR], &out, 3.0);
+    // A fixed seam holds positions only: the surface may meet its border at an angle, but
+    // on the ear it stays within twice the input's normal jump too (measured: 1.09×).
+    check("spot ear, fixed", &mesh, &[EAR], &out, 2.0);
 
     // The same vertices named one by one flow the same, bit for bit.
     let moving = select(&mesh.positions, &[EAR]).expect("valid");
@@ -261,7 +264,15 @@ fn a_region_of_a_genus_two_surface_and_of_an_open_one() {
         radius: 0.35,
     };
     let out = run(&mesh, &params(vec![region.clone()], Seam::Smooth), 4);
-    check("genus-2 rim, smooth", &mesh, &[region], &out, 2.0);
+    check(
+        "genus-2 rim, smooth",
+        &mesh,
+        std::slice::from_ref(&region),
+        &out,
+        2.0,
+    );
+    let out = run(&mesh, &params(vec![region.clone()], Seam::Fixed), 4);
+    check("genus-2 rim, fixed", &mesh, &[region], &out, 2.0);
 
     let cap = with_noise(bumpy_cap(4, 0.06), 0.05, 11);
     let region = Region::Box {
@@ -269,7 +280,24 @@ fn a_region_of_a_genus_two_surface_and_of_an_open_one() {
         max: [0.4, 0.4, 2.0],
     };
     let out = run(&cap, &params(vec![region.clone()], Seam::Smooth), 4);
-    check("bumpy cap centre, smooth", &cap, &[region], &out, 2.0);
+    check(
+        "bumpy cap centre, smooth",
+        &cap,
+        std::slice::from_ref(&region),
+        &out,
+        2.0,
+    );
+    // The same vertices as a list, with a fixed seam.
+    let moving = select(&cap.positions, &[region]).expect("valid");
+    let list = Region::Vertices((0..moving.len()).filter(|&v| moving[v]).collect());
+    let out = run(&cap, &params(vec![list.clone()], Seam::Fixed), 4);
+    check(
+        "bumpy cap centre, vertices, fixed",
+        &cap,
+        &[list],
+        &out,
+        2.0,
+    );
 }
 
 #[test]
@@ -313,5 +341,221 @@ fn regions_that_cannot_be_faired_are_refused_by_name() {
             Seam::Smooth,
         ),
         "radius",
+    );
+}
+
+/// Euclidean distance from each vertex to the nearest vertex outside the region (an
+/// independent stand-in for the flow's distance along edges, which can only be longer).
+fn distance_to_outside(mesh: &Mesh, moving: &[bool]) -> Vec<f64> {
+    let outside: Vec<[f64; 3]> = mesh
+        .positions
+        .iter()
+        .zip(moving)
+        .filter(|(_, &m)| !m)
+        .map(|(p, _)| *p)
+        .collect();
+    mesh.positions
+        .iter()
+        .map(|p| {
+            outside
+                .iter()
+                .map(|q| dot(sub(*p, *q), sub(*p, *q)).sqrt())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect()
+}
+
+/// Mean displacement of the region's vertices within `near` of the outside, and of those
+/// farther in.
+fn displacement_near_and_far(mesh: &Mesh, moving: &[bool], out: &Outcome, near: f64) -> (f64, f64) {
+    let distance = distance_to_outside(mesh, moving);
+    let (mut a, mut na, mut b, mut nb) = (0.0, 0usize, 0.0, 0usize);
+    for v in (0..mesh.vertex_count()).filter(|&v| moving[v]) {
+        let d = sub(out.positions[v], mesh.positions[v]);
+        let len = dot(d, d).sqrt();
+        if distance[v] < near {
+            a += len;
+            na += 1;
+        } else {
+            b += len;
+            nb += 1;
+        }
+    }
+    assert!(na > 0 && nb > 0, "both bands hold vertices");
+    (a / na as f64, b / nb as f64)
+}
+
+/// `falloff`: the motion fades toward the border. On spot's ear, the region's vertices near
+/// its border move far less than without a falloff, those farther in still move, and every
+/// check of a region holds (outside bit-identical, W down, no fold, Q, the seam); the same on
+/// the genus-2 surface and the open cap.
+#[test]
+fn a_falloff_blends_the_motion_to_zero_at_the_border() {
+    let mesh = spot().surface().clone();
+    let moving = select(&mesh.positions, &[EAR]).expect("valid");
+    let width = 0.08;
+    let with = |falloff: Option<f64>| FlowParams {
+        falloff,
+        ..params(vec![EAR], Seam::Smooth)
+    };
+    let sharp = run(&mesh, &with(None), 5);
+    let blended = run(&mesh, &with(Some(width)), 5);
+    check("spot ear, falloff", &mesh, &[EAR], &blended, 2.0);
+    let near = 0.3 * width;
+    let (sharp_near, sharp_far) = displacement_near_and_far(&mesh, &moving, &sharp, near);
+    let (blend_near, blend_far) = displacement_near_and_far(&mesh, &moving, &blended, near);
+    eprintln!(
+        "mean motion within {near} of the border: {sharp_near:.3e} → {blend_near:.3e}; \
+         farther in {sharp_far:.3e} → {blend_far:.3e}"
+    );
+    // Within 0.3 of the width the smoothstep weight is at most 0.22 (less along edges).
+    assert!(
+        blend_near < 0.5 * sharp_near,
+        "{blend_near} vs {sharp_near}"
+    );
+    assert!(blend_far > 0.2 * sharp_far, "{blend_far} vs {sharp_far}");
+
+    let pretzel_mesh = with_noise(pretzel(2, 24), 0.05, 7);
+    let far = (0..pretzel_mesh.vertex_count())
+        .max_by(|&a, &b| pretzel_mesh.positions[a][0].total_cmp(&pretzel_mesh.positions[b][0]))
+        .expect("vertices");
+    let region = Region::Sphere {
+        center: pretzel_mesh.positions[far],
+        radius: 0.35,
+    };
+    let p = FlowParams {
+        falloff: Some(0.1),
+        ..params(vec![region.clone()], Seam::Smooth)
+    };
+    let out = run(&pretzel_mesh, &p, 4);
+    check("genus-2 rim, falloff", &pretzel_mesh, &[region], &out, 2.0);
+
+    let cap = with_noise(bumpy_cap(4, 0.06), 0.05, 11);
+    let region = Region::Box {
+        min: [-0.4, -0.4, -2.0],
+        max: [0.4, 0.4, 2.0],
+    };
+    let p = FlowParams {
+        falloff: Some(0.1),
+        ..params(vec![region.clone()], Seam::Fixed)
+    };
+    let out = run(&cap, &p, 4);
+    check(
+        "bumpy cap centre, fixed, falloff",
+        &cap,
+        &[region],
+        &out,
+        3.0,
+    );
+
+    // A falloff needs a region, and a positive finite width.
+    for (falloff, regions) in [(0.0, vec![EAR]), (f64::NAN, vec![EAR]), (0.1, vec![])] {
+        let p = FlowParams {
+            falloff: Some(falloff),
+            ..params(regions, Seam::Smooth)
+        };
+        match new_flow(&mesh, &p) {
+            Err(FlowError::InvalidParameter { name, .. }) => assert_eq!(name, "falloff"),
+            other => panic!("falloff {falloff}: {:?}", other.err()),
+        }
+    }
+}
+
+/// spot with its faces in two OBJ groups: `g ear` before the faces with every corner in the
+/// ear sphere, `g body` before the rest (and an `o spot` line first).
+fn spot_with_groups() -> String {
+    let text = include_str!("data/spot_triangulated.obj");
+    let mut v: Vec<[f64; 3]> = Vec::new();
+    let (mut ear, mut body) = (String::new(), String::new());
+    let (c, r) = ([0.40, 0.72, -0.20], 0.15);
+    let mut head = String::from("o spot\n");
+    for line in text.lines() {
+        if let Some(rest) = line.strip_prefix("v ") {
+            let p: Vec<f64> = rest
+                .split_whitespace()
+                .filter_map(|t| t.parse().ok())
+                .collect();
+            v.push([p[0], p[1], p[2]]);
+            head += line;
+            head += "\n";
+        } else if let Some(rest) = line.strip_prefix("f ") {
+            let inside = rest.split_whitespace().all(|w| {
+                let k: usize = w
+                    .split('/')
+                    .next()
+                    .and_then(|i| i.parse().ok())
+                    .unwrap_or(0);
+                let p = v[k - 1];
+                (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>() <= r * r
+            });
+            let target = if inside { &mut ear } else { &mut body };
+            *target += line;
+            *target += "\n";
+        } else {
+            head += line;
+            head += "\n";
+        }
+    }
+    format!("{head}g ear\n{ear}g body\n{body}")
+}
+
+/// `{"group": "ear"}`: the OBJ group's faces are the region. Everything a region must show
+/// holds (outside bit-identical, W down, no fold, Q, the seam); an unknown group is refused
+/// naming it and listing the file's groups; glTF node and mesh names are groups too.
+#[test]
+fn a_named_group_of_the_file_is_a_region() {
+    let text = spot_with_groups();
+    let asset = Asset::read(text.as_bytes(), Format::Obj, &Limits::default()).expect("reads");
+    assert_eq!(asset.group_names(), vec!["spot", "ear", "body"]);
+    let mesh = asset.surface().clone();
+    let regions = resolve_groups(&[Region::Group("ear".into())], &asset).expect("the group exists");
+    let Region::Vertices(list) = &regions[0] else {
+        panic!("a group resolves to vertices: {regions:?}");
+    };
+    // The group's vertices are the corners of the faces under `g ear`, counted here from the
+    // text: every vertex within the ear sphere that a face wholly inside it uses.
+    let in_ear = |p: &[f64; 3]| {
+        let c = [0.40, 0.72, -0.20];
+        (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>() <= 0.15 * 0.15
+    };
+    assert!(list.iter().all(|&v| in_ear(&mesh.positions[v])));
+    assert!(list.len() > 20, "{} vertices", list.len());
+    for seam in [Seam::Smooth, Seam::Fixed] {
+        let out = run(&mesh, &params(regions.clone(), seam), 5);
+        check(
+            &format!("spot ear group, {seam:?}"),
+            &mesh,
+            &regions,
+            &out,
+            3.0,
+        );
+    }
+
+    let err = resolve_groups(&[Region::Group("tail".into())], &asset).expect_err("unknown");
+    assert!(err.contains("`tail`") && err.contains("`ear`"), "{err}");
+    // An unresolved group cannot select vertices: a flow built on it is refused by name.
+    match new_flow(
+        &mesh,
+        &params(vec![Region::Group("ear".into())], Seam::Smooth),
+    ) {
+        Err(FlowError::InvalidParameter { name, reason }) => {
+            assert_eq!(name, "region");
+            assert!(reason.contains("ear"), "{reason}");
+        }
+        other => panic!("{:?}", other.err()),
+    }
+
+    let (mut json, bin, _, _) = mesh_support::textured_cube_gltf();
+    json["meshes"][0]["name"] = serde_json::json!("box");
+    let glb = mesh_support::glb_bytes(&json, &bin);
+    let cube = Asset::read(&glb, Format::Glb, &Limits::default()).expect("cube reads");
+    assert_eq!(cube.group_names(), vec!["child", "box"]);
+    let all: Vec<usize> = (0..cube.surface().vertex_count()).collect();
+    assert_eq!(cube.group_vertices("child"), Some(all.clone()));
+    assert_eq!(cube.group_vertices("box"), Some(all));
+    assert_eq!(
+        cube.group_vertices("parent"),
+        None,
+        "a node without a mesh has no faces"
     );
 }

@@ -192,6 +192,8 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
     if let Some(v) = p.measure_deviation {
         spec.measure_deviation = v;
     }
+    spec.feature_size = p.feature_size;
+    spec.falloff = p.falloff;
     Ok(spec)
 }
 
@@ -206,7 +208,7 @@ fn region_from_pb(i: usize, r: v1::Region) -> Result<Region, Status> {
     match r.shape {
         None => Err(bad_request(
             &field(""),
-            "set one of `sphere`, `box` or `vertices`",
+            "set one of `sphere`, `box`, `vertices` or `group`",
         )),
         Some(Shape::Sphere(s)) => Ok(Region::Sphere {
             center: xyz(s.center, ".sphere.center")?,
@@ -226,6 +228,7 @@ fn region_from_pb(i: usize, r: v1::Region) -> Result<Region, Status> {
             })
             .collect::<Result<_, _>>()
             .map(Region::Vertices),
+        Some(Shape::Group(name)) => Ok(Region::Group(name)),
     }
 }
 
@@ -246,6 +249,7 @@ fn region_pb(r: &Region) -> v1::Region {
             Region::Vertices(list) => Shape::Vertices(VertexList {
                 indices: list.iter().map(|&i| i as u64).collect(),
             }),
+            Region::Group(name) => Shape::Group(name.clone()),
         }),
     }
 }
@@ -441,6 +445,8 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
         until_converged: Some(spec.until_converged),
         max_deviation: spec.max_deviation,
         measure_deviation: Some(spec.measure_deviation),
+        feature_size: spec.feature_size,
+        falloff: spec.falloff,
     }
 }
 

@@ -142,6 +142,15 @@ pub struct JobQuery {
     pub max_deviation: Option<f64>,
     /// Report each frame's distance from the input (default false; on with `max_deviation`).
     pub measure_deviation: Option<bool>,
+    /// Remove the detail smaller than this length, in model units, and keep the shape above
+    /// it (outcome `feature_scale_reached`). Conformal flow only.
+    pub feature_size: Option<f64>,
+    /// Width, in model units, over which a region's motion blends to zero toward its border.
+    pub falloff: Option<f64>,
+    /// A region of the faces of this file group: an OBJ `g`/`o` name, a glTF node or mesh name.
+    #[serde(rename = "region.group")]
+    #[param(rename = "region.group")]
+    pub region_group: Option<String>,
 }
 
 impl JobQuery {
@@ -258,7 +267,10 @@ impl JobQuery {
                 self.region_box.as_deref(),
                 self.region_vertices.as_deref(),
             )?
-            .unwrap_or_default(),
+            .unwrap_or_default()
+            .into_iter()
+            .chain(self.region_group.map(Region::Group))
+            .collect(),
             seam: match self.seam {
                 Some(v) => named("seam", Seam::parse(&v))?,
                 None => defaults.seam,
@@ -271,6 +283,8 @@ impl JobQuery {
             until_converged: self.until_converged.unwrap_or(defaults.until_converged),
             max_deviation: self.max_deviation,
             measure_deviation: self.measure_deviation.unwrap_or(defaults.measure_deviation),
+            feature_size: self.feature_size,
+            falloff: self.falloff,
         })
     }
 }

@@ -60,6 +60,8 @@ pub struct FilterSolver {
     cholesky: Option<Cholesky<f64>>,
     rhs: Vec<f64>,
     scratch: faer::dyn_stack::MemBuffer,
+    /// σ in model units (`σ · R^{2k}`) of the last [`FilterSolver::apply`].
+    sigma_used: f64,
 }
 
 impl FilterSolver {
@@ -126,6 +128,7 @@ impl FilterSolver {
             cholesky,
             rhs: vec![0.0; max_nrows],
             scratch,
+            sigma_used: filter.sigma,
         })
     }
 
@@ -199,6 +202,27 @@ impl FilterSolver {
         for (x, r) in v.iter_mut().zip(&self.rhs) {
             *x -= r;
         }
+        self.sigma_used = sigma;
+        Ok(())
+    }
+
+    /// The regularized (low-frequency) part `(id + σ(−Δ)^k)⁻¹ v` of `v`, in place, with the
+    /// operator of the last [`FilterSolver::apply`] (its factorization is reused).
+    pub fn low_pass(&mut self, areas: &[f64], v: &mut [f64]) -> Result<(), FilterError> {
+        if self.filter.k == 0 {
+            for x in v.iter_mut() {
+                *x /= 1.0 + self.sigma_used;
+            }
+            return Ok(());
+        }
+        let cholesky = self
+            .cholesky
+            .as_mut()
+            .ok_or_else(|| FilterError::Solver("no factorization for k ≥ 1".into()))?;
+        for (x, &a) in v.iter_mut().zip(areas) {
+            *x *= a;
+        }
+        cholesky.solve_in_place(v, 1);
         Ok(())
     }
 }

@@ -9,6 +9,7 @@ pub mod constraints;
 pub mod dirac;
 pub mod dirichlet;
 pub mod exactness;
+pub mod feature;
 pub mod filter;
 pub mod mobius;
 pub mod prescribed;
@@ -252,7 +253,9 @@ pub struct FlowParams {
     pub seam: region::Seam,
     /// What each component keeps after every step: area (the default), enclosed volume, or
     /// nothing ([`Preserve`]). Taubin smoothing is never rescaled and a fixed boundary pins
-    /// the size already: both refuse `volume` ([`FlowError::Unsupported`]).
+    /// the size already: both refuse `volume` ([`FlowError::Unsupported`]). Under a
+    /// `feature_size`, `area` keeps only the centroid: the area lost is the detail's
+    /// ([`feature::scale_policy`]).
     pub preserve: Preserve,
     /// Stop once the Willmore energy is at most this ([`stopping::Run`]); `None`: no target.
     pub until_willmore: Option<f64>,
@@ -267,6 +270,15 @@ pub struct FlowParams {
     /// `deviation_mean`). Off by default: it costs 12–32% of a conformal step at 100k
     /// triangles (one BVH query per sample both ways). `max_deviation` turns it on.
     pub measure_deviation: bool,
+    /// Remove the detail smaller than this length (model units) and keep the shape above it
+    /// ([`feature`]): the conformal flow with the spectral filter's crossover at this size
+    /// (`filter`, when given, replaces the derived σ and k), its low-frequency motion taken
+    /// back each step, and the run ends `feature_scale_reached` once the detail is gone
+    /// ([`stopping::Run`]). `None`: the flow as asked.
+    pub feature_size: Option<f64>,
+    /// Width (model units) over which a region's motion blends to zero toward its border
+    /// ([`region`]); `None`: no blend. Needs a region.
+    pub falloff: Option<f64>,
 }
 
 impl FlowParams {
@@ -376,6 +388,34 @@ impl FlowParams {
                 }
             }
         }
+        for (name, value) in [
+            ("feature_size", self.feature_size),
+            ("falloff", self.falloff),
+        ] {
+            if let Some(v) = value {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(invalid(
+                        name,
+                        format!("must be a finite length > 0 (model units), got {v}"),
+                    ));
+                }
+            }
+        }
+        if self.feature_size.is_some() && self.method != Method::Conformal {
+            return Err(invalid(
+                "feature_size",
+                format!(
+                    "is built on the conformal flow's spectral filter (§4), not on `{}`",
+                    self.method.name()
+                ),
+            ));
+        }
+        if self.falloff.is_some() && self.regions.is_empty() {
+            return Err(invalid(
+                "falloff",
+                "blends a region's motion toward its border: it needs a region".into(),
+            ));
+        }
         // The library names the whole `boundary` (its errors always have); the job service
         // reports the field path that `PrescribedVectors::validate` gives.
         if let Boundary::Prescribed(p) = &self.boundary {
@@ -424,6 +464,8 @@ impl Default for FlowParams {
             until_converged: true,
             max_deviation: None,
             measure_deviation: false,
+            feature_size: None,
+            falloff: None,
         }
     }
 }
@@ -464,6 +506,11 @@ pub trait Flow: Send {
     }
     /// Where building the flow spent its time, when the flow kept such a profile.
     fn setup_profile(&self) -> Option<&StepProfile> {
+        None
+    }
+    /// The energy of the detail band a feature scale removes (`FlowParams::feature_size`),
+    /// at the input and on the current surface; `None` without a feature scale.
+    fn feature_detail(&self) -> Option<feature::FeatureDetail> {
         None
     }
     /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics and

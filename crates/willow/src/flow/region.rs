@@ -1,6 +1,7 @@
 //! Fairing a part of a surface: the region moves, everything else stays exactly where it was.
 //!
-//! A region is a set of vertices (a sphere, a box, a list, or several of them together). The
+//! A region is a set of vertices (a sphere, a box, a list, a named group of the file's faces,
+//! or several of them together). The
 //! flow runs on the *submesh* around it, with the surrounding vertices held by the Dirichlet
 //! conditions of a fixed boundary (§6.3.2: λ = 1 and the input position there), so a step
 //! costs what the region costs, not what the whole mesh does. The seam decides how many rings
@@ -12,12 +13,17 @@
 //!   vectors at the surrounding surface's frame (§6.3.1), so the faired surface leaves the
 //!   border tangent to the surface around it (G1 up to the mesh's resolution).
 //!
+//! With a `falloff` width (`FlowParams::falloff`) each step's motion is weighted by a
+//! smoothstep of the distance from the border along the mesh's edges ([`falloff_weights`]):
+//! the region fades into its surroundings instead of moving up to the held ring.
+//!
 //! Vertices outside the region are never written: they are bit-identical to the input. The
 //! metrics a region flow reports are those of the submesh (the region and its held rings).
 
 use super::safeguard::Safeguarded;
 use super::willmore::ConformalFlow;
 use super::{Boundary, Flow, FlowError, FlowParams, FlowState, Method, StepProfile};
+use crate::mesh::io::Asset;
 use crate::mesh::Mesh;
 use crate::metrics::StepMetrics;
 use serde::{Deserialize, Serialize};
@@ -33,6 +39,10 @@ pub enum Region {
     Box { min: [f64; 3], max: [f64; 3] },
     /// These vertices (indices into the mesh's vertices).
     Vertices(Vec<usize>),
+    /// The vertices of a named group of the file's faces: an OBJ `g` or `o` name, a glTF
+    /// node or mesh name. Only a file knows its groups: [`resolve_groups`] turns this into
+    /// [`Region::Vertices`] against the [`Asset`] before a flow is built.
+    Group(String),
 }
 
 /// How the region meets the surface around it.
@@ -142,6 +152,11 @@ impl Region {
                     return Err("the vertex list is empty".into());
                 }
             }
+            Region::Group(name) => {
+                if name.trim().is_empty() {
+                    return Err("the group name is empty".into());
+                }
+            }
         }
         Ok(())
     }
@@ -171,9 +186,45 @@ impl Region {
                     *s = true;
                 }
             }
+            Region::Group(name) => {
+                return Err(format!(
+                    "group `{name}` must be looked up in its file first (region::resolve_groups)"
+                ))
+            }
         }
         Ok(())
     }
+}
+
+/// `regions` with every [`Region::Group`] replaced by the surface vertices of its faces in
+/// `asset` ([`Asset::group_vertices`]; the other regions as they are). The vertices are in
+/// the surface's numbering, so this comes after any renumbering of file vertex lists. An
+/// unknown group is an error that names it and the groups the file has.
+pub fn resolve_groups(regions: &[Region], asset: &Asset) -> Result<Vec<Region>, String> {
+    regions
+        .iter()
+        .map(|r| match r {
+            Region::Group(name) => {
+                asset
+                    .group_vertices(name)
+                    .map(Region::Vertices)
+                    .ok_or_else(|| {
+                        let names = asset.group_names();
+                        if names.is_empty() {
+                            format!("unknown group `{name}`: the file names no groups")
+                        } else {
+                            let list: Vec<String> =
+                                names.iter().map(|n| format!("`{n}`")).collect();
+                            format!(
+                                "unknown group `{name}`: the file's groups are {}",
+                                list.join(", ")
+                            )
+                        }
+                    })
+            }
+            other => Ok(other.clone()),
+        })
+        .collect()
 }
 
 /// The vertices the union of `regions` names.
@@ -270,6 +321,56 @@ pub fn submesh(mesh: &Mesh, moving: &[bool], rings: usize) -> Submesh {
     }
 }
 
+/// The weight of each vertex's motion under a falloff of `width` (model units): the
+/// smoothstep `t²(3 − 2t)` of `t = min(d / width, 1)`, with `d` the distance from the nearest
+/// `held` vertex along the mesh's edges (Dijkstra on the input surface, so a thin part does
+/// not take its distance across the gap). Held vertices get 0, vertices `width` or more
+/// inside the region 1; the slope is zero at both ends, so a smooth seam stays smooth.
+pub fn falloff_weights(mesh: &Mesh, held: &[bool], width: f64) -> Vec<f64> {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    let n = mesh.vertex_count();
+    let mut neighbours: Vec<Vec<usize>> = vec![Vec::new(); n];
+    for t in &mesh.triangles {
+        for c in 0..3 {
+            let (a, b) = (t[c], t[(c + 1) % 3]);
+            neighbours[a].push(b);
+            neighbours[b].push(a);
+        }
+    }
+    // Distances are non-negative finite floats: their bit patterns order as the values do.
+    let mut distance = vec![f64::INFINITY; n];
+    let mut queue = BinaryHeap::new();
+    for (v, _) in held.iter().enumerate().filter(|(_, &h)| h) {
+        distance[v] = 0.0;
+        queue.push(Reverse((0u64, v)));
+    }
+    while let Some(Reverse((bits, v))) = queue.pop() {
+        let d = f64::from_bits(bits);
+        if d > distance[v] {
+            continue;
+        }
+        for &u in &neighbours[v] {
+            let p = mesh.positions[v];
+            let q = mesh.positions[u];
+            let edge =
+                ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt();
+            let next = d + edge;
+            if next < distance[u] {
+                distance[u] = next;
+                queue.push(Reverse((next.to_bits(), u)));
+            }
+        }
+    }
+    distance
+        .iter()
+        .map(|&d| {
+            let t = (d / width).min(1.0);
+            t * t * (3.0 - 2.0 * t)
+        })
+        .collect()
+}
+
 /// Vertices where the faces marked `in_sub` meet in more than one fan: more than two of their
 /// edges are boundary edges of the marked set.
 fn pinched_vertices(mesh: &Mesh, in_sub: &[bool]) -> Vec<usize> {
@@ -332,10 +433,15 @@ impl RegionFlow {
         let sub = submesh(mesh, &selected, params.seam.held_rings());
         let inner_params = FlowParams {
             regions: Vec::new(),
+            // The falloff reaches the inner flow as its weights (`blend` below).
+            falloff: None,
             boundary: Boundary::Fixed,
             ..params.clone()
         };
-        let flow = ConformalFlow::with_pinned(&sub.mesh, &inner_params, sub.held.clone())?;
+        let blend = params
+            .falloff
+            .map(|width| falloff_weights(&sub.mesh, &sub.held, width));
+        let flow = ConformalFlow::with_pinned(&sub.mesh, &inner_params, sub.held.clone(), blend)?;
         let inner: Box<dyn Flow> = Box::new(Safeguarded::new(
             flow,
             &sub.mesh.triangles,
@@ -379,6 +485,10 @@ impl Flow for RegionFlow {
 
     fn setup_profile(&self) -> Option<&StepProfile> {
         self.inner.setup_profile()
+    }
+
+    fn feature_detail(&self) -> Option<super::feature::FeatureDetail> {
+        self.inner.feature_detail()
     }
 
     /// The whole surface's positions (so a resumed job writes the whole file), with the inner

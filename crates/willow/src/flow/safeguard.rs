@@ -256,6 +256,10 @@ impl<F: Retry> Flow for Safeguarded<F> {
         self.inner.setup_profile()
     }
 
+    fn feature_detail(&self) -> Option<super::feature::FeatureDetail> {
+        self.inner.feature_detail()
+    }
+
     fn checkpoint(&self) -> Option<super::FlowState> {
         Some(super::FlowState {
             metrics: self.accepted_metrics,

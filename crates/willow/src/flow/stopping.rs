@@ -11,11 +11,15 @@
 //!   input (`StepMetrics::deviation_max`, model units) ([`Outcome::MaxDeviation`]): that step
 //!   is undone (the flow is resumed from the checkpoint taken before it), so the result is
 //!   the last surface within the bound, and no step past it is ever reported;
+//! - the detail below `FlowParams::feature_size` is gone: the energy of the curvature in the
+//!   band the feature scale removes has fallen to [`super::feature::DETAIL_TOLERANCE`] of the
+//!   input's ([`Outcome::FeatureScaleReached`]);
 //! - the safeguard found no acceptable step ([`FlowError::NoProgress`], [`Outcome::NoProgress`]):
 //!   the flow is still on the last accepted surface.
 //!
 //! Otherwise it ends [`Outcome::Completed`] after its steps. When one step meets several
-//! rules, the target beats convergence, which beats completion (the most specific reason).
+//! rules, the target beats the feature scale, which beats convergence, which beats completion
+//! (the most specific reason).
 
 use super::{Flow, FlowError, FlowParams, FlowState};
 use crate::metrics::StepMetrics;
@@ -40,6 +44,9 @@ pub enum Outcome {
     MaxDeviation,
     /// The safeguard found no acceptable step.
     NoProgress,
+    /// The detail below `feature_size` is gone: the energy of its band fell to
+    /// [`super::feature::DETAIL_TOLERANCE`] of the input's.
+    FeatureScaleReached,
 }
 
 impl Outcome {
@@ -51,6 +58,7 @@ impl Outcome {
             Outcome::TargetReached => "target_reached",
             Outcome::MaxDeviation => "max_deviation",
             Outcome::NoProgress => "no_progress",
+            Outcome::FeatureScaleReached => "feature_scale_reached",
         }
     }
 }
@@ -196,6 +204,17 @@ impl Run {
                 ));
             }
         }
+        if let Some(d) = self.flow.feature_detail() {
+            if self.last.step == 0 && d.reached() {
+                return Some((
+                    Outcome::FeatureScaleReached,
+                    format!(
+                        "the input holds no detail below feature_size (band energy {:.6e})",
+                        d.current
+                    ),
+                ));
+            }
+        }
         (self.last.step >= self.steps)
             .then(|| (Outcome::Completed, format!("ran its {} steps", self.steps)))
     }
@@ -216,6 +235,22 @@ impl Run {
                     format!(
                         "Willmore energy {:.6} at step {} is at most until_willmore {target}",
                         m.willmore_energy, m.step
+                    ),
+                ));
+            }
+        }
+        if let Some(d) = self.flow.feature_detail() {
+            if d.reached() {
+                return Some((
+                    Outcome::FeatureScaleReached,
+                    format!(
+                        "the detail below feature_size is gone at step {}: its band's energy \
+                         {:.6e} is {:.2e} of the input's {:.6e} (at most {:e})",
+                        m.step,
+                        d.current,
+                        d.current / d.initial,
+                        d.initial,
+                        super::feature::DETAIL_TOLERANCE
                     ),
                 ));
             }

@@ -18,6 +18,7 @@
 use super::constraints::ConstraintBasis;
 use super::dirac::TriangleAssembly;
 use super::exactness::Exactness;
+use super::feature::{self, band_energy, feature_filter, remove_low_frequency, FeatureDetail};
 use super::filter::FilterSolver;
 use super::mobius::MobiusBalancing;
 use super::prescribed::{PrescribedError, PrescribedSolver};
@@ -115,6 +116,17 @@ pub struct ConformalFlow {
     laplace_unshifted: Vec<f64>,
     laplace: Cholesky<f64>,
     filter: Option<FilterSolver>,
+    /// The feature scale's state (`FlowParams::feature_size`, [`crate::flow::feature`]).
+    feature: Option<FeatureScale>,
+    /// Per-vertex weight of each step's motion (a region's falloff); `None`: full motion.
+    blend: Option<Vec<f64>>,
+    /// The surface a step started from, kept when the step's motion is filtered or blended.
+    step_start: Vec<[f64; 3]>,
+    /// The filtered flow direction of the current surface, when the end of the last step
+    /// already computed it (a feature scale measures its band there): the next step starts
+    /// from it instead of filtering again. Cleared whenever the surface is set from outside.
+    direction: Vec<f64>,
+    direction_ready: bool,
 
     rho: Vec<f64>,
     shift: Vec<f64>,
@@ -142,12 +154,31 @@ impl ConformalFlow {
     /// conditions of a fixed boundary (§6.3.2: λ = 1 and the input position there) wherever
     /// the pinned vertices lie: what a region of a larger surface flows with
     /// ([`super::region`]), its surroundings pinned.
+    ///
+    /// `blend`, when given, weighs each vertex's motion in every step (1 moves fully, 0 not
+    /// at all): a region's falloff toward its border ([`super::region::falloff_weights`]).
     pub(crate) fn with_pinned(
         mesh: &Mesh,
         params: &FlowParams,
         pinned: Vec<bool>,
+        blend: Option<Vec<f64>>,
     ) -> Result<Self, FlowError> {
-        Self::build(mesh, params, Some(pinned))
+        let mut flow = Self::build(mesh, params, Some(pinned))?;
+        if let Some(weights) = blend {
+            if weights.len() != flow.positions.len() {
+                return Err(FlowError::InvalidParameter {
+                    name: "falloff",
+                    reason: format!(
+                        "{} weights for {} vertices",
+                        weights.len(),
+                        flow.positions.len()
+                    ),
+                });
+            }
+            flow.step_start = flow.positions.clone();
+            flow.blend = Some(weights);
+        }
+        Ok(flow)
     }
 
     fn build(
@@ -242,7 +273,7 @@ impl ConformalFlow {
             params.measures_deviation(),
         );
         let scale = ScalePolicy::new(
-            params.preserve,
+            feature::scale_policy(params.preserve, params.feature_size),
             &topology,
             &mesh.positions,
             &mesh.triangles,
@@ -316,7 +347,20 @@ impl ConformalFlow {
             None => Vec::new(),
         };
         setup.lap("X and L analysis");
-        let filter = match params.filter {
+        if let Some(length) = params.feature_size {
+            feature::check_resolution(length, crate::mesh::generate::mean_edge_length(mesh))?;
+        }
+        // A feature scale derives the filter from its length and the surface's size (an
+        // explicit `filter` overrides the derived σ and k: the expert's choice).
+        let filter_params = match (params.filter, params.feature_size) {
+            (Some(f), _) => Some(f),
+            (None, Some(length)) => Some(feature_filter(
+                length,
+                (geometry.total_area() / (4.0 * std::f64::consts::PI)).sqrt(),
+            )),
+            (None, None) => None,
+        };
+        let filter = match filter_params {
             Some(f) => Some(FilterSolver::new(&laplace_pattern, f).map_err(|e| {
                 FlowError::InvalidParameter {
                     name: "filter",
@@ -326,7 +370,7 @@ impl ConformalFlow {
             None => None,
         };
         let initial = reporter.initial(&mesh.positions, &mesh.triangles, &geometry);
-        Ok(ConformalFlow {
+        let mut flow = ConformalFlow {
             triangles: mesh.triangles.clone(),
             positions: mesh.positions.clone(),
             tau: params.tau,
@@ -376,6 +420,21 @@ impl ConformalFlow {
             laplace_values: vec![0.0; laplace_pattern.nnz()],
             laplace_unshifted: vec![0.0; laplace_pattern.nnz()],
             filter,
+            blend: None,
+            step_start: if params.feature_size.is_some() {
+                vec![[0.0; 3]; n]
+            } else {
+                Vec::new()
+            },
+            feature: params.feature_size.map(|_| FeatureScale {
+                column: vec![0.0; n],
+                detail: FeatureDetail {
+                    initial: 0.0,
+                    current: 0.0,
+                },
+            }),
+            direction: vec![0.0; n],
+            direction_ready: false,
             laplace_pattern,
             laplace,
             rho: vec![0.0; n],
@@ -390,8 +449,39 @@ impl ConformalFlow {
             profile: StepProfile::default(),
             setup,
             vertex_fwd,
-        })
+        };
+        if flow.feature.is_some() {
+            let energy = flow.measure_feature_band()?;
+            if let Some(f) = &mut flow.feature {
+                f.detail = FeatureDetail {
+                    initial: energy,
+                    current: energy,
+                };
+            }
+        }
+        Ok(flow)
     }
+
+    /// The filtered direction and its band energy on the current surface (which the next
+    /// step then starts from: see `direction`).
+    fn measure_feature_band(&mut self) -> Result<f64, FlowError> {
+        self.assemble_laplacian();
+        self.flow_direction()?;
+        self.direction.copy_from_slice(&self.rho);
+        self.direction_ready = true;
+        Ok(band_energy(
+            &self.rho,
+            &self.geometry.vertex_areas,
+            self.fixed.as_deref(),
+        ))
+    }
+}
+
+/// What a feature scale keeps between steps ([`crate::flow::feature`]).
+struct FeatureScale {
+    /// Scratch: one coordinate of the motion.
+    column: Vec<f64>,
+    detail: FeatureDetail,
 }
 
 impl super::safeguard::Retry for ConformalFlow {
@@ -407,6 +497,7 @@ impl super::safeguard::Retry for ConformalFlow {
         self.positions.copy_from_slice(positions);
         self.geometry.refresh(&self.positions, &self.triangles);
         self.step = step;
+        self.direction_ready = false;
         // The retry runs at a smaller τ: its X is not the rejected try's.
         if let DiracFactor::Mixed(m) = &mut self.dirac {
             m.refactor_next();
@@ -429,8 +520,37 @@ impl Flow for ConformalFlow {
         self.curvature_change()?;
         self.profile.lap("curvature");
         let eigen_residual = self.solve_lambda()?;
+        if !self.step_start.is_empty() {
+            self.step_start.copy_from_slice(&self.positions);
+        }
         let closure_residual = self.integrate()?;
         self.profile.lap("closure");
+        if let (Some(f), Some(filter)) = (&mut self.feature, &mut self.filter) {
+            // docs/algorithm.md §11: the step's low-frequency motion is a second-order
+            // side effect of removing the detail; take it back with the filter's operator
+            // on the surface the step started from (still factored).
+            remove_low_frequency(
+                filter,
+                &self.geometry.vertex_areas,
+                &self.step_start,
+                &mut self.positions,
+                self.fixed.as_deref(),
+                &mut f.column,
+            )
+            .map_err(|e| FlowError::Numerical {
+                step: self.step + 1,
+                reason: e.to_string(),
+            })?;
+            self.profile.lap("feature scale");
+        }
+        if let Some(weights) = &self.blend {
+            // A region's falloff: the motion fades to zero toward the border.
+            for ((p, b), &w) in self.positions.iter_mut().zip(&self.step_start).zip(weights) {
+                for axis in 0..3 {
+                    p[axis] = b[axis] + w * (p[axis] - b[axis]);
+                }
+            }
+        }
         // New geometry, then the scale policy on it, then the geometry again for the metrics
         // and the next step (the rescale changes areas and H).
         self.geometry.refresh(&self.positions, &self.triangles);
@@ -446,6 +566,13 @@ impl Flow for ConformalFlow {
         }
         self.step += 1;
         self.profile.lap("geometry");
+        if self.feature.is_some() {
+            let energy = self.measure_feature_band()?;
+            if let Some(f) = &mut self.feature {
+                f.detail.current = energy;
+            }
+            self.profile.lap("feature band");
+        }
         let metrics = self.reporter.report(
             self.step,
             &self.positions,
@@ -473,6 +600,10 @@ impl Flow for ConformalFlow {
 
     fn initial_metrics(&self) -> StepMetrics {
         self.initial
+    }
+
+    fn feature_detail(&self) -> Option<FeatureDetail> {
+        self.feature.as_ref().map(|f| f.detail)
     }
 }
 

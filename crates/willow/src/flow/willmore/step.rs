@@ -48,14 +48,50 @@ impl ConformalFlow {
             });
         }
         self.exactness_constraints()?;
+        self.assemble_laplacian();
+        if self.direction_ready {
+            // The end of the last step filtered this surface's direction already.
+            self.rho.copy_from_slice(&self.direction);
+        } else {
+            self.flow_direction()?;
+        }
+        self.direction_ready = false;
         let g = &self.geometry;
+        self.constraints.project(&mut self.rho, &g.vertex_areas);
+        if let Some(mobius) = &mut self.mobius {
+            // App. E: added after the inversion constraint has been projected out (otherwise
+            // it would be removed again); it lies in span{N^x, N^y, N^z}, which is orthogonal
+            // to the remaining constraints, so projecting those again would change nothing.
+            mobius.add_direction(
+                &self.positions,
+                g,
+                &self.vertex_component,
+                self.tau,
+                &mut self.rho,
+            );
+        }
+        for r in &mut self.rho {
+            *r *= self.tau;
+        }
+        Ok(())
+    }
+
+    /// L (unshifted) of the current surface, for the filter and the Poisson solve.
+    pub(super) fn assemble_laplacian(&mut self) {
         assemble_cotan_laplacian_into(
             &self.laplace_pattern,
             &self.triangles,
-            &g.cotangents,
+            &self.geometry.cotangents,
             1.0,
             &mut self.laplace_unshifted,
         );
+    }
+
+    /// The flow direction `−2H` of the current surface (boundary vertices averaged from
+    /// their interior neighbours), spectrally filtered when asked (§4), into `rho`: Table 1
+    /// step II, before the projection. Needs [`Self::assemble_laplacian`] first.
+    pub(super) fn flow_direction(&mut self) -> Result<(), FlowError> {
+        let g = &self.geometry;
         for (r, h) in self.rho.iter_mut().zip(&g.mean_curvature) {
             *r = -2.0 * h;
         }
@@ -103,22 +139,6 @@ impl ConformalFlow {
                     step: self.step + 1,
                     reason: e.to_string(),
                 })?;
-        }
-        self.constraints.project(&mut self.rho, &g.vertex_areas);
-        if let Some(mobius) = &mut self.mobius {
-            // App. E: added after the inversion constraint has been projected out (otherwise
-            // it would be removed again); it lies in span{N^x, N^y, N^z}, which is orthogonal
-            // to the remaining constraints, so projecting those again would change nothing.
-            mobius.add_direction(
-                &self.positions,
-                g,
-                &self.vertex_component,
-                self.tau,
-                &mut self.rho,
-            );
-        }
-        for r in &mut self.rho {
-            *r *= self.tau;
         }
         Ok(())
     }

@@ -20,6 +20,7 @@
 //! against [`Limits`] before allocation, and every malformed input is a [`MeshError`].
 
 mod gltf;
+mod groups;
 mod obj;
 
 use super::{Mesh, MeshError};
@@ -491,6 +492,34 @@ impl Asset {
                 .map(|t| t.map(uv))
                 .collect(),
         )
+    }
+
+    /// The names of the file's face groups: OBJ `g` and `o` names, glTF node and mesh names
+    /// (each with at least one face), in file order.
+    pub fn group_names(&self) -> Vec<&str> {
+        match &self.source {
+            Source::Obj(src) => src.groups.names(),
+            Source::Gltf(src) => src.groups.names(),
+            // Made in code, or a format without names: no groups.
+            _ => Vec::new(),
+        }
+    }
+
+    /// The surface vertices ([`Asset::surface`]) of the faces in the group `name` (see
+    /// [`Asset::group_names`]), ascending; `None` when no face of the file carries the name.
+    pub fn group_vertices(&self, name: &str) -> Option<Vec<usize>> {
+        let faces: Vec<usize> = match &self.source {
+            Source::Obj(src) => src.groups.faces(name)?.collect(),
+            Source::Gltf(src) => src.groups.faces(name)?.collect(),
+            _ => return None,
+        };
+        let mut in_group = vec![false; self.surface.vertex_count()];
+        for f in faces {
+            for &v in self.surface.triangles.get(f).into_iter().flatten() {
+                in_group[v] = true;
+            }
+        }
+        Some((0..in_group.len()).filter(|&v| in_group[v]).collect())
     }
 
     /// The welded vertex of each file vertex (see [`Asset::file_vertex_count`]; `None` for

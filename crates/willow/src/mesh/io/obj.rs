@@ -34,6 +34,8 @@ pub(crate) struct ObjSource {
     v_of_split: Vec<usize>,
     /// Split vertex → index of its `vn` line, if its corner named one.
     vn_of_split: Vec<Option<usize>>,
+    /// The faces under each `g` and `o` name.
+    pub(crate) groups: super::groups::Groups,
 }
 
 /// One `v` line: its stored position and the bytes that hold it.
@@ -274,6 +276,9 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
     // First line holding an `l` polyline of 3+ vertices: refused (it reads like a face).
     let mut polyline_line = None;
     let mut corners: Vec<Corner> = Vec::new();
+    // The groups faces go to: those of the last `g` line and the last `o` line.
+    let mut groups = super::groups::Groups::default();
+    let (mut current_g, mut current_o): (Vec<usize>, Option<usize>) = (Vec::new(), None);
     for (line_no, (start, line)) in lines_with_offsets(text).enumerate() {
         let mut words = line.split_whitespace();
         let keyword = words.next();
@@ -346,15 +351,26 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
                         } else {
                             // A fan from the first corner, as most readers triangulate.
                             let ids: Vec<usize> = corners.iter().map(|&c| split.id(c)).collect();
+                            let first = triangles.len();
                             for k in 1..ids.len() - 1 {
                                 triangles.push([ids[0], ids[k], ids[k + 1]]);
+                            }
+                            for &g in current_g.iter().chain(&current_o) {
+                                groups.add(g, first..triangles.len());
                             }
                         }
                         faces += 1;
                     }
                 }
             }
-            _ => {} // comments, names, groups, materials, smoothing: kept as text
+            // `g a b`: the faces that follow belong to a and b; `o name`: to the object.
+            // Both stay in the text as they are.
+            Some("g") => current_g = words.map(|w| groups.slot(w)).collect(),
+            Some("o") => {
+                let name = line.trim_start()[1..].trim();
+                current_o = (!name.is_empty()).then(|| groups.slot(name));
+            }
+            _ => {} // comments, materials, smoothing: kept as text
         }
     }
     if !bad_faces.is_empty() {
@@ -432,6 +448,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         vn_spans,
         v_of_split: corners.iter().map(|c| c.0).collect(),
         vn_of_split: corners.iter().map(|c| c.2).collect(),
+        groups,
     };
     Ok((file, src))
 }

@@ -49,6 +49,8 @@ pub(crate) struct GltfSource {
     position_accessors: Vec<usize>,
     /// NORMAL accessors to recompute, with the block whose vertices they describe.
     normal_accessors: Vec<(usize, usize)>,
+    /// The faces under each node name and each mesh name.
+    pub(crate) groups: super::groups::Groups,
 }
 
 /// The JSON and BIN chunks of a GLB, or the whole input as JSON.
@@ -313,6 +315,7 @@ pub(crate) fn read(
         non_triangle_primitives: (0, 0),
         bad_faces: Default::default(),
     };
+    let mut groups = super::groups::Groups::default();
     let mut visited = vec![false; doc.nodes().len()];
     let mut stack: Vec<(gltf::Node<'_>, Affine)> = roots
         .into_iter()
@@ -335,8 +338,13 @@ pub(crate) fn read(
         *seen = true;
         let world = parent.then_after(&affine_of(&node));
         if let Some(mesh) = node.mesh() {
+            let first = b.triangles.len();
             for prim in mesh.primitives() {
                 b.primitive(&prim, &world, node.index())?;
+            }
+            for name in [node.name(), mesh.name()].into_iter().flatten() {
+                let slot = groups.slot(name);
+                groups.add(slot, first..b.triangles.len());
             }
         }
         let children: Vec<_> = node.children().collect();
@@ -398,6 +406,7 @@ pub(crate) fn read(
         buffers,
         position_accessors,
         normal_accessors,
+        groups,
     };
     Ok((file, src))
 }
