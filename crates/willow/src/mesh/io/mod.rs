@@ -1,4 +1,4 @@
-//! Reading and writing OBJ, glTF and GLB while keeping everything the flow does not touch.
+//! Reading and writing OBJ, glTF, GLB, STL, PLY and OFF while keeping everything the flow does not touch.
 //!
 //! An [`Asset`] holds three views of one file:
 //!
@@ -19,69 +19,21 @@
 //! Uploads are untrusted: nothing here reads a file or the network, every size is checked
 //! against [`Limits`] before allocation, and every malformed input is a [`MeshError`].
 
+mod format;
 mod gltf;
 mod obj;
+mod off;
+mod ply;
+mod stl;
+mod text;
+
+pub use format::{foreign_content, Format, ALL_FORMATS};
 
 use super::{Mesh, MeshError};
 use std::collections::HashMap;
 use std::fmt;
-use std::path::Path;
 
 pub use super::Limits;
-
-/// A mesh file format Willow reads and writes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Format {
-    /// Wavefront OBJ (text), with `vt`/`vn` per corner.
-    Obj,
-    /// glTF 2.0 JSON with buffers embedded as base64 `data:` URIs.
-    Gltf,
-    /// glTF 2.0 binary (one JSON chunk, one BIN chunk).
-    Glb,
-}
-
-impl Format {
-    /// The format named by a file's extension (case-insensitive), if any.
-    pub fn from_path(p: &Path) -> Option<Format> {
-        let ext = p.extension()?.to_str()?.to_ascii_lowercase();
-        match ext.as_str() {
-            "obj" => Some(Format::Obj),
-            "gltf" => Some(Format::Gltf),
-            "glb" => Some(Format::Glb),
-            _ => None,
-        }
-    }
-
-    /// The format of a MIME type (parameters such as `; charset=utf-8` are ignored).
-    pub fn from_mime(m: &str) -> Option<Format> {
-        let essence = m.split(';').next()?.trim().to_ascii_lowercase();
-        match essence.as_str() {
-            "model/obj" => Some(Format::Obj),
-            "model/gltf+json" => Some(Format::Gltf),
-            "model/gltf-binary" => Some(Format::Glb),
-            _ => None,
-        }
-    }
-
-    /// The usual file extension, without the dot.
-    pub fn extension(self) -> &'static str {
-        match self {
-            Format::Obj => "obj",
-            Format::Gltf => "gltf",
-            Format::Glb => "glb",
-        }
-    }
-
-    /// The registered MIME type.
-    pub fn mime(self) -> &'static str {
-        match self {
-            Format::Obj => "model/obj",
-            Format::Gltf => "model/gltf+json",
-            Format::Glb => "model/gltf-binary",
-        }
-    }
-}
 
 /// An affine map `p ↦ m·p + t` in f64 (`m` row-major).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -205,6 +157,9 @@ const UNWELDED: usize = usize::MAX;
 enum Source {
     Obj(obj::ObjSource),
     Gltf(gltf::GltfSource),
+    Stl(stl::StlSource),
+    Ply(ply::PlySource),
+    Off(off::OffSource),
     /// Made in code ([`Asset::from_mesh`]): no file to keep; file vertices are the welded ones.
     Code,
 }
@@ -254,6 +209,18 @@ impl Asset {
             Format::Gltf | Format::Glb => {
                 let (file, src) = gltf::read(bytes, format, limits)?;
                 Asset::assemble(format, file, Source::Gltf(src), limits)
+            }
+            Format::Stl => {
+                let (file, src) = stl::read(bytes, limits)?;
+                Asset::assemble(format, file, Source::Stl(src), limits)
+            }
+            Format::Ply => {
+                let (file, src) = ply::read(bytes, limits)?;
+                Asset::assemble(format, file, Source::Ply(src), limits)
+            }
+            Format::Off => {
+                let (file, src) = off::read(bytes, limits)?;
+                Asset::assemble(format, file, Source::Off(src), limits)
             }
         }
     }
@@ -385,13 +352,19 @@ impl Asset {
         self.check_positions(positions)?;
         match (&self.source, format) {
             (Source::Obj(src), Format::Obj) => Ok(obj::write_kept(self, src, positions)),
-            (Source::Gltf(_) | Source::Code, Format::Obj) => Ok(obj::write_new(self, positions)),
             (Source::Gltf(src), Format::Gltf | Format::Glb) => {
                 gltf::write_document(self, src, positions, format == Format::Glb)
             }
-            (Source::Obj(_) | Source::Code, Format::Gltf | Format::Glb) => {
+            (Source::Stl(src), Format::Stl) => Ok(stl::write_kept(self, src, positions)),
+            (Source::Ply(src), Format::Ply) => ply::write_kept(self, src, positions),
+            (Source::Off(src), Format::Off) => Ok(off::write_kept(self, src, positions)),
+            (_, Format::Obj) => Ok(obj::write_new(self, positions)),
+            (_, Format::Gltf | Format::Glb) => {
                 gltf::write_new(self, positions, format == Format::Glb)
             }
+            (_, Format::Stl) => stl::write_new(self, positions),
+            (_, Format::Ply) => ply::write_new(self, positions),
+            (_, Format::Off) => Ok(off::write_new(self, positions)),
         }
     }
 
@@ -405,7 +378,7 @@ impl Asset {
     pub fn file_vertex_count(&self) -> usize {
         match &self.source {
             Source::Obj(src) => src.v_count(),
-            Source::Gltf(_) | Source::Code => self.file.local.len(),
+            _ => self.file.local.len(),
         }
     }
 
@@ -426,7 +399,7 @@ impl Asset {
                     }
                 }
             }
-            Source::Gltf(_) | Source::Code => {
+            _ => {
                 for (slot, &w) in welded_of_file.iter_mut().zip(&self.to_welded) {
                     *slot = w;
                 }
@@ -469,7 +442,7 @@ impl Asset {
                     .map(|t| t.map(|sv| v_of.get(sv).copied().unwrap_or(0)))
                     .collect()
             }
-            Source::Gltf(_) | Source::Code => split,
+            _ => split,
         }
     }
 
@@ -507,7 +480,7 @@ impl Asset {
                 }
                 out
             }
-            Source::Gltf(_) | Source::Code => split.collect(),
+            _ => split.collect(),
         }
     }
 
@@ -545,8 +518,23 @@ impl Asset {
                 }
                 out
             }
-            Source::Gltf(_) | Source::Code => split,
+            _ => split,
         }
+    }
+
+    /// Per split vertex position in world space, in f64 (vertices no triangle uses keep their
+    /// stored position).
+    pub(crate) fn split_world_positions(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        let mut out = self.file.local.clone();
+        for b in &self.file.blocks {
+            for fv in b.start..b.start + b.len {
+                let w = self.to_welded.get(fv).copied().unwrap_or(UNWELDED);
+                if let Some(slot) = out.get_mut(fv) {
+                    *slot = positions.get(w).copied().unwrap_or(b.to_world.apply(*slot));
+                }
+            }
+        }
+        out
     }
 
     /// Per split vertex position in its block's local space, in f64.
@@ -626,6 +614,9 @@ pub(crate) fn format_name(format: Format) -> &'static str {
         Format::Obj => "OBJ",
         Format::Gltf => "glTF",
         Format::Glb => "GLB",
+        Format::Stl => "STL",
+        Format::Ply => "PLY",
+        Format::Off => "OFF",
     }
 }
 
@@ -673,20 +664,5 @@ mod tests {
             t: [0.0; 3],
         };
         assert!(singular.inverse().is_none());
-    }
-
-    #[test]
-    fn formats_round_trip_through_extension_and_mime() {
-        for f in [Format::Obj, Format::Gltf, Format::Glb] {
-            let name = format!("Model.{}", f.extension().to_uppercase());
-            assert_eq!(Format::from_path(Path::new(&name)), Some(f));
-            assert_eq!(Format::from_mime(f.mime()), Some(f));
-        }
-        assert_eq!(
-            Format::from_mime("model/gltf+json; charset=utf-8"),
-            Some(Format::Gltf)
-        );
-        assert_eq!(Format::from_path(Path::new("a.stl")), None);
-        assert_eq!(serde_json::to_string(&Format::Glb).unwrap(), "\"glb\"");
     }
 }
