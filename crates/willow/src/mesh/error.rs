@@ -181,6 +181,26 @@ pub enum MeshError {
     #[error("expected {expected} positions (one per welded vertex), got {got}")]
     PositionCount { expected: usize, got: usize },
 
+    /// The content is clearly another format than the one it was sent as (e.g. an OFF file
+    /// sent as OBJ, which would otherwise read as an OBJ without faces).
+    #[error(
+        "the file was sent as {declared} but it is {found}: send it as {found} \
+         (Content-Type {mime}, or a .{extension} file name)"
+    )]
+    FormatMismatch {
+        declared: FormatName,
+        found: FormatName,
+        mime: &'static str,
+        extension: &'static str,
+    },
+
+    /// The content is not a mesh file at all but a common wrapper (gzip, zip, UTF-16 text).
+    #[error("the file sent as {declared} is {what}")]
+    NotAMesh {
+        declared: FormatName,
+        what: &'static str,
+    },
+
     /// Valid but outside what Willow handles (e.g. sparse or quantized positions).
     #[error("unsupported: {detail}")]
     Unsupported { detail: String },
@@ -206,6 +226,8 @@ impl MeshError {
             MeshError::ExternalUri { .. } => "external_uri",
             MeshError::TruncatedBuffer { .. } => "truncated_buffer",
             MeshError::PositionCount { .. } => "position_count_mismatch",
+            MeshError::FormatMismatch { .. } => "format_mismatch",
+            MeshError::NotAMesh { .. } => "not_a_mesh",
             MeshError::Unsupported { .. } => "unsupported",
         }
     }

@@ -199,8 +199,42 @@ impl Asset {
     /// `Format::Gltf` and `Format::Glb` both accept either container (told apart by the GLB
     /// magic bytes), since uploads are often mislabelled; the format only chooses the parser
     /// family. Checks `limits.max_bytes` first, then vertex and face counts before allocating.
+    ///
+    /// Content that is plainly something else gets a specific error rather than the parser's
+    /// confusion: gzip, zip and UTF-16 bodies are named ([`MeshError::NotAMesh`]), and a file
+    /// that fails to parse as `format` but sniffs as another format (an OFF or ASCII STL sent
+    /// as OBJ) is a [`MeshError::FormatMismatch`] naming the right one.
     pub fn read(bytes: &[u8], format: Format, limits: &Limits) -> Result<Asset, MeshError> {
         limits.check_bytes(bytes.len())?;
+        if let Some(what) = foreign_content(bytes) {
+            return Err(MeshError::NotAMesh {
+                declared: format_name(format),
+                what,
+            });
+        }
+        Asset::read_as(bytes, format, limits).map_err(|e| {
+            let same_family = |f: Format| {
+                f == format
+                    || matches!(
+                        (f, format),
+                        (Format::Gltf | Format::Glb, Format::Gltf | Format::Glb)
+                    )
+            };
+            match Format::sniff(bytes) {
+                Some(found) if !same_family(found) && !e.is_too_large() => {
+                    MeshError::FormatMismatch {
+                        declared: format_name(format),
+                        found: format_name(found),
+                        mime: found.mime(),
+                        extension: found.extension(),
+                    }
+                }
+                _ => e,
+            }
+        })
+    }
+
+    fn read_as(bytes: &[u8], format: Format, limits: &Limits) -> Result<Asset, MeshError> {
         match format {
             Format::Obj => {
                 let (file, src) = obj::read(bytes, limits)?;

@@ -55,10 +55,13 @@ pub(crate) struct GltfSource {
 fn split_container(bytes: &[u8], format: Format) -> Result<(&[u8], Option<&[u8]>), MeshError> {
     let name = format_name(format);
     if !bytes.starts_with(b"glTF") {
-        if format == Format::Glb {
+        // A UTF-8 byte order mark before the JSON (Windows editors write one) is accepted:
+        // JSON (RFC 8259 §8.1) lets parsers ignore it, though glTF says not to write it.
+        let json = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+        if format == Format::Glb && !json.trim_ascii_start().starts_with(b"{") {
             return Err(MeshError::parse(name, "missing the 'glTF' magic bytes"));
         }
-        return Ok((bytes, None));
+        return Ok((json, None));
     }
     let u32_at = |at: usize| -> Option<usize> {
         let b = bytes.get(at..at.checked_add(4)?)?;
