@@ -108,7 +108,7 @@ fn bad_input_exits_nonzero_with_the_reason() {
     );
 
     let run = willow()
-        .args(["fair", &spot(), "-o", "out.stl"])
+        .args(["fair", &spot(), "-o", "out.step"])
         .output()
         .expect("run willow");
     assert_eq!(run.status.code(), Some(2));
@@ -605,5 +605,51 @@ fn fair_moves_only_the_named_region() {
         assert_eq!(run.status.code(), Some(2), "{flags:?}");
         let err = String::from_utf8_lossy(&run.stderr);
         assert!(err.contains(needle), "{flags:?}: {err}");
+    }
+}
+
+#[test]
+fn fair_reads_and_writes_stl_ply_and_off_in_kind() {
+    use willow::mesh::io::{Asset, Format, Limits};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sphere = willow::mesh::generate::bumpy_sphere(2, 0.1);
+    let asset = Asset::from_mesh(sphere, &Limits::default()).expect("valid");
+    for (format, output) in [
+        (Format::Ply, "out.ply"),
+        (Format::Stl, "out.stl"),
+        // No extension: the input's format.
+        (Format::Off, "out"),
+    ] {
+        let input = dir.path().join(format!("in.{}", format.extension()));
+        let bytes = asset
+            .write(&asset.surface().positions, format)
+            .expect("write");
+        std::fs::write(&input, &bytes).expect("write input");
+        let out = dir.path().join(output);
+        let run = willow()
+            .arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(&out)
+            .args(["--steps", "3", "--json"])
+            .output()
+            .expect("run willow");
+        assert_eq!(
+            run.status.code(),
+            Some(0),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let written = std::fs::read(&out).expect("output written");
+        assert_eq!(Format::sniff(&written), Some(format), "{output}");
+        let back = Asset::read(&written, format, &Limits::default()).expect("output parses");
+        let before = Asset::read(&bytes, format, &Limits::default()).expect("input parses");
+        assert_eq!(back.file_vertex_count(), before.file_vertex_count());
+        assert_eq!(back.surface().face_count(), before.surface().face_count());
+        assert_ne!(
+            back.surface().positions,
+            before.surface().positions,
+            "faired"
+        );
     }
 }
