@@ -21,11 +21,13 @@
 
 mod format;
 mod gltf;
+mod locate;
 mod obj;
 mod off;
 mod ply;
 mod stl;
 mod text;
+mod weld;
 
 pub use format::{foreign_content, Format, ALL_FORMATS};
 
@@ -148,6 +150,10 @@ pub(crate) struct FileGeometry {
     /// if the file has normals: copies of a welded vertex with the same key are smooth, with
     /// different keys a crease.
     pub(crate) normal_keys: Option<Vec<u64>>,
+    /// The file's own face number of each triangle (OBJ `f` statements, PLY/OFF face
+    /// records, counted from 0), when polygons were fan-triangulated; `None`: triangle `t` is
+    /// the file's face `t` (STL, glTF, meshes made in code).
+    pub(crate) face_of_triangle: Option<Vec<u32>>,
 }
 
 /// Welded vertex of a split vertex that no triangle uses.
@@ -162,6 +168,16 @@ enum Source {
     Off(off::OffSource),
     /// Made in code ([`Asset::from_mesh`]): no file to keep; file vertices are the welded ones.
     Code,
+}
+
+impl Source {
+    /// The file vertex (see [`Asset::file_vertex_count`]) of split vertex `sv`.
+    pub(crate) fn file_vertex_of_split(&self, sv: usize) -> usize {
+        match self {
+            Source::Obj(src) => src.v_of_split().get(sv).copied().unwrap_or(sv),
+            _ => sv,
+        }
+    }
 }
 
 /// A mesh file read into memory: its welded surface plus everything needed to write it back.
@@ -281,30 +297,42 @@ impl Asset {
                 world.push(b.to_world.apply(*p));
             }
         }
-        // Weld in order of first use by a triangle corner, so re-reading a written file gives
-        // the same welded numbering.
-        let mut to_welded = vec![UNWELDED; file.local.len()];
-        let mut by_position: HashMap<[u64; 3], usize> = HashMap::new();
-        let mut positions = Vec::new();
-        let mut triangles = Vec::with_capacity(file.triangles.len());
-        for t in &file.triangles {
-            let mut w = [0usize; 3];
-            for (k, &fv) in t.iter().enumerate() {
-                let p = *world.get(fv).ok_or_else(|| {
-                    MeshError::parse(format_name(format), "triangle references a missing vertex")
-                })?;
-                // `+ 0.0` turns -0.0 into +0.0 so the two weld together.
-                let key = p.map(|x| (x + 0.0).to_bits());
-                let id = *by_position.entry(key).or_insert_with(|| {
-                    positions.push(p);
-                    positions.len() - 1
-                });
-                to_welded[fv] = id;
-                w[k] = id;
+        // See weld.rs: by exact position first; only if that surface is refused, again by
+        // corners, so coincident vertices the file keeps apart stay apart.
+        let fast = weld::by_position(&world, &file.triangles).ok_or_else(|| {
+            MeshError::parse(format_name(format), "triangle references a missing vertex")
+        })?;
+        let (to_welded, surface) = match Mesh::with_limits(fast.positions, fast.triangles, limits) {
+            Ok(surface) => (fast.to_welded, surface),
+            Err(e) if e.is_too_large() => return Err(e),
+            Err(_) => {
+                let file_of_split = |sv: usize| source.file_vertex_of_split(sv);
+                let w = weld::by_corners(&world, &file.triangles, &file_of_split, true);
+                let mut split_of_surface = vec![UNWELDED; w.positions.len()];
+                for (ft, st) in file.triangles.iter().zip(&w.triangles) {
+                    for (&sv, &v) in ft.iter().zip(st) {
+                        if let Some(slot) = split_of_surface.get_mut(v) {
+                            if *slot == UNWELDED {
+                                *slot = sv;
+                            }
+                        }
+                    }
+                }
+                match Mesh::with_limits(w.positions, w.triangles, limits) {
+                    Ok(surface) => (w.to_welded, surface),
+                    Err(e) => {
+                        let origins = locate::Origins {
+                            format,
+                            source: &source,
+                            file: &file,
+                            split_of_surface,
+                            file_of_split: &file_of_split,
+                        };
+                        return Err(origins.locate(e));
+                    }
+                }
             }
-            triangles.push(w);
-        }
-        let surface = Mesh::with_limits(positions, triangles, limits)?;
+        };
 
         let normal_groups = file.normal_keys.as_ref().map(|keys| {
             let mut groups: HashMap<(usize, u64), usize> = HashMap::new();
@@ -349,6 +377,7 @@ impl Asset {
             triangles: file_triangles,
             uvs: None,
             normal_keys: None,
+            face_of_triangle: None,
         };
         Ok(Asset {
             format: Format::Obj,

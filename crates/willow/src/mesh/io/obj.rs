@@ -35,6 +35,8 @@ pub(crate) struct ObjSource {
     v_of_split: Vec<usize>,
     /// Split vertex → index of its `vn` line, if its corner named one.
     vn_of_split: Vec<Option<usize>>,
+    /// The 0-based line of every face (`f` statement), in file order.
+    face_lines: Vec<u32>,
 }
 
 /// One `v` line: its stored position and the bytes that hold it.
@@ -56,6 +58,42 @@ impl ObjSource {
     /// Split vertex → `v` line.
     pub(crate) fn v_of_split(&self) -> &[usize] {
         &self.v_of_split
+    }
+
+    /// The 1-based line number of face `f` (an `f` statement, from 0).
+    pub(crate) fn face_line(&self, f: usize) -> Option<usize> {
+        self.face_lines.get(f).map(|&l| l as usize + 1)
+    }
+
+    /// The 1-based line numbers of `v` lines `vs` (indices from 0), in one pass over the text.
+    pub(crate) fn v_line_numbers(&self, vs: &[usize]) -> Vec<Option<usize>> {
+        let starts: Vec<Option<usize>> = vs
+            .iter()
+            .map(|&v| self.v_lines.get(v).map(|l| l.span.start))
+            .collect();
+        let mut sorted: Vec<usize> = starts.iter().flatten().copied().collect();
+        sorted.sort_unstable();
+        let mut line_of: HashMap<usize, usize> = HashMap::new();
+        let mut next = sorted.iter().peekable();
+        let mut prev = 0;
+        for (no, (start, _)) in lines_with_offsets(&self.text).enumerate() {
+            while let Some(&&at) = next.peek() {
+                if at < start {
+                    line_of.insert(at, prev);
+                    next.next();
+                } else {
+                    break;
+                }
+            }
+            prev = no + 1;
+        }
+        for &at in next {
+            line_of.insert(at, prev);
+        }
+        starts
+            .iter()
+            .map(|s| s.and_then(|at| line_of.get(&at).copied()))
+            .collect()
     }
 
     /// The stored position of every `v` line, in file order.
@@ -249,6 +287,9 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
     let mut split = SplitVertices::default();
     let mut triangles: Vec<[usize; 3]> = Vec::new();
     let mut faces = 0usize;
+    // Per triangle its face (`f` statement), per face its 0-based line: errors name lines.
+    let mut face_of_triangle: Vec<u32> = Vec::new();
+    let mut face_lines: Vec<u32> = Vec::new();
     let mut bad_faces = super::super::error::Offenders::default();
     let (mut points, mut lines) = (0usize, 0usize);
     // First line holding an `l` polyline of 3+ vertices: refused (it reads like a face).
@@ -328,8 +369,10 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
                             let ids: Vec<usize> = corners.iter().map(|&c| split.id(c)).collect();
                             for k in 1..ids.len() - 1 {
                                 triangles.push([ids[0], ids[k], ids[k + 1]]);
+                                face_of_triangle.push(faces as u32);
                             }
                         }
+                        face_lines.push(line_no as u32);
                         faces += 1;
                     }
                 }
@@ -405,6 +448,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         triangles,
         uvs,
         normal_keys,
+        face_of_triangle: Some(face_of_triangle),
     };
     let src = ObjSource {
         text: text.to_owned(),
@@ -412,6 +456,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         vn_spans,
         v_of_split: corners.iter().map(|c| c.0).collect(),
         vn_of_split: corners.iter().map(|c| c.2).collect(),
+        face_lines,
     };
     Ok((file, src))
 }

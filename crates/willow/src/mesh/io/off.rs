@@ -133,6 +133,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, OffSo
         }
     }
     let mut triangles = Vec::new();
+    let mut face_of_triangle: Vec<u32> = Vec::new();
     let mut bad_faces = super::super::error::Offenders::default();
     for f in 0..nf {
         let (no, w) = lines.next().ok_or_else(|| {
@@ -160,6 +161,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, OffSo
         limits.check_faces(triangles.len() + n - 2)?;
         for k in 1..n - 1 {
             triangles.push([ids[0], ids[k], ids[k + 1]]);
+            face_of_triangle.push(f as u32);
         }
     }
     if !bad_faces.is_empty() {
@@ -191,6 +193,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, OffSo
         uvs: has_uv.then_some(uvs),
         // One normal per vertex: each vertex is its own smooth group.
         normal_keys: has_normals.then(|| (0..nv as u64).collect()),
+        face_of_triangle: Some(face_of_triangle),
     };
     let src = OffSource {
         text: text.to_owned(),

@@ -377,6 +377,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, PlySo
     let mut normal_values: Vec<[f64; 3]> = Vec::new();
     let mut uvs: Vec<Option<[f64; 2]>> = Vec::new();
     let mut triangles: Vec<[usize; 3]> = Vec::new();
+    let mut face_of_triangle: Vec<u32> = Vec::new();
     let mut bad_faces = super::super::error::Offenders::default();
     let mut short_faces = super::super::error::Offenders::default();
     let mut non_finite = super::super::error::Offenders::default();
@@ -446,6 +447,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, PlySo
                     limits.check_faces(triangles.len() + v.len() - 2)?;
                     for j in 1..v.len() - 1 {
                         triangles.push([v[0] as usize, v[j] as usize, v[j + 1] as usize]);
+                        face_of_triangle.push(f as u32);
                     }
                     Ok(())
                 })?;
@@ -504,6 +506,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, PlySo
         triangles,
         uvs: uv.map(|_| uvs),
         normal_keys,
+        face_of_triangle: Some(face_of_triangle),
     };
     let src = PlySource {
         bytes: bytes.to_vec(),

@@ -259,6 +259,7 @@ fn finish(
         triangles,
         uvs: None,
         normal_keys: None,
+        face_of_triangle: None,
     })
 }
 

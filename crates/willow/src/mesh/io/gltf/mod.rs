@@ -395,6 +395,7 @@ pub(crate) fn read(
         triangles,
         uvs,
         normal_keys,
+        face_of_triangle: None,
     };
     let src = GltfSource {
         json,
