@@ -653,3 +653,44 @@ fn fair_reads_and_writes_stl_ply_and_off_in_kind() {
         );
     }
 }
+
+#[test]
+fn repair_flag_splits_a_bowtie_and_reports_it() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Two tetrahedra sharing the single `v` line 1: a bowtie in the file itself.
+    let text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv -1 0 0\nv 0 -1 0\nv 0 0 -1\n\
+                f 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\nf 1 6 5\nf 1 5 7\nf 5 6 7\nf 1 7 6\n";
+    let input = dir.path().join("bowtie.obj");
+    std::fs::write(&input, text).expect("write");
+    let out = dir.path().join("out.ply");
+    let run = |repair: bool| {
+        let mut c = willow();
+        c.arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(&out)
+            .args(["--steps", "2"]);
+        if repair {
+            c.arg("--repair");
+        }
+        c.output().expect("run willow")
+    };
+    let refused = run(false);
+    assert_eq!(refused.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("in the file: `v` on line 1"), "{stderr}");
+    let fixed = run(true);
+    let stderr = String::from_utf8_lossy(&fixed.stderr);
+    assert_eq!(fixed.status.code(), Some(0), "{stderr}");
+    assert!(
+        stderr.contains("split 1 non-manifold vertices into 1 more (first: 0)"),
+        "{stderr}"
+    );
+    let back = willow::mesh::io::Asset::read(
+        &std::fs::read(&out).expect("output"),
+        willow::mesh::io::Format::Ply,
+        &willow::mesh::io::Limits::default(),
+    )
+    .expect("the repaired PLY reads without repair");
+    assert_eq!(back.surface().vertex_count(), 8);
+}

@@ -50,6 +50,10 @@ pub struct FairArgs {
     /// `bilaplacian` or `taubin` (λ|μ smoothing, λ = τ).
     #[arg(long, default_value = "conformal", value_parser = Method::parse)]
     pub method: Method,
+    /// Repair the input first: drop degenerate faces and split non-manifold vertices and
+    /// edges (one vertex per fan); what changed is printed on stderr, in file numbering.
+    #[arg(long)]
+    pub repair: bool,
     /// Write every intermediate mesh here (same format as the output).
     #[arg(long)]
     pub frames_dir: Option<PathBuf>,
@@ -198,10 +202,19 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(f) => f,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
-    let asset = match Asset::read(&bytes, input_format, &Limits::default()) {
+    let read = if args.repair {
+        Asset::read_repaired
+    } else {
+        Asset::read
+    };
+    let asset = match read(&bytes, input_format, &Limits::default()) {
         Ok(a) => a,
         Err(e) => return fail(EXIT_BAD_INPUT, format!("{}: {e}", args.input.display())),
     };
+    if !asset.repairs().is_empty() {
+        // On stderr, so --json's stdout stays one object per step.
+        eprintln!("repaired {}: {}", args.input.display(), asset.repairs());
+    }
     // The CLI maps onto the same job spec as HTTP and gRPC, and is checked by the same rules.
     let boundary = match args.boundary {
         BoundaryArg::Free => BoundarySpec::Free,

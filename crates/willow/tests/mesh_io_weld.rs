@@ -145,3 +145,83 @@ fn ply_and_stl_errors_use_their_own_numbering() {
     assert_eq!(e.code(), "degenerate_face");
     assert!(e.to_string().ends_with("in the file: triangle 1"), "{e}");
 }
+
+fn repaired(text: &str, format: Format) -> Asset {
+    Asset::read_repaired(text.as_bytes(), format, &Limits::default()).expect("repairable")
+}
+
+#[test]
+fn repair_splits_a_fin_and_a_bowtie_and_says_so() {
+    let fin = tetra_v([0.0; 3]) + "v 0.5 -1 0\n" + &tetra_f(0) + "f 1 2 5\n";
+    let a = repaired(&fin, Format::Obj);
+    let r = a.repairs();
+    assert_eq!(r.split_vertices.first, vec![0, 1], "v lines 1 and 2: {r}");
+    assert_eq!(r.added_vertices, 2);
+    assert!(r.dropped_faces.is_empty());
+    assert_eq!(a.surface().vertex_count(), 7);
+    let topo = willow::mesh::Topology::new(a.surface());
+    assert_eq!(
+        topo.components.len(),
+        2,
+        "the tetrahedron and the fin, cut apart"
+    );
+    assert_eq!(
+        topo.boundary_loops.len(),
+        1,
+        "the fin's edge is now a boundary"
+    );
+    assert_eq!(
+        r.to_string(),
+        "split 2 non-manifold vertices into 2 more (first: 0, 1)"
+    );
+
+    let bowtie = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv -1 0 0\nv 0 -1 0\nf 1 2 3\nf 1 4 5\n";
+    let a = repaired(bowtie, Format::Obj);
+    assert_eq!(a.repairs().split_vertices.first, vec![0]);
+    assert_eq!(a.surface().vertex_count(), 6);
+    // The split survives into another format and reads back without repair.
+    let ply = a.write(&a.surface().positions, Format::Ply).unwrap();
+    let b = Asset::read(&ply, Format::Ply, &Limits::default()).expect("manifold now");
+    assert_eq!(b.surface().vertex_count(), 6);
+    // File numbering still counts the file's own vertices.
+    assert_eq!(a.file_vertex_count(), 5);
+    assert_eq!(a.file_triangles(), vec![[0, 1, 2], [0, 3, 4]]);
+}
+
+#[test]
+fn repair_drops_degenerate_faces_by_file_number_and_leaves_good_files_alone() {
+    let text = "v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 1 0\nf 1 2 4\nf 1 2 3\nf 2 3 4\n";
+    let a = repaired(text, Format::Obj);
+    assert_eq!(
+        a.repairs().dropped_faces.first,
+        vec![1],
+        "the second `f` line"
+    );
+    assert_eq!(a.surface().face_count(), 2);
+    assert!(a.repairs().split_vertices.is_empty());
+
+    let stl = "solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\n\
+               endloop\nendfacet\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n\
+               vertex 1 0 0\nendloop\nendfacet\nendsolid s\n";
+    let a = repaired(stl, Format::Stl);
+    assert_eq!(a.repairs().dropped_faces.first, vec![1]);
+    // Written back, the kept triangle gets the new positions; the dropped one is untouched.
+    let moved: Vec<[f64; 3]> = a
+        .surface()
+        .positions
+        .iter()
+        .map(|p| p.map(|x| x * 3.0))
+        .collect();
+    let out = String::from_utf8(a.write(&moved, Format::Stl).unwrap()).unwrap();
+    assert!(out.contains("vertex 3 0 0\nvertex 0 3 0"), "{out}");
+    assert!(
+        out.contains("vertex 0 0 0\nvertex 1 0 0\nvertex 1 0 0"),
+        "{out}"
+    );
+
+    let good = tetra_v([0.0; 3]) + &tetra_f(0);
+    let (a, b) = (repaired(&good, Format::Obj), read(&good).unwrap());
+    assert!(a.repairs().is_empty());
+    assert_eq!(a.repairs().to_string(), "nothing to repair");
+    assert_eq!(a.surface(), b.surface());
+}

@@ -25,11 +25,13 @@ mod locate;
 mod obj;
 mod off;
 mod ply;
+mod repair;
 mod stl;
 mod text;
 mod weld;
 
 pub use format::{foreign_content, Format, ALL_FORMATS};
+pub use repair::Repairs;
 
 use super::{Mesh, MeshError};
 use std::collections::HashMap;
@@ -154,6 +156,23 @@ pub(crate) struct FileGeometry {
     /// records, counted from 0), when polygons were fan-triangulated; `None`: triangle `t` is
     /// the file's face `t` (STL, glTF, meshes made in code).
     pub(crate) face_of_triangle: Option<Vec<u32>>,
+    /// Split vertices `local.len() - copies.len()..` are copies `repair` made: the original
+    /// split vertex of each (see repair.rs).
+    pub(crate) copies: Vec<usize>,
+}
+
+impl FileGeometry {
+    /// Split vertices read from the file (not copies made by `repair`).
+    pub(crate) fn read_count(&self) -> usize {
+        self.local.len() - self.copies.len()
+    }
+
+    /// The split vertex read from the file that `sv` is (or is a copy of).
+    pub(crate) fn original(&self, sv: usize) -> usize {
+        sv.checked_sub(self.read_count())
+            .and_then(|k| self.copies.get(k).copied())
+            .unwrap_or(sv)
+    }
 }
 
 /// Welded vertex of a split vertex that no triangle uses.
@@ -192,6 +211,8 @@ pub struct Asset {
     /// file has normals: a group is the copies of one welded vertex sharing a stored normal.
     normal_groups: Option<(Vec<usize>, usize)>,
     source: Source,
+    /// What `read_repaired` changed (empty otherwise).
+    repairs: Repairs,
 }
 
 impl fmt::Debug for Asset {
@@ -221,6 +242,36 @@ impl Asset {
     /// that fails to parse as `format` but sniffs as another format (an OFF or ASCII STL sent
     /// as OBJ) is a [`MeshError::FormatMismatch`] naming the right one.
     pub fn read(bytes: &[u8], format: Format, limits: &Limits) -> Result<Asset, MeshError> {
+        Asset::read_with(bytes, format, limits, false)
+    }
+
+    /// [`Asset::read`] with the opt-in repair: degenerate faces are dropped, and vertices whose
+    /// faces form several fans (bowties, the ends of edges with three or more faces) are split
+    /// into one vertex per fan. [`Asset::repairs`] says what changed, in file numbering. A file
+    /// that needs no repair reads exactly as with [`Asset::read`].
+    ///
+    /// Written back in its own format, a file keeps its own faces and vertex sharing (dropped
+    /// faces stay in an OBJ/PLY/OFF/glTF, a split vertex gets its first fan's position); other
+    /// formats carry the repaired surface.
+    pub fn read_repaired(
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+    ) -> Result<Asset, MeshError> {
+        Asset::read_with(bytes, format, limits, true)
+    }
+
+    /// What [`Asset::read_repaired`] changed (empty for [`Asset::read`]).
+    pub fn repairs(&self) -> &Repairs {
+        &self.repairs
+    }
+
+    fn read_with(
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+        repair: bool,
+    ) -> Result<Asset, MeshError> {
         limits.check_bytes(bytes.len())?;
         if let Some(what) = foreign_content(bytes) {
             return Err(MeshError::NotAMesh {
@@ -228,7 +279,7 @@ impl Asset {
                 what,
             });
         }
-        Asset::read_as(bytes, format, limits).map_err(|e| {
+        Asset::read_as(bytes, format, limits, repair).map_err(|e| {
             let same_family = |f: Format| {
                 f == format
                     || matches!(
@@ -250,27 +301,32 @@ impl Asset {
         })
     }
 
-    fn read_as(bytes: &[u8], format: Format, limits: &Limits) -> Result<Asset, MeshError> {
+    fn read_as(
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+        repair: bool,
+    ) -> Result<Asset, MeshError> {
         match format {
             Format::Obj => {
                 let (file, src) = obj::read(bytes, limits)?;
-                Asset::assemble(format, file, Source::Obj(src), limits)
+                Asset::assemble(format, file, Source::Obj(src), limits, repair)
             }
             Format::Gltf | Format::Glb => {
                 let (file, src) = gltf::read(bytes, format, limits)?;
-                Asset::assemble(format, file, Source::Gltf(src), limits)
+                Asset::assemble(format, file, Source::Gltf(src), limits, repair)
             }
             Format::Stl => {
                 let (file, src) = stl::read(bytes, limits)?;
-                Asset::assemble(format, file, Source::Stl(src), limits)
+                Asset::assemble(format, file, Source::Stl(src), limits, repair)
             }
             Format::Ply => {
                 let (file, src) = ply::read(bytes, limits)?;
-                Asset::assemble(format, file, Source::Ply(src), limits)
+                Asset::assemble(format, file, Source::Ply(src), limits, repair)
             }
             Format::Off => {
                 let (file, src) = off::read(bytes, limits)?;
-                Asset::assemble(format, file, Source::Off(src), limits)
+                Asset::assemble(format, file, Source::Off(src), limits, repair)
             }
         }
     }
@@ -278,9 +334,10 @@ impl Asset {
     /// Welds the split vertices by exact world position and validates the result.
     fn assemble(
         format: Format,
-        file: FileGeometry,
+        mut file: FileGeometry,
         source: Source,
         limits: &Limits,
+        repair: bool,
     ) -> Result<Asset, MeshError> {
         limits.check_vertices(file.local.len())?;
         limits.check_faces(file.triangles.len())?;
@@ -297,6 +354,10 @@ impl Asset {
                 world.push(b.to_world.apply(*p));
             }
         }
+        let mut repairs = Repairs::default();
+        if repair {
+            repair::drop_degenerate(&mut file, &world, &mut repairs);
+        }
         // See weld.rs: by exact position first; only if that surface is refused, again by
         // corners, so coincident vertices the file keeps apart stay apart.
         let fast = weld::by_position(&world, &file.triangles).ok_or_else(|| {
@@ -307,7 +368,10 @@ impl Asset {
             Err(e) if e.is_too_large() => return Err(e),
             Err(_) => {
                 let file_of_split = |sv: usize| source.file_vertex_of_split(sv);
-                let w = weld::by_corners(&world, &file.triangles, &file_of_split, true);
+                let mut w = weld::by_corners(&world, &file.triangles, &file_of_split, !repair);
+                if repair {
+                    repair::split_copies(&mut file, &mut w, &file_of_split, &mut repairs);
+                }
                 let mut split_of_surface = vec![UNWELDED; w.positions.len()];
                 for (ft, st) in file.triangles.iter().zip(&w.triangles) {
                     for (&sv, &v) in ft.iter().zip(st) {
@@ -321,12 +385,14 @@ impl Asset {
                 match Mesh::with_limits(w.positions, w.triangles, limits) {
                     Ok(surface) => (w.to_welded, surface),
                     Err(e) => {
+                        let file_of_any =
+                            |sv: usize| source.file_vertex_of_split(file.original(sv));
                         let origins = locate::Origins {
                             format,
                             source: &source,
                             file: &file,
                             split_of_surface,
-                            file_of_split: &file_of_split,
+                            file_of_split: &file_of_any,
                         };
                         return Err(origins.locate(e));
                     }
@@ -356,6 +422,7 @@ impl Asset {
             to_welded,
             normal_groups,
             source,
+            repairs,
         })
     }
 
@@ -378,6 +445,7 @@ impl Asset {
             uvs: None,
             normal_keys: None,
             face_of_triangle: None,
+            copies: Vec::new(),
         };
         Ok(Asset {
             format: Format::Obj,
@@ -386,6 +454,7 @@ impl Asset {
             to_welded: (0..n).collect(),
             normal_groups: None,
             source: Source::Code,
+            repairs: Repairs::default(),
         })
     }
 
@@ -441,7 +510,7 @@ impl Asset {
     pub fn file_vertex_count(&self) -> usize {
         match &self.source {
             Source::Obj(src) => src.v_count(),
-            _ => self.file.local.len(),
+            _ => self.file.read_count(),
         }
     }
 
@@ -502,10 +571,13 @@ impl Asset {
                 let v_of = src.v_of_split();
                 split
                     .iter()
-                    .map(|t| t.map(|sv| v_of.get(sv).copied().unwrap_or(0)))
+                    .map(|t| t.map(|sv| v_of.get(self.file.original(sv)).copied().unwrap_or(0)))
                     .collect()
             }
-            _ => split,
+            _ => split
+                .iter()
+                .map(|t| t.map(|sv| self.file.original(sv)))
+                .collect(),
         }
     }
 
@@ -543,7 +615,7 @@ impl Asset {
                 }
                 out
             }
-            _ => split.collect(),
+            _ => split.take(self.file.read_count()).collect(),
         }
     }
 
@@ -581,7 +653,11 @@ impl Asset {
                 }
                 out
             }
-            _ => split,
+            _ => {
+                let mut split = split;
+                split.truncate(self.file.read_count());
+                split
+            }
         }
     }
 

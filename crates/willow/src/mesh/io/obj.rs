@@ -449,6 +449,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         uvs,
         normal_keys,
         face_of_triangle: Some(face_of_triangle),
+        copies: Vec::new(),
     };
     let src = ObjSource {
         text: text.to_owned(),

@@ -194,6 +194,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, OffSo
         // One normal per vertex: each vertex is its own smooth group.
         normal_keys: has_normals.then(|| (0..nv as u64).collect()),
         face_of_triangle: Some(face_of_triangle),
+        copies: Vec::new(),
     };
     let src = OffSource {
         text: text.to_owned(),

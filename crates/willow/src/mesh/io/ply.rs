@@ -507,6 +507,7 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, PlySo
         uvs: uv.map(|_| uvs),
         normal_keys,
         face_of_triangle: Some(face_of_triangle),
+        copies: Vec::new(),
     };
     let src = PlySource {
         bytes: bytes.to_vec(),

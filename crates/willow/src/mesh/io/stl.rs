@@ -260,6 +260,7 @@ fn finish(
         uvs: None,
         normal_keys: None,
         face_of_triangle: None,
+        copies: Vec::new(),
     })
 }
 
@@ -294,11 +295,21 @@ fn corners(asset: &Asset, positions: &[[f64; 3]]) -> Vec<[[f64; 3]; 3]> {
 pub(crate) fn write_kept(asset: &Asset, src: &StlSource, positions: &[[f64; 3]]) -> Vec<u8> {
     let normals = facet_normals(asset, positions);
     let corners = corners(asset, positions);
+    // The file's triangle of each surface triangle (they differ once `repair` dropped some;
+    // a dropped triangle keeps its stored bytes).
+    let record = |t: usize| -> usize {
+        asset
+            .file
+            .face_of_triangle
+            .as_ref()
+            .and_then(|f| f.get(t))
+            .map_or(t, |&f| f as usize)
+    };
     match src {
         StlSource::Binary(bytes) => {
             let mut out = bytes.clone();
             for (t, (n, c)) in normals.iter().zip(&corners).enumerate() {
-                let at = BINARY_HEADER + BINARY_TRIANGLE * t;
+                let at = BINARY_HEADER + BINARY_TRIANGLE * record(t);
                 let values = [*n, c[0], c[1], c[2]];
                 for (k, x) in values.iter().flatten().enumerate() {
                     if let Some(slot) = out.get_mut(at + 4 * k..at + 4 * k + 4) {
@@ -310,7 +321,10 @@ pub(crate) fn write_kept(asset: &Asset, src: &StlSource, positions: &[[f64; 3]])
         }
         StlSource::Ascii { text, facets } => {
             let mut edits = Vec::with_capacity(facets.len() * 4);
-            for ((spans, n), c) in facets.iter().zip(&normals).zip(&corners) {
+            for (t, (n, c)) in normals.iter().zip(&corners).enumerate() {
+                let Some(spans) = facets.get(record(t)) else {
+                    continue;
+                };
                 edits.push((spans[0].clone(), triple(*n)));
                 for k in 0..3 {
                     edits.push((spans[k + 1].clone(), triple(c[k])));

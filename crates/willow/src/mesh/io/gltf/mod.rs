@@ -396,6 +396,7 @@ pub(crate) fn read(
         uvs,
         normal_keys,
         face_of_triangle: None,
+        copies: Vec::new(),
     };
     let src = GltfSource {
         json,
