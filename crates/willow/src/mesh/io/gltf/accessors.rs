@@ -192,17 +192,62 @@ pub(super) fn read_indices(
     })
 }
 
-/// Column-major glTF matrix → [`Affine`].
-pub(super) fn affine_of(node: &gltf::Node<'_>) -> Affine {
-    let c = node.transform().matrix();
+/// A node's local transform as an [`Affine`], read in f64 from the document's JSON: the
+/// `gltf` crate hands transforms out in f32, which would snap a map-grid translation (5e6) to
+/// a 0.5 grid. `matrix` (column-major) if given, else T·R·S from `translation`, `rotation`
+/// (unit quaternion x, y, z, w) and `scale`, as the glTF spec defines them.
+pub(super) fn affine_of(node: &gltf::Node<'_>, json: &serde_json::Value) -> Affine {
+    let raw = &json["nodes"][node.index()];
+    let numbers = |key: &str, n: usize| -> Option<Vec<f64>> {
+        let v: Vec<f64> = raw
+            .get(key)?
+            .as_array()?
+            .iter()
+            .filter_map(|x| x.as_f64())
+            .collect();
+        (v.len() == n).then_some(v)
+    };
+    if let Some(c) = numbers("matrix", 16) {
+        let mut m = [[0.0; 3]; 3];
+        for (r, row) in m.iter_mut().enumerate() {
+            for (k, x) in row.iter_mut().enumerate() {
+                *x = c[4 * k + r];
+            }
+        }
+        return Affine {
+            m,
+            t: [c[12], c[13], c[14]],
+        };
+    }
+    let t = numbers("translation", 3).unwrap_or(vec![0.0; 3]);
+    let q = numbers("rotation", 4).unwrap_or(vec![0.0, 0.0, 0.0, 1.0]);
+    let s = numbers("scale", 3).unwrap_or(vec![1.0; 3]);
+    let (x, y, z, w) = (q[0], q[1], q[2], q[3]);
+    let r = [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - z * w),
+            2.0 * (x * z + y * w),
+        ],
+        [
+            2.0 * (x * y + z * w),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - x * w),
+        ],
+        [
+            2.0 * (x * z - y * w),
+            2.0 * (y * z + x * w),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ];
     let mut m = [[0.0; 3]; 3];
-    for (r, row) in m.iter_mut().enumerate() {
-        for (k, x) in row.iter_mut().enumerate() {
-            *x = c[k][r] as f64;
+    for (i, row) in m.iter_mut().enumerate() {
+        for (k, v) in row.iter_mut().enumerate() {
+            *v = r[i][k] * s[k];
         }
     }
     Affine {
         m,
-        t: [c[3][0] as f64, c[3][1] as f64, c[3][2] as f64],
+        t: [t[0], t[1], t[2]],
     }
 }

@@ -336,7 +336,7 @@ pub(crate) fn read(
             ));
         }
         *seen = true;
-        let world = parent.then_after(&affine_of(&node));
+        let world = parent.then_after(&affine_of(&node, &json));
         if let Some(mesh) = node.mesh() {
             for prim in mesh.primitives() {
                 b.primitive(&prim, &world, node.index())?;

@@ -202,6 +202,26 @@ pub(super) fn bounds(values: &[[f32; 3]]) -> (Value, Value) {
     (json!(lo), json!(hi))
 }
 
+/// The centre of `points`' bounding box when they lie farther from the origin than their own
+/// size, so that f32 offsets from it keep ~1e-7 of the model's size (f32 coordinates of the
+/// points themselves would keep only ~6e-8 of their distance from the origin); `None` for
+/// models around the origin, which are written as they are.
+pub(super) fn far_origin(points: &[[f64; 3]]) -> Option<[f64; 3]> {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in points {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let extent = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
+    let far = (0..3)
+        .map(|k| lo[k].abs().max(hi[k].abs()))
+        .fold(0.0, f64::max);
+    (extent.is_finite() && far > extent).then(|| [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k])))
+}
+
 pub(super) fn malformed(what: &str) -> MeshError {
     MeshError::parse("glTF", format!("cannot rewrite the document: {what}"))
 }
@@ -401,7 +421,21 @@ pub(crate) fn write_new(
     positions: &[[f64; 3]],
     glb: bool,
 ) -> Result<Vec<u8>, MeshError> {
-    let local = split_f32(asset, positions);
+    // Far from the origin (map-grid coordinates), f32 positions would snap to a coarse grid
+    // (0.5 at 5e6): store them relative to the node's translation, which JSON keeps in f64.
+    let split = asset.split_positions(positions);
+    let origin = far_origin(&split);
+    let o = origin.unwrap_or([0.0; 3]);
+    let local: Vec<[f32; 3]> = split
+        .iter()
+        .map(|p| {
+            [
+                (p[0] - o[0]) as f32,
+                (p[1] - o[1]) as f32,
+                (p[2] - o[2]) as f32,
+            ]
+        })
+        .collect();
     let mut bin = Vec::new();
     let mut accessors = Vec::new();
     let mut views = Vec::new();
@@ -472,7 +506,10 @@ pub(crate) fn write_new(
         "asset": {"version": "2.0", "generator": "Willow"},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0}],
+        "nodes": [match origin {
+            Some(t) => json!({"mesh": 0, "translation": t}),
+            None => json!({"mesh": 0}),
+        }],
         "meshes": [{"primitives": [{"attributes": attributes, "indices": indices, "mode": 4}]}],
         "accessors": accessors,
         "bufferViews": views,
