@@ -746,3 +746,28 @@ fn file_vertices_map_to_the_surface_vertex_at_their_position() {
         Err(v_lines.len())
     );
 }
+
+#[test]
+fn glb_from_stl_ply_off_and_far_from_the_origin_validates() {
+    let sphere = willow::mesh::generate::bumpy_sphere(2, 0.1);
+    let code = Asset::from_mesh(sphere.clone(), &Limits::default()).unwrap();
+    for f in [Format::Stl, Format::Ply, Format::Off] {
+        let bytes = code.write(&code.surface().positions, f).unwrap();
+        let a = read(&bytes, f);
+        for (to, ext) in [(Format::Glb, "glb"), (Format::Gltf, "gltf")] {
+            validate_with_khronos(&a.write(&a.surface().positions, to).unwrap(), ext);
+        }
+    }
+    // At map-grid coordinates the document carries a node translation.
+    let far: Vec<[f64; 3]> = sphere
+        .positions
+        .iter()
+        .map(|p| [p[0] + 5e6, p[1] - 5e6, p[2] + 1e9])
+        .collect();
+    let far = Asset::from_mesh(
+        willow::mesh::Mesh::new(far, sphere.triangles.clone()).unwrap(),
+        &Limits::default(),
+    )
+    .unwrap();
+    validate_with_khronos(&far.write(&far.surface().positions, Format::Glb).unwrap(), "glb");
+}
