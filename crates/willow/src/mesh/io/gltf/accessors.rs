@@ -126,16 +126,44 @@ impl Layout<'_> {
     }
 }
 
-/// Reads a float VEC3 accessor (POSITION, NORMAL).
+/// A VEC3 vertex attribute.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Attribute {
+    Position,
+    Normal,
+}
+
+/// Reads a VEC3 accessor (POSITION, NORMAL): float, or with `KHR_mesh_quantization` the
+/// types that extension allows (POSITION: signed or unsigned byte or short, normalized or
+/// not; NORMAL: normalized signed byte or short), dequantized as the glTF spec says
+/// (`Layout::get`); the node transforms gltfpack adds then scale them back.
 pub(super) fn read_vec3(
     acc: &gltf::Accessor<'_>,
     buffers: &[Vec<u8>],
-    what: &str,
+    what: Attribute,
+    quantized: bool,
 ) -> Result<Vec<[f64; 3]>, MeshError> {
-    if acc.data_type() != DataType::F32 || acc.dimensions() != Dimensions::Vec3 {
+    let quantized_ok = quantized
+        && match (what, acc.data_type()) {
+            (Attribute::Position, DataType::I8 | DataType::U8 | DataType::I16 | DataType::U16) => {
+                true
+            }
+            (Attribute::Normal, DataType::I8 | DataType::I16) => acc.normalized(),
+            _ => false,
+        };
+    if (acc.data_type() != DataType::F32 && !quantized_ok) || acc.dimensions() != Dimensions::Vec3 {
+        let name = match what {
+            Attribute::Position => "POSITION",
+            Attribute::Normal => "NORMAL",
+        };
         return Err(MeshError::unsupported(format!(
-            "{what} accessor {} is not float VEC3",
-            acc.index()
+            "{name} accessor {} is not float VEC3{}",
+            acc.index(),
+            if quantized {
+                " nor a type KHR_mesh_quantization allows"
+            } else {
+                " (integer types need KHR_mesh_quantization)"
+            }
         )));
     }
     Ok(match layout(acc, buffers)? {
@@ -146,15 +174,18 @@ pub(super) fn read_vec3(
     })
 }
 
-/// Reads TEXCOORD_n: float, or normalized unsigned byte/short.
+/// Reads TEXCOORD_n: float, or normalized unsigned byte/short; with `KHR_mesh_quantization`
+/// also signed, and not normalized (a `KHR_texture_transform` then scales them).
 pub(super) fn read_uv(
     acc: &gltf::Accessor<'_>,
     buffers: &[Vec<u8>],
+    quantized: bool,
 ) -> Result<Vec<[f64; 2]>, MeshError> {
     let ok_type = match acc.data_type() {
         DataType::F32 => true,
-        DataType::U8 | DataType::U16 => acc.normalized(),
-        _ => false,
+        DataType::U8 | DataType::U16 => acc.normalized() || quantized,
+        DataType::I8 | DataType::I16 => quantized,
+        DataType::U32 => false,
     };
     if !ok_type || acc.dimensions() != Dimensions::Vec2 {
         return Err(MeshError::unsupported(format!(

@@ -27,8 +27,13 @@ mod tests;
 const REFUSED_EXTENSIONS: [&str; 3] = [
     "KHR_draco_mesh_compression",
     "EXT_meshopt_compression",
-    "KHR_mesh_quantization",
+    "KHR_meshopt_compression",
 ];
+
+/// Quantized attributes (gltfpack's default output): integer and normalized-integer
+/// POSITION, NORMAL and TEXCOORD accessors, read here (see `accessors::read_vec3`). The `gltf`
+/// crate refuses the extension when required, so it is taken out of the copy it validates.
+const MESH_QUANTIZATION: &str = "KHR_mesh_quantization";
 
 /// glTF `target` for vertex attribute buffer views (`ARRAY_BUFFER`).
 const ARRAY_BUFFER: u32 = 34962;
@@ -239,8 +244,10 @@ pub(crate) fn read(
     check_asset_version(&json)?;
     check_primitive_references(&json)?;
     check_images(&json)?;
-    let root = gltf::json::Root::from_slice(json_bytes)
+    let mut root = gltf::json::Root::from_slice(json_bytes)
         .map_err(|e| MeshError::parse(name, e.to_string()))?;
+    let quantized = root.extensions_used.iter().any(|e| e == MESH_QUANTIZATION);
+    root.extensions_required.retain(|e| e != MESH_QUANTIZATION);
     let doc = gltf::Document::from_json(root).map_err(|e| MeshError::parse(name, e.to_string()))?;
 
     // Resolve buffers: GLB BIN chunk or data: URIs; nothing else is ever opened.
@@ -304,6 +311,7 @@ pub(crate) fn read(
 
     let mut b = Builder {
         buffers: &buffers,
+        quantized,
         limits,
         local: Vec::new(),
         blocks: Vec::new(),

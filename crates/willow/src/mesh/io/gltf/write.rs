@@ -9,6 +9,8 @@ use std::collections::HashMap;
 /// Accumulates file vertices and triangles while walking the scene.
 pub(super) struct Builder<'a> {
     pub(super) buffers: &'a [Vec<u8>],
+    /// The document uses `KHR_mesh_quantization`: integer attribute types are allowed.
+    pub(super) quantized: bool,
     pub(super) limits: &'a Limits,
     pub(super) local: Vec<[f64; 3]>,
     pub(super) blocks: Vec<Block>,
@@ -61,7 +63,7 @@ impl Builder<'_> {
                 let to_local = world.inverse().ok_or_else(|| {
                     MeshError::unsupported(format!("node {node} has a singular transform"))
                 })?;
-                let positions = read_vec3(&pos, self.buffers, "POSITION")?;
+                let positions = read_vec3(&pos, self.buffers, Attribute::Position, self.quantized)?;
                 let start = self.local.len();
                 self.local.extend(positions);
                 self.uvs.resize(self.local.len(), None);
@@ -86,7 +88,10 @@ impl Builder<'_> {
                     "TEXCOORD_0 and POSITION counts differ",
                 ));
             }
-            for (i, v) in read_uv(&uv, self.buffers)?.into_iter().enumerate() {
+            for (i, v) in read_uv(&uv, self.buffers, self.quantized)?
+                .into_iter()
+                .enumerate()
+            {
                 if let Some(slot) = self.uvs.get_mut(start + i) {
                     *slot = Some(v);
                 }
@@ -102,7 +107,7 @@ impl Builder<'_> {
             if !self.normal_accessors.iter().any(|&(a, _)| a == n.index()) {
                 self.normal_accessors.push((n.index(), block));
             }
-            for (i, v) in read_vec3(&n, self.buffers, "NORMAL")?
+            for (i, v) in read_vec3(&n, self.buffers, Attribute::Normal, self.quantized)?
                 .into_iter()
                 .enumerate()
             {
