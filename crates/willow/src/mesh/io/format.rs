@@ -170,7 +170,7 @@ pub(crate) fn is_off_keyword(word: &str) -> bool {
 /// mistake, for errors: `"gzip-compressed data"` etc.
 pub fn foreign_content(bytes: &[u8]) -> Option<&'static str> {
     if bytes.starts_with(&[0x1f, 0x8b]) {
-        Some("gzip-compressed data (decompress it first, or send it with `Content-Encoding: gzip`)")
+        Some("gzip-compressed data (decompress it and send the mesh file itself)")
     } else if bytes.starts_with(b"PK\x03\x04") {
         Some("a zip archive (unzip it and send the mesh file itself)")
     } else if bytes.starts_with(b"\x28\xb5\x2f\xfd") {
