@@ -526,3 +526,16 @@ fn every_format_writes_every_other_and_reads_back_the_same_surface() {
         assert_eq!(x, y, "UVs via {to:?}");
     }
 }
+
+#[test]
+fn stl_vertex_limit_is_checked_as_corners_arrive() {
+    let m = icosphere(1);
+    let bytes = binary_stl(&m.positions, &m.triangles);
+    let limits = Limits {
+        max_vertices: 20,
+        ..Limits::default()
+    };
+    let e = Asset::read(&bytes, Format::Stl, &limits).unwrap_err();
+    assert_eq!(e.code(), "too_large");
+    assert!(e.to_string().contains("21 vertices"), "{e}");
+}

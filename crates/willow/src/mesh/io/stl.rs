@@ -73,7 +73,6 @@ fn read_binary(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, StlSource
     // `is_binary_stl` checked that the length is exactly 84 + 50·n.
     let n = (bytes.len() - BINARY_HEADER) / BINARY_TRIANGLE;
     limits.check_faces(n)?;
-    limits.check_vertices(n.saturating_mul(3).min(limits.max_vertices))?;
     let mut welder = Welder::default();
     let mut triangles = Vec::with_capacity(n);
     let mut non_finite = super::super::error::Offenders::default();
@@ -87,6 +86,8 @@ fn read_binary(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, StlSource
             }
             *slot = welder.id(p);
         }
+        // Checked as corners arrive: the welded table must not outgrow the limit first.
+        limits.check_vertices(welder.positions.len())?;
         triangles.push(tri);
     }
     finish(welder, triangles, non_finite, limits)
@@ -192,6 +193,7 @@ fn read_ascii(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, StlSource)
                         tri[k] = welder.id(p);
                         spans[k + 1] = span;
                     }
+                    limits.check_vertices(welder.positions.len())?;
                     sc.expect("endloop")?;
                     sc.expect("endfacet")?;
                     triangles.push(tri);
