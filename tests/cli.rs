@@ -108,7 +108,7 @@ fn bad_input_exits_nonzero_with_the_reason() {
     );
 
     let run = willow()
-        .args(["fair", &spot(), "-o", "out.stl"])
+        .args(["fair", &spot(), "-o", "out.step"])
         .output()
         .expect("run willow");
     assert_eq!(run.status.code(), Some(2));
@@ -779,4 +779,91 @@ fn fair_a_named_group_with_a_falloff() {
             assert!(err.contains(n), "{extra:?}: {err} lacks {n}");
         }
     }
+}
+
+#[test]
+fn fair_reads_and_writes_stl_ply_and_off_in_kind() {
+    use willow::mesh::io::{Asset, Format, Limits};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sphere = willow::mesh::generate::bumpy_sphere(2, 0.1);
+    let asset = Asset::from_mesh(sphere, &Limits::default()).expect("valid");
+    for (format, output) in [
+        (Format::Ply, "out.ply"),
+        (Format::Stl, "out.stl"),
+        // No extension: the input's format.
+        (Format::Off, "out"),
+    ] {
+        let input = dir.path().join(format!("in.{}", format.extension()));
+        let bytes = asset
+            .write(&asset.surface().positions, format)
+            .expect("write");
+        std::fs::write(&input, &bytes).expect("write input");
+        let out = dir.path().join(output);
+        let run = willow()
+            .arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(&out)
+            .args(["--steps", "3", "--json"])
+            .output()
+            .expect("run willow");
+        assert_eq!(
+            run.status.code(),
+            Some(0),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let written = std::fs::read(&out).expect("output written");
+        assert_eq!(Format::sniff(&written), Some(format), "{output}");
+        let back = Asset::read(&written, format, &Limits::default()).expect("output parses");
+        let before = Asset::read(&bytes, format, &Limits::default()).expect("input parses");
+        assert_eq!(back.file_vertex_count(), before.file_vertex_count());
+        assert_eq!(back.surface().face_count(), before.surface().face_count());
+        assert_ne!(
+            back.surface().positions,
+            before.surface().positions,
+            "faired"
+        );
+    }
+}
+
+#[test]
+fn repair_flag_splits_a_bowtie_and_reports_it() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Two tetrahedra sharing the single `v` line 1: a bowtie in the file itself.
+    let text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv -1 0 0\nv 0 -1 0\nv 0 0 -1\n\
+                f 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\nf 1 6 5\nf 1 5 7\nf 5 6 7\nf 1 7 6\n";
+    let input = dir.path().join("bowtie.obj");
+    std::fs::write(&input, text).expect("write");
+    let out = dir.path().join("out.ply");
+    let run = |repair: bool| {
+        let mut c = willow();
+        c.arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(&out)
+            .args(["--steps", "2"]);
+        if repair {
+            c.arg("--repair");
+        }
+        c.output().expect("run willow")
+    };
+    let refused = run(false);
+    assert_eq!(refused.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("in the file: `v` on line 1"), "{stderr}");
+    let fixed = run(true);
+    let stderr = String::from_utf8_lossy(&fixed.stderr);
+    assert_eq!(fixed.status.code(), Some(0), "{stderr}");
+    assert!(
+        stderr.contains("split 1 non-manifold vertices into 1 more (first: 0)"),
+        "{stderr}"
+    );
+    let back = willow::mesh::io::Asset::read(
+        &std::fs::read(&out).expect("output"),
+        willow::mesh::io::Format::Ply,
+        &willow::mesh::io::Limits::default(),
+    )
+    .expect("the repaired PLY reads without repair");
+    assert_eq!(back.surface().vertex_count(), 8);
 }

@@ -638,9 +638,13 @@ async fn every_bad_input_gets_its_specific_problem() {
     let (st, p) = problem(res).await;
     // A type error in the `params` part names the field, as in the query string.
     assert_eq!((st, p["field"].as_str()), (400, Some("steps")), "{p}");
+    // An explicit non-mesh type and an unknown extension (.stl is a mesh format now).
     let form = reqwest::multipart::Form::new().part(
         "mesh",
-        reqwest::multipart::Part::text(obj.clone()).file_name("m.stl"),
+        reqwest::multipart::Part::text(obj.clone())
+            .file_name("m.step")
+            .mime_str("text/csv")
+            .expect("mime"),
     );
     let res = srv
         .client
@@ -693,7 +697,7 @@ async fn every_bad_input_gets_its_specific_problem() {
     srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
     let res = srv
         .client
-        .get(srv.url(&format!("/v1/jobs/{id}/result?format=stl")))
+        .get(srv.url(&format!("/v1/jobs/{id}/result?format=step")))
         .send()
         .await
         .expect("send");

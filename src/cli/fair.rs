@@ -31,9 +31,10 @@ use willow_service::jobs::JobSpec;
 
 #[derive(Args, Debug)]
 pub struct FairArgs {
-    /// Input mesh (.obj, .gltf, .glb).
+    /// Input mesh (.obj, .gltf, .glb, .stl, .ply, .off; without one of these extensions the
+    /// content decides).
     pub input: PathBuf,
-    /// Output mesh; its extension picks the format.
+    /// Output mesh; its extension picks the format (none: the input's format).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Number of flow steps, at most: the run stops earlier when W stops falling (relative
@@ -52,6 +53,10 @@ pub struct FairArgs {
     /// `bilaplacian` or `taubin` (λ|μ smoothing, λ = τ).
     #[arg(long, default_value = "conformal", value_parser = Method::parse)]
     pub method: Method,
+    /// Repair the input first: drop degenerate faces and split non-manifold vertices and
+    /// edges (one vertex per fan); what changed is printed on stderr, in file numbering.
+    #[arg(long)]
+    pub repair: bool,
     /// Write every intermediate mesh here (same format as the output).
     #[arg(long)]
     pub frames_dir: Option<PathBuf>,
@@ -175,32 +180,59 @@ pub enum BoundaryArg {
     Prescribed,
 }
 
-fn format_of(path: &Path, role: &str) -> Result<Format, String> {
-    Format::from_path(path).ok_or_else(|| {
-        format!(
-            "{role} {}: unknown extension (expected .obj, .gltf or .glb)",
-            path.display()
-        )
-    })
+/// The input's format: its extension, else what its content shows (magic bytes, keywords).
+fn input_format_of(path: &Path, bytes: &[u8]) -> Result<Format, String> {
+    Format::from_path(path)
+        .or_else(|| Format::sniff(bytes))
+        .ok_or_else(|| {
+            format!(
+                "input {}: unknown extension and unrecognized content (expected .obj, .gltf, \
+                 .glb, .stl, .ply or .off)",
+                path.display()
+            )
+        })
+}
+
+/// The output's format: its extension, else the input's (what you read is what you get).
+fn output_format_of(path: &Path, input: Format) -> Result<Format, String> {
+    match path.extension() {
+        None => Ok(input),
+        Some(_) => Format::from_path(path).ok_or_else(|| {
+            format!(
+                "output {}: unknown extension (expected .obj, .gltf, .glb, .stl, .ply or .off, \
+                 or none for the input's format)",
+                path.display()
+            )
+        }),
+    }
 }
 
 pub fn run(args: FairArgs) -> ExitCode {
-    let input_format = match format_of(&args.input, "input") {
-        Ok(f) => f,
-        Err(e) => return fail(EXIT_BAD_INPUT, e),
-    };
-    let output_format = match format_of(&args.output, "output") {
-        Ok(f) => f,
-        Err(e) => return fail(EXIT_BAD_INPUT, e),
-    };
     let bytes = match read_input(&args.input) {
         Ok(b) => b,
         Err(code) => return code,
     };
-    let asset = match Asset::read(&bytes, input_format, &Limits::default()) {
+    let input_format = match input_format_of(&args.input, &bytes) {
+        Ok(f) => f,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
+    let output_format = match output_format_of(&args.output, input_format) {
+        Ok(f) => f,
+        Err(e) => return fail(EXIT_BAD_INPUT, e),
+    };
+    let read = if args.repair {
+        Asset::read_repaired
+    } else {
+        Asset::read
+    };
+    let asset = match read(&bytes, input_format, &Limits::default()) {
         Ok(a) => a,
         Err(e) => return fail(EXIT_BAD_INPUT, format!("{}: {e}", args.input.display())),
     };
+    if !asset.repairs().is_empty() {
+        // On stderr, so --json's stdout stays one object per step.
+        eprintln!("repaired {}: {}", args.input.display(), asset.repairs());
+    }
     // The CLI maps onto the same job spec as HTTP and gRPC, and is checked by the same rules.
     let boundary = match args.boundary {
         BoundaryArg::Free => BoundarySpec::Free,

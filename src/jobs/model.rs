@@ -796,30 +796,18 @@ pub fn rfc3339(ms: u64) -> String {
     )
 }
 
-/// The lower-case name of a mesh format, as stored and as in `?format=`.
+/// The lower-case name of a mesh format, as stored and as in `?format=`: its usual extension.
 pub fn format_name(f: Format) -> &'static str {
-    match f {
-        Format::Obj => "obj",
-        Format::Glb => "glb",
-        Format::Gltf => "gltf",
-    }
+    f.extension()
 }
 
-/// The inverse of [`format_name`].
+/// The inverse of [`format_name`] (case-insensitive).
 pub fn parse_format(s: &str) -> Option<Format> {
-    Some(match s.to_ascii_lowercase().as_str() {
-        "obj" => Format::Obj,
-        "glb" => Format::Glb,
-        "gltf" => Format::Gltf,
-        _ => return None,
-    })
+    Format::from_extension(s)
 }
 
-/// The media type of a mesh format (for downloads).
+/// The media type of a mesh format (for downloads): the registered one where there is one
+/// (`model/stl`), `model/x-ply` and `model/x-off` for the unregistered PLY and OFF.
 pub fn format_media_type(f: Format) -> &'static str {
-    match f {
-        Format::Obj => "model/obj",
-        Format::Glb => "model/gltf-binary",
-        Format::Gltf => "model/gltf+json",
-    }
+    f.mime()
 }

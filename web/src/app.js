@@ -208,9 +208,9 @@ async function takeFiles(files) {
     } else if (image && upload) {
       upload.texture = image;
     } else if (image) {
-      throw new Error('choose the mesh (OBJ, glTF or GLB) first, or together with its image');
+      throw new Error('choose the mesh (OBJ, glTF, GLB, STL, PLY or OFF) first, or together with its image');
     } else {
-      throw new Error('no OBJ, glTF or GLB file among the files given');
+      throw new Error('no OBJ, glTF, GLB, STL, PLY or OFF file among the files given');
     }
     const bitmaps = await textureBitmaps(upload.model, upload.texture);
     view.setModel(upload.model, bitmaps);
@@ -548,7 +548,7 @@ function updateJob(job) {
   $('cancel').disabled = isTerminal(job);
   const ok = job.state === 'succeeded';
   $('downloads').classList.toggle('disabled', !ok);
-  for (const f of ['glb', 'gltf', 'obj']) {
+  for (const f of ['glb', 'gltf', 'obj', 'stl', 'ply', 'off']) {
     const a = $(`dl-${f}`);
     if (ok) a.href = `${job.links.result}?format=${f}`; else a.removeAttribute('href');
   }
@@ -754,7 +754,7 @@ function wire() {
   // Leaving the field with a new key uses it too (Enter or "Use" already did, if unchanged).
   $('api-key').addEventListener('change', (e) => { if (e.target.value.trim() !== apiKey()) useKey(e.target.value); });
   $('api-key-clear').addEventListener('click', () => useKey(''));
-  for (const f of ['glb', 'gltf', 'obj']) $(`dl-${f}`).addEventListener('click', downloadResult);
+  for (const f of ['glb', 'gltf', 'obj', 'stl', 'ply', 'off']) $(`dl-${f}`).addEventListener('click', downloadResult);
   const drop = $('drop');
   drop.addEventListener('dragover', (e) => { e.preventDefault(); drop.classList.add('over'); });
   drop.addEventListener('dragleave', () => drop.classList.remove('over'));

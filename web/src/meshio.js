@@ -200,18 +200,170 @@ export function parseGltf(data) {
   return { fileVertexCount, filePositions: new Float32Array(filePos), parts, images, uvFlipY: false };
 }
 
-/** A model from a mesh file by name or format (`obj`, `glb`, `gltf`). */
+/** A model from a mesh file by format (`obj`, `glb`, `gltf`, `stl`, `ply`, `off`). */
 export function parseMesh(buffer, format) {
   if (format === 'obj') return parseObj(new TextDecoder().decode(buffer));
+  if (format === 'stl') return parseStl(buffer);
+  if (format === 'ply') return parsePly(buffer);
+  if (format === 'off') return parseOff(new TextDecoder().decode(buffer));
   return parseGltf(buffer);
 }
 
 export function formatOf(name) {
   const ext = name.toLowerCase().split('.').pop();
-  return ext === 'obj' || ext === 'glb' || ext === 'gltf' ? ext : null;
+  return ['obj', 'glb', 'gltf', 'stl', 'ply', 'off'].includes(ext) ? ext : null;
 }
 
-export const MEDIA_TYPES = { obj: 'model/obj', glb: 'model/gltf-binary', gltf: 'model/gltf+json' };
+// PLY and OFF have no registered media type: these are the server's (docs/api.md).
+export const MEDIA_TYPES = {
+  obj: 'model/obj', glb: 'model/gltf-binary', gltf: 'model/gltf+json',
+  stl: 'model/stl', ply: 'model/x-ply', off: 'model/x-off',
+};
+
+/** A model whose file vertices are its render vertices (STL, PLY, OFF). */
+function indexedModel(filePos, index, uv) {
+  const n = filePos.length / 3;
+  if (index.length === 0) throw new Error('the file has no faces');
+  for (const i of index) if (!(i >= 0 && i < n)) throw new Error('face index out of range');
+  const gather = new Uint32Array(n);
+  for (let i = 0; i < n; i++) gather[i] = i;
+  return {
+    fileVertexCount: n,
+    filePositions: new Float32Array(filePos),
+    parts: [{ gather, index: Uint32Array.from(index), uv: uv ? new Float32Array(uv) : null, matrix: null, image: null }],
+    images: [],
+    uvFlipY: true,
+  };
+}
+
+/** Fan-triangulates polygon `vs` into `index`, as the server does. */
+function fan(vs, index) {
+  for (let k = 1; k + 1 < vs.length; k++) index.push(vs[0], vs[k], vs[k + 1]);
+}
+
+/** STL, binary (told by its exact length) or ASCII: corners joined by position in order of
+ * first appearance, which is how the server numbers STL's file vertices. */
+export function parseStl(buffer) {
+  const bytes = new Uint8Array(buffer);
+  const dv = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const corners = [];
+  if (bytes.length >= 84 && 84 + 50 * dv.getUint32(80, true) === bytes.length) {
+    const n = dv.getUint32(80, true);
+    for (let t = 0; t < n; t++) {
+      for (let k = 0; k < 9; k++) corners.push(dv.getFloat32(84 + 50 * t + 12 + 4 * k, true));
+    }
+  } else {
+    const words = new TextDecoder().decode(bytes).split(/\s+/);
+    for (let i = 0; i < words.length; i++) {
+      if (words[i] === 'vertex') corners.push(+words[i + 1], +words[i + 2], +words[i + 3]);
+    }
+  }
+  const ids = new Map();
+  const filePos = [];
+  const index = [];
+  for (let c = 0; c < corners.length; c += 3) {
+    // `+ 0` joins -0 and +0, as the server does.
+    const key = `${corners[c] + 0} ${corners[c + 1] + 0} ${corners[c + 2] + 0}`;
+    let id = ids.get(key);
+    if (id === undefined) {
+      id = filePos.length / 3;
+      ids.set(key, id);
+      filePos.push(corners[c], corners[c + 1], corners[c + 2]);
+    }
+    index.push(id);
+  }
+  return indexedModel(filePos, index, null);
+}
+
+/** OFF (with the ST/C/N variants): vertex lines in order are the file vertices. */
+export function parseOff(text) {
+  const lines = text.split(/\r\n|\r|\n/).map((l) => l.split('#')[0].trim()).filter((l) => l);
+  const head = (lines.shift() || '').split(/\s+/);
+  if (!/^(ST)?C?N?OFF$/.test(head[0])) throw new Error('not an OFF file');
+  const hasNormals = head[0].includes('N');
+  const hasUv = head[0].startsWith('ST');
+  const counts = (head.length > 1 ? head.slice(1) : (lines.shift() || '').split(/\s+/)).map(Number);
+  const [nv, nf] = counts;
+  const filePos = [];
+  const uv = hasUv ? [] : null;
+  for (let i = 0; i < nv; i++) {
+    const w = (lines[i] || '').split(/\s+/).map(Number);
+    filePos.push(w[0], w[1], w[2]);
+    if (uv) uv.push(w[w.length - 2], w[w.length - 1]);
+  }
+  void hasNormals;
+  const index = [];
+  for (let f = 0; f < nf; f++) {
+    const w = (lines[nv + f] || '').split(/\s+/).map(Number);
+    fan(w.slice(1, 1 + w[0]), index);
+  }
+  return indexedModel(filePos, index, uv);
+}
+
+const PLY_TYPES = {
+  char: ['Int8', 1], int8: ['Int8', 1], uchar: ['Uint8', 1], uint8: ['Uint8', 1],
+  short: ['Int16', 2], int16: ['Int16', 2], ushort: ['Uint16', 2], uint16: ['Uint16', 2],
+  int: ['Int32', 4], int32: ['Int32', 4], uint: ['Uint32', 4], uint32: ['Uint32', 4],
+  float: ['Float32', 4], float32: ['Float32', 4], double: ['Float64', 8], float64: ['Float64', 8],
+};
+
+/** PLY, ASCII or binary either endianness: the vertex element's records are the file vertices. */
+export function parsePly(buffer) {
+  const bytes = new Uint8Array(buffer);
+  const head = new TextDecoder().decode(bytes.subarray(0, Math.min(bytes.length, 65536)));
+  const end = head.indexOf('end_header');
+  if (!head.startsWith('ply') || end < 0) throw new Error('not a PLY file');
+  let bodyAt = head.indexOf('\n', end) + 1;
+  const elements = [];
+  let format = 'ascii';
+  for (const line of head.slice(0, end).split('\n')) {
+    const w = line.trim().split(/\s+/);
+    if (w[0] === 'format') format = w[1];
+    else if (w[0] === 'element') elements.push({ name: w[1], count: +w[2], props: [] });
+    else if (w[0] === 'property' && elements.length) {
+      const props = elements[elements.length - 1].props;
+      if (w[1] === 'list') props.push({ name: w[4], count: PLY_TYPES[w[2]], item: PLY_TYPES[w[3]] });
+      else props.push({ name: w[2], type: PLY_TYPES[w[1]] });
+    }
+  }
+  // Header bytes are ASCII, so the character offset is the byte offset.
+  const dv = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const little = format === 'binary_little_endian';
+  let words = null;
+  let wi = 0;
+  if (format === 'ascii') words = new TextDecoder().decode(bytes.subarray(bodyAt)).trim().split(/\s+/);
+  const read = (t) => {
+    if (words) return +words[wi++];
+    const x = dv[`get${t[0]}`](bodyAt, little);
+    bodyAt += t[1];
+    return x;
+  };
+  const filePos = [];
+  const index = [];
+  let uv = null;
+  for (const el of elements) {
+    const names = el.props.map((p) => p.name);
+    const uvNames = [['s', 't'], ['u', 'v'], ['texture_u', 'texture_v'], ['texture_s', 'texture_t']]
+      .find(([a, b]) => names.includes(a) && names.includes(b));
+    if (el.name === 'vertex' && uvNames) uv = [];
+    for (let r = 0; r < el.count; r++) {
+      const rec = {};
+      for (const p of el.props) {
+        if (p.count) {
+          const n = read(p.count);
+          const list = [];
+          for (let k = 0; k < n; k++) list.push(read(p.item));
+          rec[p.name] = list;
+        } else rec[p.name] = read(p.type);
+      }
+      if (el.name === 'vertex') {
+        filePos.push(rec.x, rec.y, rec.z);
+        if (uv) uv.push(rec[uvNames[0]], rec[uvNames[1]]);
+      } else if (el.name === 'face') fan(rec.vertex_indices || rec.vertex_index || [], index);
+    }
+  }
+  return indexedModel(filePos, index, uv);
+}
 
 function dataUri(uri) {
   const comma = uri.indexOf(',');

@@ -746,3 +746,141 @@ fn file_vertices_map_to_the_surface_vertex_at_their_position() {
         Err(v_lines.len())
     );
 }
+
+#[test]
+fn glb_from_stl_ply_off_and_far_from_the_origin_validates() {
+    let sphere = willow::mesh::generate::bumpy_sphere(2, 0.1);
+    let code = Asset::from_mesh(sphere.clone(), &Limits::default()).unwrap();
+    for f in [Format::Stl, Format::Ply, Format::Off] {
+        let bytes = code.write(&code.surface().positions, f).unwrap();
+        let a = read(&bytes, f);
+        for (to, ext) in [(Format::Glb, "glb"), (Format::Gltf, "gltf")] {
+            validate_with_khronos(&a.write(&a.surface().positions, to).unwrap(), ext);
+        }
+    }
+    // At map-grid coordinates the document carries a node translation.
+    let far: Vec<[f64; 3]> = sphere
+        .positions
+        .iter()
+        .map(|p| [p[0] + 5e6, p[1] - 5e6, p[2] + 1e9])
+        .collect();
+    let far = Asset::from_mesh(
+        willow::mesh::Mesh::new(far, sphere.triangles.clone()).unwrap(),
+        &Limits::default(),
+    )
+    .unwrap();
+    validate_with_khronos(
+        &far.write(&far.surface().positions, Format::Glb).unwrap(),
+        "glb",
+    );
+}
+
+/// A sphere as gltfpack writes it by default (`KHR_mesh_quantization`, required): positions
+/// as unnormalized u16 in [0, 65535] with the dequantization in the node's scale and
+/// translation, normals as normalized i8 (padded to 4 bytes), u16 indices.
+fn quantized_sphere_glb(declared: bool) -> (Vec<u8>, Vec<[f64; 3]>, f64) {
+    let m = willow::mesh::generate::icosphere(2);
+    let lo = -1.0f64;
+    let step = 2.0 / 65535.0;
+    let mut bin = Vec::new();
+    let q: Vec<[u16; 3]> = m
+        .positions
+        .iter()
+        .map(|p| p.map(|x| ((x - lo) / step).round() as u16))
+        .collect();
+    for v in &q {
+        for c in v {
+            bin.extend_from_slice(&c.to_le_bytes());
+        }
+        bin.extend_from_slice(&[0, 0]); // 8-byte stride, as gltfpack aligns vertices
+    }
+    let normals_at = bin.len();
+    for p in &m.positions {
+        let l = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        for x in p {
+            bin.push(((x / l) * 127.0).round() as i8 as u8);
+        }
+        bin.push(0);
+    }
+    let indices_at = bin.len();
+    for t in &m.triangles {
+        for &i in t {
+            bin.extend_from_slice(&(i as u16).to_le_bytes());
+        }
+    }
+    let n = m.positions.len();
+    let mut json = serde_json::json!({
+        "asset": {"version": "2.0", "generator": "hand-made like gltfpack"},
+        "extensionsUsed": ["KHR_mesh_quantization"],
+        "extensionsRequired": ["KHR_mesh_quantization"],
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "translation": [lo, lo, lo], "scale": [step, step, step]}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2}]}],
+        "buffers": [{"byteLength": bin.len().next_multiple_of(4)}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": normals_at, "byteStride": 8, "target": 34962},
+            {"buffer": 0, "byteOffset": normals_at, "byteLength": indices_at - normals_at, "byteStride": 4, "target": 34962},
+            {"buffer": 0, "byteOffset": indices_at, "byteLength": bin.len() - indices_at, "target": 34963}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5123, "count": n, "type": "VEC3",
+             "min": [0, 0, 0], "max": [65535, 65535, 65535]},
+            {"bufferView": 1, "componentType": 5120, "normalized": true, "count": n, "type": "VEC3"},
+            {"bufferView": 2, "componentType": 5123, "count": m.triangles.len() * 3, "type": "SCALAR"}
+        ]
+    });
+    if !declared {
+        let o = json.as_object_mut().unwrap();
+        o.remove("extensionsUsed");
+        o.remove("extensionsRequired");
+    }
+    let truth = q
+        .iter()
+        .map(|v| v.map(|c| lo + step * f64::from(c)))
+        .collect();
+    (glb_bytes(&json, &bin), truth, step)
+}
+
+#[test]
+fn quantized_glb_is_read_faired_written_and_validates() {
+    let (glb, truth, step) = quantized_sphere_glb(true);
+    validate_with_khronos(&glb, "glb");
+    let a = read(&glb, Format::Glb);
+    assert_eq!(a.file_vertex_count(), truth.len());
+    // Every file vertex where the dequantization puts it (to f32 of the node transform).
+    let file = a.file_to_welded();
+    for (i, w) in file.iter().enumerate() {
+        let p = a.surface().positions[w.unwrap()];
+        for k in 0..3 {
+            assert!(
+                (p[k] - truth[i][k]).abs() < 1e-9,
+                "vertex {i}: {p:?} vs {:?}",
+                truth[i]
+            );
+        }
+    }
+    // Written back: a valid document whose positions re-read within a quantization step of
+    // the faired (here: scaled) f64 positions.
+    let moved: Vec<[f64; 3]> = a
+        .surface()
+        .positions
+        .iter()
+        .map(|p| p.map(|x| 0.9 * x))
+        .collect();
+    let out = a.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let b = read(&out, Format::Glb);
+    for (x, y) in b.surface().positions.iter().zip(&moved) {
+        for k in 0..3 {
+            assert!((x[k] - y[k]).abs() < step, "{x:?} vs {y:?}");
+        }
+    }
+    // Without the extension declared, integer positions are refused by name.
+    let (plain, _, _) = quantized_sphere_glb(false);
+    let e = Asset::read(&plain, Format::Glb, &Limits::default()).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "unsupported: POSITION accessor 0 is not float VEC3 (integer types need \
+         KHR_mesh_quantization)"
+    );
+}

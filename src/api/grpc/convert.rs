@@ -50,9 +50,13 @@ pub(super) fn format_from_pb(field: &str, raw: i32) -> Result<Format, Status> {
         Ok(v1::MeshFormat::Obj) => Ok(Format::Obj),
         Ok(v1::MeshFormat::Gltf) => Ok(Format::Gltf),
         Ok(v1::MeshFormat::Glb) => Ok(Format::Glb),
+        Ok(v1::MeshFormat::Stl) => Ok(Format::Stl),
+        Ok(v1::MeshFormat::Ply) => Ok(Format::Ply),
+        Ok(v1::MeshFormat::Off) => Ok(Format::Off),
         Ok(v1::MeshFormat::Unspecified) => Err(bad_request(
             field,
-            "required: MESH_FORMAT_OBJ, MESH_FORMAT_GLTF or MESH_FORMAT_GLB",
+            "required: MESH_FORMAT_OBJ, MESH_FORMAT_GLTF, MESH_FORMAT_GLB, MESH_FORMAT_STL, \
+             MESH_FORMAT_PLY or MESH_FORMAT_OFF",
         )),
         Err(_) => Err(bad_request(field, format!("unknown mesh format {raw}"))),
     }
@@ -63,6 +67,9 @@ pub(super) fn format_pb(format: Format) -> v1::MeshFormat {
         Format::Obj => v1::MeshFormat::Obj,
         Format::Gltf => v1::MeshFormat::Gltf,
         Format::Glb => v1::MeshFormat::Glb,
+        Format::Stl => v1::MeshFormat::Stl,
+        Format::Ply => v1::MeshFormat::Ply,
+        Format::Off => v1::MeshFormat::Off,
     }
 }
 

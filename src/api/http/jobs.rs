@@ -139,20 +139,34 @@ pub struct FrameList {
     pub next_from_step: Option<usize>,
 }
 
-/// The mesh format of a media type (parameters such as `; charset=` ignored).
-fn format_of_media_type(ct: &str) -> Option<Format> {
-    let essence = ct
-        .split(';')
-        .next()
-        .unwrap_or("")
-        .trim()
-        .to_ascii_lowercase();
-    match essence.as_str() {
-        "model/obj" => Some(Format::Obj),
-        "model/gltf-binary" => Some(Format::Glb),
-        "model/gltf+json" => Some(Format::Gltf),
-        _ => None,
-    }
+/// The mesh media types a raw upload may carry (the canonical one of each format; the
+/// aliases [`Format::from_mime`] accepts are listed in docs/api.md).
+const MESH_MEDIA_TYPES: &str = "model/obj, model/gltf-binary, model/gltf+json, model/stl, \
+                                model/x-ply or model/x-off";
+
+/// Is `ct` the generic binary type (or the text type some clients send for any file), for
+/// which the content itself decides the format?
+fn is_generic_media_type(ct: &str) -> bool {
+    let essence = ct.split(';').next().unwrap_or("").trim();
+    essence.eq_ignore_ascii_case("application/octet-stream")
+}
+
+/// The format of an upload sent as `application/octet-stream`: what its bytes show it is
+/// (magic, binary STL length, keywords), or a 415 that says what they are instead.
+fn sniffed_format(data: &[u8]) -> Result<Format, Problem> {
+    Format::sniff(data).ok_or_else(|| {
+        let what = willow::mesh::io::foreign_content(data)
+            .map(|w| format!(" (the body is {w})"))
+            .unwrap_or_default();
+        Problem::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_media_type",
+            format!(
+                "the application/octet-stream body is not a mesh format Willow recognizes{what}: \
+                 send it as {MESH_MEDIA_TYPES}"
+            ),
+        )
+    })
 }
 
 fn unsupported_media_type(got: &str) -> Problem {
@@ -160,8 +174,9 @@ fn unsupported_media_type(got: &str) -> Problem {
         StatusCode::UNSUPPORTED_MEDIA_TYPE,
         "unsupported_media_type",
         format!(
-            "Content-Type `{got}` is not accepted: send model/obj, model/gltf-binary or \
-             model/gltf+json as the raw body, or multipart/form-data with a `mesh` file part"
+            "Content-Type `{got}` is not accepted: send {MESH_MEDIA_TYPES} (or \
+             application/octet-stream, recognized by content) as the raw body, or \
+             multipart/form-data with a `mesh` file part"
         ),
     )
 }
@@ -200,10 +215,11 @@ pub(super) fn record_job(id: &str) {
     post, path = "/v1/jobs", tag = "jobs",
     params(JobQuery,
         ("Idempotency-Key" = Option<String>, Header, description = "Retries with the same key and request return the same job")),
-    request_body(description = "The mesh: raw `model/obj`, `model/gltf-binary` or `model/gltf+json`, or `multipart/form-data` with a `mesh` file part and an optional `params` JSON part (same fields as the query)",
+    request_body(description = "The mesh: raw `model/obj`, `model/gltf-binary`, `model/gltf+json`, `model/stl` (also `application/sla`, `application/vnd.ms-pki.stl`), `model/x-ply` (also `application/ply`) or `model/x-off` (PLY and OFF have no registered type), or `application/octet-stream` recognized by its content; or `multipart/form-data` with a `mesh` file part (typed, or named `.obj/.gltf/.glb/.stl/.ply/.off`) and an optional `params` JSON part (same fields as the query)",
         content(
             (Vec<u8> = "model/obj"), (Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"),
-            (Vec<u8> = "multipart/form-data"))),
+            (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"),
+            (Vec<u8> = "application/octet-stream"), (Vec<u8> = "multipart/form-data"))),
     responses(
         (status = 202, description = "Accepted; `Location` is the job", body = JobView),
         (status = 400, description = "Bad parameters", body = Problem, content_type = "application/problem+json"),
@@ -277,10 +293,16 @@ async fn create_job_inner(
     let query_given = req.uri().query().is_some_and(|q| !q.is_empty());
     let query_spec = query::<JobQuery>(req.uri())?.into_spec()?;
 
-    let (data, format, spec) = if let Some(format) = format_of_media_type(&content_type) {
+    let (data, format, spec) = if let Some(format) = Format::from_mime(&content_type) {
         let data = read_limited(req.into_body(), limit)
             .await
             .map_err(|_| Problem::too_large("upload bytes", limit))?;
+        (data, format, query_spec)
+    } else if is_generic_media_type(&content_type) {
+        let data = read_limited(req.into_body(), limit)
+            .await
+            .map_err(|_| Problem::too_large("upload bytes", limit))?;
+        let format = sniffed_format(&data)?;
         (data, format, query_spec)
     } else if content_type
         .to_ascii_lowercase()
@@ -342,7 +364,7 @@ async fn read_multipart(
         }
         match name.as_str() {
             "mesh" => {
-                let by_type = field.content_type().and_then(format_of_media_type);
+                let by_type = field.content_type().and_then(Format::from_mime);
                 let by_name = field
                     .file_name()
                     .and_then(|n| n.rsplit_once('.').and_then(|(_, ext)| parse_format(ext)));
@@ -351,16 +373,20 @@ async fn read_multipart(
                     .map(str::to_string)
                     .or_else(|| field.file_name().map(str::to_string))
                     .unwrap_or_else(|| "(none)".into());
-                let format = by_type.or(by_name).ok_or_else(|| {
-                    Problem::new(
+                // Browsers send `application/octet-stream` (or nothing) for .stl/.ply/.off:
+                // the type, then the file name, then the content decide.
+                let generic = field.content_type().is_none_or(is_generic_media_type);
+                let declared = by_type.or(by_name);
+                if declared.is_none() && !generic {
+                    return Err(Problem::new(
                         StatusCode::UNSUPPORTED_MEDIA_TYPE,
                         "unsupported_media_type",
                         format!(
                             "the `mesh` part's type `{shown}` is not a mesh format: give it Content-Type \
-                             model/obj, model/gltf-binary or model/gltf+json, or a .obj/.glb/.gltf file name"
+                             {MESH_MEDIA_TYPES}, or a .obj/.glb/.gltf/.stl/.ply/.off file name"
                         ),
-                    )
-                })?;
+                    ));
+                }
                 let data = field.bytes().await.map_err(|e| {
                     if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
                         Problem::too_large("upload bytes", limit)
@@ -371,6 +397,10 @@ async fn read_multipart(
                 if data.len() as u64 > limit {
                     return Err(Problem::too_large("upload bytes", limit));
                 }
+                let format = match declared {
+                    Some(f) => f,
+                    None => sniffed_format(&data)?,
+                };
                 mesh = Some((data, format));
             }
             "params" => {
@@ -539,7 +569,7 @@ pub async fn list_frames(
 /// The mesh after one step (steps that kept positions: 0, every frame interval, the last).
 #[utoipa::path(get, path = "/v1/jobs/{id}/frames/{step}", tag = "jobs",
     params(("id" = String, Path), ("step" = usize, Path), FormatQuery),
-    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
         (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
@@ -572,7 +602,7 @@ pub async fn frame_mesh(
 /// `format` asks for another.
 #[utoipa::path(get, path = "/v1/jobs/{id}/result", tag = "jobs",
     params(("id" = String, Path), FormatQuery),
-    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"))),
+    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
         (status = 400, description = "Bad parameters (`format`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),

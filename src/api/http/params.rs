@@ -404,7 +404,7 @@ pub(super) fn parse_out_format(q: &FormatQuery) -> Result<Option<Format>, Proble
             Problem::bad_request(
                 "invalid_parameter",
                 format!(
-                    "invalid parameter `format`: expected `glb`, `gltf` or `obj`, got `{}`",
+                    "invalid parameter `format`: expected `glb`, `gltf`, `obj`, `stl`, `ply` or `off`, got `{}`",
                     clip(f)
                 ),
             )

@@ -15,7 +15,7 @@ pub const MAX_REPORTED: usize = 8;
 ///
 /// Collect with [`Offenders::push`]; it keeps at most [`MAX_REPORTED`] items, so building one
 /// never allocates in proportion to the input.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
 pub struct Offenders<T> {
     /// Total number of offending items.
     pub count: usize,
@@ -68,8 +68,8 @@ pub type FormatName = &'static str;
 /// Everything that can be wrong with a mesh or a mesh file.
 ///
 /// Vertex and face indices are 0-based indices into the arrays given to
-/// [`Mesh::new`](super::Mesh::new) (for files: into the welded surface, in file order; see
-/// [`io::Asset`](super::io::Asset)), except that an OBJ's non-finite coordinates are named by
+/// [`Mesh::new`](super::Mesh::new); a file's surface errors come wrapped in
+/// [`MeshError::InFile`] in the file's own numbering, and an OBJ's non-finite coordinates are named by
 /// 0-based `v` line (unused lines are checked too) and its out-of-range faces by 0-based `f`
 /// line.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -181,6 +181,37 @@ pub enum MeshError {
     #[error("expected {expected} positions (one per welded vertex), got {got}")]
     PositionCount { expected: usize, got: usize },
 
+    /// The content is clearly another format than the one it was sent as (e.g. an OFF file
+    /// sent as OBJ, which would otherwise read as an OBJ without faces).
+    #[error(
+        "the file was sent as {declared} but it is {found}: send it as {found} \
+         (Content-Type {mime}, or a .{extension} file name)"
+    )]
+    FormatMismatch {
+        declared: FormatName,
+        found: FormatName,
+        mime: &'static str,
+        extension: &'static str,
+    },
+
+    /// The content is not a mesh file at all but a common wrapper (gzip, zip, UTF-16 text).
+    #[error("the file sent as {declared} is {what}")]
+    NotAMesh {
+        declared: FormatName,
+        what: &'static str,
+    },
+
+    /// A mesh rule a file breaks, in the file's own numbering: `error`'s vertex indices are
+    /// the file's vertices (OBJ `v` lines in order, PLY/OFF vertex records, STL's distinct
+    /// corners, glTF accessor vertices; from 0) and its face indices the file's faces (OBJ `f`
+    /// statements, PLY/OFF face records, STL and glTF triangles; from 0); `location` names
+    /// them as a person finds them (OBJ line numbers).
+    #[error("{error}; in the file: {location}")]
+    InFile {
+        error: Box<MeshError>,
+        location: String,
+    },
+
     /// Valid but outside what Willow handles (e.g. sparse or quantized positions).
     #[error("unsupported: {detail}")]
     Unsupported { detail: String },
@@ -206,14 +237,20 @@ impl MeshError {
             MeshError::ExternalUri { .. } => "external_uri",
             MeshError::TruncatedBuffer { .. } => "truncated_buffer",
             MeshError::PositionCount { .. } => "position_count_mismatch",
+            MeshError::FormatMismatch { .. } => "format_mismatch",
+            MeshError::NotAMesh { .. } => "not_a_mesh",
             MeshError::Unsupported { .. } => "unsupported",
+            MeshError::InFile { error, .. } => error.code(),
         }
     }
 
     /// True when the input itself is bad (a client error: HTTP 422 / gRPC INVALID_ARGUMENT)
     /// rather than over a limit (HTTP 413 / RESOURCE_EXHAUSTED).
     pub fn is_too_large(&self) -> bool {
-        matches!(self, MeshError::TooLarge { .. })
+        match self {
+            MeshError::InFile { error, .. } => error.is_too_large(),
+            e => matches!(e, MeshError::TooLarge { .. }),
+        }
     }
 
     pub(crate) fn parse(format: FormatName, detail: impl Into<String>) -> Self {

@@ -8,7 +8,7 @@
 //!   orientable, within [`Limits`]) and orients (closed components outward), or returns a
 //!   [`MeshError`] naming the rule, the count and the first offending indices.
 //! - [`Topology`]: edges, boundary loops, connected components with χ and genus.
-//! - [`io`]: OBJ, glTF and GLB in and out ([`io::Asset`], [`io::Format`]).
+//! - [`io`]: OBJ, glTF, GLB, STL, PLY and OFF in and out ([`io::Asset`], [`io::Format`]).
 //! - [`generate`]: meshes made in code for tests and benchmarks.
 
 pub mod error;

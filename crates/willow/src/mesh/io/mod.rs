@@ -1,4 +1,4 @@
-//! Reading and writing OBJ, glTF and GLB while keeping everything the flow does not touch.
+//! Reading and writing OBJ, glTF, GLB, STL, PLY and OFF while keeping everything the flow does not touch.
 //!
 //! An [`Asset`] holds three views of one file:
 //!
@@ -19,159 +19,28 @@
 //! Uploads are untrusted: nothing here reads a file or the network, every size is checked
 //! against [`Limits`] before allocation, and every malformed input is a [`MeshError`].
 
+mod affine;
+mod format;
 mod gltf;
 mod groups;
+mod locate;
 mod obj;
+mod off;
+mod ply;
+mod repair;
+mod stl;
+mod text;
+mod weld;
+
+pub(crate) use affine::Affine;
+pub use format::{foreign_content, Format, ALL_FORMATS};
+pub use repair::Repairs;
 
 use super::{Mesh, MeshError};
 use std::collections::HashMap;
 use std::fmt;
-use std::path::Path;
 
 pub use super::Limits;
-
-/// A mesh file format Willow reads and writes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Format {
-    /// Wavefront OBJ (text), with `vt`/`vn` per corner.
-    Obj,
-    /// glTF 2.0 JSON with buffers embedded as base64 `data:` URIs.
-    Gltf,
-    /// glTF 2.0 binary (one JSON chunk, one BIN chunk).
-    Glb,
-}
-
-impl Format {
-    /// The format named by a file's extension (case-insensitive), if any.
-    pub fn from_path(p: &Path) -> Option<Format> {
-        let ext = p.extension()?.to_str()?.to_ascii_lowercase();
-        match ext.as_str() {
-            "obj" => Some(Format::Obj),
-            "gltf" => Some(Format::Gltf),
-            "glb" => Some(Format::Glb),
-            _ => None,
-        }
-    }
-
-    /// The format of a MIME type (parameters such as `; charset=utf-8` are ignored).
-    pub fn from_mime(m: &str) -> Option<Format> {
-        let essence = m.split(';').next()?.trim().to_ascii_lowercase();
-        match essence.as_str() {
-            "model/obj" => Some(Format::Obj),
-            "model/gltf+json" => Some(Format::Gltf),
-            "model/gltf-binary" => Some(Format::Glb),
-            _ => None,
-        }
-    }
-
-    /// The usual file extension, without the dot.
-    pub fn extension(self) -> &'static str {
-        match self {
-            Format::Obj => "obj",
-            Format::Gltf => "gltf",
-            Format::Glb => "glb",
-        }
-    }
-
-    /// The registered MIME type.
-    pub fn mime(self) -> &'static str {
-        match self {
-            Format::Obj => "model/obj",
-            Format::Gltf => "model/gltf+json",
-            Format::Glb => "model/gltf-binary",
-        }
-    }
-}
-
-/// An affine map `p ↦ m·p + t` in f64 (`m` row-major).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Affine {
-    pub(crate) m: [[f64; 3]; 3],
-    pub(crate) t: [f64; 3],
-}
-
-impl Affine {
-    pub(crate) const IDENTITY: Affine = Affine {
-        m: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-        t: [0.0; 3],
-    };
-
-    pub(crate) fn apply(&self, p: [f64; 3]) -> [f64; 3] {
-        let m = &self.m;
-        [
-            m[0][0] * p[0] + m[0][1] * p[1] + m[0][2] * p[2] + self.t[0],
-            m[1][0] * p[0] + m[1][1] * p[1] + m[1][2] * p[2] + self.t[1],
-            m[2][0] * p[0] + m[2][1] * p[1] + m[2][2] * p[2] + self.t[2],
-        ]
-    }
-
-    /// `mᵀ·n`: takes a world-space normal back to the local space of `self` (normals move
-    /// with the inverse transpose, so the inverse of that is the transpose).
-    pub(crate) fn transpose_apply(&self, n: [f64; 3]) -> [f64; 3] {
-        let m = &self.m;
-        [
-            m[0][0] * n[0] + m[1][0] * n[1] + m[2][0] * n[2],
-            m[0][1] * n[0] + m[1][1] * n[1] + m[2][1] * n[2],
-            m[0][2] * n[0] + m[1][2] * n[1] + m[2][2] * n[2],
-        ]
-    }
-
-    /// `self ∘ other`.
-    pub(crate) fn then_after(&self, other: &Affine) -> Affine {
-        let (a, b) = (&self.m, &other.m);
-        let mut m = [[0.0; 3]; 3];
-        for (i, row) in m.iter_mut().enumerate() {
-            for (j, x) in row.iter_mut().enumerate() {
-                *x = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-            }
-        }
-        Affine {
-            m,
-            t: self.apply(other.t),
-        }
-    }
-
-    pub(crate) fn determinant(&self) -> f64 {
-        let m = &self.m;
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    }
-
-    /// The inverse map, or `None` when `m` is singular or not finite (a node scaled by zero
-    /// cannot have its transform undone when writing).
-    pub(crate) fn inverse(&self) -> Option<Affine> {
-        let d = self.determinant();
-        if !d.is_finite() || d == 0.0 {
-            return None;
-        }
-        let m = &self.m;
-        let c = |r0: usize, r1: usize, c0: usize, c1: usize| {
-            m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0]
-        };
-        let inv = [
-            [c(1, 2, 1, 2) / d, -c(0, 2, 1, 2) / d, c(0, 1, 1, 2) / d],
-            [-c(1, 2, 0, 2) / d, c(0, 2, 0, 2) / d, -c(0, 1, 0, 2) / d],
-            [c(1, 2, 0, 1) / d, -c(0, 2, 0, 1) / d, c(0, 1, 0, 1) / d],
-        ];
-        let lin = Affine {
-            m: inv,
-            t: [0.0; 3],
-        };
-        let t = lin.apply(self.t);
-        let out = Affine {
-            m: inv,
-            t: [-t[0], -t[1], -t[2]],
-        };
-        out.m
-            .iter()
-            .flatten()
-            .chain(&out.t)
-            .all(|x| x.is_finite())
-            .then_some(out)
-    }
-}
 
 /// A run of split vertices sharing one local→world transform (one glTF POSITION accessor).
 #[derive(Clone, Debug)]
@@ -197,6 +66,27 @@ pub(crate) struct FileGeometry {
     /// if the file has normals: copies of a welded vertex with the same key are smooth, with
     /// different keys a crease.
     pub(crate) normal_keys: Option<Vec<u64>>,
+    /// The file's own face number of each triangle (OBJ `f` statements, PLY/OFF face
+    /// records, counted from 0), when polygons were fan-triangulated; `None`: triangle `t` is
+    /// the file's face `t` (STL, glTF, meshes made in code).
+    pub(crate) face_of_triangle: Option<Vec<u32>>,
+    /// Split vertices `local.len() - copies.len()..` are copies `repair` made: the original
+    /// split vertex of each (see repair.rs).
+    pub(crate) copies: Vec<usize>,
+}
+
+impl FileGeometry {
+    /// Split vertices read from the file (not copies made by `repair`).
+    pub(crate) fn read_count(&self) -> usize {
+        self.local.len() - self.copies.len()
+    }
+
+    /// The split vertex read from the file that `sv` is (or is a copy of).
+    pub(crate) fn original(&self, sv: usize) -> usize {
+        sv.checked_sub(self.read_count())
+            .and_then(|k| self.copies.get(k).copied())
+            .unwrap_or(sv)
+    }
 }
 
 /// Welded vertex of a split vertex that no triangle uses.
@@ -206,8 +96,21 @@ const UNWELDED: usize = usize::MAX;
 enum Source {
     Obj(obj::ObjSource),
     Gltf(gltf::GltfSource),
+    Stl(stl::StlSource),
+    Ply(ply::PlySource),
+    Off(off::OffSource),
     /// Made in code ([`Asset::from_mesh`]): no file to keep; file vertices are the welded ones.
     Code,
+}
+
+impl Source {
+    /// The file vertex (see [`Asset::file_vertex_count`]) of split vertex `sv`.
+    pub(crate) fn file_vertex_of_split(&self, sv: usize) -> usize {
+        match self {
+            Source::Obj(src) => src.v_of_split().get(sv).copied().unwrap_or(sv),
+            _ => sv,
+        }
+    }
 }
 
 /// A mesh file read into memory: its welded surface plus everything needed to write it back.
@@ -222,6 +125,8 @@ pub struct Asset {
     /// file has normals: a group is the copies of one welded vertex sharing a stored normal.
     normal_groups: Option<(Vec<usize>, usize)>,
     source: Source,
+    /// What `read_repaired` changed (empty otherwise).
+    repairs: Repairs,
 }
 
 impl fmt::Debug for Asset {
@@ -245,16 +150,97 @@ impl Asset {
     /// `Format::Gltf` and `Format::Glb` both accept either container (told apart by the GLB
     /// magic bytes), since uploads are often mislabelled; the format only chooses the parser
     /// family. Checks `limits.max_bytes` first, then vertex and face counts before allocating.
+    ///
+    /// Content that is plainly something else gets a specific error rather than the parser's
+    /// confusion: gzip, zip and UTF-16 bodies are named ([`MeshError::NotAMesh`]), and a file
+    /// that fails to parse as `format` but sniffs as another format (an OFF or ASCII STL sent
+    /// as OBJ) is a [`MeshError::FormatMismatch`] naming the right one.
     pub fn read(bytes: &[u8], format: Format, limits: &Limits) -> Result<Asset, MeshError> {
+        Asset::read_with(bytes, format, limits, false)
+    }
+
+    /// [`Asset::read`] with the opt-in repair: degenerate faces are dropped, and vertices whose
+    /// faces form several fans (bowties, the ends of edges with three or more faces) are split
+    /// into one vertex per fan. [`Asset::repairs`] says what changed, in file numbering. A file
+    /// that needs no repair reads exactly as with [`Asset::read`].
+    ///
+    /// Written back in its own format, a file keeps its own faces and vertex sharing (dropped
+    /// faces stay in an OBJ/PLY/OFF/glTF, a split vertex gets its first fan's position); other
+    /// formats carry the repaired surface.
+    pub fn read_repaired(
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+    ) -> Result<Asset, MeshError> {
+        Asset::read_with(bytes, format, limits, true)
+    }
+
+    /// What [`Asset::read_repaired`] changed (empty for [`Asset::read`]).
+    pub fn repairs(&self) -> &Repairs {
+        &self.repairs
+    }
+
+    fn read_with(
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+        repair: bool,
+    ) -> Result<Asset, MeshError> {
         limits.check_bytes(bytes.len())?;
+        if let Some(what) = foreign_content(bytes) {
+            return Err(MeshError::NotAMesh {
+                declared: format_name(format),
+                what,
+            });
+        }
+        Asset::read_as(bytes, format, limits, repair).map_err(|e| {
+            let same_family = |f: Format| {
+                f == format
+                    || matches!(
+                        (f, format),
+                        (Format::Gltf | Format::Glb, Format::Gltf | Format::Glb)
+                    )
+            };
+            match Format::sniff(bytes) {
+                Some(found) if !same_family(found) && !e.is_too_large() => {
+                    MeshError::FormatMismatch {
+                        declared: format_name(format),
+                        found: format_name(found),
+                        mime: found.mime(),
+                        extension: found.extension(),
+                    }
+                }
+                _ => e,
+            }
+        })
+    }
+
+    fn read_as(
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+        repair: bool,
+    ) -> Result<Asset, MeshError> {
         match format {
             Format::Obj => {
                 let (file, src) = obj::read(bytes, limits)?;
-                Asset::assemble(format, file, Source::Obj(src), limits)
+                Asset::assemble(format, file, Source::Obj(src), limits, repair)
             }
             Format::Gltf | Format::Glb => {
                 let (file, src) = gltf::read(bytes, format, limits)?;
-                Asset::assemble(format, file, Source::Gltf(src), limits)
+                Asset::assemble(format, file, Source::Gltf(src), limits, repair)
+            }
+            Format::Stl => {
+                let (file, src) = stl::read(bytes, limits)?;
+                Asset::assemble(format, file, Source::Stl(src), limits, repair)
+            }
+            Format::Ply => {
+                let (file, src) = ply::read(bytes, limits)?;
+                Asset::assemble(format, file, Source::Ply(src), limits, repair)
+            }
+            Format::Off => {
+                let (file, src) = off::read(bytes, limits)?;
+                Asset::assemble(format, file, Source::Off(src), limits, repair)
             }
         }
     }
@@ -262,9 +248,10 @@ impl Asset {
     /// Welds the split vertices by exact world position and validates the result.
     fn assemble(
         format: Format,
-        file: FileGeometry,
+        mut file: FileGeometry,
         source: Source,
         limits: &Limits,
+        repair: bool,
     ) -> Result<Asset, MeshError> {
         limits.check_vertices(file.local.len())?;
         limits.check_faces(file.triangles.len())?;
@@ -281,30 +268,51 @@ impl Asset {
                 world.push(b.to_world.apply(*p));
             }
         }
-        // Weld in order of first use by a triangle corner, so re-reading a written file gives
-        // the same welded numbering.
-        let mut to_welded = vec![UNWELDED; file.local.len()];
-        let mut by_position: HashMap<[u64; 3], usize> = HashMap::new();
-        let mut positions = Vec::new();
-        let mut triangles = Vec::with_capacity(file.triangles.len());
-        for t in &file.triangles {
-            let mut w = [0usize; 3];
-            for (k, &fv) in t.iter().enumerate() {
-                let p = *world.get(fv).ok_or_else(|| {
-                    MeshError::parse(format_name(format), "triangle references a missing vertex")
-                })?;
-                // `+ 0.0` turns -0.0 into +0.0 so the two weld together.
-                let key = p.map(|x| (x + 0.0).to_bits());
-                let id = *by_position.entry(key).or_insert_with(|| {
-                    positions.push(p);
-                    positions.len() - 1
-                });
-                to_welded[fv] = id;
-                w[k] = id;
-            }
-            triangles.push(w);
+        let mut repairs = Repairs::default();
+        if repair {
+            repair::drop_degenerate(&mut file, &world, &mut repairs);
         }
-        let surface = Mesh::with_limits(positions, triangles, limits)?;
+        // See weld.rs: by exact position first; only if that surface is refused, again by
+        // corners, so coincident vertices the file keeps apart stay apart.
+        let fast = weld::by_position(&world, &file.triangles).ok_or_else(|| {
+            MeshError::parse(format_name(format), "triangle references a missing vertex")
+        })?;
+        let (to_welded, surface) = match Mesh::with_limits(fast.positions, fast.triangles, limits) {
+            Ok(surface) => (fast.to_welded, surface),
+            Err(e) if e.is_too_large() => return Err(e),
+            Err(_) => {
+                let file_of_split = |sv: usize| source.file_vertex_of_split(sv);
+                let mut w = weld::by_corners(&world, &file.triangles, &file_of_split, !repair);
+                if repair {
+                    repair::split_copies(&mut file, &mut w, &file_of_split, &mut repairs);
+                }
+                let mut split_of_surface = vec![UNWELDED; w.positions.len()];
+                for (ft, st) in file.triangles.iter().zip(&w.triangles) {
+                    for (&sv, &v) in ft.iter().zip(st) {
+                        if let Some(slot) = split_of_surface.get_mut(v) {
+                            if *slot == UNWELDED {
+                                *slot = sv;
+                            }
+                        }
+                    }
+                }
+                match Mesh::with_limits(w.positions, w.triangles, limits) {
+                    Ok(surface) => (w.to_welded, surface),
+                    Err(e) => {
+                        let file_of_any =
+                            |sv: usize| source.file_vertex_of_split(file.original(sv));
+                        let origins = locate::Origins {
+                            format,
+                            source: &source,
+                            file: &file,
+                            split_of_surface,
+                            file_of_split: &file_of_any,
+                        };
+                        return Err(origins.locate(e));
+                    }
+                }
+            }
+        };
 
         let normal_groups = file.normal_keys.as_ref().map(|keys| {
             let mut groups: HashMap<(usize, u64), usize> = HashMap::new();
@@ -328,6 +336,7 @@ impl Asset {
             to_welded,
             normal_groups,
             source,
+            repairs,
         })
     }
 
@@ -349,6 +358,8 @@ impl Asset {
             triangles: file_triangles,
             uvs: None,
             normal_keys: None,
+            face_of_triangle: None,
+            copies: Vec::new(),
         };
         Ok(Asset {
             format: Format::Obj,
@@ -357,6 +368,7 @@ impl Asset {
             to_welded: (0..n).collect(),
             normal_groups: None,
             source: Source::Code,
+            repairs: Repairs::default(),
         })
     }
 
@@ -386,13 +398,19 @@ impl Asset {
         self.check_positions(positions)?;
         match (&self.source, format) {
             (Source::Obj(src), Format::Obj) => Ok(obj::write_kept(self, src, positions)),
-            (Source::Gltf(_) | Source::Code, Format::Obj) => Ok(obj::write_new(self, positions)),
             (Source::Gltf(src), Format::Gltf | Format::Glb) => {
                 gltf::write_document(self, src, positions, format == Format::Glb)
             }
-            (Source::Obj(_) | Source::Code, Format::Gltf | Format::Glb) => {
+            (Source::Stl(src), Format::Stl) => Ok(stl::write_kept(self, src, positions)),
+            (Source::Ply(src), Format::Ply) => ply::write_kept(self, src, positions),
+            (Source::Off(src), Format::Off) => Ok(off::write_kept(self, src, positions)),
+            (_, Format::Obj) => Ok(obj::write_new(self, positions)),
+            (_, Format::Gltf | Format::Glb) => {
                 gltf::write_new(self, positions, format == Format::Glb)
             }
+            (_, Format::Stl) => stl::write_new(self, positions),
+            (_, Format::Ply) => ply::write_new(self, positions),
+            (_, Format::Off) => Ok(off::write_new(self, positions)),
         }
     }
 
@@ -406,7 +424,7 @@ impl Asset {
     pub fn file_vertex_count(&self) -> usize {
         match &self.source {
             Source::Obj(src) => src.v_count(),
-            Source::Gltf(_) | Source::Code => self.file.local.len(),
+            _ => self.file.read_count(),
         }
     }
 
@@ -427,7 +445,7 @@ impl Asset {
                     }
                 }
             }
-            Source::Gltf(_) | Source::Code => {
+            _ => {
                 for (slot, &w) in welded_of_file.iter_mut().zip(&self.to_welded) {
                     *slot = w;
                 }
@@ -467,10 +485,13 @@ impl Asset {
                 let v_of = src.v_of_split();
                 split
                     .iter()
-                    .map(|t| t.map(|sv| v_of.get(sv).copied().unwrap_or(0)))
+                    .map(|t| t.map(|sv| v_of.get(self.file.original(sv)).copied().unwrap_or(0)))
                     .collect()
             }
-            Source::Gltf(_) | Source::Code => split,
+            _ => split
+                .iter()
+                .map(|t| t.map(|sv| self.file.original(sv)))
+                .collect(),
         }
     }
 
@@ -536,7 +557,7 @@ impl Asset {
                 }
                 out
             }
-            Source::Gltf(_) | Source::Code => split.collect(),
+            _ => split.take(self.file.read_count()).collect(),
         }
     }
 
@@ -574,8 +595,27 @@ impl Asset {
                 }
                 out
             }
-            Source::Gltf(_) | Source::Code => split,
+            _ => {
+                let mut split = split;
+                split.truncate(self.file.read_count());
+                split
+            }
         }
+    }
+
+    /// Per split vertex position in world space, in f64 (vertices no triangle uses keep their
+    /// stored position).
+    pub(crate) fn split_world_positions(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        let mut out = self.file.local.clone();
+        for b in &self.file.blocks {
+            for fv in b.start..b.start + b.len {
+                let w = self.to_welded.get(fv).copied().unwrap_or(UNWELDED);
+                if let Some(slot) = out.get_mut(fv) {
+                    *slot = positions.get(w).copied().unwrap_or(b.to_world.apply(*slot));
+                }
+            }
+        }
+        out
     }
 
     /// Per split vertex position in its block's local space, in f64.
@@ -655,6 +695,9 @@ pub(crate) fn format_name(format: Format) -> &'static str {
         Format::Obj => "OBJ",
         Format::Gltf => "glTF",
         Format::Glb => "GLB",
+        Format::Stl => "STL",
+        Format::Ply => "PLY",
+        Format::Off => "OFF",
     }
 }
 
@@ -678,44 +721,5 @@ pub(crate) fn normalize_or_z(n: [f64; 3]) -> [f64; 3] {
         [n[0] / len, n[1] / len, n[2] / len]
     } else {
         [0.0, 0.0, 1.0]
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn affine_inverse_undoes_the_map() {
-        let a = Affine {
-            m: [[0.0, -2.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 0.5]],
-            t: [1.0, 2.0, 3.0],
-        };
-        let inv = a.inverse().unwrap();
-        let p = [0.3, -0.7, 4.0];
-        let q = inv.apply(a.apply(p));
-        for k in 0..3 {
-            assert!((p[k] - q[k]).abs() < 1e-15);
-        }
-        let singular = Affine {
-            m: [[0.0; 3]; 3],
-            t: [0.0; 3],
-        };
-        assert!(singular.inverse().is_none());
-    }
-
-    #[test]
-    fn formats_round_trip_through_extension_and_mime() {
-        for f in [Format::Obj, Format::Gltf, Format::Glb] {
-            let name = format!("Model.{}", f.extension().to_uppercase());
-            assert_eq!(Format::from_path(Path::new(&name)), Some(f));
-            assert_eq!(Format::from_mime(f.mime()), Some(f));
-        }
-        assert_eq!(
-            Format::from_mime("model/gltf+json; charset=utf-8"),
-            Some(Format::Gltf)
-        );
-        assert_eq!(Format::from_path(Path::new("a.stl")), None);
-        assert_eq!(serde_json::to_string(&Format::Glb).unwrap(), "\"glb\"");
     }
 }

@@ -14,6 +14,7 @@
 //! before anything is allocated per element, every index is range-checked, and every
 //! malformed line is a [`MeshError`] naming its (1-based) line number.
 
+use super::text::{coordinate, lines_with_offsets, splice, triple, utf8};
 use super::{normalize_or_z, Affine, Asset, Block, FileGeometry, Limits, MeshError, UNWELDED};
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -36,6 +37,8 @@ pub(crate) struct ObjSource {
     vn_of_split: Vec<Option<usize>>,
     /// The faces under each `g` and `o` name.
     pub(crate) groups: super::groups::Groups,
+    /// The 0-based line of every face (`f` statement), in file order.
+    face_lines: Vec<u32>,
 }
 
 /// One `v` line: its stored position and the bytes that hold it.
@@ -59,6 +62,42 @@ impl ObjSource {
         &self.v_of_split
     }
 
+    /// The 1-based line number of face `f` (an `f` statement, from 0).
+    pub(crate) fn face_line(&self, f: usize) -> Option<usize> {
+        self.face_lines.get(f).map(|&l| l as usize + 1)
+    }
+
+    /// The 1-based line numbers of `v` lines `vs` (indices from 0), in one pass over the text.
+    pub(crate) fn v_line_numbers(&self, vs: &[usize]) -> Vec<Option<usize>> {
+        let starts: Vec<Option<usize>> = vs
+            .iter()
+            .map(|&v| self.v_lines.get(v).map(|l| l.span.start))
+            .collect();
+        let mut sorted: Vec<usize> = starts.iter().flatten().copied().collect();
+        sorted.sort_unstable();
+        let mut line_of: HashMap<usize, usize> = HashMap::new();
+        let mut next = sorted.iter().peekable();
+        let mut prev = 0;
+        for (no, (start, _)) in lines_with_offsets(&self.text).enumerate() {
+            while let Some(&&at) = next.peek() {
+                if at < start {
+                    line_of.insert(at, prev);
+                    next.next();
+                } else {
+                    break;
+                }
+            }
+            prev = no + 1;
+        }
+        for &at in next {
+            line_of.insert(at, prev);
+        }
+        starts
+            .iter()
+            .map(|s| s.and_then(|at| line_of.get(&at).copied()))
+            .collect()
+    }
+
     /// The stored position of every `v` line, in file order.
     pub(crate) fn stored_positions(&self) -> Vec<[f64; 3]> {
         self.v_lines.iter().map(|v| v.stored).collect()
@@ -75,26 +114,6 @@ struct Counts {
 
 fn parse_error(line_no: usize, what: &str) -> MeshError {
     MeshError::parse(FORMAT, format!("line {}: {what}", line_no + 1))
-}
-
-/// The lines of `text` with the byte offset where each starts, without `\n` or `\r\n`.
-/// A UTF-8 byte order mark at the start of the file (Windows editors write one) is skipped,
-/// or the first line's keyword would be `\u{feff}v` and that vertex silently lost; offsets
-/// still count from the file's first byte, so written files keep the mark.
-fn lines_with_offsets(text: &str) -> impl Iterator<Item = (usize, &str)> {
-    let mut at = 0;
-    text.split_inclusive('\n').map(move |raw| {
-        let mut start = at;
-        at += raw.len();
-        let mut line = raw.strip_suffix('\n').unwrap_or(raw);
-        if start == 0 {
-            if let Some(rest) = line.strip_prefix('\u{feff}') {
-                start = '\u{feff}'.len_utf8();
-                line = rest;
-            }
-        }
-        (start, line.strip_suffix('\r').unwrap_or(line))
-    })
 }
 
 /// The whitespace-separated words of `line` with their byte offsets in it (the same words
@@ -260,8 +279,7 @@ impl SplitVertices {
 }
 
 pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSource), MeshError> {
-    let text = std::str::from_utf8(bytes)
-        .map_err(|e| MeshError::parse(FORMAT, format!("not UTF-8 text: {e}")))?;
+    let text = utf8(bytes, FORMAT)?;
     let total = count_elements(text, limits)?;
 
     let mut so_far = Counts::default();
@@ -271,6 +289,9 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
     let mut split = SplitVertices::default();
     let mut triangles: Vec<[usize; 3]> = Vec::new();
     let mut faces = 0usize;
+    // Per triangle its face (`f` statement), per face its 0-based line: errors name lines.
+    let mut face_of_triangle: Vec<u32> = Vec::new();
+    let mut face_lines: Vec<u32> = Vec::new();
     let mut bad_faces = super::super::error::Offenders::default();
     let (mut points, mut lines) = (0usize, 0usize);
     // First line holding an `l` polyline of 3+ vertices: refused (it reads like a face).
@@ -354,11 +375,13 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
                             let first = triangles.len();
                             for k in 1..ids.len() - 1 {
                                 triangles.push([ids[0], ids[k], ids[k + 1]]);
+                                face_of_triangle.push(faces as u32);
                             }
                             for &g in current_g.iter().chain(&current_o) {
                                 groups.add(g, first..triangles.len());
                             }
                         }
+                        face_lines.push(line_no as u32);
                         faces += 1;
                     }
                 }
@@ -441,6 +464,8 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         triangles,
         uvs,
         normal_keys,
+        face_of_triangle: Some(face_of_triangle),
+        copies: Vec::new(),
     };
     let src = ObjSource {
         text: text.to_owned(),
@@ -449,28 +474,9 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         v_of_split: corners.iter().map(|c| c.0).collect(),
         vn_of_split: corners.iter().map(|c| c.2).collect(),
         groups,
+        face_lines,
     };
     Ok((file, src))
-}
-
-/// A coordinate as text that parses back to exactly `x`: Rust's shortest round-trip digits,
-/// in exponent form only where plain digits would be long (|x| < 1e-5 or ≥ 1e16).
-fn coordinate(x: f64) -> String {
-    let a = x.abs();
-    if a == 0.0 || (1e-5..1e16).contains(&a) {
-        format!("{x}")
-    } else {
-        format!("{x:e}")
-    }
-}
-
-fn triple(p: [f64; 3]) -> String {
-    format!(
-        "{} {} {}",
-        coordinate(p[0]),
-        coordinate(p[1]),
-        coordinate(p[2])
-    )
 }
 
 /// Per `vn` line some corner uses: the unit area-weighted sum of the normals of the faces at
@@ -519,16 +525,7 @@ pub(crate) fn write_kept(asset: &Asset, src: &ObjSource, positions: &[[f64; 3]])
         }
     }
     edits.sort_by_key(|(span, _)| span.start);
-    let text = src.text.as_str();
-    let mut out = String::with_capacity(text.len() + text.len() / 4);
-    let mut at = 0;
-    for (span, new) in &edits {
-        out.push_str(text.get(at..span.start).unwrap_or(""));
-        out.push_str(new);
-        at = span.end;
-    }
-    out.push_str(text.get(at..).unwrap_or(""));
-    out.into_bytes()
+    splice(&src.text, &edits)
 }
 
 /// Writes a new OBJ (for glTF input or meshes made in code, which have no OBJ text to keep):
@@ -595,31 +592,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn coordinates_print_so_that_they_parse_back_exactly() {
-        for x in [
-            0.0,
-            -0.0,
-            1.0,
-            -0.1,
-            1.0 / 3.0,
-            1e-7,
-            -2.5e-300,
-            1e16,
-            f64::MAX,
-            f64::MIN_POSITIVE,
-            123456.789,
-        ] {
-            let s = coordinate(x);
-            assert_eq!(s.parse::<f64>().unwrap().to_bits(), x.to_bits(), "{s}");
-            assert!(s.len() <= 24, "{s} is short");
-        }
-    }
-
-    #[test]
-    fn lines_keep_offsets_and_drop_crlf() {
-        let text = "v 1 2 3\r\n\r\nf 1 2 3";
-        let lines: Vec<(usize, &str)> = lines_with_offsets(text).collect();
-        assert_eq!(lines, vec![(0, "v 1 2 3"), (9, ""), (11, "f 1 2 3")]);
+    fn words_keep_offsets() {
         let words: Vec<(usize, &str)> = words_with_offsets("  v\t1  -2").collect();
         assert_eq!(words, vec![(2, "v"), (4, "1"), (7, "-2")]);
     }

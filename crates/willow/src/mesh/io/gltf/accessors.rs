@@ -126,16 +126,44 @@ impl Layout<'_> {
     }
 }
 
-/// Reads a float VEC3 accessor (POSITION, NORMAL).
+/// A VEC3 vertex attribute.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Attribute {
+    Position,
+    Normal,
+}
+
+/// Reads a VEC3 accessor (POSITION, NORMAL): float, or with `KHR_mesh_quantization` the
+/// types that extension allows (POSITION: signed or unsigned byte or short, normalized or
+/// not; NORMAL: normalized signed byte or short), dequantized as the glTF spec says
+/// (`Layout::get`); the node transforms gltfpack adds then scale them back.
 pub(super) fn read_vec3(
     acc: &gltf::Accessor<'_>,
     buffers: &[Vec<u8>],
-    what: &str,
+    what: Attribute,
+    quantized: bool,
 ) -> Result<Vec<[f64; 3]>, MeshError> {
-    if acc.data_type() != DataType::F32 || acc.dimensions() != Dimensions::Vec3 {
+    let quantized_ok = quantized
+        && match (what, acc.data_type()) {
+            (Attribute::Position, DataType::I8 | DataType::U8 | DataType::I16 | DataType::U16) => {
+                true
+            }
+            (Attribute::Normal, DataType::I8 | DataType::I16) => acc.normalized(),
+            _ => false,
+        };
+    if (acc.data_type() != DataType::F32 && !quantized_ok) || acc.dimensions() != Dimensions::Vec3 {
+        let name = match what {
+            Attribute::Position => "POSITION",
+            Attribute::Normal => "NORMAL",
+        };
         return Err(MeshError::unsupported(format!(
-            "{what} accessor {} is not float VEC3",
-            acc.index()
+            "{name} accessor {} is not float VEC3{}",
+            acc.index(),
+            if quantized {
+                " nor a type KHR_mesh_quantization allows"
+            } else {
+                " (integer types need KHR_mesh_quantization)"
+            }
         )));
     }
     Ok(match layout(acc, buffers)? {
@@ -146,15 +174,18 @@ pub(super) fn read_vec3(
     })
 }
 
-/// Reads TEXCOORD_n: float, or normalized unsigned byte/short.
+/// Reads TEXCOORD_n: float, or normalized unsigned byte/short; with `KHR_mesh_quantization`
+/// also signed, and not normalized (a `KHR_texture_transform` then scales them).
 pub(super) fn read_uv(
     acc: &gltf::Accessor<'_>,
     buffers: &[Vec<u8>],
+    quantized: bool,
 ) -> Result<Vec<[f64; 2]>, MeshError> {
     let ok_type = match acc.data_type() {
         DataType::F32 => true,
-        DataType::U8 | DataType::U16 => acc.normalized(),
-        _ => false,
+        DataType::U8 | DataType::U16 => acc.normalized() || quantized,
+        DataType::I8 | DataType::I16 => quantized,
+        DataType::U32 => false,
     };
     if !ok_type || acc.dimensions() != Dimensions::Vec2 {
         return Err(MeshError::unsupported(format!(
@@ -192,17 +223,62 @@ pub(super) fn read_indices(
     })
 }
 
-/// Column-major glTF matrix → [`Affine`].
-pub(super) fn affine_of(node: &gltf::Node<'_>) -> Affine {
-    let c = node.transform().matrix();
+/// A node's local transform as an [`Affine`], read in f64 from the document's JSON: the
+/// `gltf` crate hands transforms out in f32, which would snap a map-grid translation (5e6) to
+/// a 0.5 grid. `matrix` (column-major) if given, else T·R·S from `translation`, `rotation`
+/// (unit quaternion x, y, z, w) and `scale`, as the glTF spec defines them.
+pub(super) fn affine_of(node: &gltf::Node<'_>, json: &serde_json::Value) -> Affine {
+    let raw = &json["nodes"][node.index()];
+    let numbers = |key: &str, n: usize| -> Option<Vec<f64>> {
+        let v: Vec<f64> = raw
+            .get(key)?
+            .as_array()?
+            .iter()
+            .filter_map(|x| x.as_f64())
+            .collect();
+        (v.len() == n).then_some(v)
+    };
+    if let Some(c) = numbers("matrix", 16) {
+        let mut m = [[0.0; 3]; 3];
+        for (r, row) in m.iter_mut().enumerate() {
+            for (k, x) in row.iter_mut().enumerate() {
+                *x = c[4 * k + r];
+            }
+        }
+        return Affine {
+            m,
+            t: [c[12], c[13], c[14]],
+        };
+    }
+    let t = numbers("translation", 3).unwrap_or(vec![0.0; 3]);
+    let q = numbers("rotation", 4).unwrap_or(vec![0.0, 0.0, 0.0, 1.0]);
+    let s = numbers("scale", 3).unwrap_or(vec![1.0; 3]);
+    let (x, y, z, w) = (q[0], q[1], q[2], q[3]);
+    let r = [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - z * w),
+            2.0 * (x * z + y * w),
+        ],
+        [
+            2.0 * (x * y + z * w),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - x * w),
+        ],
+        [
+            2.0 * (x * z - y * w),
+            2.0 * (y * z + x * w),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ];
     let mut m = [[0.0; 3]; 3];
-    for (r, row) in m.iter_mut().enumerate() {
-        for (k, x) in row.iter_mut().enumerate() {
-            *x = c[k][r] as f64;
+    for (i, row) in m.iter_mut().enumerate() {
+        for (k, v) in row.iter_mut().enumerate() {
+            *v = r[i][k] * s[k];
         }
     }
     Affine {
         m,
-        t: [c[3][0] as f64, c[3][1] as f64, c[3][2] as f64],
+        t: [t[0], t[1], t[2]],
     }
 }

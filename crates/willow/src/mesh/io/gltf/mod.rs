@@ -27,8 +27,13 @@ mod tests;
 const REFUSED_EXTENSIONS: [&str; 3] = [
     "KHR_draco_mesh_compression",
     "EXT_meshopt_compression",
-    "KHR_mesh_quantization",
+    "KHR_meshopt_compression",
 ];
+
+/// Quantized attributes (gltfpack's default output): integer and normalized-integer
+/// POSITION, NORMAL and TEXCOORD accessors, read here (see `accessors::read_vec3`). The `gltf`
+/// crate refuses the extension when required, so it is taken out of the copy it validates.
+const MESH_QUANTIZATION: &str = "KHR_mesh_quantization";
 
 /// glTF `target` for vertex attribute buffer views (`ARRAY_BUFFER`).
 const ARRAY_BUFFER: u32 = 34962;
@@ -57,10 +62,13 @@ pub(crate) struct GltfSource {
 fn split_container(bytes: &[u8], format: Format) -> Result<(&[u8], Option<&[u8]>), MeshError> {
     let name = format_name(format);
     if !bytes.starts_with(b"glTF") {
-        if format == Format::Glb {
+        // A UTF-8 byte order mark before the JSON (Windows editors write one) is accepted:
+        // JSON (RFC 8259 §8.1) lets parsers ignore it, though glTF says not to write it.
+        let json = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+        if format == Format::Glb && !json.trim_ascii_start().starts_with(b"{") {
             return Err(MeshError::parse(name, "missing the 'glTF' magic bytes"));
         }
-        return Ok((bytes, None));
+        return Ok((json, None));
     }
     let u32_at = |at: usize| -> Option<usize> {
         let b = bytes.get(at..at.checked_add(4)?)?;
@@ -238,8 +246,10 @@ pub(crate) fn read(
     check_asset_version(&json)?;
     check_primitive_references(&json)?;
     check_images(&json)?;
-    let root = gltf::json::Root::from_slice(json_bytes)
+    let mut root = gltf::json::Root::from_slice(json_bytes)
         .map_err(|e| MeshError::parse(name, e.to_string()))?;
+    let quantized = root.extensions_used.iter().any(|e| e == MESH_QUANTIZATION);
+    root.extensions_required.retain(|e| e != MESH_QUANTIZATION);
     let doc = gltf::Document::from_json(root).map_err(|e| MeshError::parse(name, e.to_string()))?;
 
     // Resolve buffers: GLB BIN chunk or data: URIs; nothing else is ever opened.
@@ -303,6 +313,7 @@ pub(crate) fn read(
 
     let mut b = Builder {
         buffers: &buffers,
+        quantized,
         limits,
         local: Vec::new(),
         blocks: Vec::new(),
@@ -336,7 +347,7 @@ pub(crate) fn read(
             ));
         }
         *seen = true;
-        let world = parent.then_after(&affine_of(&node));
+        let world = parent.then_after(&affine_of(&node, &json));
         if let Some(mesh) = node.mesh() {
             let first = b.triangles.len();
             for prim in mesh.primitives() {
@@ -400,6 +411,8 @@ pub(crate) fn read(
         triangles,
         uvs,
         normal_keys,
+        face_of_triangle: None,
+        copies: Vec::new(),
     };
     let src = GltfSource {
         json,

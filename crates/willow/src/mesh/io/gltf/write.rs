@@ -9,6 +9,8 @@ use std::collections::HashMap;
 /// Accumulates file vertices and triangles while walking the scene.
 pub(super) struct Builder<'a> {
     pub(super) buffers: &'a [Vec<u8>],
+    /// The document uses `KHR_mesh_quantization`: integer attribute types are allowed.
+    pub(super) quantized: bool,
     pub(super) limits: &'a Limits,
     pub(super) local: Vec<[f64; 3]>,
     pub(super) blocks: Vec<Block>,
@@ -61,7 +63,7 @@ impl Builder<'_> {
                 let to_local = world.inverse().ok_or_else(|| {
                     MeshError::unsupported(format!("node {node} has a singular transform"))
                 })?;
-                let positions = read_vec3(&pos, self.buffers, "POSITION")?;
+                let positions = read_vec3(&pos, self.buffers, Attribute::Position, self.quantized)?;
                 let start = self.local.len();
                 self.local.extend(positions);
                 self.uvs.resize(self.local.len(), None);
@@ -86,7 +88,10 @@ impl Builder<'_> {
                     "TEXCOORD_0 and POSITION counts differ",
                 ));
             }
-            for (i, v) in read_uv(&uv, self.buffers)?.into_iter().enumerate() {
+            for (i, v) in read_uv(&uv, self.buffers, self.quantized)?
+                .into_iter()
+                .enumerate()
+            {
                 if let Some(slot) = self.uvs.get_mut(start + i) {
                     *slot = Some(v);
                 }
@@ -102,7 +107,7 @@ impl Builder<'_> {
             if !self.normal_accessors.iter().any(|&(a, _)| a == n.index()) {
                 self.normal_accessors.push((n.index(), block));
             }
-            for (i, v) in read_vec3(&n, self.buffers, "NORMAL")?
+            for (i, v) in read_vec3(&n, self.buffers, Attribute::Normal, self.quantized)?
                 .into_iter()
                 .enumerate()
             {
@@ -200,6 +205,26 @@ pub(super) fn bounds(values: &[[f32; 3]]) -> (Value, Value) {
         }
     }
     (json!(lo), json!(hi))
+}
+
+/// The centre of `points`' bounding box when they lie farther from the origin than their own
+/// size, so that f32 offsets from it keep ~1e-7 of the model's size (f32 coordinates of the
+/// points themselves would keep only ~6e-8 of their distance from the origin); `None` for
+/// models around the origin, which are written as they are.
+pub(super) fn far_origin(points: &[[f64; 3]]) -> Option<[f64; 3]> {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in points {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let extent = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
+    let far = (0..3)
+        .map(|k| lo[k].abs().max(hi[k].abs()))
+        .fold(0.0, f64::max);
+    (extent.is_finite() && far > extent).then(|| [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k])))
 }
 
 pub(super) fn malformed(what: &str) -> MeshError {
@@ -401,7 +426,21 @@ pub(crate) fn write_new(
     positions: &[[f64; 3]],
     glb: bool,
 ) -> Result<Vec<u8>, MeshError> {
-    let local = split_f32(asset, positions);
+    // Far from the origin (map-grid coordinates), f32 positions would snap to a coarse grid
+    // (0.5 at 5e6): store them relative to the node's translation, which JSON keeps in f64.
+    let split = asset.split_positions(positions);
+    let origin = far_origin(&split);
+    let o = origin.unwrap_or([0.0; 3]);
+    let local: Vec<[f32; 3]> = split
+        .iter()
+        .map(|p| {
+            [
+                (p[0] - o[0]) as f32,
+                (p[1] - o[1]) as f32,
+                (p[2] - o[2]) as f32,
+            ]
+        })
+        .collect();
     let mut bin = Vec::new();
     let mut accessors = Vec::new();
     let mut views = Vec::new();
@@ -472,7 +511,10 @@ pub(crate) fn write_new(
         "asset": {"version": "2.0", "generator": "Willow"},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0}],
+        "nodes": [match origin {
+            Some(t) => json!({"mesh": 0, "translation": t}),
+            None => json!({"mesh": 0}),
+        }],
         "meshes": [{"primitives": [{"attributes": attributes, "indices": indices, "mode": 4}]}],
         "accessors": accessors,
         "bufferViews": views,

@@ -1,0 +1,362 @@
+//! STL, binary and ASCII: a list of triangles, each with a facet normal and three corner
+//! positions.
+//!
+//! STL has no shared vertices: the file's vertices are its distinct corner positions, numbered
+//! in order of first appearance (triangle by triangle, corners in order), which is how every
+//! STL reader indexes them. Written back, each triangle gets its corners' new positions and a
+//! recomputed facet normal, in the file's triangle order; everything else is kept: the binary
+//! 80-byte header and each triangle's 2 attribute bytes (colour in some tools), the ASCII
+//! `solid` names and layout (only numbers are replaced).
+//!
+//! Hand-written rather than a crate: the format is two pages, and the available crates
+//! (`stl_io`) read into their own indexed mesh, dropping the header, attribute bytes and the
+//! ASCII text that writing back keeps.
+
+use super::text::{splice, triple, utf8, Words};
+use super::{cross, normalize_or_z, sub, Affine, Asset, Block, FileGeometry, Limits, MeshError};
+use std::collections::HashMap;
+use std::ops::Range;
+
+const FORMAT: &str = "STL";
+
+/// Bytes of a binary STL header (80) plus its triangle count (4).
+const BINARY_HEADER: usize = 84;
+/// Bytes per binary triangle: normal and 3 corners as 12 f32, and 2 attribute bytes.
+const BINARY_TRIANGLE: usize = 50;
+
+/// What an STL file has beyond its triangles: its bytes and where each number sits.
+#[derive(Clone, Debug)]
+pub(crate) enum StlSource {
+    /// The whole file; triangle `i` is at `84 + 50·i`.
+    Binary(Vec<u8>),
+    /// The text, and for each facet the byte ranges of its normal and its 3 `vertex` triples.
+    Ascii {
+        text: String,
+        facets: Vec<[Range<usize>; 4]>,
+    },
+}
+
+/// Distinct corner positions, numbered in order of first appearance.
+#[derive(Default)]
+struct Welder {
+    ids: HashMap<[u64; 3], usize>,
+    positions: Vec<[f64; 3]>,
+}
+
+impl Welder {
+    fn id(&mut self, p: [f64; 3]) -> usize {
+        // `+ 0.0` turns -0.0 into +0.0 so the two are one position.
+        let key = p.map(|x| (x + 0.0).to_bits());
+        *self.ids.entry(key).or_insert_with(|| {
+            self.positions.push(p);
+            self.positions.len() - 1
+        })
+    }
+}
+
+pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, StlSource), MeshError> {
+    if super::format::is_binary_stl(bytes) {
+        read_binary(bytes, limits)
+    } else {
+        read_ascii(bytes, limits)
+    }
+}
+
+fn f32_at(bytes: &[u8], at: usize) -> f64 {
+    match bytes.get(at..at + 4) {
+        Some(b) => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+        None => f64::NAN,
+    }
+}
+
+fn read_binary(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, StlSource), MeshError> {
+    // `is_binary_stl` checked that the length is exactly 84 + 50·n.
+    let n = (bytes.len() - BINARY_HEADER) / BINARY_TRIANGLE;
+    limits.check_faces(n)?;
+    let mut welder = Welder::default();
+    let mut triangles = Vec::with_capacity(n);
+    let mut non_finite = super::super::error::Offenders::default();
+    for t in 0..n {
+        let at = BINARY_HEADER + BINARY_TRIANGLE * t + 12;
+        let mut tri = [0; 3];
+        for (k, slot) in tri.iter_mut().enumerate() {
+            let p = [0, 4, 8].map(|d| f32_at(bytes, at + 12 * k + d));
+            if !p.iter().all(|x| x.is_finite()) {
+                non_finite.push(t);
+            }
+            *slot = welder.id(p);
+        }
+        // Checked as corners arrive: the welded table must not outgrow the limit first.
+        limits.check_vertices(welder.positions.len())?;
+        triangles.push(tri);
+    }
+    finish(welder, triangles, non_finite, limits)
+        .map(|file| (file, StlSource::Binary(bytes.to_vec())))
+}
+
+fn parse_error(line: usize, what: &str) -> MeshError {
+    MeshError::parse(FORMAT, format!("line {}: {what}", line + 1))
+}
+
+/// Words of an ASCII STL with the line of the last one, for errors at the end of the file.
+struct Scanner<'a> {
+    words: std::iter::Peekable<Words<'a>>,
+    line: usize,
+}
+
+impl<'a> Scanner<'a> {
+    fn next(&mut self) -> Option<(usize, usize, &'a str)> {
+        let w = self.words.next()?;
+        self.line = w.0;
+        Some(w)
+    }
+
+    /// Skips the rest of line `line` (a `solid`/`endsolid` name).
+    fn skip_line(&mut self, line: usize) {
+        while self.words.peek().is_some_and(|w| w.0 == line) {
+            self.words.next();
+        }
+    }
+
+    fn expect(&mut self, keyword: &str) -> Result<(), MeshError> {
+        match self.next() {
+            Some((_, _, w)) if w == keyword => Ok(()),
+            Some((line, _, w)) => Err(parse_error(
+                line,
+                &format!("expected `{keyword}`, found {w:?}"),
+            )),
+            None => Err(parse_error(
+                self.line,
+                &format!("the file ends where `{keyword}` was expected"),
+            )),
+        }
+    }
+
+    /// Three numbers and the byte range they span.
+    fn three(&mut self, what: &str) -> Result<([f64; 3], Range<usize>), MeshError> {
+        let mut p = [0.0; 3];
+        let mut span = 0..0;
+        for (k, x) in p.iter_mut().enumerate() {
+            let (line, at, w) = self.next().ok_or_else(|| {
+                parse_error(
+                    self.line,
+                    &format!("{what}: the file ends inside the numbers"),
+                )
+            })?;
+            *x = w
+                .parse()
+                .map_err(|_| parse_error(line, &format!("{what}: bad number {w:?}")))?;
+            if k == 0 {
+                span.start = at;
+            }
+            span.end = at + w.len();
+        }
+        Ok((p, span))
+    }
+}
+
+fn read_ascii(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, StlSource), MeshError> {
+    let text = utf8(bytes, FORMAT)?;
+    let body = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let mut sc = Scanner {
+        words: Words::new(text, text.len() - body.len()).peekable(),
+        line: 0,
+    };
+    let mut welder = Welder::default();
+    let mut triangles: Vec<[usize; 3]> = Vec::new();
+    let mut facets: Vec<[Range<usize>; 4]> = Vec::new();
+    let mut non_finite = super::super::error::Offenders::default();
+    while let Some((line, _, w)) = sc.next() {
+        if w != "solid" {
+            return Err(parse_error(
+                line,
+                &format!("expected `solid` (ASCII STL) or a binary STL, found {w:?}"),
+            ));
+        }
+        sc.skip_line(line);
+        loop {
+            match sc.next() {
+                Some((_, _, "facet")) => {
+                    limits.check_faces(triangles.len() + 1)?;
+                    sc.expect("normal")?;
+                    let (_, normal) = sc.three("facet normal")?;
+                    sc.expect("outer")?;
+                    sc.expect("loop")?;
+                    let mut tri = [0; 3];
+                    let mut spans = [normal, 0..0, 0..0, 0..0];
+                    for k in 0..3 {
+                        sc.expect("vertex")?;
+                        let (p, span) = sc.three("vertex")?;
+                        if !p.iter().all(|x| x.is_finite()) {
+                            non_finite.push(triangles.len());
+                        }
+                        tri[k] = welder.id(p);
+                        spans[k + 1] = span;
+                    }
+                    limits.check_vertices(welder.positions.len())?;
+                    sc.expect("endloop")?;
+                    sc.expect("endfacet")?;
+                    triangles.push(tri);
+                    facets.push(spans);
+                }
+                Some((l, _, "endsolid")) => {
+                    sc.skip_line(l);
+                    break;
+                }
+                Some((l, _, w)) => {
+                    return Err(parse_error(
+                        l,
+                        &format!("expected `facet` or `endsolid`, found {w:?}"),
+                    ))
+                }
+                // Many exporters stop without `endsolid`; nothing is lost.
+                None => break,
+            }
+        }
+    }
+    let file = finish(welder, triangles, non_finite, limits)?;
+    Ok((
+        file,
+        StlSource::Ascii {
+            text: text.to_owned(),
+            facets,
+        },
+    ))
+}
+
+/// The file geometry of welded STL corners: one block, no UVs or normals (facet normals are
+/// per triangle and recomputed on writing).
+fn finish(
+    welder: Welder,
+    triangles: Vec<[usize; 3]>,
+    non_finite: super::super::error::Offenders<usize>,
+    limits: &Limits,
+) -> Result<FileGeometry, MeshError> {
+    if !non_finite.is_empty() {
+        // Named by triangle: STL has no vertex numbers of its own to name.
+        return Err(MeshError::parse(
+            FORMAT,
+            format!(
+                "{} triangles have non-finite (NaN or infinite) corners; first: {}",
+                non_finite.count, non_finite
+            ),
+        ));
+    }
+    if triangles.is_empty() {
+        return Err(MeshError::Empty {
+            vertices: 0,
+            faces: 0,
+        });
+    }
+    limits.check_vertices(welder.positions.len())?;
+    let n = welder.positions.len();
+    Ok(FileGeometry {
+        local: welder.positions,
+        blocks: vec![Block {
+            start: 0,
+            len: n,
+            to_world: Affine::IDENTITY,
+            to_local: Affine::IDENTITY,
+        }],
+        triangles,
+        uvs: None,
+        normal_keys: None,
+        face_of_triangle: None,
+        copies: Vec::new(),
+    })
+}
+
+/// Unit normal of each file triangle, wound like the oriented surface, in new positions.
+fn facet_normals(asset: &Asset, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    asset
+        .surface
+        .triangles
+        .iter()
+        .map(|t| {
+            let p = |v: usize| positions.get(v).copied().unwrap_or([0.0; 3]);
+            normalize_or_z(cross(sub(p(t[1]), p(t[0])), sub(p(t[2]), p(t[0]))))
+        })
+        .collect()
+}
+
+/// The three new corner positions of each file triangle, wound like the oriented surface.
+fn corners(asset: &Asset, positions: &[[f64; 3]]) -> Vec<[[f64; 3]; 3]> {
+    asset
+        .surface
+        .triangles
+        .iter()
+        .map(|t| t.map(|v| positions.get(v).copied().unwrap_or([0.0; 3])))
+        .collect()
+}
+
+/// Writes the user's STL back with new positions and facet normals, triangle by triangle in
+/// file order; everything else (header, attribute bytes, solid names, layout) is kept.
+///
+/// A triangle the orientation pass flipped is written with its corners 2 and 3 swapped, so
+/// the file comes out consistently wound with normals pointing out.
+pub(crate) fn write_kept(asset: &Asset, src: &StlSource, positions: &[[f64; 3]]) -> Vec<u8> {
+    let normals = facet_normals(asset, positions);
+    let corners = corners(asset, positions);
+    // The file's triangle of each surface triangle (they differ once `repair` dropped some;
+    // a dropped triangle keeps its stored bytes).
+    let record = |t: usize| -> usize {
+        asset
+            .file
+            .face_of_triangle
+            .as_ref()
+            .and_then(|f| f.get(t))
+            .map_or(t, |&f| f as usize)
+    };
+    match src {
+        StlSource::Binary(bytes) => {
+            let mut out = bytes.clone();
+            for (t, (n, c)) in normals.iter().zip(&corners).enumerate() {
+                let at = BINARY_HEADER + BINARY_TRIANGLE * record(t);
+                let values = [*n, c[0], c[1], c[2]];
+                for (k, x) in values.iter().flatten().enumerate() {
+                    if let Some(slot) = out.get_mut(at + 4 * k..at + 4 * k + 4) {
+                        slot.copy_from_slice(&(*x as f32).to_le_bytes());
+                    }
+                }
+            }
+            out
+        }
+        StlSource::Ascii { text, facets } => {
+            let mut edits = Vec::with_capacity(facets.len() * 4);
+            for (t, (n, c)) in normals.iter().zip(&corners).enumerate() {
+                let Some(spans) = facets.get(record(t)) else {
+                    continue;
+                };
+                edits.push((spans[0].clone(), triple(*n)));
+                for k in 0..3 {
+                    edits.push((spans[k + 1].clone(), triple(c[k])));
+                }
+            }
+            splice(text, &edits)
+        }
+    }
+}
+
+/// A new binary STL of the surface (for input in another format): one triangle per surface
+/// face in face order, f32 as the format has it, attribute bytes zero.
+pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Result<Vec<u8>, MeshError> {
+    let normals = facet_normals(asset, positions);
+    let corners = corners(asset, positions);
+    let count = u32::try_from(corners.len()).map_err(|_| MeshError::TooLarge {
+        what: "triangles for binary STL",
+        value: corners.len(),
+        limit: u32::MAX as usize,
+    })?;
+    let mut out = Vec::with_capacity(BINARY_HEADER + BINARY_TRIANGLE * corners.len());
+    // Not starting with `solid`, so no reader mistakes it for ASCII.
+    out.extend_from_slice(b"Willow: faired by conformal Willmore flow");
+    out.resize(80, b' ');
+    out.extend_from_slice(&count.to_le_bytes());
+    for (n, c) in normals.iter().zip(&corners) {
+        for x in [*n, c[0], c[1], c[2]].iter().flatten() {
+            out.extend_from_slice(&(*x as f32).to_le_bytes());
+        }
+        out.extend_from_slice(&[0, 0]);
+    }
+    Ok(out)
+}
