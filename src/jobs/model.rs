@@ -132,6 +132,17 @@ impl JobSpec {
                 limit: max_steps as u64,
             });
         }
+        if self.method == Method::Conformal && self.tau >= 1.0 {
+            // §4: the curvature update u ← (1 − 2τ)u is only stable for τ < 1. The library
+            // lets a caller take such a step to see it diverge; a job would only fail.
+            return bad(
+                "tau",
+                format!(
+                    "must be < 1 for the conformal flow (paper §4), got {}",
+                    self.tau
+                ),
+            );
+        }
         if self.frame_interval == 0 {
             return bad("frame_interval", "must be at least 1".into());
         }

@@ -311,16 +311,6 @@ impl FlowParams {
                 ),
             ));
         }
-        if self.method == Method::Conformal && self.tau >= 1.0 {
-            // §4: the curvature update u ← (1 − 2τ)u is only stable for τ < 1.
-            return Err(invalid(
-                "tau",
-                format!(
-                    "must be < 1 for the conformal flow (paper §4), got {}",
-                    self.tau
-                ),
-            ));
-        }
         if self.threads == 0 {
             return Err(invalid("threads", "must be at least 1, got 0".into()));
         }
