@@ -173,6 +173,11 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         volume: None,
         deviation_max: None,
         deviation_mean: None,
+        // Not stored yet (issue 26's new metrics).
+        willmore_energy_vector: None,
+        log_area_ratio_p1: None,
+        log_area_ratio_p99: None,
+        collapsed_triangles: None,
     })
 }
 
@@ -330,6 +335,11 @@ mod tests {
             volume: None,
             deviation_max: None,
             deviation_mean: None,
+            // Not stored yet (issue 26's new metrics).
+            willmore_energy_vector: None,
+            log_area_ratio_p1: None,
+            log_area_ratio_p99: None,
+            collapsed_triangles: None,
         };
         let blob = encode_metrics(&m);
         assert_eq!(blob.len(), METRICS_BYTES);
@@ -399,6 +409,11 @@ mod tests {
                 volume: None,
                 deviation_max: None,
                 deviation_mean: None,
+                // Not stored yet (issue 26's new metrics).
+                willmore_energy_vector: None,
+                log_area_ratio_p1: None,
+                log_area_ratio_p99: None,
+                collapsed_triangles: None,
             },
             positions: vec![[1.0, -2.0, 3.5], [0.1, 0.2, f64::MIN_POSITIVE]],
             next_tau: 0.25,
