@@ -122,7 +122,8 @@ pub fn scale_distortion(
             continue;
         }
         let ratio = a / total / s0;
-        if !(ratio >= COLLAPSED_SHARE) {
+        // A NaN ratio (a non-finite area) counts as collapsed.
+        if ratio.is_nan() || ratio < COLLAPSED_SHARE {
             collapsed += 1;
         }
         // ln 0 = −∞ would poison nothing (the percentile sorts it first) but cannot be sent

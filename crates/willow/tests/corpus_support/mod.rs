@@ -215,7 +215,7 @@ pub fn collapsed(input: &[[f64; 3]], now: &[[f64; 3]], t: &[[usize; 3]]) -> usiz
     let (s0, s) = (area_shares(input, t), area_shares(now, t));
     s.iter()
         .zip(&s0)
-        .filter(|&(&a, &b)| !(a >= 1e-8 * b))
+        .filter(|&(&a, &b)| a.is_nan() || a < 1e-8 * b)
         .count()
 }
 
