@@ -511,6 +511,37 @@ mod tests {
         out.iter().map(|&c| c < FOLD_ANGLE_COS).collect()
     }
 
+    /// A triangle that keeps its shape (Q = 1) while its share of the area falls a
+    /// million-fold has collapsed; one already below on the accepted surface is not counted
+    /// again, and a NaN area is never sound.
+    #[test]
+    fn a_uniformly_shrunk_triangle_collapses() {
+        let input = [
+            [0.0, 0.0, 2.0],
+            [0.0, 0.0, 2.0],
+            [0.0, 0.0, 2.0],
+            [0.0, 0.0, 2.0],
+        ];
+        let shares = area_shares(&input);
+        assert!(shares.iter().all(|&s| (s - 0.25).abs() < 1e-15));
+        let mut now = input;
+        now[1] = [0.0, 0.0, 2.0 * 0.5 * COLLAPSE_SHARE];
+        let mut sound = [true; 4];
+        assert_eq!(collapse_into(&now, &shares, &[true; 4], &mut sound), 1);
+        assert_eq!(sound, [true, false, true, true]);
+        // Just above the bound (its share against the new total) stays sound.
+        now[1] = [0.0, 0.0, 2.0 * 2.0 * COLLAPSE_SHARE];
+        assert_eq!(collapse_into(&now, &shares, &[true; 4], &mut sound), 0);
+        // Already collapsed on the accepted surface: not new.
+        now[1] = [0.0, 0.0, 0.0];
+        assert_eq!(
+            collapse_into(&now, &shares, &[true, false, true, true], &mut sound),
+            0
+        );
+        now[2] = [f64::NAN, 0.0, 0.0];
+        assert_eq!(collapse_into(&now, &shares, &[true; 4], &mut sound), 4);
+    }
+
     #[test]
     fn neighbours_are_found_across_each_edge() {
         let (_, t) = fan();
