@@ -9,8 +9,10 @@
 //! - **W rising** by more than [`W_RISE`] (relative): beyond what rounding and the solver's
 //!   tolerance explain, the flow went uphill;
 //! - **folds**: a face whose normal turned to more than [`FOLD_ANGLE_COS`]'s angle from the
-//!   summed normals of its edge neighbours, where on the last accepted surface it still leaned
-//!   with them (measured against the neighbours, not the face's own earlier normal, because a
+//!   summed normals of its edge neighbours, where in the *input* it still leaned with them
+//!   (against the input, not the last accepted surface: measured against the last accepted
+//!   one, implicit MCF on a noisy genus-2 surface folded faces over two steps, leaning to
+//!   −0.3 in one and past −0.5 in the next, 6 → 51 folded faces; measured against the neighbours, not the face's own earlier normal, because a
 //!   large step may turn whole regions by more than 90°; the gap between the two thresholds
 //!   keeps a face on a sharp crease flickering about 90° from counting);
 //! - **a crease at pinned vertices**: with vertices held in place (a region, a fixed
@@ -62,7 +64,7 @@ pub const Q_JUMP: f64 = 2.0;
 /// ([`Retry::pins_vertices`]).
 pub const CLOSURE_LIMIT: f64 = 0.1;
 /// A face has folded when the cosine between its normal and the summed normals of its edge
-/// neighbours drops below this (120°) in one step from non-negative.
+/// neighbours drops below this (120°) where it was non-negative in the input.
 pub const FOLD_ANGLE_COS: f64 = -0.5;
 /// How many times τ is halved before the step gives up (τ/1024).
 pub const MAX_HALVINGS: u32 = 10;
@@ -110,8 +112,8 @@ pub struct Safeguarded<F: Retry> {
     triangles: Vec<[usize; 3]>,
     /// Per face, the faces across its three edges (`usize::MAX` across a boundary edge).
     neighbours: Vec<[usize; 3]>,
-    /// Scratch face normals, and each face's cosine to its neighbours on the accepted surface
-    /// and on the current try ([`neighbour_cosines_into`]).
+    /// Scratch face normals, and each face's cosine to its neighbours in the input and on
+    /// the current try ([`neighbour_cosines_into`]).
     normals: Vec<[f64; 3]>,
     cosines: Vec<f64>,
     cosines_try: Vec<f64>,
@@ -305,7 +307,6 @@ impl<F: Retry> Flow for Safeguarded<F> {
                         m.rejected = rejected;
                         m.step_ms = started.elapsed().as_secs_f64() * 1e3;
                         self.accepted.copy_from_slice(self.inner.positions());
-                        std::mem::swap(&mut self.cosines, &mut self.cosines_try);
                         std::mem::swap(&mut self.sound, &mut self.sound_try);
                         self.accepted_metrics = m;
                         self.clean_steps = if rejected == 0 {
@@ -405,7 +406,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
             &self.triangles,
             &self.neighbours,
             &mut self.normals,
-            &mut self.cosines,
+            &mut self.cosines_try,
         );
         collapse_into(
             &self.normals,
