@@ -192,7 +192,10 @@ async fn sigkill_worker_mid_job_the_other_resumes_from_its_checkpoint() {
     all_ready(&[&api, &workers[0], &workers[1]]).await;
 
     let id = api
-        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20&until_converged=false"))
+        .submit(
+            &slow_obj(),
+            &format!("steps={N}&frame_interval=20&until_converged=false"),
+        )
         .await;
     let mut sse = api.events(&id, None).await;
     let watcher = tokio::spawn(async move { sse.until_done(PATIENCE * 2).await });
@@ -286,7 +289,10 @@ async fn sigkill_api_node_mid_stream_then_last_event_id_on_the_other() {
     all_ready(&[&api_a, &api_b, &worker]).await;
 
     let id = api_a
-        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20&until_converged=false"))
+        .submit(
+            &slow_obj(),
+            &format!("steps={N}&frame_interval=20&until_converged=false"),
+        )
         .await;
     let mut sse = api_a.events(&id, None).await;
     let mut seen: Vec<Sse> = Vec::new();
@@ -353,7 +359,10 @@ async fn nats_server_restart_every_accepted_job_completes() {
     all_ready(&[&api, &worker]).await;
 
     let slow = api
-        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20&until_converged=false"))
+        .submit(
+            &slow_obj(),
+            &format!("steps={N}&frame_interval=20&until_converged=false"),
+        )
         .await;
     let mut queued = Vec::new();
     for s in 2..5 {
@@ -653,7 +662,10 @@ async fn a_worker_drained_mid_job_hands_it_back_without_spending_a_delivery() {
     let mut first = Node::spawn(d, "worker-1", Some(&url), &opts(NodeOpts::worker()));
     all_ready(&[&api, &first]).await;
     let id = api
-        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20&until_converged=false"))
+        .submit(
+            &slow_obj(),
+            &format!("steps={N}&frame_interval=20&until_converged=false"),
+        )
         .await;
     let before = api
         .poll_until(&id, |v| {
@@ -902,7 +914,10 @@ async fn nats_restart_mid_job_the_job_runs_once_on_one_worker() {
     all_ready(&[&api, &w1, &w2]).await;
 
     let id = api
-        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20&until_converged=false"))
+        .submit(
+            &slow_obj(),
+            &format!("steps={N}&frame_interval=20&until_converged=false"),
+        )
         .await;
     // A watcher that reconnects with `Last-Event-ID` when its stream ends (the API node ends
     // it while NATS is away), as a client does.
@@ -1031,7 +1046,10 @@ async fn a_frozen_worker_loses_its_job_and_stops_when_thawed() {
     all_ready(&[&api, &workers[0], &workers[1]]).await;
 
     let id = api
-        .submit(&slow_obj(), &format!("steps={N}&frame_interval=20&until_converged=false"))
+        .submit(
+            &slow_obj(),
+            &format!("steps={N}&frame_interval=20&until_converged=false"),
+        )
         .await;
     let poller = poll_states(&api, &id);
     api.poll_until(&id, |v| {

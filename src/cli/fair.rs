@@ -9,7 +9,8 @@
 //! `--feature-size` is gone, or the next step would pass `--max-deviation`.
 //! With `--json`, stdout has one JSON object per step, then one last line
 //! `{"outcome": "...", "reason": "..."}` (outcomes: `completed`, `converged`,
-//! `target_reached`, `max_deviation`, `no_progress`, `feature_scale_reached`).
+//! `target_reached`, `max_deviation`, `no_progress`, `feature_scale_reached`, `stalled` (only tiny steps were sound:
+//! the result is the last sound surface), `already_fair` (the mesh is too coarse to fair)).
 //!
 //! Exit codes: 0 done (any outcome but `no_progress`); 2 input refused; 1 failure while
 //! running (no output written); 3 the safeguard found no acceptable step
@@ -385,9 +386,15 @@ pub fn run(args: FairArgs) -> ExitCode {
         }
         if let Some(bar) = &progress {
             bar.set_message(format!(
-                "W {:.4}  Q mean {:.4}  dev {:.3e}  τ {}{}  {:.0} ms",
+                "W {:.4} (|Δf| form {:.4})  Q mean {:.4} p95 {:.3}  ln area ratio [{:.2}, {:.2}], \
+                 {} collapsed  dev {:.3e}  τ {}{}  {:.0} ms",
                 metrics.willmore_energy,
+                metrics.willmore_energy_vector.unwrap_or(f64::NAN),
                 metrics.q_mean,
+                metrics.q_p95,
+                metrics.log_area_ratio_p1.unwrap_or(f64::NAN),
+                metrics.log_area_ratio_p99.unwrap_or(f64::NAN),
+                metrics.collapsed_triangles.unwrap_or(0),
                 metrics.deviation_max.unwrap_or(f64::NAN),
                 metrics.tau,
                 match metrics.rejected {

@@ -144,10 +144,14 @@ pub const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
 
 /// The optional metrics, each stored after the fixed part as a tag byte and an f64 when the
 /// step has it: a metric added later takes the next tag, and a row without it reads as `None`.
-const OPTIONAL_METRICS: [(u8, fn(&StepMetrics) -> Option<f64>); 3] = [
+const OPTIONAL_METRICS: [(u8, fn(&StepMetrics) -> Option<f64>); 7] = [
     (1, |m| m.volume),
     (2, |m| m.deviation_max),
     (3, |m| m.deviation_mean),
+    (4, |m| m.willmore_energy_vector),
+    (5, |m| m.log_area_ratio_p1),
+    (6, |m| m.log_area_ratio_p99),
+    (7, |m| m.collapsed_triangles.map(f64::from)),
 ];
 
 /// The binary form of [`StepMetrics`]: [`METRICS_BYTES`], then the optional metrics the step
@@ -222,6 +226,10 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         volume: None,
         deviation_max: None,
         deviation_mean: None,
+        willmore_energy_vector: None,
+        log_area_ratio_p1: None,
+        log_area_ratio_p99: None,
+        collapsed_triangles: None,
     };
     if b.len() > METRICS_BYTES {
         for entry in b[METRICS_BYTES..].chunks_exact(9) {
@@ -232,6 +240,11 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
                 1 => m.volume = v,
                 2 => m.deviation_max = v,
                 3 => m.deviation_mean = v,
+                4 => m.willmore_energy_vector = v,
+                5 => m.log_area_ratio_p1 = v,
+                6 => m.log_area_ratio_p99 = v,
+                // A count, stored as the f64 it converts to exactly (below 2^53).
+                7 => m.collapsed_triangles = v.map(|c| c as u32),
                 tag => return Err(bad(format!("unknown optional metric {tag}"))),
             }
         }
@@ -402,6 +415,11 @@ mod tests {
             volume: None,
             deviation_max: None,
             deviation_mean: None,
+            // Not stored yet (issue 26's new metrics).
+            willmore_energy_vector: None,
+            log_area_ratio_p1: None,
+            log_area_ratio_p99: None,
+            collapsed_triangles: None,
         };
         let blob = encode_metrics(&m);
         assert_eq!(blob.len(), METRICS_BYTES);
@@ -514,6 +532,11 @@ mod tests {
                 volume: None,
                 deviation_max: None,
                 deviation_mean: None,
+                // Not stored yet (issue 26's new metrics).
+                willmore_energy_vector: None,
+                log_area_ratio_p1: None,
+                log_area_ratio_p99: None,
+                collapsed_triangles: None,
             },
             positions: vec![[1.0, -2.0, 3.5], [0.1, 0.2, f64::MIN_POSITIVE]],
             next_tau: 0.25,

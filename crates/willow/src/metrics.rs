@@ -70,6 +70,78 @@ pub struct StepMetrics {
     /// `None` where not measured, as `deviation_max`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub deviation_mean: Option<f64>,
+    /// `Σ_i |(L f)_i|² / (4 A_i)`: the Willmore energy of the whole mean-curvature *vector*
+    /// (libigl's form), where [`StepMetrics::willmore_energy`] keeps only its normal part. The
+    /// two agree on a smooth, well-sampled surface; a surface rough *along* itself (crumpled
+    /// triangles, tangential jitter) has a vector form far above its signed one (issue 26).
+    /// `None` in rows stored before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub willmore_energy_vector: Option<f64>,
+    /// Scale distortion against the input: the 1st and 99th percentiles over triangles of
+    /// `ln(s_f / s_f⁰)`, `s_f` the triangle's share of the total area now and `s_f⁰` in the
+    /// input (0 and 0 for a similarity; Q, which measures angles only, cannot see a triangle
+    /// shrinking uniformly). `None` in rows stored before they existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub log_area_ratio_p1: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub log_area_ratio_p99: Option<f64>,
+    /// Triangles whose area share fell below [`COLLAPSED_SHARE`] of their input share (or
+    /// whose area is not finite): collapsed, whatever their angles say.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub collapsed_triangles: Option<u32>,
+}
+
+/// A triangle whose share of the total area is below this fraction of its share in the input
+/// has collapsed (the issue's soundness bound: a billionth of its input share is invisible).
+pub const COLLAPSED_SHARE: f64 = 1e-8;
+
+/// `Σ_i |(L f)_i|² / (4 A_i)` over vertices of positive area ([`StepMetrics::willmore_energy_vector`]).
+pub fn willmore_energy_vector(laplacian_f: &[[f64; 3]], vertex_areas: &[f64]) -> f64 {
+    laplacian_f
+        .iter()
+        .zip(vertex_areas)
+        .filter(|(_, &a)| a > 0.0)
+        .map(|(l, &a)| (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]) / (4.0 * a))
+        .sum()
+}
+
+/// Scale distortion of `face_areas` against `input_shares` (each input triangle's share of
+/// the input's total area): `(p1, p99, collapsed)` of `ln(s_f / s_f⁰)` as
+/// [`StepMetrics::log_area_ratio_p1`] describes. `scratch` has one entry per triangle.
+/// An input triangle of zero area is left out (validation refuses them; regions may not).
+pub fn scale_distortion(
+    face_areas: &[f64],
+    input_shares: &[f64],
+    scratch: &mut Vec<f64>,
+) -> (f64, f64, u32) {
+    let total: f64 = face_areas.iter().sum();
+    scratch.clear();
+    let mut collapsed = 0u32;
+    for (&a, &s0) in face_areas.iter().zip(input_shares) {
+        if s0 <= 0.0 {
+            continue;
+        }
+        let ratio = a / total / s0;
+        // A NaN ratio (a non-finite area) counts as collapsed.
+        if ratio.is_nan() || ratio < COLLAPSED_SHARE {
+            collapsed += 1;
+        }
+        // ln 0 = −∞ would poison nothing (the percentile sorts it first) but cannot be sent
+        // as JSON: floor at the smallest positive double's logarithm.
+        scratch.push(if ratio.is_finite() {
+            ratio.max(f64::MIN_POSITIVE).ln()
+        } else {
+            f64::MIN_POSITIVE.ln()
+        });
+    }
+    if scratch.is_empty() {
+        return (0.0, 0.0, collapsed);
+    }
+    let n = scratch.len();
+    let rank = |p: f64| ((p * n as f64).ceil() as usize).clamp(1, n) - 1;
+    let (_, &mut p1, _) = scratch.select_nth_unstable_by(rank(0.01), |a, b| a.total_cmp(b));
+    let (_, &mut p99, _) = scratch.select_nth_unstable_by(rank(0.99), |a, b| a.total_cmp(b));
+    (p1, p99, collapsed)
 }
 
 /// The input surface's per-triangle metric, kept to measure the quasi-conformal error of every
@@ -150,6 +222,10 @@ pub struct StepReporter {
     volumes: Vec<f64>,
     /// The input's distance structure, when the flow measures the deviation.
     deviation: Option<Deviation>,
+    /// Each input triangle's share of the input's total area, and scratch for the log ratios
+    /// ([`scale_distortion`]).
+    input_shares: Vec<f64>,
+    log_ratios: Vec<f64>,
 }
 
 impl StepReporter {
@@ -168,7 +244,14 @@ impl StepReporter {
             .collect();
         let mut face_areas = vec![0.0; triangles.len()];
         face_areas_into(positions, triangles, &mut face_areas);
+        let total: f64 = face_areas.iter().sum();
+        let input_shares = face_areas
+            .iter()
+            .map(|&a| if total > 0.0 { a / total } else { 0.0 })
+            .collect();
         StepReporter {
+            input_shares,
+            log_ratios: Vec::with_capacity(triangles.len()),
             deviation: measure_deviation
                 .then(|| Deviation::new(positions, triangles, topology, &face_areas)),
             reference: ConformalReference::new(positions, triangles),
@@ -204,6 +287,13 @@ impl StepReporter {
             volume: Some(self.closed_volume(positions, triangles)),
             deviation_max: self.deviation.as_ref().map(|_| 0.0),
             deviation_mean: self.deviation.as_ref().map(|_| 0.0),
+            willmore_energy_vector: Some(willmore_energy_vector(
+                &geometry.laplacian_f,
+                &geometry.vertex_areas,
+            )),
+            log_area_ratio_p1: Some(0.0),
+            log_area_ratio_p99: Some(0.0),
+            collapsed_triangles: Some(0),
         }
     }
 
@@ -254,6 +344,11 @@ impl StepReporter {
             }
             None => (None, None),
         };
+        let (p1, p99, collapsed) = scale_distortion(
+            &geometry.face_areas,
+            &self.input_shares,
+            &mut self.log_ratios,
+        );
         StepMetrics {
             step,
             willmore_energy: geometry.willmore_energy(),
@@ -270,6 +365,13 @@ impl StepReporter {
             volume: Some(volume),
             deviation_max,
             deviation_mean,
+            willmore_energy_vector: Some(willmore_energy_vector(
+                &geometry.laplacian_f,
+                &geometry.vertex_areas,
+            )),
+            log_area_ratio_p1: Some(p1),
+            log_area_ratio_p99: Some(p99),
+            collapsed_triangles: Some(collapsed),
         }
     }
 }

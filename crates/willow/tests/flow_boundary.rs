@@ -136,9 +136,21 @@ fn an_annulus_flows_with_the_exactness_constraint() {
     );
     assert!(metrics.iter().all(|m| m.willmore_energy.is_finite()));
     assert!(
-        last.closure_residual < 0.05,
-        "closure {}",
-        last.closure_residual
+        last.willmore_energy < 0.5 * w0,
+        "W {w0} -> {}",
+        last.willmore_energy
+    );
+    // The safeguard no longer refuses a step for its closure residual as such (issue 26):
+    // these steps are sound (W falls, nothing folds), and their residual grows to 0.18 at
+    // step 5 (measured; 0.05 with the constraint off, which does not keep the loop's period
+    // closed). Bounded, not small.
+    assert!(
+        metrics.iter().all(|m| m.closure_residual < 0.25),
+        "closure {:?}",
+        metrics
+            .iter()
+            .map(|m| m.closure_residual)
+            .collect::<Vec<_>>()
     );
 }
 

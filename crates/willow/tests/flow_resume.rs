@@ -30,7 +30,7 @@ fn resumed_difference(mesh: &Mesh, params: &FlowParams, at: usize, steps: usize)
     }
     let state = state.expect("a safeguarded flow checkpoints");
     assert_eq!(state.metrics.step, at);
-    if params.method == Method::Conformal && params.tau == 0.5 {
+    if params.method == Method::Conformal && params.tau >= 0.5 {
         assert!(
             state.next_tau < params.tau && state.clean_steps > 0,
             "the checkpoint should hold a reduced τ, got {} after {} clean steps",
@@ -59,15 +59,17 @@ fn resumed_difference(mesh: &Mesh, params: &FlowParams, at: usize, steps: usize)
 
 #[test]
 fn a_resumed_conformal_flow_takes_the_same_steps_on_a_noisy_torus() {
-    // This much noise makes the safeguard take step 1 at τ/2 and climb back to τ after step
-    // 4, so the checkpoint after step 2 carries a reduced τ and a count of clean steps.
-    let mesh = with_noise(torus(1.0, 0.4, 24, 12), 0.3, 7);
+    // At τ = 0.9 the safeguard takes step 5 of this noisy torus at τ/4 and step 6 at its
+    // first try (measured), so the checkpoint after step 6 carries a reduced τ and a count
+    // of clean steps. (The small torus this test used before takes its first steps whole
+    // since the safeguard judges damage rather than Q, issue 26, then crawls.)
+    let mesh = with_noise(torus(2.5, 1.0, 64, 32), 0.15, 3);
     let params = FlowParams {
         method: Method::Conformal,
-        tau: 0.5,
+        tau: 0.9,
         ..FlowParams::default()
     };
-    let d = resumed_difference(&mesh, &params, 2, 8);
+    let d = resumed_difference(&mesh, &params, 6, 11);
     assert!(d <= ROUNDING, "resumed steps differ by {d:e}");
 }
 
@@ -81,7 +83,7 @@ fn a_resumed_flow_with_exactness_and_balancing_takes_the_same_steps() {
         mobius_balancing: true,
         ..FlowParams::default()
     };
-    let d = resumed_difference(&mesh, &params, 2, 5);
+    let d = resumed_difference(&mesh, &params, 3, 8);
     assert!(d <= ROUNDING, "resumed steps differ by {d:e}");
 }
 
@@ -93,7 +95,7 @@ fn a_resumed_mean_curvature_flow_takes_the_same_steps() {
         tau: 1e-3,
         ..FlowParams::default()
     };
-    let d = resumed_difference(&mesh, &params, 2, 5);
+    let d = resumed_difference(&mesh, &params, 3, 8);
     assert!(d <= ROUNDING, "resumed steps differ by {d:e}");
 }
 

@@ -133,6 +133,9 @@ fn noisy_tori_descend_at_small_and_default_tau() {
                 run.stopped
             );
             // Fairing, not just not diverging: a real share of the noise's energy is gone.
+            // 0.85, not 0.8, since folds are judged against the input (issue 26): genus 3 at
+            // τ = 0.5 ends at 0.82 (W 329 → 270, measured), its flow pushing a face toward a
+            // fold that the safeguard no longer lets happen over two steps.
             assert!(
                 last < 0.85 * run.initial.willmore_energy,
                 "{name} τ={tau}: W only {} → {last}",
@@ -171,8 +174,11 @@ fn noisy_genus_two_and_three_descend() {
             let run = flow(&mesh, tau, 40);
             let name = format!("noisy genus {holes}");
             let last = assert_descends(&name, &run, tau, 200.0);
+            // 0.85, not 0.8, since folds are judged against the input (issue 26): genus 3 at
+            // τ = 0.5 ends at 0.82 (W 329 → 270, measured), its flow pushing a face toward a
+            // fold that the safeguard no longer lets happen over two steps.
             assert!(
-                last < 0.8 * run.initial.willmore_energy,
+                last < 0.85 * run.initial.willmore_energy,
                 "{name} τ={tau}: W only {} → {last}",
                 run.initial.willmore_energy
             );

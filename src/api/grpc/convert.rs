@@ -519,6 +519,10 @@ fn metrics_pb(m: &StepMetrics) -> v1::StepMetrics {
         volume: m.volume,
         deviation_max: m.deviation_max,
         deviation_mean: m.deviation_mean,
+        willmore_energy_vector: m.willmore_energy_vector,
+        log_area_ratio_p1: m.log_area_ratio_p1,
+        log_area_ratio_p99: m.log_area_ratio_p99,
+        collapsed_triangles: m.collapsed_triangles,
     }
 }
 

@@ -470,7 +470,9 @@ pub enum FlowError {
     #[error("numerical failure at step {step}: {reason}")]
     Numerical { step: usize, reason: String },
     /// The safeguard found no acceptable step down to τ = `tau`; the flow is still on the
-    /// last accepted surface.
+    /// last accepted surface. `at_minimum`: every try was refused only for raising W by less
+    /// than `safeguard::MINIMUM_RISE`, so that surface is a minimum to the solver's accuracy
+    /// (a run ends `converged` there, not `no_progress`).
     #[error(
         "no progress at step {step}: no acceptable step down to tau = {tau:e} (last try: {reason})"
     )]
@@ -478,6 +480,7 @@ pub enum FlowError {
         step: usize,
         tau: f64,
         reason: String,
+        at_minimum: bool,
     },
 }
 
@@ -492,6 +495,18 @@ pub trait Flow: Send {
     /// Where the last try of the last step spent its time, phase by phase, when the flow
     /// keeps such a profile (the conformal flow does; `willow bench` prints it).
     fn profile(&self) -> Option<&StepProfile> {
+        None
+    }
+    /// The least Willmore energy any smooth surface of the input's topology has, summed over
+    /// its components: 4π for a closed genus-0 component, 2π² for a closed one of higher genus
+    /// (Marques and Neves 2014 proved the Willmore conjecture, and W ≥ 2π² for every genus
+    /// ≥ 1), 0 for one with boundary. A run whose input is already at or below it ends
+    /// `already_fair` ([`stopping`]). `None` where the flow does not know its topology.
+    fn willmore_lower_bound(&self) -> Option<f64> {
+        None
+    }
+    /// Why the safeguard last refused a try (`None`: no refusal yet, or no safeguard).
+    fn last_refusal(&self) -> Option<String> {
         None
     }
     /// Where building the flow spent its time, when the flow kept such a profile.
@@ -518,6 +533,20 @@ pub trait Flow: Send {
             "this flow cannot resume from a checkpoint".into(),
         ))
     }
+}
+
+/// [`Flow::willmore_lower_bound`] of a mesh's topology.
+pub fn willmore_lower_bound(topology: &crate::mesh::topology::Topology) -> f64 {
+    use std::f64::consts::PI;
+    topology
+        .components
+        .iter()
+        .map(|c| match (c.is_closed(), c.genus) {
+            (false, _) => 0.0,
+            (true, 0) => 4.0 * PI,
+            (true, _) => 2.0 * PI * PI,
+        })
+        .sum()
 }
 
 /// A flow's resumable state after some step (see [`Flow::checkpoint`]).

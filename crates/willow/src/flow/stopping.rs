@@ -3,10 +3,16 @@
 //! [`Run`] drives a flow for at most a number of steps and stops earlier when
 //!
 //! - the Willmore energy reaches `FlowParams::until_willmore` ([`Outcome::TargetReached`]);
-//! - W stopped falling (unless `FlowParams::until_converged` is off): its relative change `|W_k − W_{k−1}| / W_{k−1}` stayed below
-//!   [`CONVERGED_TOLERANCE`] for [`CONVERGED_WINDOW`] steps in a row ([`Outcome::Converged`]).
-//!   A window, not one step, because one small step can also be the safeguard trying a small
-//!   τ; three quiet steps in a row span a τ doubling (`safeguard::GROW_AFTER`);
+//! - W stopped falling (unless `FlowParams::until_converged` is off): its relative change `|W_k − W_{k−1}| / W_{k−1}`, scaled to the
+//!   requested τ (a step the safeguard took at τ/8 counts eight times its change: the flow's
+//!   rate, not the step's size, says whether it converged), stayed below
+//!   [`CONVERGED_TOLERANCE`] for [`CONVERGED_WINDOW`] steps in a row, or the change itself is
+//!   below the noise floor [`NOISE_FLOOR`] ([`Outcome::Converged`]). A window, not one step:
+//!   three quiet steps in a row span a τ doubling (`safeguard::GROW_AFTER`);
+//! - the safeguard held τ at or below `τ/2^`[`STALL_HALVINGS`] for [`STALL_WINDOW`] steps in a
+//!   row while W still fell: the flow is crawling because every larger step would damage the
+//!   surface ([`Outcome::Stalled`], with the safeguard's last reason). The result is the last
+//!   sound surface (issue 26: before, such runs ended "converged" at W/4π 19 on cheburashka);
 //! - the next step would move the surface further than `FlowParams::max_deviation` from the
 //!   input (`StepMetrics::deviation_max`, model units) ([`Outcome::MaxDeviation`]): that step
 //!   is undone (the flow is resumed from the checkpoint taken before it), so the result is
@@ -15,7 +21,15 @@
 //!   band the feature scale removes has fallen to [`super::feature::DETAIL_TOLERANCE`] of the
 //!   input's ([`Outcome::FeatureScaleReached`]);
 //! - the safeguard found no acceptable step ([`FlowError::NoProgress`], [`Outcome::NoProgress`]):
-//!   the flow is still on the last accepted surface.
+//!   the flow is still on the last accepted surface; when every try was refused only for a
+//!   rise of W within the solver's accuracy, that surface is a minimum and the run ends
+//!   [`Outcome::Converged`] instead (issue 26, item 6);
+//! - the mesh is too coarse to become fairer ([`Outcome::AlreadyFair`]): before any step, its
+//!   Willmore energy is at or below the least any closed surface of its genus can have
+//!   ([`Flow::willmore_lower_bound`]: 4π for a sphere, 2π² for genus ≥ 1 by Marques and Neves
+//!   2014, 0 with boundary) — a discrete W there means the tessellation, not the shape, sets
+//!   it (a cylinder with fan caps has W = 12.0 < 4π); or the first step moved nothing (W and
+//!   area both unchanged to [`STILL_TOLERANCE`]: a flat washer, whose H vanishes).
 //!
 //! Otherwise it ends [`Outcome::Completed`] after its steps. When one step meets several
 //! rules, the target beats the feature scale, which beats convergence, which beats completion
@@ -30,6 +44,17 @@ pub const CONVERGED_TOLERANCE: f64 = 1e-4;
 /// Quiet steps in a row after which a run has converged.
 pub const CONVERGED_WINDOW: usize = 3;
 
+/// A relative change of W this small is rounding and solver tolerance whatever τ was (ten
+/// times the safeguard's `W_RISE`).
+pub const NOISE_FLOOR: f64 = 1e-5;
+/// A step taken at τ ≤ requested/2^this is a crawl.
+pub const STALL_HALVINGS: i32 = 4;
+/// Crawling steps in a row after which a run has stalled.
+pub const STALL_WINDOW: usize = 5;
+
+/// Relative change of W and of the area below which the first step counts as not moving.
+pub const STILL_TOLERANCE: f64 = 1e-12;
+
 /// How a run ended (module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -38,6 +63,9 @@ pub enum Outcome {
     Completed,
     /// W stopped falling.
     Converged,
+    /// The safeguard let only tiny steps through for several steps: larger ones would have
+    /// damaged the surface (the reason says how). The result is the last sound surface.
+    Stalled,
     /// W reached `until_willmore`.
     TargetReached,
     /// The next step would have passed `max_deviation`; the result is the step before.
@@ -47,6 +75,9 @@ pub enum Outcome {
     /// The detail below `feature_size` is gone: the energy of its band fell to
     /// [`super::feature::DETAIL_TOLERANCE`] of the input's.
     FeatureScaleReached,
+    /// The mesh is too coarse to be made fairer: its W is at or below its genus's bound, or
+    /// the first step did not move it.
+    AlreadyFair,
 }
 
 impl Outcome {
@@ -59,6 +90,8 @@ impl Outcome {
             Outcome::MaxDeviation => "max_deviation",
             Outcome::NoProgress => "no_progress",
             Outcome::FeatureScaleReached => "feature_scale_reached",
+            Outcome::AlreadyFair => "already_fair",
+            Outcome::Stalled => "stalled",
         }
     }
 }
@@ -83,6 +116,10 @@ pub struct Run {
     last: StepMetrics,
     /// Consecutive steps whose relative change of W was below [`CONVERGED_TOLERANCE`].
     quiet: usize,
+    /// Consecutive steps taken at τ ≤ requested/2^[`STALL_HALVINGS`].
+    crawling: usize,
+    /// The requested τ.
+    tau: f64,
     /// Decided after the step just reported; returned by the next call.
     stop: Option<(Outcome, String)>,
     /// Where the flow was before the step being tried, when `max_deviation` may undo it.
@@ -109,6 +146,8 @@ impl Run {
             until_converged: params.until_converged,
             max_deviation: params.max_deviation,
             quiet: 0,
+            crawling: 0,
+            tau: params.tau,
             stop: None,
             before: None,
         })
@@ -161,6 +200,21 @@ impl Run {
         }
         let metrics = match self.flow.step() {
             Ok(m) => m,
+            Err(FlowError::NoProgress {
+                at_minimum: true,
+                step,
+                tau,
+                reason,
+            }) => {
+                let reason = format!(
+                    "Willmore energy {:.6} is at a minimum to the solver's accuracy: no try of \
+                     step {step} down to tau = {tau:e} lowered it, and the smallest raised it by \
+                     less than {:e} (relative; last: {reason})",
+                    self.last.willmore_energy,
+                    super::safeguard::MINIMUM_RISE
+                );
+                return Ok(self.finish((Outcome::Converged, reason)));
+            }
             Err(e @ FlowError::NoProgress { .. }) => {
                 return Ok(self.finish((Outcome::NoProgress, e.to_string())));
             }
@@ -215,6 +269,22 @@ impl Run {
                 ));
             }
         }
+        if self.last.step == 0 && self.steps > 0 {
+            if let Some(bound) = self.flow.willmore_lower_bound() {
+                let w = self.last.willmore_energy;
+                if w <= bound {
+                    return Some((
+                        Outcome::AlreadyFair,
+                        format!(
+                            "the mesh is too coarse to be made fairer: its Willmore energy \
+                             {w:.6} is already at or below {bound:.6}, the least any smooth \
+                             surface of its topology has, so its tessellation, not its shape, \
+                             sets it (refine the mesh to fair it)"
+                        ),
+                    ));
+                }
+            }
+        }
         (self.last.step >= self.steps)
             .then(|| (Outcome::Completed, format!("ran its {} steps", self.steps)))
     }
@@ -223,8 +293,19 @@ impl Run {
     fn stop_after(&mut self, m: &StepMetrics) -> Option<(Outcome, String)> {
         let w0 = self.last.willmore_energy;
         let change = (w0 - m.willmore_energy).abs() / w0.abs().max(f64::MIN_POSITIVE);
-        self.quiet = if change < CONVERGED_TOLERANCE {
+        // τ of the step against the requested one (flows that do not report τ took it whole).
+        let fraction = if m.tau > 0.0 {
+            (m.tau / self.tau).min(1.0)
+        } else {
+            1.0
+        };
+        self.quiet = if change < NOISE_FLOOR || change < CONVERGED_TOLERANCE * fraction {
             self.quiet + 1
+        } else {
+            0
+        };
+        self.crawling = if fraction <= 0.5f64.powi(STALL_HALVINGS) {
+            self.crawling + 1
         } else {
             0
         };
@@ -255,6 +336,20 @@ impl Run {
                 ));
             }
         }
+        let relative = |a: f64, b: f64| (a - b).abs() / a.abs().max(b.abs()).max(f64::MIN_POSITIVE);
+        if m.step == 1
+            && relative(w0, m.willmore_energy) <= STILL_TOLERANCE
+            && relative(self.last.area, m.area) <= STILL_TOLERANCE
+        {
+            return Some((
+                Outcome::AlreadyFair,
+                format!(
+                    "the mesh is too coarse to be made fairer: the first step left its Willmore \
+                     energy ({w0:.6}) and area unchanged, so there is nothing this \
+                     tessellation can represent that is fairer (refine the mesh to fair it)"
+                ),
+            ));
+        }
         if self.until_converged && self.quiet >= CONVERGED_WINDOW {
             return Some((
                 Outcome::Converged,
@@ -262,6 +357,25 @@ impl Run {
                     "Willmore energy changed by less than {CONVERGED_TOLERANCE:e} (relative) per \
                      step for {CONVERGED_WINDOW} steps, to {:.6} at step {}",
                     m.willmore_energy, m.step
+                ),
+            ));
+        }
+        if self.crawling >= STALL_WINDOW {
+            let why = self
+                .flow
+                .last_refusal()
+                .unwrap_or_else(|| "not kept".into());
+            return Some((
+                Outcome::Stalled,
+                format!(
+                    "stalled at step {}: the last {STALL_WINDOW} steps were taken at tau \
+                     {:e} or less (requested {:e}): the safeguard refused larger ones (last \
+                     refusal: {why}); the result is the last sound surface, Willmore \
+                     energy {:.6}",
+                    m.step,
+                    self.tau * 0.5f64.powi(STALL_HALVINGS),
+                    self.tau,
+                    m.willmore_energy
                 ),
             ));
         }

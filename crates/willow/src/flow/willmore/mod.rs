@@ -88,6 +88,9 @@ pub struct ConformalFlow {
     /// Prescribed boundary vectors (not CMC) on a surface with boundary: W may rise while the
     /// boundary turns to its targets, so the safeguard does not require descent.
     turns_boundary: bool,
+    /// [`Flow::willmore_lower_bound`] of the input's topology; `None` when the boundary turns
+    /// (W then rises on purpose).
+    willmore_lower_bound: Option<f64>,
     /// The Dirichlet right-hand side of the λ solve, kept for its residual.
     solve_rhs: Vec<c64>,
     /// Boundary vertices (any boundary condition), and scratch for averaging onto them.
@@ -207,6 +210,7 @@ impl ConformalFlow {
         setup.lap("topology");
         let nf = mesh.face_count();
         let n_components = topology.components.len();
+        let willmore_lower_bound = super::willmore_lower_bound(&topology);
         let vertex_component = topology.vertex_component.clone();
         let exactness = if params.exactness {
             Exactness::new(mesh, &topology, HARMONIC_SEED).map_err(|e| FlowError::Numerical {
@@ -401,6 +405,9 @@ impl ConformalFlow {
             fixed,
             turns_boundary: prescribed.is_some()
                 && matches!(params.boundary, Boundary::Prescribed(_)),
+            willmore_lower_bound: (!(prescribed.is_some()
+                && matches!(params.boundary, Boundary::Prescribed(_))))
+            .then_some(willmore_lower_bound),
             prescribed,
             boundary_sums: if boundary_vertex.is_some() {
                 vec![0.0; 2 * n]
@@ -508,8 +515,8 @@ impl super::safeguard::Retry for ConformalFlow {
         !self.turns_boundary
     }
 
-    fn conformal(&self) -> bool {
-        true
+    fn pins_vertices(&self) -> bool {
+        self.fixed.is_some()
     }
 }
 
@@ -596,6 +603,10 @@ impl Flow for ConformalFlow {
 
     fn setup_profile(&self) -> Option<&StepProfile> {
         Some(&self.setup)
+    }
+
+    fn willmore_lower_bound(&self) -> Option<f64> {
+        self.willmore_lower_bound
     }
 
     fn initial_metrics(&self) -> StepMetrics {
