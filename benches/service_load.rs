@@ -782,7 +782,7 @@ async fn port_phases(backend: &Backend, obj: &str, n: usize) -> Result<Vec<Vec<f
             (lease, Instant::now())
         });
         tokio::time::sleep(Duration::from_millis(10)).await;
-        let id = uuid::Uuid::new_v4().to_string();
+        let id = willow_service::jobs::JobId::random();
         let t = Instant::now();
         let input = BlobKey::Input {
             id: id.clone(),
@@ -1355,7 +1355,7 @@ async fn checkpoint_cost() {
         return println!("skipped: the flow keeps no checkpoint");
     };
     let size = encode_checkpoint(&state).len();
-    let id = uuid::Uuid::new_v4().to_string();
+    let id = willow_service::jobs::JobId::random();
     let key = || BlobKey::Checkpoint { id: id.clone() };
     // What the worker's `checkpoint` does: take the state, encode it, put it (replacing the
     // previous one). `sink` None is state + encode alone.

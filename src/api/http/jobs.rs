@@ -104,7 +104,7 @@ impl From<JobStatus> for JobView {
                 cancel: format!("{base}/cancel"),
                 self_: base,
             },
-            id: s.id,
+            id: s.id.into(),
         }
     }
 }

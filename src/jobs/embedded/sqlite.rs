@@ -11,7 +11,8 @@ use super::super::ports::{
     Swept, Usage, MINUTE_MS,
 };
 use super::super::{
-    format_name, join_err, now_ms, parse_format, poisoned, JobError, JobSpec, JobState, JobStatus,
+    format_name, join_err, now_ms, parse_format, poisoned, FailureCode, JobError, JobId, JobSpec,
+    JobState, JobStatus,
 };
 use async_trait::async_trait;
 use base64::Engine as _;
@@ -232,8 +233,23 @@ struct Row {
     seq: i64,
 }
 
+/// A job id is stored as its text…
+impl rusqlite::ToSql for JobId {
+    fn to_sql(&self) -> rusqlite::Result<rusqlite::types::ToSqlOutput<'_>> {
+        self.as_str().to_sql()
+    }
+}
+
+/// …and checked again as it is read.
+impl rusqlite::types::FromSql for JobId {
+    fn column_result(v: rusqlite::types::ValueRef<'_>) -> rusqlite::types::FromSqlResult<Self> {
+        let text = String::column_result(v)?;
+        JobId::try_from(text).map_err(|e| rusqlite::types::FromSqlError::Other(Box::new(e)))
+    }
+}
+
 fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError>> {
-    let id: String = r.get(0)?;
+    let id: JobId = r.get(0)?;
     let state: String = r.get(1)?;
     let spec: String = r.get(2)?;
     let format: String = r.get(3)?;
@@ -345,7 +361,7 @@ impl SqliteStore {
     }
 
     fn row(&self, id: &str) -> Result<Row, JobError> {
-        check_id(id)?;
+        JobId::parse(id)?;
         let conn = self.conn()?;
         let row = conn
             .prepare_cached(&format!("SELECT {STATUS_COLUMNS} FROM jobs WHERE id = ?1"))?
@@ -569,15 +585,6 @@ fn scoped_key(tenant: &str, key: &str) -> String {
     format!("{tenant}/{key}")
 }
 
-/// Ids come from URLs: only our own UUID text is looked up (and, in the file store, becomes a
-/// path).
-pub(crate) fn check_id(id: &str) -> Result<(), JobError> {
-    if id.is_empty() || id.len() > 64 || !id.bytes().all(|b| b.is_ascii_hexdigit() || b == b'-') {
-        return Err(JobError::NotFound(id.to_string()));
-    }
-    Ok(())
-}
-
 #[async_trait]
 impl JobStore for SqliteStore {
     async fn insert(&self, job: NewJob) -> Result<Inserted, JobError> {
@@ -704,7 +711,7 @@ impl JobStore for SqliteStore {
         &self,
         id: &str,
         state: JobState,
-        error: Option<(String, String)>,
+        error: Option<(FailureCode, String)>,
         at: u64,
         expires_at: u64,
         _fence: Option<&Fence>,
@@ -712,6 +719,7 @@ impl JobStore for SqliteStore {
         let id = id.to_string();
         self.blocking(move |s| {
             let (code, msg) = error.unzip();
+            let code = code.map(FailureCode::as_str);
             let n = s.conn()?.execute(
                 "UPDATE jobs SET state = ?2, error_code = ?3, error = ?4, finished_at = ?5, expires_at = ?6
                  WHERE id = ?1 AND state IN ('queued', 'running')",
@@ -765,7 +773,7 @@ impl JobStore for SqliteStore {
         self.blocking(move |s| {
             let mut conn = s.conn()?;
             let tx = conn.transaction()?;
-            let jobs: Vec<String> = {
+            let jobs: Vec<JobId> = {
                 let mut st = tx.prepare(
                     "SELECT id FROM jobs WHERE expired = 0 AND expires_at IS NOT NULL AND expires_at <= ?1",
                 )?;
@@ -895,7 +903,7 @@ mod tests {
 
     fn job(tenant: &str, bytes: u64, at: u64) -> NewJob {
         NewJob {
-            id: uuid::Uuid::new_v4().to_string(),
+            id: JobId::random(),
             tenant: tenant.to_string(),
             spec: JobSpec::default(),
             format: Format::Obj,

@@ -19,13 +19,13 @@
 //! means here.
 
 use super::super::codec::{decode_metrics, encode_metrics};
+use super::super::ids::well_formed;
 use super::super::ports::{
     over_quota, Admitting, Fence, Inserted, JobStore, MinuteWindows, NewJob, Recovered, Started,
     Swept, Usage,
 };
-use super::super::{now_ms, JobError, JobId, JobState, JobStatus};
+use super::super::{now_ms, FailureCode, JobError, JobId, JobState, JobStatus};
 use super::{nats_err, retry, Nats};
-use crate::jobs::embedded::sqlite::check_id;
 use async_nats::jetstream::kv::{CreateErrorKind, UpdateErrorKind};
 use async_nats::jetstream::stream::DirectGetErrorKind;
 use async_trait::async_trait;
@@ -225,7 +225,7 @@ impl KvStore {
     }
 
     async fn record(&self, id: &str) -> Result<(Record, u64), JobError> {
-        check_id(id)?;
+        JobId::parse(id)?;
         let entry = retry(|| async {
             self.nats
                 .kv
@@ -733,7 +733,7 @@ impl JobStore for KvStore {
             .filter(|s| {
                 before
                     .as_ref()
-                    .is_none_or(|(t, id)| (s.created_at, &s.id) < (*t, id))
+                    .is_none_or(|(t, id)| (s.created_at, s.id.as_str()) < (*t, id.as_str()))
             })
             .take(size + 1)
             .collect();
@@ -783,7 +783,7 @@ impl JobStore for KvStore {
     async fn renew(&self, id: &str, fence: &Fence) -> Result<(), JobError> {
         // One try, no backoff: the heartbeat tries again soon, and a renewal right after an
         // outage is what keeps the hold.
-        check_id(id)?;
+        JobId::parse(id)?;
         let at = now_ms();
         for _ in 0..8 {
             let entry = self
@@ -883,7 +883,7 @@ impl JobStore for KvStore {
         &self,
         id: &str,
         state: JobState,
-        error: Option<(String, String)>,
+        error: Option<(FailureCode, String)>,
         at: u64,
         expires_at: u64,
         fence: Option<&Fence>,
@@ -899,7 +899,7 @@ impl JobStore for KvStore {
                 r.hold = None;
                 r.status.state = state;
                 let (code, msg) = error.clone().unzip();
-                r.status.error_code = code;
+                r.status.error_code = code.map(|c| c.as_str().to_string());
                 r.status.error = msg;
                 r.status.finished_at = Some(at);
                 r.status.expires_at = Some(expires_at);
@@ -1105,7 +1105,9 @@ impl JobStore for KvStore {
     }
 
     async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError> {
-        check_id(id).map_err(|_| JobError::UploadNotFound(id.to_string()))?;
+        if !well_formed(id) {
+            return Err(JobError::UploadNotFound(id.to_string()));
+        }
         let b = self
             .nats
             .kv
