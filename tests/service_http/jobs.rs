@@ -22,12 +22,7 @@ async fn obj_upload_streams_every_frame_then_result_downloads() {
         .is_some_and(|t| t.ends_with('Z')));
 
     // Watch from the start: state first, then frames 0..=5 in order, then done.
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/events")))
-        .send()
-        .await
-        .expect("GET events");
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
     assert_eq!(res.status(), 200);
     assert!(res
         .headers()
@@ -86,12 +81,7 @@ async fn obj_upload_streams_every_frame_then_result_downloads() {
     assert!(rest.get("next_from_step").is_none());
 
     // A kept frame downloads; a step without positions is a specific 404.
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/frames/2?format=obj")))
-        .send()
-        .await
-        .expect("GET frame");
+    let res = srv.get(&format!("/v1/jobs/{id}/frames/2?format=obj")).await;
     assert_eq!(res.status(), 200);
     assert_eq!(res.headers()["content-type"], "model/obj");
     let obj = res.text().await.expect("frame body");
@@ -112,23 +102,13 @@ async fn obj_upload_streams_every_frame_then_result_downloads() {
     );
 
     // The result as GLB (and validated by Khronos glTF-Validator when it is installed).
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/result?format=glb")))
-        .send()
-        .await
-        .expect("GET result");
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=glb")).await;
     assert_eq!(res.status(), 200);
     assert_eq!(res.headers()["content-type"], "model/gltf-binary");
     let glb = res.bytes().await.expect("result body");
     assert_eq!(&glb[..4], b"glTF", "GLB magic");
     validate_gltf_if_available(&glb);
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/result?format=obj")))
-        .send()
-        .await
-        .expect("GET result obj");
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=obj")).await;
     assert_eq!(res.status(), 200);
     srv.stop().await;
 }
@@ -173,12 +153,7 @@ async fn streamed_positions_applied_to_the_upload_give_the_obj_result() {
     let id = job["id"].as_str().expect("id").to_string();
     let v_lines = upload.lines().filter(|l| l.starts_with("v ")).count();
     assert_eq!(job["vertex_count"].as_u64(), Some(v_lines as u64));
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/events")))
-        .send()
-        .await
-        .expect("GET events");
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
     let events = read_sse(res, JOB_TIMEOUT).await;
     let done = events.last().expect("done event");
     assert_eq!(done.data["state"], "succeeded", "{}", done.data);
@@ -192,12 +167,7 @@ async fn streamed_positions_applied_to_the_upload_give_the_obj_result() {
             .decode(last)
             .expect("base64"),
     );
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/result?format=obj")))
-        .send()
-        .await
-        .expect("GET result");
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=obj")).await;
     assert_eq!(res.status(), 200);
     let result = res.text().await.expect("OBJ text");
     assert_frame_applies_to_upload(&upload, &frame, &result);
@@ -213,12 +183,7 @@ async fn sse_reconnect_with_last_event_id_resumes_after_that_step() {
     let id = job["id"].as_str().expect("id").to_string();
 
     // First connection: read until step 2, then drop it (the client "disconnects").
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/events")))
-        .send()
-        .await
-        .expect("events");
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
     let mut stream = res.bytes_stream();
     let mut seen = String::new();
     use futures::StreamExt;
@@ -245,12 +210,7 @@ async fn sse_reconnect_with_last_event_id_resumes_after_that_step() {
     assert_eq!(events.last().map(|e| e.event.as_str()), Some("done"));
 
     // A finished job replays entirely from the store, and `from_step` works too.
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/events?from_step=5")))
-        .send()
-        .await
-        .expect("events replay");
+    let res = srv.get(&format!("/v1/jobs/{id}/events?from_step=5")).await;
     let events = read_sse(res, JOB_TIMEOUT).await;
     assert_eq!(frame_steps(&events), vec![5, 6]);
     assert_eq!(
@@ -287,12 +247,7 @@ async fn multipart_glb_upload_with_params_part_runs() {
     let id = job["id"].as_str().expect("id").to_string();
     let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
     assert_eq!(done["state"], "succeeded", "{done}");
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/events")))
-        .send()
-        .await
-        .expect("events");
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
     let events = read_sse(res, JOB_TIMEOUT).await;
     assert_eq!(frame_steps(&events), vec![0, 1, 2, 3]);
     assert!(
@@ -300,12 +255,7 @@ async fn multipart_glb_upload_with_params_part_runs() {
         "include_positions=false sends metrics only"
     );
     // A GLB input downloads as glTF JSON too.
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/result?format=gltf")))
-        .send()
-        .await
-        .expect("result gltf");
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=gltf")).await;
     assert_eq!(res.status(), 200);
     assert_eq!(res.headers()["content-type"], "model/gltf+json");
     srv.stop().await;
@@ -537,11 +487,8 @@ async fn textured_upload_keeps_uvs_in_the_validated_result() {
             _ => "obj",
         };
         let res = srv
-            .client
-            .get(srv.url(&format!("/v1/jobs/{id}/result?format={name}")))
-            .send()
-            .await
-            .expect("GET result");
+            .get(&format!("/v1/jobs/{id}/result?format={name}"))
+            .await;
         assert_eq!(res.status(), 200);
         let bytes = res.bytes().await.expect("body");
         if format == Format::Glb {

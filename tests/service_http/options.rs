@@ -470,12 +470,7 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
         assert_eq!(status, 202, "{query}: {job}");
         assert_eq!(job["params"]["safeguard"], guarded, "{query}");
         let id = job["id"].as_str().expect("id").to_string();
-        let res = srv
-            .client
-            .get(srv.url(&format!("/v1/jobs/{id}/events")))
-            .send()
-            .await
-            .expect("GET events");
+        let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
         let events = read_sse(res, JOB_TIMEOUT).await;
         let frames: Vec<_> = events.iter().filter(|e| e.event == "frame").collect();
         assert_eq!(frames.len(), 4, "{query}");
@@ -515,12 +510,7 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
     let (status, _, job) = srv.submit_obj(&bumpy, "steps=6&method=mcf&tau=1000").await;
     assert_eq!(status, 202, "{job}");
     let id = job["id"].as_str().expect("id").to_string();
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/events")))
-        .send()
-        .await
-        .expect("GET events");
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
     let events = read_sse(res, JOB_TIMEOUT).await;
     assert_eq!(frame_steps(&events), vec![0, 1, 2], "steps 1 and 2 kept");
     let last = events
@@ -545,12 +535,7 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
         assert_eq!(view["progress"]["step"], 2);
         assert_eq!(view["progress"]["total_steps"], 6);
     }
-    let res = srv
-        .client
-        .get(srv.url(&format!("/v1/jobs/{id}/result?format=obj")))
-        .send()
-        .await
-        .expect("GET result");
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=obj")).await;
     assert_eq!(res.status(), 200);
     let text = res.text().await.expect("OBJ text");
     assert_obj_result_is_frame(&text, &frame_positions(&last.data), 162);

@@ -15,12 +15,7 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
         ..Default::default()
     };
     let srv = start_with(tempfile::tempdir().expect("temp dir"), |_| {}, options).await;
-    let res = srv
-        .client
-        .get(srv.url("/healthz"))
-        .send()
-        .await
-        .expect("healthz");
+    let res = srv.get("/healthz").await;
     assert_eq!(res.status(), 200);
     let rid = res
         .headers()
@@ -43,27 +38,14 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
         "abc-123",
         "a given request id is echoed"
     );
-    let res = srv
-        .client
-        .get(srv.url("/readyz"))
-        .send()
-        .await
-        .expect("readyz");
+    let res = srv.get("/readyz").await;
     assert_eq!(res.status(), 200);
 
     let (st, _, j) = srv.submit_obj(&small_obj(), "steps=2").await;
     assert_eq!(st, 202);
     srv.poll_until(j["id"].as_str().expect("id"), JOB_TIMEOUT, is_terminal)
         .await;
-    let text = srv
-        .client
-        .get(srv.url("/metrics"))
-        .send()
-        .await
-        .expect("metrics")
-        .text()
-        .await
-        .expect("text");
+    let text = srv.get("/metrics").await.text().await.expect("text");
     for name in [
         "willow_queue_depth",
         "willow_jobs_running",
@@ -85,7 +67,7 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
     ] {
         assert!(doc["paths"].get(path).is_some(), "OpenAPI lacks {path}");
     }
-    let res = srv.client.get(srv.url("/docs")).send().await.expect("docs");
+    let res = srv.get("/docs").await;
     assert_eq!(res.status(), 200);
     let html = res.text().await.expect("html");
     assert!(
@@ -165,12 +147,7 @@ async fn probes_metrics_openapi_docs_cors_and_request_id() {
 
     // Draining: readiness turns false and submissions get 503 with Retry-After.
     srv.jobs.begin_drain();
-    let res = srv
-        .client
-        .get(srv.url("/readyz"))
-        .send()
-        .await
-        .expect("readyz");
+    let res = srv.get("/readyz").await;
     assert_eq!(res.status(), 503);
     let (st, h, p) = srv.submit_obj(&small_obj(), "steps=1").await;
     assert_eq!(st, 503, "{p}");
