@@ -102,6 +102,15 @@ async fn fair_curve_rounds_a_noisy_curve_and_refuses_hostile_input() {
     repeated.extend_from_slice(&input[..2]);
     let mut nan = input.clone();
     nan[7] = f64::NAN;
+    // A good request with one field set wrong.
+    let with = |edit: fn(&mut v1::FairCurveRequest)| {
+        let mut r = curve_request(input.clone(), true);
+        edit(&mut r);
+        r
+    };
+    fn seconds(seconds: i64) -> prost_types::Duration {
+        prost_types::Duration { seconds, nanos: 0 }
+    }
     for (request, field, why) in [
         (curve_request(input[..5].to_vec(), true), "curve.xy", ""),
         (curve_request(nan, true), "curve.xy", "NON_FINITE"),
@@ -126,67 +135,18 @@ async fn fair_curve_rounds_a_noisy_curve_and_refuses_hostile_input() {
             "CUSP",
         ),
         (v1::FairCurveRequest::default(), "curve", ""),
-        (
-            v1::FairCurveRequest {
-                steps: Some(0),
-                ..curve_request(input.clone(), true)
-            },
-            "steps",
-            "",
-        ),
-        (
-            v1::FairCurveRequest {
-                steps: Some(5000),
-                ..curve_request(input.clone(), true)
-            },
-            "steps",
-            "",
-        ),
-        (
-            v1::FairCurveRequest {
-                tau: Some(1.0),
-                ..curve_request(input.clone(), true)
-            },
-            "tau",
-            "",
-        ),
-        (
-            v1::FairCurveRequest {
-                tau: Some(f64::NAN),
-                ..curve_request(input.clone(), true)
-            },
-            "tau",
-            "",
-        ),
-        (
-            v1::FairCurveRequest {
-                deadline: Some(prost_types::Duration {
-                    seconds: 0,
-                    nanos: 0,
-                }),
-                ..curve_request(input.clone(), true)
-            },
-            "deadline",
-            "",
-        ),
-        (
-            v1::FairCurveRequest {
-                deadline: Some(prost_types::Duration {
-                    seconds: 1000,
-                    nanos: 0,
-                }),
-                ..curve_request(input.clone(), true)
-            },
-            "deadline",
-            "",
-        ),
+        (with(|r| r.steps = Some(0)), "steps", ""),
+        (with(|r| r.steps = Some(5000)), "steps", ""),
+        (with(|r| r.tau = Some(1.0)), "tau", ""),
+        (with(|r| r.tau = Some(f64::NAN)), "tau", ""),
+        (with(|r| r.deadline = Some(seconds(0))), "deadline", ""),
+        (with(|r| r.deadline = Some(seconds(1000))), "deadline", ""),
         // 256 points × 101 frames is over this server's 5000 frame points.
         (
-            v1::FairCurveRequest {
-                steps: Some(100),
-                frame_interval: 1,
-                ..curve_request(input.clone(), true)
-            },
+            with(|r| {
+                r.steps = Some(100);
+                r.frame_interval = 1;
+            }),
             "frame_interval",
             "",
         ),

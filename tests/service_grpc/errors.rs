@@ -12,28 +12,24 @@ async fn every_bad_input_gets_its_status_and_detail() {
     let obj = || inline(v1::MeshFormat::Obj, small_obj());
     let mcf = |steps| params(v1::Method::Mcf, steps);
 
-    // Meshes.
-    assert_bad_field(
-        create(
-            &mut client,
+    // Meshes, and where they come from: each refusal names the request field.
+    for (mesh, field) in [
+        (
             inline(v1::MeshFormat::Obj, b"v 0 0 0\nf 1 2 3\n".to_vec()),
-            mcf(1),
-            "",
-        )
-        .await,
-        "inline_mesh.data",
-    );
-    assert_bad_field(
-        create(
-            &mut client,
+            "inline_mesh.data",
+        ),
+        (
             inline(v1::MeshFormat::Unspecified, small_obj()),
-            mcf(1),
-            "",
-        )
-        .await,
-        "inline_mesh.format",
-    );
-    assert_bad_field(create(&mut client, None, mcf(1), "").await, "mesh");
+            "inline_mesh.format",
+        ),
+        (None, "mesh"),
+        (
+            Some(v1::create_job_request::Mesh::Upload("nope".into())),
+            "upload",
+        ),
+    ] {
+        assert_bad_field(create(&mut client, mesh, mcf(1), "").await, field);
+    }
     // Two triangles sharing an edge with a third: non-manifold, refused with its rule named.
     let fin = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nf 1 2 3\nf 2 1 4\nf 1 2 5\n".to_vec();
     let status = create(&mut client, inline(v1::MeshFormat::Obj, fin), mcf(1), "")
@@ -51,95 +47,35 @@ async fn every_bad_input_gets_its_status_and_detail() {
         status.message()
     );
 
-    // Parameters.
-    assert_bad_field(create(&mut client, obj(), mcf(0), "").await, "params.steps");
-    assert_bad_field(
-        create(&mut client, obj(), mcf(1_000_000), "").await,
-        "params.steps",
-    );
-    let bad = |p: v1::JobParams| p;
-    assert_bad_field(
-        create(
-            &mut client,
-            obj(),
-            bad(v1::JobParams {
-                tau: Some(-1.0),
-                ..mcf(1)
-            }),
-            "",
-        )
-        .await,
-        "params.tau",
-    );
-    assert_bad_field(
-        create(
-            &mut client,
-            obj(),
-            bad(v1::JobParams {
-                tau: Some(f64::NAN),
-                ..mcf(1)
-            }),
-            "",
-        )
-        .await,
-        "params.tau",
-    );
-    assert_bad_field(
-        create(
-            &mut client,
-            obj(),
-            bad(v1::JobParams {
-                method: 99,
-                ..mcf(1)
-            }),
-            "",
-        )
-        .await,
-        "params.method",
-    );
-    assert_bad_field(
-        create(
-            &mut client,
-            obj(),
-            bad(v1::JobParams {
-                iterations: Some(0),
-                ..mcf(1)
-            }),
-            "",
-        )
-        .await,
-        "params.iterations",
-    );
-    assert_bad_field(
-        create(
-            &mut client,
-            obj(),
-            bad(v1::JobParams {
-                frame_interval: Some(0),
-                ..mcf(1)
-            }),
-            "",
-        )
-        .await,
-        "params.frame_interval",
-    );
-    let negative = prost_types::Duration {
-        seconds: -1,
-        nanos: 0,
+    // Parameters: one step's MCF with one field set wrong.
+    let mcf_with = |edit: fn(&mut v1::JobParams)| {
+        let mut p = mcf(1);
+        edit(&mut p);
+        p
     };
-    assert_bad_field(
-        create(
-            &mut client,
-            obj(),
-            bad(v1::JobParams {
-                deadline: Some(negative),
-                ..mcf(1)
+    for (params, field) in [
+        (mcf(0), "params.steps"),
+        (mcf(1_000_000), "params.steps"),
+        (mcf_with(|p| p.tau = Some(-1.0)), "params.tau"),
+        (mcf_with(|p| p.tau = Some(f64::NAN)), "params.tau"),
+        (mcf_with(|p| p.method = 99), "params.method"),
+        (mcf_with(|p| p.iterations = Some(0)), "params.iterations"),
+        (
+            mcf_with(|p| p.frame_interval = Some(0)),
+            "params.frame_interval",
+        ),
+        (
+            mcf_with(|p| {
+                p.deadline = Some(prost_types::Duration {
+                    seconds: -1,
+                    nanos: 0,
+                })
             }),
-            "",
-        )
-        .await,
-        "params.deadline",
-    );
+            "params.deadline",
+        ),
+    ] {
+        assert_bad_field(create(&mut client, obj(), params, "").await, field);
+    }
 
     // Names.
     assert_bad_field(get_job(&mut client, "not-a-name").await, "name");
@@ -158,16 +94,6 @@ async fn every_bad_input_gets_its_status_and_detail() {
     .await
     .expect_err("unknown upload");
     assert_eq!(no_upload.code(), Code::NotFound, "{}", no_upload.message());
-    assert_bad_field(
-        create(
-            &mut client,
-            Some(v1::create_job_request::Mesh::Upload("nope".into())),
-            mcf(1),
-            "",
-        )
-        .await,
-        "upload",
-    );
 
     // Upload streams.
     use v1::upload_mesh_chunk::Part;
@@ -180,38 +106,27 @@ async fn every_bad_input_gets_its_status_and_detail() {
     let data = |b: &[u8]| v1::UploadMeshChunk {
         part: Some(Part::Data(Bytes::copy_from_slice(b))),
     };
-    assert_bad_field(upload_raw(&mut client, vec![]).await, "header");
-    assert_bad_field(
-        upload_raw(&mut client, vec![data(b"v 0 0 0\n")]).await,
-        "header",
-    );
-    assert_bad_field(
-        upload_raw(
-            &mut client,
+    for (messages, field) in [
+        (vec![], "header"),
+        (vec![data(b"v 0 0 0\n")], "header"),
+        (
             vec![
                 header(v1::MeshFormat::Obj, 0),
                 header(v1::MeshFormat::Obj, 0),
             ],
-        )
-        .await,
-        "header",
-    );
-    assert_bad_field(
-        upload_raw(
-            &mut client,
+            "header",
+        ),
+        (
             vec![header(v1::MeshFormat::Unspecified, 0), data(b"v")],
-        )
-        .await,
-        "header.format",
-    );
-    assert_bad_field(
-        upload_raw(
-            &mut client,
+            "header.format",
+        ),
+        (
             vec![header(v1::MeshFormat::Obj, 100), data(b"v 0 0 0\n")],
-        )
-        .await,
-        "header.size_bytes",
-    );
+            "header.size_bytes",
+        ),
+    ] {
+        assert_bad_field(upload_raw(&mut client, messages).await, field);
+    }
     assert_bad_field(
         upload(&mut client, v1::MeshFormat::Glb, b"not a glb at all", 4).await,
         "data",
