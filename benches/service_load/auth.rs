@@ -1,6 +1,7 @@
 //! Part 8: what authentication and the tenant checks cost a submission.
 
-use super::*;
+use super::burst::{phase_table, submit_burst};
+use super::common::*;
 
 pub(crate) async fn auth_overhead(obj: &str) {
     const CLIENTS: usize = 8;

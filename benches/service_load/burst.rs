@@ -1,6 +1,6 @@
 //! Part 7: submissions at 50 concurrent clients while the workers are busy.
 
-use super::*;
+use super::common::*;
 
 /// `clients` clients each submitting `per_client` jobs back to back (no watching), with `key`
 /// as their bearer if given: the latency of each submission in ms, sorted.

@@ -1,6 +1,7 @@
 //! Part 5: the cost of a checkpoint on a 100k-triangle job.
 
-use super::*;
+use super::common::*;
+use super::nats_server::nats_backend;
 
 pub(crate) async fn checkpoint_cost() {
     let steps: usize = std::env::var("WILLOW_BENCH_CHECKPOINT_STEPS")

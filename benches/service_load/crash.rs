@@ -1,6 +1,7 @@
 //! Part 6: redelivery after a worker crash, with real processes of this build's `willow serve`.
 
-use super::*;
+use super::common::*;
+use super::nats_server::{ChildGuard, NatsProcess};
 
 /// `willow serve ARGS` (this build's binary); its base URL once it prints it. Its logs (JSON
 /// on stdout, the worker's job events at info) and stderr go to `log`.

@@ -1,7 +1,8 @@
 //! Parts 1–3: throughput and latency per concurrency level, the service's overhead on one
 //! large job, and memory per queued job.
 
-use super::*;
+use super::common::*;
+use super::nats_server::NatsNode;
 
 /// One client's loop: submit, read status, wait for the first SSE frame; `n` times.
 pub(crate) async fn client_loop(

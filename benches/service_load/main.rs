@@ -34,65 +34,18 @@
 //! (default 5) steps timed in part 5; `WILLOW_BENCH_PARTS` (e.g. `1,6`) runs only those parts.
 //!
 //! One file a part: `load` (1–3), `phases` (4), `checkpoint` (5), `crash` (6), `burst` (7),
-//! `auth` (8); `nats_server` runs the NATS processes; this file holds `main` and what the
-//! parts share.
-
-#[path = "../../tests/service_http_support/mod.rs"]
-mod service_http_support;
+//! `auth` (8); `nats_server` runs the NATS processes; `common` holds what the parts share.
 
 mod auth;
 mod burst;
 mod checkpoint;
+mod common;
 mod crash;
 mod load;
 mod nats_server;
 mod phases;
 
-use auth::*;
-use burst::*;
-use checkpoint::*;
-use crash::*;
-use load::*;
-use nats_server::*;
-use phases::*;
-
-use futures::StreamExt;
-use service_http_support::{obj_text, slow_obj, start as start_server, TestServer};
-use std::io::{BufRead, BufReader, Write};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::OnceLock;
-use std::time::{Duration, Instant};
-use willow::mesh::io::{Asset, Format};
-use willow_service::jobs::codec::encode_checkpoint;
-use willow_service::jobs::embedded::files::FileBlobs;
-use willow_service::jobs::embedded::sqlite::SqliteStore;
-use willow_service::jobs::nats;
-use willow_service::jobs::ports::{Backend, BlobKey, BlobStore, JobStore, NewJob};
-use willow_service::jobs::{Caller, Config, JobSpec, Jobs};
-
-/// Every request loop stops after this long, whatever its count: the benchmark must end.
-const PHASE_BUDGET: Duration = Duration::from_secs(60);
-
-pub(crate) fn rss_kib() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmRSS:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse().ok())
-        })
-        .unwrap_or(0)
-}
-
-pub(crate) fn pct(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
-}
+use common::obj_text;
 
 fn main() {
     // `cargo bench` passes `--bench`; `cargo test --all-targets` runs this binary without it,
@@ -129,49 +82,28 @@ fn main() {
                 .unwrap_or(1)
         );
         if part(1) {
-            throughput(&small).await;
+            load::throughput(&small).await;
         }
         if part(2) {
-            overhead(steps).await;
+            load::overhead(steps).await;
         }
         if part(3) {
-            memory_per_queued_job(&small).await;
+            load::memory_per_queued_job(&small).await;
         }
         if part(4) {
-            submit_phases(&small).await;
+            phases::submit_phases(&small).await;
         }
         if part(5) {
-            checkpoint_cost().await;
+            checkpoint::checkpoint_cost().await;
         }
         if part(6) {
-            redelivery().await;
+            crash::redelivery().await;
         }
         if part(7) {
-            submit_under_load(&small).await;
+            burst::submit_under_load(&small).await;
         }
         if part(8) {
-            auth_overhead(&small).await;
+            auth::auth_overhead(&small).await;
         }
     });
-}
-
-/// Quotas that are checked on every submission (their cost is part of what is measured) but
-/// never refuse: the load here is one tenant's, far beyond the defaults.
-pub(crate) fn bench_quotas() -> willow_service::jobs::TenantQuotas {
-    willow_service::jobs::TenantQuotas {
-        max_live_jobs: 1 << 30,
-        max_stored_bytes: 1 << 50,
-        uploads_per_minute: 1 << 30,
-    }
-}
-
-/// The real router on loopback with `workers` workers and a queue of `queue_capacity` (the
-/// tests' server, sized for load).
-pub(crate) async fn start(workers: usize, queue_capacity: usize) -> TestServer {
-    start_server(|c| {
-        c.workers = workers;
-        c.queue_capacity = queue_capacity;
-        c.quotas = bench_quotas();
-    })
-    .await
 }

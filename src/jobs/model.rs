@@ -3,7 +3,9 @@
 //! ([`JobError`]) and how the core runs ([`Config`], [`JobLimits`], [`Role`]). Plain data: no
 //! transport, no backend.
 
-use super::{spec, JobError, JobId};
+use super::error::{FailureCode, JobError};
+use super::ids::JobId;
+use super::spec;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -429,6 +431,14 @@ pub struct JobStatus {
     pub finished_at: Option<u64>,
     /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
     pub expires_at: Option<u64>,
+}
+
+impl JobStatus {
+    /// The typed view of [`JobStatus::error_code`]: `None` when there is none, or when it is a
+    /// code this version does not know.
+    pub fn failure(&self) -> Option<FailureCode> {
+        self.error_code.as_deref().and_then(FailureCode::parse)
+    }
 }
 
 fn default_tenant() -> String {
