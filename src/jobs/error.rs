@@ -20,7 +20,8 @@ pub enum JobError {
         retry_after_secs: u64,
         capacity: usize,
     },
-    /// A tenant's quota ([`TenantQuotas`]) is spent: retry once its jobs finish or age out.
+    /// A tenant's quota ([`TenantQuotas`](super::TenantQuotas)) is spent: retry once its jobs
+    /// finish or age out.
     #[error("tenant quota `{quota}` of {limit} is spent{}; retry in about {retry_after_secs} s", quota_detail(.used))]
     QuotaExceeded {
         quota: &'static str,

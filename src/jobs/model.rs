@@ -559,7 +559,8 @@ pub struct Config {
     /// wedged worker must not keep a pod in the load balancer.
     pub stall_after: Duration,
     /// Curve requests that may run at once, each on one blocking thread (default: `workers`).
-    /// Separate from the job workers, whose jobs may hold them for hours; see [`curve`].
+    /// Separate from the job workers, whose jobs may hold them for hours; see
+    /// [`curve`](super::curve).
     pub curve_slots: usize,
     /// Time budget of a curve request that names none.
     pub curve_default_deadline: Duration,

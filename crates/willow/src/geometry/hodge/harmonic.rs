@@ -226,9 +226,9 @@ pub fn harmonic_component(
 /// ```
 ///
 /// `ω(e1) = s_0 ω_{e_0}` (edge 0 runs corner 0 → 1) and `ω(e2) = −s_2 ω_{e_2}` (edge 2 runs
-/// corner 2 → 0), with `s` the orientation signs of [`d1`]. For a closed ω the third edge is
-/// matched too, and `Σ_f A_f ⟨v_f, v'_f⟩ = ωᵀ ⋆1 ω'` (`v_f` is the Whitney interpolant).
-/// The system is solved in an orthonormal frame of the face (same solution, better
+/// corner 2 → 0), with `s` the orientation signs of [`d1`](super::d1). For a closed ω the
+/// third edge is matched too, and `Σ_f A_f ⟨v_f, v'_f⟩ = ωᵀ ⋆1 ω'` (`v_f` is the Whitney
+/// interpolant). The system is solved in an orthonormal frame of the face (same solution, better
 /// conditioned); a zero-area face gets `v = 0`.
 pub fn harmonic_vector_field_into(
     positions: &[[f64; 3]],
