@@ -60,38 +60,31 @@ async fn stream_tokens() {
     assert_eq!(res.status(), 200);
 
     // Not B, not other routes of A, not as a bearer.
-    assert_401(
-        server
-            .get(&format!("/v1/jobs/{b}/events?access_token={token}"), None)
-            .await,
-        "invalid_token",
-        &token,
-    )
-    .await;
-    assert_401(
-        server
-            .get(&format!("/v1/jobs/{a}?access_token={token}"), None)
-            .await,
-        "invalid_request",
-        &token,
-    )
-    .await;
-    assert_401(
-        server
-            .get(&format!("/v1/jobs?access_token={token}"), None)
-            .await,
-        "invalid_request",
-        &token,
-    )
-    .await;
-    assert_401(
-        server
-            .get(&format!("/v1/jobs/{a}/events"), Some(&bearer(&token)))
-            .await,
-        "invalid_token",
-        &token,
-    )
-    .await;
+    let bearer_token = bearer(&token);
+    for (path, header, reason) in [
+        (
+            format!("/v1/jobs/{b}/events?access_token={token}"),
+            None,
+            "invalid_token",
+        ),
+        (
+            format!("/v1/jobs/{a}?access_token={token}"),
+            None,
+            "invalid_request",
+        ),
+        (
+            format!("/v1/jobs?access_token={token}"),
+            None,
+            "invalid_request",
+        ),
+        (
+            format!("/v1/jobs/{a}/events"),
+            Some(bearer_token.as_str()),
+            "invalid_token",
+        ),
+    ] {
+        assert_401(server.get(&path, header).await, reason, &token).await;
+    }
     let res = server
         .client
         .delete(server.url(&format!("/v1/jobs/{a}?access_token={token}")))

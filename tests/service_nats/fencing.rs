@@ -212,21 +212,7 @@ async fn a_frozen_worker_loses_its_job_and_stops_when_thawed() {
         v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 5
     })
     .await;
-    let start = Instant::now();
-    let victim = loop {
-        let mut running = Vec::new();
-        for w in &workers {
-            running.push(metric(&w.metrics().await, "willow_jobs_running", &[]));
-        }
-        match running[..] {
-            [Some(1.0), Some(0.0)] => break 0,
-            [Some(0.0), Some(1.0)] => break 1,
-            _ if start.elapsed() > PATIENCE => {
-                panic!("no single worker reports willow_jobs_running 1: {running:?}")
-            }
-            _ => tokio::time::sleep(Duration::from_millis(20)).await,
-        }
-    };
+    let victim = running_worker(&workers).await;
     let (frozen, other) = (&workers[victim], &workers[1 - victim]);
     signal(frozen, "STOP");
     // The other worker gets the message after ack_wait, waits out the hold, and resumes.

@@ -60,6 +60,26 @@ async fn all_ready(nodes: &[&Node]) {
     }
 }
 
+/// Which of two workers runs the one running job: the one whose `willow_jobs_running` is 1
+/// while the other's is 0 (fails after [`PATIENCE`] if no single worker reports it).
+async fn running_worker(workers: &[Node]) -> usize {
+    let start = Instant::now();
+    loop {
+        let mut running = Vec::new();
+        for w in workers {
+            running.push(metric(&w.metrics().await, "willow_jobs_running", &[]));
+        }
+        match running[..] {
+            [Some(1.0), Some(0.0)] => return 0,
+            [Some(0.0), Some(1.0)] => return 1,
+            _ if start.elapsed() > PATIENCE => {
+                panic!("no single worker reports willow_jobs_running 1: {running:?}")
+            }
+            _ => tokio::time::sleep(Duration::from_millis(20)).await,
+        }
+    }
+}
+
 /// `willow_jobs_finished_total{outcome=…}` of a node (0 when absent).
 async fn finished(node: &Node, outcome: &str) -> f64 {
     metric(

@@ -144,21 +144,7 @@ async fn sigkill_worker_mid_job_the_other_resumes_from_its_checkpoint() {
         })
         .await;
     // The worker running it reports one running job, the other none.
-    let start = Instant::now();
-    let victim = loop {
-        let mut running = Vec::new();
-        for w in &workers {
-            running.push(metric(&w.metrics().await, "willow_jobs_running", &[]));
-        }
-        match running[..] {
-            [Some(1.0), Some(0.0)] => break 0,
-            [Some(0.0), Some(1.0)] => break 1,
-            _ if start.elapsed() > PATIENCE => {
-                panic!("no single worker reports willow_jobs_running 1: {running:?}")
-            }
-            _ => tokio::time::sleep(Duration::from_millis(20)).await,
-        }
-    };
+    let victim = running_worker(&workers).await;
     let at_kill = api.get_json(&format!("/v1/jobs/{id}")).await.1;
     assert_eq!(
         at_kill["state"], "running",
