@@ -89,6 +89,11 @@ async fn tokens_never_reach_the_log() {
         .with_current_span(true)
         .with_span_list(true)
         .finish();
+    // tracing-core caches each callsite's interest process-wide, and while at most one
+    // dispatcher is alive it asks only the registering thread's default: a sibling test (no
+    // subscriber) reaching `request refused` first would cache "never" for every thread. With
+    // a second live dispatcher every registration asks all of them, this capture included.
+    let _second = tracing::Dispatch::new(tracing_subscriber::registry());
     // A current-thread runtime: the server's tasks run on this thread, under this subscriber.
     let _guard = tracing::subscriber::set_default(subscriber);
 
