@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Installs a pinned nats-server (with JetStream) for the NATS backend's tests
-# (tests/service_nats.rs) and for running Willow against NATS by hand, then prints where it is.
+# (tests/service_nats/) and for running Willow against NATS by hand, then prints where it is.
 #
 #   scripts/nats-server.sh --print-path   install if needed; print only the binary's absolute path
 #   scripts/nats-server.sh                install if needed; say where it is

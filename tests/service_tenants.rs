@@ -1,6 +1,6 @@
 //! Tenants in the job core (issue 12), without any transport: isolation of every call, per-tenant
 //! idempotency keys and uploads, the quotas and their names, and the queue's fair order. The
-//! transports' own tests (tests/service_auth.rs) show the same through HTTP and gRPC.
+//! transports' own tests (tests/service_auth/) show the same through HTTP and gRPC.
 
 mod service_http_support;
 

@@ -1,7 +1,9 @@
 //! The transports: thin layers that turn wire requests into calls on [`crate::jobs::Jobs`].
 //!
 //! - [`http`]: the REST API (axum), Server-Sent Events, probes, metrics, OpenAPI and docs.
-//! - [`problem`]: RFC 9457 problem details; the one place job errors become HTTP statuses.
+//! - [`status`]: the one table from a job error or a failed job's outcome to an HTTP status and
+//!   a gRPC code.
+//! - [`problem`]: RFC 9457 problem details: a job error's HTTP body.
 //! - [`server`]: the single router serving HTTP/1.1, h2c and gRPC on one port (assembled in
 //!   [`server::app`] from the routes of the modules below, none of which imports it), and
 //!   `willow serve`.
@@ -22,4 +24,5 @@ pub mod problem;
 pub mod schema;
 pub mod server;
 mod state;
+pub mod status;
 pub mod web;

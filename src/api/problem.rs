@@ -1,6 +1,8 @@
-//! RFC 9457 problem details: every HTTP error leaves through [`Problem`], and [`JobError`] is
-//! mapped to a status code here and nowhere else.
+//! RFC 9457 problem details: every HTTP error leaves through [`Problem`]. A [`JobError`] takes
+//! its status from the one table in [`super::status`] and its retry hint from the core; here it
+//! gets its body.
 
+use super::status;
 use crate::jobs::JobError;
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -123,71 +125,53 @@ impl Problem {
 
 impl From<JobError> for Problem {
     fn from(e: JobError) -> Problem {
-        let detail = e.to_string();
+        let status = status::of_error(&e).http;
+        let retry_after = e.retry_after_secs();
         let code = e.code();
+        let detail = match &e {
+            JobError::Unavailable(msg) => {
+                tracing::warn!(error = %msg, "backend unavailable");
+                "the job backend is unavailable; retry shortly".to_string()
+            }
+            JobError::Internal(msg) => {
+                // The cause goes to the log, not to the client.
+                tracing::error!(error = %msg, "internal error");
+                "internal error; see the server log".to_string()
+            }
+            other => other.to_string(),
+        };
+        let mut p = Problem::new(status, code, detail);
+        p.retry_after = retry_after;
+        // Extension members: what the client needs to act, by name.
         match e {
-            JobError::NotFound(id) => {
-                Problem::new(StatusCode::NOT_FOUND, code, detail).with("job_id", id)
-            }
-            JobError::FrameNotFound { id, step, .. } => {
-                Problem::new(StatusCode::NOT_FOUND, code, detail)
-                    .with("job_id", id)
-                    .with("step", step)
-            }
-            JobError::UploadNotFound(id) => {
-                Problem::new(StatusCode::NOT_FOUND, code, detail).with("upload_id", id)
-            }
-            JobError::Gone(id) => Problem::new(StatusCode::GONE, code, detail).with("job_id", id),
+            JobError::NotFound(id) | JobError::Gone(id) => p.with("job_id", id),
+            JobError::FrameNotFound { id, step, .. } => p.with("job_id", id).with("step", step),
+            JobError::UploadNotFound(id) => p.with("upload_id", id),
             JobError::QueueFull {
                 retry_after_secs,
                 capacity,
-            } => {
-                let mut p = Problem::new(StatusCode::TOO_MANY_REQUESTS, code, detail)
-                    .with("retry_after_secs", retry_after_secs)
-                    .with("capacity", capacity);
-                p.retry_after = Some(retry_after_secs);
-                p
-            }
+            } => p
+                .with("retry_after_secs", retry_after_secs)
+                .with("capacity", capacity),
             JobError::QuotaExceeded {
                 quota,
                 limit,
                 used,
                 retry_after_secs,
             } => {
-                let mut p = Problem::new(StatusCode::TOO_MANY_REQUESTS, code, detail)
+                let p = p
                     .with("quota", quota)
                     .with("limit", limit)
                     .with("retry_after_secs", retry_after_secs);
-                if let Some(used) = used {
-                    p = p.with("used", used);
+                match used {
+                    Some(used) => p.with("used", used),
+                    None => p,
                 }
-                p.retry_after = Some(retry_after_secs);
-                p
             }
-            JobError::InvalidMesh(_) => {
-                Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail)
-            }
-            JobError::InvalidSpec { field, .. } => {
-                Problem::new(StatusCode::BAD_REQUEST, code, detail).with("field", field)
-            }
-            JobError::TooLarge { what, limit } => {
-                Problem::new(StatusCode::PAYLOAD_TOO_LARGE, code, detail)
-                    .with("what", what)
-                    .with("limit", limit)
-            }
-            JobError::Conflict(_) => Problem::new(StatusCode::CONFLICT, code, detail),
-            JobError::IdempotencyMismatch(_) => {
-                Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail)
-            }
-            JobError::ShuttingDown => {
-                let mut p = Problem::new(StatusCode::SERVICE_UNAVAILABLE, code, detail);
-                // Another replica (or this one after restart) can take it shortly.
-                p.retry_after = Some(5);
-                p
-            }
+            JobError::InvalidSpec { field, .. } => p.with("field", field),
+            JobError::TooLarge { what, limit } => p.with("what", what).with("limit", limit),
             JobError::InvalidCurve(curve) => {
                 use willow::curve::CurveError;
-                let p = Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail);
                 // Where in the input: a point index, or an OBJ line.
                 match curve {
                     CurveError::NonFinite { index, .. }
@@ -200,42 +184,19 @@ impl From<JobError> for Problem {
             JobError::Busy {
                 retry_after_secs,
                 slots,
-            } => {
-                let mut p = Problem::new(StatusCode::TOO_MANY_REQUESTS, code, detail)
-                    .with("retry_after_secs", retry_after_secs)
-                    .with("capacity", slots);
-                p.retry_after = Some(retry_after_secs);
-                p
-            }
-            // 504 as google.rpc maps DEADLINE_EXCEEDED: the server gave up within the budget.
+            } => p
+                .with("retry_after_secs", retry_after_secs)
+                .with("capacity", slots),
             JobError::DeadlineExceeded { step, steps, .. } => {
-                Problem::new(StatusCode::GATEWAY_TIMEOUT, code, detail)
-                    .with("step", step)
-                    .with("steps", steps)
+                p.with("step", step).with("steps", steps)
             }
-            // The input is valid but the flow broke down on it: not retryable as it is.
-            JobError::Numerical { step, .. } => {
-                Problem::new(StatusCode::UNPROCESSABLE_ENTITY, code, detail).with("step", step)
-            }
-            JobError::Unavailable(msg) => {
-                tracing::warn!(error = %msg, "backend unavailable");
-                let mut p = Problem::new(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    code,
-                    "the job backend is unavailable; retry shortly",
-                );
-                p.retry_after = Some(2);
-                p
-            }
-            JobError::Internal(msg) => {
-                // The cause goes to the log, not to the client.
-                tracing::error!(error = %msg, "internal error");
-                Problem::new(
-                    StatusCode::INTERNAL_SERVER_ERROR,
-                    code,
-                    "internal error; see the server log",
-                )
-            }
+            JobError::Numerical { step, .. } => p.with("step", step),
+            JobError::InvalidMesh(_)
+            | JobError::Conflict(_)
+            | JobError::IdempotencyMismatch(_)
+            | JobError::ShuttingDown
+            | JobError::Unavailable(_)
+            | JobError::Internal(_) => p,
         }
     }
 }

@@ -5,8 +5,8 @@
 
 use super::ports::{over_quota, Admitting, BlobKey, Inserted, NewJob, OverQuota};
 use super::{
-    audit, codec, join_err, mesh_error, now_ms, Caller, JobError, JobId, JobSpec, JobState,
-    JobStatus, Jobs, UploadRef,
+    audit, codec, join_err, mesh_error, now_ms, Caller, FailureCode, JobError, JobId, JobSpec,
+    JobState, JobStatus, Jobs, UploadRef,
 };
 use std::sync::atomic::Ordering;
 use std::time::Instant;
@@ -106,7 +106,7 @@ impl Jobs {
         let telemetry = &self.inner.telemetry;
         telemetry.phase("parse", t);
 
-        let id: JobId = uuid::Uuid::new_v4().to_string();
+        let id = JobId::random();
         let data_len = data.len() as u64;
         // Write the blob before taking the admission lock: fsync is slow and need not be
         // serialised. A refused job's blob is removed again below.
@@ -196,7 +196,7 @@ impl Jobs {
             // Lost the race for the last slot (to another submission or node), or the queue
             // is away: the record goes again, key and all, so a retry can succeed.
             let now = now_ms();
-            let withdrawn = Some(("queue_full".to_string(), e.to_string()));
+            let withdrawn = Some((FailureCode::QueueFull, e.to_string()));
             let _ = backend
                 .store
                 .finish(&id, JobState::Failed, withdrawn, now, now, None)

@@ -144,7 +144,9 @@ pub const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
 
 /// The optional metrics, each stored after the fixed part as a tag byte and an f64 when the
 /// step has it: a metric added later takes the next tag, and a row without it reads as `None`.
-const OPTIONAL_METRICS: [(u8, fn(&StepMetrics) -> Option<f64>); 7] = [
+type OptionalMetric = (u8, fn(&StepMetrics) -> Option<f64>);
+
+const OPTIONAL_METRICS: [OptionalMetric; 7] = [
     (1, |m| m.volume),
     (2, |m| m.deviation_max),
     (3, |m| m.deviation_mean),
@@ -190,7 +192,7 @@ pub fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
 pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
     let bad = |what: String| JobError::Internal(format!("stored metrics: {what}"));
     let tail = b.len().checked_sub(METRICS_BYTES);
-    if b.len() != METRICS_V1_BYTES && !tail.is_some_and(|t| t % 9 == 0) {
+    if b.len() != METRICS_V1_BYTES && tail.is_none_or(|t| t % 9 != 0) {
         return Err(bad(format!(
             "{} bytes, expected {METRICS_BYTES} and 9 per optional metric (or \
              {METRICS_V1_BYTES} for rows written before the safeguard)",

@@ -167,20 +167,7 @@ pub struct CurveOutcome {
     pub frames: Vec<CurveFrame>,
 }
 
-/// A stable machine-readable code per curve refusal, shared by every transport (like
-/// `MeshError::code` for meshes).
-pub fn curve_error_code(e: &CurveError) -> &'static str {
-    match e {
-        CurveError::TooFewPoints { .. } => "too_few_points",
-        CurveError::NonFinite { .. } => "non_finite",
-        CurveError::ZeroLengthEdge { .. } => "zero_length_edge",
-        CurveError::Cusp { .. } => "cusp",
-        CurveError::Json(_) => "invalid_json",
-        CurveError::Obj { .. } => "invalid_obj",
-        CurveError::InvalidParameter { .. } => "invalid_parameter",
-        CurveError::OutOfMemory { .. } => "out_of_memory",
-    }
-}
+pub use super::error::curve_error_code;
 
 /// Why a run stopped early.
 enum Stop {

@@ -32,6 +32,8 @@ mod admission;
 pub mod codec;
 pub mod curve;
 pub mod embedded;
+mod error;
+mod ids;
 mod model;
 pub mod nats;
 pub mod ports;
@@ -40,6 +42,8 @@ pub mod telemetry;
 pub mod watch;
 pub mod worker;
 
+pub use error::{FailureCode, JobError};
+pub use ids::JobId;
 pub use model::*;
 
 use futures::Stream;
@@ -260,7 +264,7 @@ impl Jobs {
                 &self.inner,
                 id,
                 JobState::Cancelled,
-                Some(("cancelled", "cancelled while queued".to_string())),
+                Some((FailureCode::Cancelled, "cancelled while queued".to_string())),
                 None,
             )
             .await?;
@@ -336,7 +340,7 @@ impl Jobs {
             false
         };
         let key = BlobKey::Frame {
-            id: id.to_string(),
+            id: status.id.clone(),
             step,
             welded: true,
         };
@@ -386,7 +390,9 @@ impl Jobs {
                 status.state.as_str()
             )));
         }
-        let key = BlobKey::Result { id: id.to_string() };
+        let key = BlobKey::Result {
+            id: status.id.clone(),
+        };
         let bytes =
             self.inner.backend.blobs.get(key).await?.ok_or_else(|| {
                 JobError::Internal(format!("the result of job `{id}` is missing"))

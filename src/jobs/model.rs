@@ -3,21 +3,19 @@
 //! ([`JobError`]) and how the core runs ([`Config`], [`JobLimits`], [`Role`]). Plain data: no
 //! transport, no backend.
 
-use super::{curve, spec};
+use super::error::{FailureCode, JobError};
+use super::ids::JobId;
+use super::spec;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
-use willow::curve::CurveError;
 use willow::flow::region::{Region, Seam};
 use willow::flow::{FlowParams, Method, Preserve};
 use willow::mesh::io::Asset;
 use willow::mesh::io::Format;
-use willow::mesh::{Limits, MeshError};
+use willow::mesh::Limits;
 use willow::metrics::StepMetrics;
-
-/// A job's identifier: a UUID v4 in its hyphenated lower-case text form.
-pub type JobId = String;
 
 /// What to run on an uploaded mesh. Transports turn their wire parameters into this and call
 /// [`JobSpec::validate`] (which [`Jobs::submit`](super::Jobs::submit) calls again, so no transport can skip it).
@@ -412,6 +410,8 @@ pub struct JobStatus {
     /// before `total_steps` the outcome of its run: `converged`, `target_reached`,
     /// `max_deviation`, or `no_progress` (the safeguard found no acceptable step, even at
     /// τ/1024). Its result is then the surface after step `step`.
+    /// Stored as text, so a code this version does not know still reads;
+    /// [`JobStatus::failure`] is the typed view.
     pub error_code: Option<String>,
     pub created_at: u64,
     pub started_at: Option<u64>,
@@ -435,6 +435,12 @@ impl JobStatus {
                 format!("ran its {} steps", self.total_steps),
             ),
         })
+    }
+
+    /// The typed view of [`JobStatus::error_code`]: `None` when there is none, or when it is a
+    /// code this version does not know.
+    pub fn failure(&self) -> Option<FailureCode> {
+        self.error_code.as_deref().and_then(FailureCode::parse)
     }
 }
 
@@ -475,115 +481,6 @@ pub enum JobEvent {
 pub enum UploadRef {
     Bytes { data: bytes::Bytes, format: Format },
     Stored { upload_id: String },
-}
-
-/// Everything that can go wrong, typed so each transport maps it once to its own codes.
-#[derive(Debug, thiserror::Error)]
-pub enum JobError {
-    #[error("job `{0}` not found")]
-    NotFound(JobId),
-    #[error("job `{0}` has expired and its results were deleted")]
-    Gone(JobId),
-    #[error("the queue is full ({capacity} jobs waiting); retry in about {retry_after_secs} s")]
-    QueueFull {
-        retry_after_secs: u64,
-        capacity: usize,
-    },
-    /// A tenant's quota ([`TenantQuotas`]) is spent: retry once its jobs finish or age out.
-    #[error("tenant quota `{quota}` of {limit} is spent{}; retry in about {retry_after_secs} s", quota_detail(.used))]
-    QuotaExceeded {
-        quota: &'static str,
-        limit: u64,
-        used: Option<u64>,
-        retry_after_secs: u64,
-    },
-    #[error("invalid mesh: {0}")]
-    InvalidMesh(MeshError),
-    #[error("invalid parameter `{field}`: {reason}")]
-    InvalidSpec { field: &'static str, reason: String },
-    #[error("{what} exceeds the limit of {limit}")]
-    TooLarge { what: &'static str, limit: u64 },
-    #[error("{0}")]
-    Conflict(String),
-    #[error("idempotency key reused with a different request: {0}")]
-    IdempotencyMismatch(String),
-    #[error("the server is shutting down and accepts no new jobs")]
-    ShuttingDown,
-    #[error("internal error: {0}")]
-    Internal(String),
-    /// The backend's server did not answer in time (NATS restarting, a network partition):
-    /// retry shortly. A running job that meets it is left to be delivered again and resumes
-    /// from its checkpoint; it is never failed for it.
-    #[error("the job backend is unavailable: {0}")]
-    Unavailable(String),
-    /// A step that exists but kept no positions, or a step past the job's progress.
-    #[error("job `{id}` has no mesh for step {step}: {detail}")]
-    FrameNotFound {
-        id: JobId,
-        step: usize,
-        detail: String,
-    },
-    /// An upload id that [`Jobs::store_upload`](super::Jobs::store_upload) never returned (or that expired).
-    #[error("upload `{0}` not found")]
-    UploadNotFound(String),
-    /// A curve the curve flow refuses (see [`CurveError`]).
-    #[error("invalid curve: {0}")]
-    InvalidCurve(CurveError),
-    /// Every slot for synchronous work is taken (curve fairing); retry shortly.
-    #[error("all {slots} curve slots are busy; retry in about {retry_after_secs} s")]
-    Busy { retry_after_secs: u64, slots: usize },
-    /// A synchronous request ran out of its time budget.
-    #[error("deadline of {secs} s exceeded after step {step} of {steps}")]
-    DeadlineExceeded {
-        secs: f64,
-        step: usize,
-        steps: usize,
-    },
-    /// The flow broke down on this input (non-finite positions).
-    #[error("numerical failure at step {step}: {reason}")]
-    Numerical { step: usize, reason: String },
-}
-
-impl JobError {
-    /// A stable machine-readable code, shared by every transport.
-    pub fn code(&self) -> &'static str {
-        match self {
-            JobError::NotFound(_) => "not_found",
-            JobError::Gone(_) => "gone",
-            JobError::QueueFull { .. } => "queue_full",
-            JobError::QuotaExceeded { .. } => "quota_exceeded",
-            JobError::InvalidMesh(e) => e.code(),
-            JobError::InvalidSpec { .. } => "invalid_parameter",
-            JobError::TooLarge { .. } => "too_large",
-            JobError::Conflict(_) => "conflict",
-            JobError::IdempotencyMismatch(_) => "idempotency_mismatch",
-            JobError::ShuttingDown => "shutting_down",
-            JobError::Internal(_) => "internal",
-            JobError::Unavailable(_) => "unavailable",
-            JobError::FrameNotFound { .. } => "frame_not_found",
-            JobError::UploadNotFound(_) => "upload_not_found",
-            JobError::InvalidCurve(e) => curve::curve_error_code(e),
-            JobError::Busy { .. } => "busy",
-            JobError::DeadlineExceeded { .. } => "deadline_exceeded",
-            JobError::Numerical { .. } => "numerical",
-        }
-    }
-}
-
-fn quota_detail(used: &Option<u64>) -> String {
-    used.map(|u| format!(" ({u} in use)")).unwrap_or_default()
-}
-
-impl From<rusqlite::Error> for JobError {
-    fn from(e: rusqlite::Error) -> Self {
-        JobError::Internal(format!("store: {e}"))
-    }
-}
-
-impl From<std::io::Error> for JobError {
-    fn from(e: std::io::Error) -> Self {
-        JobError::Internal(format!("file: {e}"))
-    }
 }
 
 /// Size limits, all named in the errors that enforce them.
@@ -665,7 +562,8 @@ pub struct Config {
     /// wedged worker must not keep a pod in the load balancer.
     pub stall_after: Duration,
     /// Curve requests that may run at once, each on one blocking thread (default: `workers`).
-    /// Separate from the job workers, whose jobs may hold them for hours; see [`curve`].
+    /// Separate from the job workers, whose jobs may hold them for hours; see
+    /// [`curve`](super::curve).
     pub curve_slots: usize,
     /// Time budget of a curve request that names none.
     pub curve_default_deadline: Duration,

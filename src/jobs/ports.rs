@@ -20,7 +20,7 @@
 //! - a [`Lease`] that is neither acked nor heartbeaten is delivered again (NATS: after
 //!   `ack_wait`; embedded: on the next start of the process).
 
-use super::{JobError, JobEvent, JobId, JobSpec, JobState, JobStatus, TenantQuotas};
+use super::{FailureCode, JobError, JobEvent, JobId, JobSpec, JobState, JobStatus, TenantQuotas};
 use async_trait::async_trait;
 use futures::stream::BoxStream;
 use tokio_util::sync::CancellationToken;
@@ -276,7 +276,7 @@ pub trait JobStore: Send + Sync + 'static {
         &self,
         id: &str,
         state: JobState,
-        error: Option<(String, String)>,
+        error: Option<(FailureCode, String)>,
         at: u64,
         expires_at: u64,
         fence: Option<&Fence>,
@@ -424,7 +424,8 @@ pub trait BlobStore: Send + Sync + 'static {
 
 /// A job handed to one worker until it acks, releases, or stops heartbeating.
 pub struct Lease {
-    pub id: JobId,
+    /// The job's id as the queue carried it: checked when the worker looks the job up.
+    pub id: String,
     /// How many times the job has been delivered, this time included (1 = first time).
     pub attempt: u32,
     pub control: std::sync::Arc<dyn LeaseControl>,

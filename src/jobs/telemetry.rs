@@ -1,7 +1,7 @@
 //! Prometheus metrics of the job core, in an explicit registry (not a process-global recorder,
 //! so several servers in one test process each count their own jobs).
 
-use super::JobState;
+use super::{FailureCode, JobState};
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -149,11 +149,11 @@ impl Telemetry {
             .observe(since.elapsed().as_secs_f64());
     }
 
-    pub fn record_outcome(&self, state: JobState, code: Option<&str>, run_ms: Option<u64>) {
+    pub fn record_outcome(&self, state: JobState, code: Option<FailureCode>, run_ms: Option<u64>) {
         self.outcomes
             .get_or_create(&OutcomeLabels {
                 outcome: state.as_str().to_string(),
-                code: code.unwrap_or("none").to_string(),
+                code: code.map_or("none", FailureCode::as_str).to_string(),
             })
             .inc();
         if let Some(ms) = run_ms {

@@ -17,7 +17,7 @@
 
 use super::codec::bytes_to_f32s;
 use super::ports::{BlobKey, BusEvent};
-use super::{Frame, JobError, JobEvent, JobStatus, Jobs};
+use super::{Frame, JobError, JobEvent, JobId, JobStatus, Jobs};
 use futures::stream::BoxStream;
 use futures::{Stream, StreamExt};
 use std::sync::Arc;
@@ -46,6 +46,7 @@ pub(super) async fn watch(
     from_step: usize,
 ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
     let backend = &jobs.inner.backend;
+    let id = JobId::parse(&id)?;
     // Subscribe before reading the store: every frame is either already stored or still to
     // come on the bus, so none falls between the two.
     let live = backend.events.subscribe(&id).await?;
@@ -91,9 +92,9 @@ async fn emit(tx: &Tx, ev: JobEvent) -> Result<(), WatchEnd> {
 
 /// A frame's positions in the file's vertex order, from the blob store. `None` if they are
 /// gone (the job expired, or a resumed job has not written that step again yet).
-async fn stored_positions(jobs: &Jobs, id: &str, step: usize) -> Option<Arc<Vec<[f32; 3]>>> {
+async fn stored_positions(jobs: &Jobs, id: &JobId, step: usize) -> Option<Arc<Vec<[f32; 3]>>> {
     let key = BlobKey::Frame {
-        id: id.to_string(),
+        id: id.clone(),
         step,
         welded: false,
     };
@@ -102,7 +103,7 @@ async fn stored_positions(jobs: &Jobs, id: &str, step: usize) -> Option<Arc<Vec<
 }
 
 /// Send stored frames with step >= `next` and return the step expected after them.
-async fn replay(jobs: &Jobs, id: &str, mut next: usize, tx: &Tx) -> Result<usize, WatchEnd> {
+async fn replay(jobs: &Jobs, id: &JobId, mut next: usize, tx: &Tx) -> Result<usize, WatchEnd> {
     loop {
         let rows = jobs
             .inner
@@ -134,7 +135,7 @@ async fn replay(jobs: &Jobs, id: &str, mut next: usize, tx: &Tx) -> Result<usize
     }
 }
 
-async fn finish_from_store(jobs: &Jobs, id: &str, next: usize, tx: &Tx) -> Result<(), WatchEnd> {
+async fn finish_from_store(jobs: &Jobs, id: &JobId, next: usize, tx: &Tx) -> Result<(), WatchEnd> {
     let status = jobs.inner.backend.store.status(id, None).await?;
     if next != usize::MAX {
         replay(jobs, id, next, tx).await?;
@@ -144,7 +145,7 @@ async fn finish_from_store(jobs: &Jobs, id: &str, next: usize, tx: &Tx) -> Resul
 
 async fn run_watcher(
     jobs: Jobs,
-    id: String,
+    id: JobId,
     from_step: usize,
     status: JobStatus,
     live: Option<BoxStream<'static, BusEvent>>,

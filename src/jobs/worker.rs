@@ -20,14 +20,17 @@
 
 use super::codec::{decode_checkpoint, encode_checkpoint, f32s_to_bytes, f64s_to_bytes};
 use super::ports::{BlobKey, Fence, JobStore, Lease, LeaseControl, Started};
-use super::{mesh_error, now_ms, Frame, Inner, JobError, JobEvent, JobState, JobStatus, Jobs};
+use super::{
+    mesh_error, now_ms, FailureCode, Frame, Inner, JobError, JobEvent, JobId, JobState, JobStatus,
+    Jobs,
+};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::runtime::Handle;
 use tokio_util::sync::CancellationToken;
-use willow::flow::stopping::{Event, Outcome as RunOutcome, Run};
-use willow::flow::{new_flow, Flow, FlowError};
+use willow::flow::stopping::{Event, Run};
+use willow::flow::{new_flow, Flow};
 use willow::mesh::io::Asset;
 use willow::metrics::StepMetrics;
 
@@ -167,7 +170,7 @@ async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
                 inner,
                 &id,
                 JobState::Failed,
-                Some(("redelivered", reason)),
+                Some((FailureCode::Redelivered, reason)),
                 Some(&fence),
             )
             .await
@@ -189,7 +192,7 @@ async fn run_held(
     running: JobStatus,
 ) -> Result<Outcome, JobError> {
     let backend = &inner.backend;
-    let id = lease.id.clone();
+    let id = running.id.clone();
     let token = backend.cancels.watch(&id).await;
     inner.running.fetch_add(1, Ordering::SeqCst);
     inner
@@ -255,7 +258,7 @@ async fn settle(
                 inner,
                 id,
                 JobState::Failed,
-                Some(("internal", e.to_string())),
+                Some((FailureCode::Internal, e.to_string())),
                 Some(fence),
             )
             .await;
@@ -345,7 +348,7 @@ enum Stop {
 fn run_job(
     inner: &Arc<Inner>,
     rt: &Handle,
-    id: &str,
+    id: &JobId,
     token: &CancellationToken,
     fence: &Fence,
     running: JobStatus,
@@ -395,7 +398,7 @@ fn run_job(
                 inner,
                 id,
                 JobState::Failed,
-                Some(("invalid_mesh", e.to_string())),
+                Some((FailureCode::InvalidMesh, e.to_string())),
                 Some(fence),
             ))?;
             return Ok(Outcome::Done);
@@ -412,7 +415,7 @@ fn run_job(
                 inner,
                 id,
                 JobState::Failed,
-                Some(("invalid_parameter", e.to_string())),
+                Some((FailureCode::InvalidParameter, e.to_string())),
                 Some(fence),
             ))?;
             return Ok(Outcome::Done);
@@ -432,7 +435,7 @@ fn run_job(
                 inner,
                 id,
                 JobState::Failed,
-                Some((flow_error_code(&e), e.to_string())),
+                Some((FailureCode::of_flow(&e), e.to_string())),
                 Some(fence),
             ))?;
             return Ok(Outcome::Done);
@@ -507,7 +510,7 @@ fn run_job(
                 inner,
                 id,
                 JobState::Failed,
-                Some((flow_error_code(&e), e.to_string())),
+                Some((FailureCode::of_flow(&e), e.to_string())),
                 Some(fence),
             ))?;
             return Ok(Outcome::Done);
@@ -534,7 +537,7 @@ fn run_job(
                     inner,
                     id,
                     JobState::Failed,
-                    Some((flow_error_code(&e), e.to_string())),
+                    Some((FailureCode::of_flow(&e), e.to_string())),
                     Some(fence),
                 ))?;
                 return Ok(Outcome::Done);
@@ -552,7 +555,7 @@ fn run_job(
                 id,
                 JobState::Failed,
                 Some((
-                    "numerical",
+                    FailureCode::Numerical,
                     format!("numerical failure at step {step}: vertex {bad} is not finite"),
                 )),
                 Some(fence),
@@ -573,11 +576,11 @@ fn run_job(
     tracing::info!(outcome = outcome.name(), %reason, "flow ended");
     // A run that took all its steps says nothing more; any other ending is the job's note
     // (`JobStatus::error_code` on a succeeded job, and so its `outcome`).
-    let stopped_early = (outcome != RunOutcome::Completed).then(|| (outcome.name(), reason));
+    let stopped_early = FailureCode::of_outcome(outcome).map(|code| (code, reason));
     debug_assert!(first_non_finite(flow.positions()).is_none());
     still_held()?;
     rt.block_on(backend.blobs.put(
-        BlobKey::Result { id: id.to_string() },
+        BlobKey::Result { id: id.clone() },
         f64s_to_bytes(flow.positions()).into(),
     ))?;
     let elapsed = started.elapsed();
@@ -595,19 +598,15 @@ fn run_job(
         Some(fence),
     ))?;
     // The checkpoint has served: a finished job is never resumed.
-    let _ = rt.block_on(
-        backend
-            .blobs
-            .delete(BlobKey::Checkpoint { id: id.to_string() }),
-    );
+    let _ = rt.block_on(backend.blobs.delete(BlobKey::Checkpoint { id: id.clone() }));
     tracing::info!(elapsed_ms = ms, "job succeeded");
     Ok(Outcome::Done)
 }
 
 /// The blob keys of a frame's positions: file order (f32) and welded (f64).
-fn frame_keys(id: &str, step: usize) -> (BlobKey, BlobKey) {
+fn frame_keys(id: &JobId, step: usize) -> (BlobKey, BlobKey) {
     let key = |welded| BlobKey::Frame {
-        id: id.to_string(),
+        id: id.clone(),
         step,
         welded,
     };
@@ -632,8 +631,8 @@ fn read_asset(inner: &Inner, rt: &Handle, status: &JobStatus) -> Result<Asset, J
 }
 
 /// Put `flow` on the job's checkpoint, if it has a usable one; the metrics of the step it is at.
-fn resume(inner: &Inner, rt: &Handle, id: &str, flow: &mut dyn Flow) -> Option<StepMetrics> {
-    let key = BlobKey::Checkpoint { id: id.to_string() };
+fn resume(inner: &Inner, rt: &Handle, id: &JobId, flow: &mut dyn Flow) -> Option<StepMetrics> {
+    let key = BlobKey::Checkpoint { id: id.clone() };
     let bytes = match rt.block_on(inner.backend.blobs.get(key)) {
         Ok(Some(b)) => b,
         Ok(None) => return None,
@@ -659,12 +658,12 @@ fn resume(inner: &Inner, rt: &Handle, id: &str, flow: &mut dyn Flow) -> Option<S
 }
 
 /// Write the flow's state as the job's checkpoint.
-fn checkpoint(inner: &Inner, rt: &Handle, id: &str, flow: &dyn Flow) -> Result<(), JobError> {
+fn checkpoint(inner: &Inner, rt: &Handle, id: &JobId, flow: &dyn Flow) -> Result<(), JobError> {
     let Some(state) = flow.checkpoint() else {
         return Ok(());
     };
     let t = Instant::now();
-    let key = BlobKey::Checkpoint { id: id.to_string() };
+    let key = BlobKey::Checkpoint { id: id.clone() };
     rt.block_on(
         inner
             .backend
@@ -688,7 +687,7 @@ fn first_non_finite(positions: &[[f64; 3]]) -> Option<usize> {
 fn stopped(
     inner: &Arc<Inner>,
     rt: &Handle,
-    id: &str,
+    id: &JobId,
     stop: Stop,
     status: &JobStatus,
     flow: Option<&dyn Flow>,
@@ -702,7 +701,7 @@ fn stopped(
                 id,
                 JobState::Cancelled,
                 Some((
-                    "cancelled",
+                    FailureCode::Cancelled,
                     format!("cancelled after step {step} of {}", status.total_steps),
                 )),
                 Some(fence),
@@ -718,7 +717,7 @@ fn stopped(
                 id,
                 JobState::Failed,
                 Some((
-                    "deadline_exceeded",
+                    FailureCode::DeadlineExceeded,
                     format!(
                         "deadline of {secs} s (from submission) exceeded after step {step} of {}",
                         status.total_steps
@@ -747,29 +746,19 @@ fn stopped(
     Ok(Outcome::Done)
 }
 
-fn flow_error_code(e: &FlowError) -> &'static str {
-    match e {
-        FlowError::InvalidParameter { .. } => "invalid_parameter",
-        FlowError::Unsupported(_) => "unsupported",
-        FlowError::Numerical { .. } => "numerical",
-        FlowError::NoProgress { .. } => "no_progress",
-    }
-}
-
 /// Move a job to a terminal state, tell its watchers and close its channel. Idempotent: a job
 /// that is already terminal is returned as it is.
 pub(crate) async fn finish(
     inner: &Inner,
     id: &str,
     state: JobState,
-    error: Option<(&str, String)>,
+    error: Option<(FailureCode, String)>,
     fence: Option<&Fence>,
 ) -> Result<JobStatus, JobError> {
     let backend = &inner.backend;
     let now = now_ms();
     let expires = now + inner.config.result_ttl.as_millis() as u64;
-    let code = error.as_ref().map(|(c, _)| c.to_string());
-    let error = error.map(|(c, m)| (c.to_string(), m));
+    let code = error.as_ref().map(|(c, _)| *c);
     let Some(status) = backend
         .store
         .finish(id, state, error, now, expires, fence)
@@ -784,7 +773,7 @@ pub(crate) async fn finish(
     backend.events.close(id).await;
     inner.telemetry.record_outcome(
         state,
-        code.as_deref(),
+        code,
         status.started_at.map(|s| now.saturating_sub(s)),
     );
     if state == JobState::Failed {

@@ -1,4 +1,4 @@
-//! Processes for the multi-process tests of the NATS JetStream backend (tests/service_nats.rs):
+//! Processes for the multi-process tests of the NATS JetStream backend (tests/service_nats/):
 //! a nats-server of the test's own on loopback, and `willow serve` nodes (roles api, worker,
 //! all) pointed at it, each a child process killed and reaped when its guard drops, so that a
 //! failing test leaves nothing running. Logs go to files in the test's temp dir; a guard

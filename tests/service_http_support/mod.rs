@@ -269,6 +269,15 @@ impl TestServer {
         (status, headers, json)
     }
 
+    /// GET `path` (panics naming it if the request cannot be sent).
+    pub async fn get(&self, path: &str) -> reqwest::Response {
+        self.client
+            .get(self.url(path))
+            .send()
+            .await
+            .unwrap_or_else(|e| panic!("GET {path}: {e}"))
+    }
+
     pub async fn get_json(&self, path: &str) -> (reqwest::StatusCode, serde_json::Value) {
         let res = self.client.get(self.url(path)).send().await.expect("GET");
         let status = res.status();

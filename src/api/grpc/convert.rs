@@ -546,8 +546,8 @@ pub(super) fn frame_pb(frame: &Frame) -> v1::Frame {
 }
 
 /// Why a job failed or was cancelled, as a `google.rpc.Status` (Job.error, Operation.error).
-/// The core's machine-readable `error_code` picks the canonical code and rides along as
-/// `ErrorInfo.reason`.
+/// The core's machine-readable `error_code` picks the canonical code (in the one table,
+/// [`crate::api::status::of_failure`]) and rides along as `ErrorInfo.reason`.
 fn job_failure(status: &JobStatus) -> Option<tonic_types::pb::Status> {
     if !matches!(status.state, JobState::Failed | JobState::Cancelled) {
         return None;
@@ -556,17 +556,7 @@ fn job_failure(status: &JobStatus) -> Option<tonic_types::pb::Status> {
         JobState::Cancelled => "cancelled",
         _ => "unknown",
     });
-    let code = match (status.state, reason) {
-        // google.longrunning: a cancelled operation's error has code CANCELLED.
-        (JobState::Cancelled, _) | (_, "cancelled") => Code::Cancelled,
-        (_, "deadline_exceeded") => Code::DeadlineExceeded,
-        (_, "invalid_mesh" | "invalid_parameter") => Code::InvalidArgument,
-        (_, "unsupported") => Code::Unimplemented,
-        (_, "internal") => Code::Internal,
-        // A numerical breakdown of the flow on this mesh: not the client's fault, not a server
-        // bug, not retryable. UNKNOWN plus the reason says exactly that.
-        _ => Code::Unknown,
-    };
+    let code = crate::api::status::of_failure(status.state, status.failure());
     let info = tonic_types::pb::ErrorInfo {
         reason: reason.to_ascii_uppercase(),
         domain: ERROR_DOMAIN.to_string(),

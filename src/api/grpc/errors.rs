@@ -1,5 +1,6 @@
-//! Errors: the one place a [`JobError`] becomes a [`tonic::Status`] (`job_error`, and
-//! `curve_error` for `FairCurve`), with the google.rpc error details the proto documents.
+//! Errors: where a [`JobError`] becomes a [`tonic::Status`] (`job_error`, and `curve_error`
+//! for `FairCurve`) and a failed job a `google.rpc.Status` (`job_failure`): the code from the
+//! one table in [`crate::api::status`], the google.rpc error details the proto documents.
 
 use std::collections::HashMap;
 use std::time::Duration;
@@ -8,6 +9,7 @@ use tonic::{Code, Request, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
 use crate::api::problem::cap_detail;
+use crate::api::status;
 use crate::jobs::{Caller, JobError};
 
 /// `google.rpc.ErrorInfo.domain` of the errors this service produces.
@@ -59,13 +61,24 @@ fn spec_field(core_field: &str) -> String {
 }
 
 /// Map a job-core error to its status. `mesh_field` is the request field that carried the mesh
-/// (or the job name), so field violations point at what the client sent.
+/// (or the job name), so field violations point at what the client sent. The code comes from
+/// the one table ([`status::of_error`]) and the retry hint from the core; the details are
+/// gRPC's own.
 pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
+    let code = status::of_error(&err).grpc;
+    if let JobError::Internal(detail) = &err {
+        // The detail may name files and SQL: log it, don't send it.
+        tracing::error!(error = %detail, "internal error in a gRPC call");
+        return Status::internal("internal error");
+    }
     // The core's messages may echo user input (a parameter value, a parser's complaint about
     // the mesh): capped so the status stays small enough to travel in a header.
     let message = cap_detail(err.to_string());
     let mut details = ErrorDetails::new();
-    let code = match &err {
+    if let Some(secs) = err.retry_after_secs() {
+        details.set_retry_info(Some(Duration::from_secs(secs)));
+    }
+    match &err {
         JobError::NotFound(id) => {
             details.set_resource_info(
                 "willow.v1.Job",
@@ -73,7 +86,6 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 "",
                 "no such job",
             );
-            Code::NotFound
         }
         JobError::Gone(id) => {
             details.set_resource_info(
@@ -83,7 +95,6 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 "the job expired and its results were deleted",
             );
             details.set_error_info("EXPIRED", ERROR_DOMAIN, HashMap::new());
-            Code::NotFound
         }
         JobError::UploadNotFound(id) => {
             details.set_resource_info(
@@ -92,7 +103,6 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 "",
                 "no such upload (uploads expire like jobs)",
             );
-            Code::NotFound
         }
         JobError::FrameNotFound { id, step, detail } => {
             details.set_resource_info(
@@ -101,27 +111,17 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 "",
                 detail.clone(),
             );
-            Code::NotFound
         }
-        JobError::QueueFull {
-            retry_after_secs,
-            capacity,
-        } => {
-            details.set_retry_info(Some(Duration::from_secs(*retry_after_secs)));
+        JobError::QueueFull { capacity, .. } => {
             details.set_error_info(
                 "QUEUE_FULL",
                 ERROR_DOMAIN,
                 HashMap::from([("capacity".to_string(), capacity.to_string())]),
             );
-            Code::ResourceExhausted
         }
         JobError::QuotaExceeded {
-            quota,
-            limit,
-            used,
-            retry_after_secs,
+            quota, limit, used, ..
         } => {
-            details.set_retry_info(Some(Duration::from_secs(*retry_after_secs)));
             details.add_quota_failure_violation(
                 format!("tenant_quota:{quota}"),
                 format!("tenant quota `{quota}` of {limit} is spent"),
@@ -134,7 +134,6 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 meta.insert("used".to_string(), used.to_string());
             }
             details.set_error_info("QUOTA_EXCEEDED", ERROR_DOMAIN, meta);
-            Code::ResourceExhausted
         }
         JobError::InvalidMesh(mesh) => {
             details.add_bad_request_violation(mesh_field, cap_detail(mesh.to_string()));
@@ -143,13 +142,10 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 ERROR_DOMAIN,
                 HashMap::new(),
             );
-            Code::InvalidArgument
         }
         JobError::InvalidSpec { field, reason } => {
             details.add_bad_request_violation(spec_field(field), cap_detail(reason.clone()));
-            Code::InvalidArgument
         }
-        // A step count over the limit is a parameter out of range, not a resource.
         JobError::TooLarge {
             what: "steps",
             limit,
@@ -158,10 +154,8 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 "params.steps",
                 format!("must be at most {limit} (the server's limit)"),
             );
-            Code::InvalidArgument
         }
-        // A mesh over a size limit: RESOURCE_EXHAUSTED as gRPC itself answers an oversized
-        // message, with the limit named and no RetryInfo (retrying cannot help).
+        // A mesh over a size limit: the limit named, and no RetryInfo (retrying cannot help).
         JobError::TooLarge { what, limit } => {
             details
                 .add_quota_failure_violation(*what, format!("{what} exceeds the limit of {limit}"));
@@ -169,11 +163,9 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 mesh_field,
                 format!("{what} exceeds the limit of {limit}"),
             );
-            Code::ResourceExhausted
         }
         JobError::Conflict(reason) => {
             details.add_precondition_failure_violation("STATE", mesh_field, reason.clone());
-            Code::FailedPrecondition
         }
         JobError::IdempotencyMismatch(_) => {
             details.add_bad_request_violation(
@@ -181,12 +173,6 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 "already used for a different request; use a new request_id",
             );
             details.set_error_info("REQUEST_ID_REUSED", ERROR_DOMAIN, HashMap::new());
-            Code::AlreadyExists
-        }
-        JobError::ShuttingDown => {
-            // Another replica (or this one, restarted) can take the job.
-            details.set_retry_info(Some(Duration::from_secs(1)));
-            Code::Unavailable
         }
         JobError::InvalidCurve(curve) => {
             details.add_bad_request_violation(mesh_field, cap_detail(curve.to_string()));
@@ -195,37 +181,22 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 ERROR_DOMAIN,
                 HashMap::new(),
             );
-            Code::InvalidArgument
         }
-        JobError::Busy {
-            retry_after_secs,
-            slots,
-        } => {
-            details.set_retry_info(Some(Duration::from_secs(*retry_after_secs)));
+        JobError::Busy { slots, .. } => {
             details.set_error_info(
                 "BUSY",
                 ERROR_DOMAIN,
                 HashMap::from([("slots".to_string(), slots.to_string())]),
             );
-            Code::ResourceExhausted
         }
-        JobError::DeadlineExceeded { .. } => Code::DeadlineExceeded,
         JobError::Numerical { .. } => {
-            // As a job's numerical failure: not the client's fault, not retryable (job_failure).
             details.set_error_info("NUMERICAL", ERROR_DOMAIN, HashMap::new());
-            Code::Unknown
         }
         JobError::Unavailable(detail) => {
             tracing::warn!(error = %detail, "backend unavailable in a gRPC call");
-            details.set_retry_info(Some(Duration::from_secs(2)));
-            Code::Unavailable
         }
-        JobError::Internal(detail) => {
-            // The detail may name files and SQL: log it, don't send it.
-            tracing::error!(error = %detail, "internal error in a gRPC call");
-            return Status::internal("internal error");
-        }
-    };
+        JobError::ShuttingDown | JobError::DeadlineExceeded { .. } | JobError::Internal(_) => {}
+    }
     Status::with_error_details(code, message, details)
 }
 

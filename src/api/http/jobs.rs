@@ -116,7 +116,7 @@ impl From<JobStatus> for JobView {
                 cancel: format!("{base}/cancel"),
                 self_: base,
             },
-            id: s.id,
+            id: s.id.into(),
         }
     }
 }

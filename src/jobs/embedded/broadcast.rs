@@ -6,7 +6,7 @@
 //! written before it is published. Frames travel with their positions (`Arc`, no copy).
 
 use super::super::ports::{BusEvent, CancelBus, EventBus};
-use super::super::{JobError, JobEvent, JobId};
+use super::super::{JobError, JobEvent};
 use async_trait::async_trait;
 use futures::stream::BoxStream;
 use futures::StreamExt;
@@ -25,11 +25,11 @@ pub const LIVE_CAPACITY: usize = 128;
 /// The live channels of jobs that are not terminal.
 #[derive(Default)]
 pub struct Broadcast {
-    channels: Mutex<HashMap<JobId, broadcast::Sender<JobEvent>>>,
+    channels: Mutex<HashMap<String, broadcast::Sender<JobEvent>>>,
 }
 
 impl Broadcast {
-    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<JobId, broadcast::Sender<JobEvent>>> {
+    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<String, broadcast::Sender<JobEvent>>> {
         // The map is consistent after any panic (single insert/remove calls).
         self.channels.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -86,9 +86,9 @@ pub struct LocalCancels {
 
 #[derive(Default)]
 struct Cancels {
-    running: HashMap<JobId, CancellationToken>,
+    running: HashMap<String, CancellationToken>,
     /// Cancelled while between the queue and its worker's `watch`.
-    early: HashSet<JobId>,
+    early: HashSet<String>,
 }
 
 impl LocalCancels {

@@ -13,9 +13,9 @@
 //! cache survives it), and after a power loss a job resumes from its checkpoint and writes
 //! them again. Everything else is ([`BlobKey::durable`]).
 
+use super::super::ids::well_formed;
 use super::super::ports::{BlobKey, BlobStore};
-use super::super::{format_name, join_err, JobError};
-use super::sqlite::check_id;
+use super::super::{format_name, join_err, JobError, JobId};
 use async_trait::async_trait;
 use std::fs;
 use std::io::Write;
@@ -36,7 +36,7 @@ impl FileBlobs {
     }
 
     fn job_dir(&self, id: &str) -> Result<PathBuf, JobError> {
-        check_id(id)?;
+        JobId::parse(id)?;
         Ok(self.dir.join("jobs").join(id))
     }
 
@@ -52,7 +52,9 @@ impl FileBlobs {
             BlobKey::Result { id } => self.job_dir(id)?.join("result.f64"),
             BlobKey::Checkpoint { id } => self.job_dir(id)?.join("checkpoint"),
             BlobKey::Upload { id, format } => {
-                check_id(id).map_err(|_| JobError::UploadNotFound(id.clone()))?;
+                if !well_formed(id) {
+                    return Err(JobError::UploadNotFound(id.clone()));
+                }
                 self.dir
                     .join("uploads")
                     .join(format!("{id}.{}", format_name(*format)))

@@ -11,7 +11,7 @@
 //! per worker. Within a tenant the order is first in, first out.
 
 use super::super::ports::{Lease, LeaseControl, Recovered, WorkQueue};
-use super::super::JobError;
+use super::super::{JobError, JobId};
 use async_trait::async_trait;
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -171,7 +171,7 @@ pub struct SharedQueue(pub Arc<EmbeddedQueue>);
 impl WorkQueue for SharedQueue {
     async fn push(&self, tenant: &str, id: &str) -> Result<(), JobError> {
         let job = Recovered {
-            id: id.to_string(),
+            id: JobId::parse(id)?,
             tenant: tenant.to_string(),
             delivered: 0,
         };
@@ -193,7 +193,7 @@ impl WorkQueue for SharedQueue {
     async fn lease(&self) -> Result<Lease, JobError> {
         let job = self.0.pop().await;
         Ok(Lease {
-            id: job.id.clone(),
+            id: job.id.to_string(),
             attempt: job.delivered.saturating_add(1),
             control: Arc::new(EmbeddedLease {
                 queue: self.0.clone(),
@@ -221,7 +221,7 @@ mod tests {
 
     fn recovered(id: &str, delivered: u32) -> Recovered {
         Recovered {
-            id: id.into(),
+            id: JobId::parse(id).expect("hex digits: an id"),
             tenant: "t".into(),
             delivered,
         }
@@ -256,7 +256,7 @@ mod tests {
         ]
         .into();
         assert_eq!(order, ["c", "d", "b"]);
-        for id in ["e", "f", "g"] {
+        for id in ["e", "f", "e0"] {
             q.push_recovered(recovered(id, 2)).await.expect("recovered");
         }
         assert_eq!(q.depth(), 3, "recovered jobs bypass the capacity");

@@ -9,7 +9,7 @@
 
 use super::super::codec::{decode_metrics, encode_metrics};
 use super::super::ports::{BusEvent, CancelBus, EventBus};
-use super::super::{Frame, JobError, JobEvent, JobId, JobStatus};
+use super::super::{Frame, JobError, JobEvent, JobStatus};
 use super::{nats_err, Nats};
 use async_trait::async_trait;
 use futures::stream::BoxStream;
@@ -124,12 +124,12 @@ fn json<T: Serialize>(v: &T) -> Result<Vec<u8>, JobError> {
 /// Tokens of the jobs this node runs; one subscription to `willow.cancel.*` feeds them.
 pub(crate) struct NatsCancels {
     nats: Arc<Nats>,
-    running: Arc<Mutex<HashMap<JobId, CancellationToken>>>,
+    running: Arc<Mutex<HashMap<String, CancellationToken>>>,
 }
 
 impl NatsCancels {
     pub async fn start(nats: Arc<Nats>) -> Result<NatsCancels, JobError> {
-        let running: Arc<Mutex<HashMap<JobId, CancellationToken>>> = Arc::default();
+        let running: Arc<Mutex<HashMap<String, CancellationToken>>> = Arc::default();
         let mut sub = nats
             .client
             .subscribe("willow.cancel.*")
@@ -155,7 +155,7 @@ impl NatsCancels {
         Ok(NatsCancels { nats, running })
     }
 
-    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<JobId, CancellationToken>> {
+    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<String, CancellationToken>> {
         self.running.lock().unwrap_or_else(|p| p.into_inner())
     }
 }

@@ -13,10 +13,10 @@
 //! the info's size and SHA-256 digest. The layout is the object store's own, so objects stored
 //! before this read path (or by other clients) read the same.
 
+use super::super::ids::well_formed;
 use super::super::ports::{BlobKey, BlobStore};
-use super::super::{format_name, JobError};
+use super::super::{format_name, JobError, JobId};
 use super::{nats_err, retry};
-use crate::jobs::embedded::sqlite::check_id;
 use async_nats::jetstream::object_store::{ObjectInfo, ObjectStore};
 use async_nats::jetstream::stream::{DirectGetError, DirectGetErrorKind, Stream};
 use async_trait::async_trait;
@@ -71,7 +71,7 @@ fn direct_err(what: &str, e: DirectGetError) -> JobError {
 
 fn name(key: &BlobKey) -> Result<String, JobError> {
     if let Some(id) = key.job() {
-        check_id(id)?;
+        JobId::parse(id)?;
     }
     Ok(match key {
         BlobKey::Input { id, format } => format!("jobs/{id}/input.{}", format_name(*format)),
@@ -84,7 +84,9 @@ fn name(key: &BlobKey) -> Result<String, JobError> {
         BlobKey::Result { id } => format!("jobs/{id}/result.f64"),
         BlobKey::Checkpoint { id } => format!("jobs/{id}/checkpoint"),
         BlobKey::Upload { id, format } => {
-            check_id(id).map_err(|_| JobError::UploadNotFound(id.clone()))?;
+            if !well_formed(id) {
+                return Err(JobError::UploadNotFound(id.clone()));
+            }
             format!("uploads/{id}.{}", format_name(*format))
         }
     })
@@ -220,7 +222,7 @@ impl ObjectBlobs {
     /// per-subject info, no consumer: the client's `list` leaves one behind like `get` did, and
     /// a sweep deletes many jobs at once).
     async fn delete_job_blobs(&self, id: &str) -> Result<(), JobError> {
-        check_id(id)?;
+        JobId::parse(id)?;
         let prefix = format!("jobs/{id}/");
         let meta = format!("$O.{}.M.", self.bucket);
         let mut subjects = self

@@ -56,7 +56,7 @@ pub const STALL_WINDOW: usize = 5;
 pub const STILL_TOLERANCE: f64 = 1e-12;
 
 /// How a run ended (module docs).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Outcome {
     /// Ran all its steps.
@@ -81,6 +81,24 @@ pub enum Outcome {
 }
 
 impl Outcome {
+    /// Every outcome: the `match` in [`Outcome::name`] makes a new one a compile error until
+    /// it is named, and so listed here.
+    pub const ALL: [Outcome; 8] = [
+        Outcome::Completed,
+        Outcome::Converged,
+        Outcome::TargetReached,
+        Outcome::MaxDeviation,
+        Outcome::NoProgress,
+        Outcome::FeatureScaleReached,
+        Outcome::AlreadyFair,
+        Outcome::Stalled,
+    ];
+
+    /// The outcome of a name ([`Outcome::name`]); `None` for any other text.
+    pub fn parse(name: &str) -> Option<Outcome> {
+        Outcome::ALL.into_iter().find(|o| o.name() == name)
+    }
+
     /// The one name of an outcome (its JSON form).
     pub const fn name(self) -> &'static str {
         match self {
@@ -604,5 +622,9 @@ mod tests {
         let json = serde_json::to_string(&Outcome::TargetReached).expect("serializes");
         assert_eq!(json, "\"target_reached\"");
         assert_eq!(Outcome::MaxDeviation.name(), "max_deviation");
+        for o in Outcome::ALL {
+            assert_eq!(Outcome::parse(o.name()), Some(o));
+        }
+        assert_eq!(Outcome::parse("Converged"), None);
     }
 }

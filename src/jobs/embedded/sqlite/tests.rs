@@ -1,0 +1,177 @@
+use super::schema::RECOUNT_USAGE;
+use super::*;
+use crate::jobs::ports::{Fence, JobStore, MINUTE_MS};
+use crate::jobs::{JobSpec, JobState, TenantQuotas};
+use willow::mesh::io::Format;
+
+const MIN: u64 = MINUTE_MS;
+
+fn job(tenant: &str, bytes: u64, at: u64) -> NewJob {
+    NewJob {
+        id: JobId::random(),
+        tenant: tenant.to_string(),
+        spec: JobSpec::default(),
+        format: Format::Obj,
+        vertex_count: 3,
+        face_count: 1,
+        input_bytes: bytes,
+        received: true,
+        created_at: at,
+        quotas: TenantQuotas {
+            max_live_jobs: 0,
+            max_stored_bytes: 0,
+            uploads_per_minute: 0,
+        },
+        idempotency: None,
+    }
+}
+
+fn usage_rows(store: &SqliteStore) -> Vec<(String, i64, i64, i64, i64, i64)> {
+    let conn = store.conn().expect("conn");
+    let mut st = conn
+        .prepare(
+            "SELECT tenant, bytes, live, window_start, window_count, previous_count
+             FROM tenant_usage ORDER BY tenant",
+        )
+        .expect("prepare");
+    st.query_map([], |r| {
+        Ok((
+            r.get(0)?,
+            r.get(1)?,
+            r.get(2)?,
+            r.get(3)?,
+            r.get(4)?,
+            r.get(5)?,
+        ))
+    })
+    .expect("query")
+    .collect::<Result<_, _>>()
+    .expect("rows")
+}
+
+/// After every kind of change (jobs queued, started, finished, requeued, expired and
+/// deleted, uploads stored and swept, over three minutes), the bytes and live jobs the
+/// triggers keep equal a recount from the rows themselves, the minute windows count every
+/// mesh received, and what `usage` reports follows from them.
+#[tokio::test]
+async fn triggers_keep_tenant_usage_equal_to_a_recount() {
+    let dir = tempfile::tempdir().expect("dir");
+    let store = SqliteStore::open(dir.path()).expect("open");
+    let now = now_ms();
+    let this_minute = now - now % MIN;
+    let (earlier, previous) = (this_minute - 2 * MIN + 5, this_minute - MIN + 5);
+    let id = |i: &Inserted| match i {
+        Inserted::New(s) => s.id.clone(),
+        other => panic!("not inserted: {other:?}"),
+    };
+    let mut a = Vec::new();
+    for (bytes, at) in [(100, earlier), (200, previous), (300, previous), (400, now)] {
+        a.push(id(&store
+            .insert(job("a", bytes, at))
+            .await
+            .expect("insert")));
+    }
+    let b = id(&store.insert(job("b", 50, now)).await.expect("insert"));
+    // c's job is made from a stored upload: it holds its bytes and a live job, but
+    // received no mesh.
+    let stored = NewJob {
+        received: false,
+        ..job("c", 25, now)
+    };
+    store.insert(stored).await.expect("insert");
+    let fence = Fence::new(std::time::Duration::from_secs(30));
+    store.start(&a[0], &fence, now).await.expect("start");
+    store.start(&a[1], &fence, now).await.expect("start");
+    store.requeue(&a[1], &fence).await.expect("requeue");
+    store
+        .finish(&a[0], JobState::Succeeded, None, now, now + 1, None)
+        .await
+        .expect("finish");
+    store
+        .finish(&a[2], JobState::Failed, None, now, now + 10 * MIN, None)
+        .await
+        .expect("finish");
+    store
+        .finish(&b, JobState::Cancelled, None, now, now + 10 * MIN, None)
+        .await
+        .expect("finish");
+    store
+        .put_upload("b", "u1", Format::Obj, 70, now + 1)
+        .await
+        .expect("upload");
+    store
+        .put_upload("b", "u2", Format::Obj, 80, now + 10 * MIN)
+        .await
+        .expect("upload");
+    // a[0] and u1 expire; a[2] is deleted.
+    store.sweep_expired(now + 2).await.expect("sweep");
+    store.delete("a", &a[2]).await.expect("delete");
+
+    let kept = usage_rows(&store);
+    let usage = store.usage("a", now).await.expect("usage");
+    assert_eq!(usage.live_jobs, 2);
+    assert_eq!(usage.stored_bytes, 600);
+    assert_eq!(
+        usage.uploads_last_minute,
+        MinuteWindows {
+            start: this_minute,
+            current: 1,
+            previous: 2
+        }
+        .last_minute(now)
+    );
+    {
+        let conn = store.conn().expect("conn");
+        conn.execute("DELETE FROM tenant_usage", []).expect("empty");
+        conn.execute(RECOUNT_USAGE, params![ms(this_minute)])
+            .expect("recount");
+    }
+    let recounted = usage_rows(&store);
+    // Bytes and live jobs equal the recount.
+    let held = |rows: &[(String, i64, i64, i64, i64, i64)]| -> Vec<(String, i64, i64)> {
+        rows.iter().map(|r| (r.0.clone(), r.1, r.2)).collect()
+    };
+    assert_eq!(held(&kept), held(&recounted));
+    // By hand: a keeps a[1] (queued, 200) and a[3] (queued, 400); b keeps its cancelled
+    // job (50) and u2 (80).
+    assert_eq!(
+        held(&kept),
+        [
+            ("a".into(), 600, 2),
+            ("b".into(), 130, 0),
+            ("c".into(), 25, 1)
+        ]
+    );
+    // Nothing received: c's windows stay empty, in the triggers' rows and the recount's.
+    assert_eq!((kept[2].4, kept[2].5), (0, 0));
+    assert_eq!((recounted[2].4, recounted[2].5), (0, 0));
+    let usage = store.usage("c", now).await.expect("usage");
+    assert_eq!((usage.live_jobs, usage.uploads_last_minute), (1, 0));
+    // The windows count every mesh received, also those deleted or swept since (deleting
+    // jobs frees no rate): a got 2 in the previous minute and 1 in this one, b 3 in this
+    // one. A recount sees only the rows still there (a[2] deleted, u1 swept).
+    assert_eq!((kept[0].3, kept[0].4, kept[0].5), (ms(this_minute), 1, 2));
+    // The triggers move the windows as `MinuteWindows::receive` does (the NATS store's).
+    let mut expected = MinuteWindows::default();
+    for at in [earlier, previous, previous, now] {
+        expected.receive(at);
+    }
+    let as_row = |w: MinuteWindows| (ms(w.start), ms(w.current), ms(w.previous));
+    assert_eq!((kept[0].3, kept[0].4, kept[0].5), as_row(expected));
+    // (b's uploads take the clock's time: if a minute started during the test, b's windows
+    // moved on and its 3 are split over them.)
+    let b_received = match kept[1].3 - ms(this_minute) {
+        0 => {
+            assert_eq!(kept[1].5, 0, "b received nothing before this minute");
+            kept[1].4
+        }
+        d if d == ms(MIN) => kept[1].4 + kept[1].5,
+        other => panic!("b's windows start {other} ms after the test's minute"),
+    };
+    assert_eq!(b_received, 3);
+    assert_eq!((recounted[0].4, recounted[0].5), (1, 1));
+    assert_eq!((recounted[1].4, recounted[1].5), (2, 0));
+
+    let unknown = store.usage("nobody", now).await.expect("usage");
+    assert_eq!(unknown, Usage::default());
+}

@@ -1,0 +1,521 @@
+//! Jobs end to end: uploads (OBJ, GLB, multipart, textured), streamed frames and SSE
+//! reconnection, results, cancellation, the queue limit, idempotency, listing and expiry.
+
+use super::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn obj_upload_streams_every_frame_then_result_downloads() {
+    let srv = start(|_| {}).await;
+    let (status, headers, job) = srv
+        .submit_obj(&small_obj(), "steps=5&frame_interval=2&method=conformal")
+        .await;
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().expect("id").to_string();
+    assert_eq!(
+        headers.get("location").and_then(|v| v.to_str().ok()),
+        Some(format!("/v1/jobs/{id}").as_str())
+    );
+    assert_eq!(job["progress"]["total_steps"], 5);
+    assert_eq!(job["links"]["events"], format!("/v1/jobs/{id}/events"));
+    assert!(job["created_time"]
+        .as_str()
+        .is_some_and(|t| t.ends_with('Z')));
+
+    // Watch from the start: state first, then frames 0..=5 in order, then done.
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
+    assert_eq!(res.status(), 200);
+    assert!(res
+        .headers()
+        .get("content-type")
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("text/event-stream")));
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    assert_eq!(events.first().map(|e| e.event.as_str()), Some("state"));
+    assert_eq!(
+        frame_steps(&events),
+        vec![0, 1, 2, 3, 4, 5],
+        "every step once, in order"
+    );
+    let vertex_count = job["vertex_count"].as_u64().expect("vertex_count") as usize;
+    for e in events.iter().filter(|e| e.event == "frame") {
+        let step = e.data["step"].as_u64().expect("step");
+        assert_eq!(
+            e.id.as_deref(),
+            Some(step.to_string().as_str()),
+            "SSE id = step"
+        );
+        assert!(e.data["metrics"]["willmore_energy"].is_number());
+        let has = e.data.get("positions_b64").is_some();
+        // Positions at step 0, every 2nd step, and the last step.
+        assert_eq!(has, step % 2 == 0 || step == 5, "positions at step {step}");
+        if has {
+            use base64::Engine as _;
+            let raw = base64::engine::general_purpose::STANDARD
+                .decode(e.data["positions_b64"].as_str().expect("b64 text"))
+                .expect("valid base64");
+            assert_eq!(raw.len(), vertex_count * 12, "f32 xyz per file vertex");
+        }
+    }
+    let done = events.last().expect("done event");
+    assert_eq!(done.event, "done");
+    assert_eq!(done.data["state"], "succeeded", "{}", done.data);
+
+    // Polling agrees.
+    let polled = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(polled["state"], "succeeded");
+    assert_eq!(polled["progress"]["step"], 5);
+    assert!(polled["metrics"]["latest"]["willmore_energy"].is_number());
+    assert!(polled["finished_time"].is_string() && polled["expire_time"].is_string());
+
+    // Frames list: metrics of steps 0..=5, paged.
+    let (st, page) = srv
+        .get_json(&format!("/v1/jobs/{id}/frames?page_size=4"))
+        .await;
+    assert_eq!(st, 200);
+    assert_eq!(page["frames"].as_array().map(Vec::len), Some(4));
+    assert_eq!(page["next_from_step"], 4);
+    let (_, rest) = srv
+        .get_json(&format!("/v1/jobs/{id}/frames?from_step=4"))
+        .await;
+    assert_eq!(rest["frames"].as_array().map(Vec::len), Some(2));
+    assert!(rest.get("next_from_step").is_none());
+
+    // A kept frame downloads; a step without positions is a specific 404.
+    let res = srv.get(&format!("/v1/jobs/{id}/frames/2?format=obj")).await;
+    assert_eq!(res.status(), 200);
+    assert_eq!(res.headers()["content-type"], "model/obj");
+    let obj = res.text().await.expect("frame body");
+    assert_eq!(
+        obj.lines().filter(|l| l.starts_with("v ")).count(),
+        vertex_count
+    );
+    let (st, p) = srv
+        .get_json(&format!("/v1/jobs/{id}/frames/3?format=obj"))
+        .await;
+    assert_eq!(st, 404);
+    assert_eq!(p["code"], "frame_not_found");
+    assert!(
+        p["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("every 2 steps")),
+        "{p}"
+    );
+
+    // The result as GLB (and validated by Khronos glTF-Validator when it is installed).
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=glb")).await;
+    assert_eq!(res.status(), 200);
+    assert_eq!(res.headers()["content-type"], "model/gltf-binary");
+    let glb = res.bytes().await.expect("result body");
+    assert_eq!(&glb[..4], b"glTF", "GLB magic");
+    validate_gltf_if_available(&glb);
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=obj")).await;
+    assert_eq!(res.status(), 200);
+    srv.stop().await;
+}
+
+/// Run the repository's glTF validator script on `bytes` if node and the script are present.
+fn validate_gltf_if_available(bytes: &[u8]) {
+    let script =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/tools/validate_gltf.js");
+    if !script.exists() {
+        eprintln!("note: {} not present; GLB not validated", script.display());
+        return;
+    }
+    let dir = tempfile::tempdir().expect("temp dir");
+    let file = dir.path().join("result.glb");
+    std::fs::write(&file, bytes).expect("write glb");
+    match std::process::Command::new("node")
+        .arg(&script)
+        .arg(&file)
+        .output()
+    {
+        Ok(out) => assert!(
+            out.status.success(),
+            "glTF validator rejected the result:\n{}\n{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        ),
+        Err(e) => eprintln!("note: node not runnable ({e}); GLB not validated"),
+    }
+}
+
+/// A client applies the last streamed positions to the `v` lines of the OBJ it uploaded
+/// (shuffled vertex order, unused vertices) and gets the downloaded result.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streamed_positions_applied_to_the_upload_give_the_obj_result() {
+    use base64::Engine as _;
+    let srv = start(|_| {}).await;
+    let upload = shuffled_obj();
+    let (status, _, job) = srv
+        .submit_obj(&upload, "steps=3&frame_interval=1&method=conformal")
+        .await;
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().expect("id").to_string();
+    let v_lines = upload.lines().filter(|l| l.starts_with("v ")).count();
+    assert_eq!(job["vertex_count"].as_u64(), Some(v_lines as u64));
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    let done = events.last().expect("done event");
+    assert_eq!(done.data["state"], "succeeded", "{}", done.data);
+    let last = events
+        .iter()
+        .rev()
+        .find_map(|e| e.data.get("positions_b64").and_then(|p| p.as_str()))
+        .expect("a frame with positions");
+    let frame = f32_triples(
+        &base64::engine::general_purpose::STANDARD
+            .decode(last)
+            .expect("base64"),
+    );
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=obj")).await;
+    assert_eq!(res.status(), 200);
+    let result = res.text().await.expect("OBJ text");
+    assert_frame_applies_to_upload(&upload, &frame, &result);
+    assert_ne!(result, upload, "the result is faired, not the upload");
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sse_reconnect_with_last_event_id_resumes_after_that_step() {
+    let srv = start(|_| {}).await;
+    let (status, _, job) = srv.submit_obj(&small_obj(), "steps=6").await;
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().expect("id").to_string();
+
+    // First connection: read until step 2, then drop it (the client "disconnects").
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
+    let mut stream = res.bytes_stream();
+    let mut seen = String::new();
+    use futures::StreamExt;
+    while !seen.contains("id: 2\n") && !seen.contains("id:2\n") {
+        let chunk = tokio::time::timeout(JOB_TIMEOUT, stream.next())
+            .await
+            .expect("frames arrive")
+            .expect("stream open")
+            .expect("chunk");
+        seen.push_str(&String::from_utf8_lossy(&chunk));
+    }
+    drop(stream);
+
+    // Reconnect as EventSource does: Last-Event-ID = the last id seen.
+    let res = srv
+        .client
+        .get(srv.url(&format!("/v1/jobs/{id}/events")))
+        .header("Last-Event-ID", "2")
+        .send()
+        .await
+        .expect("events again");
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    assert_eq!(frame_steps(&events), vec![3, 4, 5, 6]);
+    assert_eq!(events.last().map(|e| e.event.as_str()), Some("done"));
+
+    // A finished job replays entirely from the store, and `from_step` works too.
+    let res = srv.get(&format!("/v1/jobs/{id}/events?from_step=5")).await;
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    assert_eq!(frame_steps(&events), vec![5, 6]);
+    assert_eq!(
+        events.last().map(|e| e.data["state"].clone()),
+        Some("succeeded".into())
+    );
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn multipart_glb_upload_with_params_part_runs() {
+    let srv = start(|_| {}).await;
+    let glb = small_glb();
+    let form = reqwest::multipart::Form::new()
+        .part(
+            "mesh",
+            reqwest::multipart::Part::bytes(glb)
+                .file_name("sphere.glb")
+                .mime_str("model/gltf-binary")
+                .expect("mime"),
+        )
+        .text("params", r#"{"steps": 3, "include_positions": false}"#);
+    let res = srv
+        .client
+        .post(srv.url("/v1/jobs"))
+        .multipart(form)
+        .send()
+        .await
+        .expect("POST multipart");
+    assert_eq!(res.status(), 202);
+    let job: serde_json::Value = res.json().await.expect("json");
+    assert_eq!(job["input_format"], "glb");
+    assert_eq!(job["params"]["steps"], 3);
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    assert_eq!(frame_steps(&events), vec![0, 1, 2, 3]);
+    assert!(
+        events.iter().all(|e| e.data.get("positions_b64").is_none()),
+        "include_positions=false sends metrics only"
+    );
+    // A GLB input downloads as glTF JSON too.
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=gltf")).await;
+    assert_eq!(res.status(), 200);
+    assert_eq!(res.headers()["content-type"], "model/gltf+json");
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_queued_and_running_jobs_and_full_queue_gets_429() {
+    let srv = start(|c| {
+        c.workers = 1;
+        c.queue_capacity = 1;
+    })
+    .await;
+    let slow = slow_obj();
+    // A: runs (many steps on a bigger sphere), B: waits, C: refused.
+    let (st, _, a) = srv
+        .submit_obj(&slow, "steps=5000&until_converged=false")
+        .await;
+    assert_eq!(st, 202, "{a}");
+    let a_id = a["id"].as_str().expect("id").to_string();
+    srv.poll_until(&a_id, JOB_TIMEOUT, |v| v["state"] == "running")
+        .await;
+    let (st, _, b) = srv.submit_obj(&small_obj(), "steps=3").await;
+    assert_eq!(st, 202, "{b}");
+    let b_id = b["id"].as_str().expect("id").to_string();
+    assert_eq!(b["state"], "queued");
+
+    let (st, headers, p) = srv.submit_obj(&small_obj(), "steps=3").await;
+    assert_eq!(st, 429, "{p}");
+    let retry: u64 = headers
+        .get("retry-after")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse().ok())
+        .expect("Retry-After in seconds");
+    assert!(retry >= 1);
+    assert_eq!(
+        headers.get("content-type").and_then(|v| v.to_str().ok()),
+        Some("application/problem+json")
+    );
+    assert_eq!(p["code"], "queue_full");
+    assert_eq!(p["status"], 429);
+    assert_eq!(p["capacity"], 1);
+    assert!(p["detail"]
+        .as_str()
+        .is_some_and(|d| d.contains("queue is full")));
+
+    // Cancel the queued one: it is cancelled at once and never runs.
+    let res = srv
+        .client
+        .post(srv.url(&format!("/v1/jobs/{b_id}/cancel")))
+        .send()
+        .await
+        .expect("cancel B");
+    assert_eq!(res.status(), 202);
+    let b2: serde_json::Value = res.json().await.expect("json");
+    assert_eq!(b2["state"], "cancelled");
+    assert!(b2["started_time"].is_null());
+
+    // Cancel the running one: it stops at its next step.
+    let res = srv
+        .client
+        .post(srv.url(&format!("/v1/jobs/{a_id}/cancel")))
+        .send()
+        .await
+        .expect("cancel A");
+    assert_eq!(res.status(), 202);
+    let a2 = srv.poll_until(&a_id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(a2["state"], "cancelled");
+    assert_eq!(a2["error_code"], "cancelled");
+    let steps_done = a2["progress"]["step"].as_u64().expect("step");
+    assert!(steps_done < 5000, "stopped early, at step {steps_done}");
+
+    // A finished job cannot be cancelled again.
+    let res = srv
+        .client
+        .post(srv.url(&format!("/v1/jobs/{a_id}/cancel")))
+        .send()
+        .await
+        .expect("cancel again");
+    assert_eq!(res.status(), 409);
+    let p: serde_json::Value = res.json().await.expect("json");
+    assert_eq!(p["code"], "conflict");
+    // The result of a cancelled job is a conflict, not a download.
+    let (st, p) = srv.get_json(&format!("/v1/jobs/{a_id}/result")).await;
+    assert_eq!(st, 409, "{p}");
+
+    // With the queue free again, submissions are accepted.
+    let (st, _, _) = srv.submit_obj(&small_obj(), "steps=1").await;
+    assert_eq!(st, 202);
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idempotency_key_returns_the_same_job_and_refuses_a_different_request() {
+    let srv = start(|_| {}).await;
+    let obj = small_obj();
+    let post = |body: String, q: &'static str| {
+        srv.client
+            .post(srv.url(&format!("/v1/jobs?{q}")))
+            .header("content-type", "model/obj")
+            .header("Idempotency-Key", "key-123")
+            .body(body)
+            .send()
+    };
+    let r1 = post(obj.clone(), "steps=2").await.expect("first");
+    assert_eq!(r1.status(), 202);
+    let j1: serde_json::Value = r1.json().await.expect("json");
+    let r2 = post(obj.clone(), "steps=2").await.expect("retry");
+    assert_eq!(r2.status(), 202);
+    let j2: serde_json::Value = r2.json().await.expect("json");
+    assert_eq!(
+        j1["id"], j2["id"],
+        "a retry returns the job the key created"
+    );
+
+    let r3 = post(obj.clone(), "steps=3").await.expect("other params");
+    assert_eq!(r3.status(), 422);
+    let p: serde_json::Value = r3.json().await.expect("json");
+    assert_eq!(p["code"], "idempotency_mismatch");
+    assert!(p["detail"].as_str().is_some_and(|d| d.contains("key-123")));
+
+    let (_, list) = srv.get_json("/v1/jobs").await;
+    assert_eq!(
+        list["jobs"].as_array().map(Vec::len),
+        Some(1),
+        "one job for one key"
+    );
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn list_delete_and_expiry() {
+    let srv = start(|c| {
+        c.result_ttl = Duration::from_millis(1500);
+        c.sweep_interval = Duration::from_millis(200);
+    })
+    .await;
+    let obj = small_obj();
+    let mut ids = Vec::new();
+    for _ in 0..3 {
+        let (st, _, j) = srv.submit_obj(&obj, "steps=1").await;
+        assert_eq!(st, 202);
+        ids.push(j["id"].as_str().expect("id").to_string());
+    }
+    for id in &ids {
+        srv.poll_until(id, JOB_TIMEOUT, is_terminal).await;
+    }
+    // Paged, newest first.
+    let (_, p1) = srv.get_json("/v1/jobs?page_size=2").await;
+    let first: Vec<&str> = p1["jobs"]
+        .as_array()
+        .expect("jobs")
+        .iter()
+        .filter_map(|j| j["id"].as_str())
+        .collect();
+    assert_eq!(first, vec![ids[2].as_str(), ids[1].as_str()]);
+    let token = p1["next_page_token"]
+        .as_str()
+        .expect("next page")
+        .to_string();
+    let (_, p2) = srv
+        .get_json(&format!("/v1/jobs?page_size=2&page_token={token}"))
+        .await;
+    let second: Vec<&str> = p2["jobs"]
+        .as_array()
+        .expect("jobs")
+        .iter()
+        .filter_map(|j| j["id"].as_str())
+        .collect();
+    assert_eq!(second, vec![ids[0].as_str()]);
+    assert!(p2.get("next_page_token").is_none());
+    let (_, by_state) = srv.get_json("/v1/jobs?state=succeeded").await;
+    assert_eq!(by_state["jobs"].as_array().map(Vec::len), Some(3));
+    let (_, none) = srv.get_json("/v1/jobs?state=running").await;
+    assert_eq!(none["jobs"].as_array().map(Vec::len), Some(0));
+
+    // Delete one: 204, then 404; its files are gone.
+    let res = srv
+        .client
+        .delete(srv.url(&format!("/v1/jobs/{}", ids[0])))
+        .send()
+        .await
+        .expect("delete");
+    assert_eq!(res.status(), 204);
+    let (st, _) = srv.get_json(&format!("/v1/jobs/{}", ids[0])).await;
+    assert_eq!(st, 404);
+    assert!(!srv.dir.path().join("jobs").join(&ids[0]).exists());
+
+    // The others expire: 410 Gone, and the sweeper removes their files.
+    tokio::time::sleep(Duration::from_millis(2000)).await;
+    let (st, p) = srv.get_json(&format!("/v1/jobs/{}", ids[1])).await;
+    assert_eq!(st, 410, "{p}");
+    assert_eq!(p["code"], "gone");
+    let (st, _) = srv.get_json(&format!("/v1/jobs/{}/result", ids[2])).await;
+    assert_eq!(st, 410);
+    assert!(
+        !srv.dir.path().join("jobs").join(&ids[1]).exists(),
+        "expired files swept"
+    );
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn textured_upload_keeps_uvs_in_the_validated_result() {
+    use willow::mesh::io::{Asset, Format};
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("crates/willow/tests/data/spot_triangulated.obj");
+    let input = std::fs::read(&path)
+        .expect("crates/willow/tests/data/spot_triangulated.obj (Spot, with UVs)");
+    let limits = willow::mesh::Limits::default();
+    let input_asset = Asset::read(&input, Format::Obj, &limits).expect("spot parses");
+    let input_uvs = input_asset.corner_uvs().expect("spot has UVs");
+
+    let srv = start(|_| {}).await;
+    let res = srv
+        .client
+        .post(srv.url("/v1/jobs?steps=1&include_positions=false"))
+        .header("content-type", "model/obj")
+        .body(input)
+        .send()
+        .await
+        .expect("POST spot");
+    assert_eq!(res.status(), 202);
+    let job: serde_json::Value = res.json().await.expect("json");
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+
+    for format in [Format::Glb, Format::Obj] {
+        let name = match format {
+            Format::Glb => "glb",
+            _ => "obj",
+        };
+        let res = srv
+            .get(&format!("/v1/jobs/{id}/result?format={name}"))
+            .await;
+        assert_eq!(res.status(), 200);
+        let bytes = res.bytes().await.expect("body");
+        if format == Format::Glb {
+            validate_gltf_if_available(&bytes);
+        }
+        let out = Asset::read(&bytes, format, &limits).expect("result parses");
+        // OBJ keeps the `v` lines; GLB has one vertex per distinct v/vt corner. Per corner,
+        // the UVs are the same either way.
+        let file_vertices = if format == Format::Obj { 2930 } else { 3225 };
+        assert_eq!(out.file_vertex_count(), file_vertices);
+        assert_eq!(
+            out.corner_uvs().expect("result keeps UVs"),
+            input_uvs,
+            "UVs identical ({name})"
+        );
+        let moved = out
+            .surface()
+            .positions
+            .iter()
+            .zip(&input_asset.surface().positions)
+            .any(|(a, b)| a != b);
+        assert!(
+            moved,
+            "the result is the faired surface, not the input ({name})"
+        );
+    }
+    srv.stop().await;
+}

@@ -1,0 +1,91 @@
+//! The NATS JetStream backend with real processes: each test starts a nats-server of its own
+//! (loopback, free ports, JetStream with a file store in the test's temp dir) and several
+//! `willow serve --backend nats://…` nodes in roles `api` and `worker`, then checks what a
+//! client of the cluster sees when it submits to one node and watches, polls, cancels or
+//! downloads through another, and when a worker, an API node or nats-server itself dies
+//! mid-job.
+//!
+//! nats-server is `$WILLOW_NATS_SERVER`, or the pinned release that scripts/nats-server.sh
+//! installs under target/ on first use. Every child process is killed when its guard drops, and
+//! a failing test prints the end of each process's log (nodes run with `RUST_LOG=info`).
+//!
+//! One file a theme: `nodes`, `queue`, `consumers`, `fencing`; this one holds the helpers
+//! they share.
+
+#[path = "../nats_support/mod.rs"]
+mod nats_support;
+#[path = "../service_http_support/mod.rs"]
+mod service_http_support;
+
+mod consumers;
+mod fencing;
+mod nodes;
+mod queue;
+
+use nats_support::*;
+use service_http_support::{frame_steps, is_terminal, slow_obj, small_obj, Sse};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// How long a job's metrics may lag behind its state.
+const METRIC_PATIENCE: Duration = Duration::from_secs(10);
+
+/// The `frame` events' steps, checking that each event's SSE id is its step.
+fn checked_frame_steps(events: &[Sse]) -> Vec<u64> {
+    for e in events.iter().filter(|e| e.event == "frame") {
+        assert_eq!(
+            e.id.as_deref().and_then(|id| id.parse::<u64>().ok()),
+            e.data["step"].as_u64(),
+            "a frame's SSE id is its step: {e:?}"
+        );
+    }
+    frame_steps(events)
+}
+
+fn steps(range: std::ops::RangeInclusive<u64>) -> Vec<u64> {
+    range.collect()
+}
+
+/// The outcome of the last event, which must be `done`.
+fn done_state(events: &[Sse]) -> String {
+    let last = events.last().expect("some events");
+    assert_eq!(last.event, "done", "the stream ends with `done`");
+    last.data["state"].as_str().unwrap_or_default().to_string()
+}
+
+/// Start a cluster's nodes and wait until each is ready (connected to NATS).
+async fn all_ready(nodes: &[&Node]) {
+    for n in nodes {
+        n.wait_readyz(200, PATIENCE).await;
+    }
+}
+
+/// Which of two workers runs the one running job: the one whose `willow_jobs_running` is 1
+/// while the other's is 0 (fails after [`PATIENCE`] if no single worker reports it).
+async fn running_worker(workers: &[Node]) -> usize {
+    let start = Instant::now();
+    loop {
+        let mut running = Vec::new();
+        for w in workers {
+            running.push(metric(&w.metrics().await, "willow_jobs_running", &[]));
+        }
+        match running[..] {
+            [Some(1.0), Some(0.0)] => return 0,
+            [Some(0.0), Some(1.0)] => return 1,
+            _ if start.elapsed() > PATIENCE => {
+                panic!("no single worker reports willow_jobs_running 1: {running:?}")
+            }
+            _ => tokio::time::sleep(Duration::from_millis(20)).await,
+        }
+    }
+}
+
+/// `willow_jobs_finished_total{outcome=…}` of a node (0 when absent).
+async fn finished(node: &Node, outcome: &str) -> f64 {
+    metric(
+        &node.metrics().await,
+        "willow_jobs_finished_total",
+        &[("outcome", outcome)],
+    )
+    .unwrap_or(0.0)
+}
