@@ -357,6 +357,75 @@ async fn a_group_region_and_a_feature_size_reach_the_flow() {
     srv.stop().await;
 }
 
+/// Two spheres that share one vertex in the file (a bowtie at `v` line 1): the index says it
+/// is one vertex, so the welded surface is not a manifold.
+fn bowtie_obj() -> String {
+    let a = generate::icosphere(1);
+    let a0 = a.positions[0];
+    let antipode = a
+        .positions
+        .iter()
+        .position(|p| (0..3).all(|k| (p[k] + a0[k]).abs() < 1e-12))
+        .expect("an icosphere holds the antipode of each vertex");
+    let mut out = String::new();
+    for p in &a.positions {
+        out.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
+    }
+    // The second sphere, moved so its antipode of vertex 0 lands on vertex 0: that vertex is
+    // written once and both spheres' faces name it.
+    let n = a.positions.len();
+    let mut index = vec![0; n];
+    let mut next = n + 1;
+    for (j, p) in a.positions.iter().enumerate() {
+        if j == antipode {
+            index[j] = 1;
+            continue;
+        }
+        out.push_str(&format!(
+            "v {} {} {}\n",
+            p[0] + 2.0 * a0[0],
+            p[1] + 2.0 * a0[1],
+            p[2] + 2.0 * a0[2]
+        ));
+        index[j] = next;
+        next += 1;
+    }
+    for t in &a.triangles {
+        out.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+    }
+    for t in &a.triangles {
+        out.push_str(&format!(
+            "f {} {} {}\n",
+            index[t[0]], index[t[1]], index[t[2]]
+        ));
+    }
+    out
+}
+
+/// A non-manifold upload is refused naming the file's own vertex; with `repair` it is split,
+/// the answer says what changed, and the job runs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn repair_splits_a_bowtie_and_says_so() {
+    let srv = start(|_| {}).await;
+    let obj = bowtie_obj();
+    let (st, _, p) = srv.submit_obj(&obj, "steps=2").await;
+    assert_eq!(st, 422, "{p}");
+    assert!(
+        p["detail"].as_str().is_some_and(|d| d.contains("line 1")),
+        "names the file's line: {p}"
+    );
+    let (st, _, job) = srv.submit_obj(&obj, "steps=2&repair=true").await;
+    assert_eq!(st, 202, "{job}");
+    assert_eq!(job["params"]["repair"], true);
+    let repairs = &job["repairs"];
+    assert_eq!(repairs["split_vertices"]["count"], 1, "{repairs}");
+    assert_eq!(num(&repairs["added_vertices"]), 1.0, "{repairs}");
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    srv.stop().await;
+}
+
 /// Bad values are 400s naming the parameter, in JSON and in the query.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_controls_are_refused_naming_their_field() {

@@ -70,6 +70,10 @@ pub struct JobSpecSchema {
     /// Width (model units, > 0) over which a region's motion blends to zero toward its
     /// border. Needs a region.
     pub falloff: Option<f64>,
+    /// Repair the upload before the flow: drop degenerate faces and split non-manifold
+    /// vertices and edges; the submission's answer has `repairs`. Default false: such a file
+    /// is refused, naming its own vertex and face numbers.
+    pub repair: bool,
 }
 
 /// What each component keeps after every step.

@@ -82,9 +82,10 @@ impl Jobs {
         let parse_data = data.clone();
         let t = Instant::now();
         let parse_spec = spec.clone();
-        let (vertex_count, face_count) = tokio::task::spawn_blocking(move || {
-            let asset =
-                Asset::read(&parse_data, format, &limits.mesh_limits()).map_err(mesh_error)?;
+        let (vertex_count, face_count, repairs) = tokio::task::spawn_blocking(move || {
+            let asset = parse_spec
+                .read_asset(&parse_data, format, &limits.mesh_limits())
+                .map_err(mesh_error)?;
             let surface = asset.surface();
             parse_spec.validate_for_asset(&asset)?;
             if surface.vertex_count() > limits.max_vertices {
@@ -99,7 +100,8 @@ impl Jobs {
                     limit: limits.max_faces as u64,
                 });
             }
-            Ok((asset.file_vertex_count(), surface.face_count()))
+            let repairs = parse_spec.repair.then(|| asset.repairs().clone());
+            Ok((asset.file_vertex_count(), surface.face_count(), repairs))
         })
         .await
         .map_err(join_err)??;
@@ -149,7 +151,10 @@ impl Jobs {
                     steps = spec.steps,
                     "audit"
                 );
-                Ok(status)
+                if let Some(r) = repairs.as_ref().filter(|r| !r.is_empty()) {
+                    tracing::info!(job_id = %status.id, repairs = %r, "upload repaired");
+                }
+                Ok(JobStatus { repairs, ..status })
             }
             Ok(Inserted::Existing(status)) => {
                 let _ = backend.blobs.delete_job(&id).await;
@@ -293,10 +298,14 @@ impl Jobs {
         }
         let limits = self.inner.config.limits.mesh_limits();
         let check = data.clone();
-        tokio::task::spawn_blocking(move || Asset::read(&check, format, &limits).map(|_| ()))
-            .await
-            .map_err(join_err)?
-            .map_err(mesh_error)?;
+        // Checked as `repair` would read it: a job that asks for no repair is checked again
+        // (strictly) when it uses the upload.
+        tokio::task::spawn_blocking(move || {
+            Asset::read_repaired(&check, format, &limits).map(|_| ())
+        })
+        .await
+        .map_err(join_err)?
+        .map_err(mesh_error)?;
         let id = uuid::Uuid::new_v4().to_string();
         let expires = now_ms() + self.inner.config.result_ttl.as_millis() as u64;
         let size = data.len() as u64;

@@ -51,7 +51,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio_util::sync::CancellationToken;
-use willow::mesh::io::{Asset, Format};
+use willow::mesh::io::Format;
 use willow::mesh::MeshError;
 use willow::metrics::StepMetrics;
 
@@ -416,9 +416,11 @@ impl Jobs {
             JobError::Internal(format!("the input of job `{}` is missing", status.id))
         })?;
         let (input_format, limits) = (status.input_format, self.inner.config.limits.mesh_limits());
+        let spec = status.spec.clone();
         tokio::task::spawn_blocking(move || {
-            let asset =
-                Asset::read(&input, input_format, &limits).map_err(JobError::InvalidMesh)?;
+            let asset = spec
+                .read_asset(&input, input_format, &limits)
+                .map_err(JobError::InvalidMesh)?;
             asset
                 .write(&positions, format)
                 .map_err(|e| JobError::Internal(format!("writing {}: {e}", format_name(format))))

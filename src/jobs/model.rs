@@ -14,7 +14,7 @@ use willow::flow::region::{Region, Seam};
 use willow::flow::{FlowParams, Method, Preserve};
 use willow::mesh::io::Asset;
 use willow::mesh::io::Format;
-use willow::mesh::Limits;
+use willow::mesh::{Limits, MeshError};
 use willow::metrics::StepMetrics;
 
 /// What to run on an uploaded mesh. Transports turn their wire parameters into this and call
@@ -80,6 +80,10 @@ pub struct JobSpec {
     pub feature_size: Option<f64>,
     /// Width (model units) over which a region's motion blends to zero toward its border.
     pub falloff: Option<f64>,
+    /// Repair the upload before the flow: drop degenerate faces and split non-manifold
+    /// vertices and edges (`Asset::read_repaired`); the submission's answer says what changed.
+    /// Off, such a file is refused naming its own vertex and face numbers.
+    pub repair: bool,
 }
 
 impl Default for JobSpec {
@@ -107,11 +111,26 @@ impl Default for JobSpec {
             measure_deviation: flow.measure_deviation,
             feature_size: flow.feature_size,
             falloff: flow.falloff,
+            repair: false,
         }
     }
 }
 
 impl JobSpec {
+    /// The uploaded file as this job reads it: repaired when it asks for it.
+    pub fn read_asset(
+        &self,
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+    ) -> Result<Asset, MeshError> {
+        if self.repair {
+            Asset::read_repaired(bytes, format, limits)
+        } else {
+            Asset::read(bytes, format, limits)
+        }
+    }
+
     /// Check every field against the server's limits; the error names the field.
     pub fn validate(&self, config: &Config) -> Result<(), JobError> {
         self.validate_with(config.limits.max_steps, config.max_deadline.as_secs_f64())
@@ -418,6 +437,11 @@ pub struct JobStatus {
     pub finished_at: Option<u64>,
     /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
     pub expires_at: Option<u64>,
+    /// What `repair` changed in the upload, in the file's numbering; set on the submission's
+    /// answer only (not stored: the job's parameters say it was repaired, and a repaired
+    /// read of the same file gives the same report).
+    #[serde(skip)]
+    pub repairs: Option<willow::mesh::io::Repairs>,
 }
 
 impl JobStatus {

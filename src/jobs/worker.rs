@@ -622,12 +622,14 @@ fn read_asset(inner: &Inner, rt: &Handle, status: &JobStatus) -> Result<Asset, J
     let bytes = rt.block_on(inner.backend.blobs.get(key))?.ok_or_else(|| {
         JobError::Internal(format!("the input of job `{}` is missing", status.id))
     })?;
-    Asset::read(
-        &bytes,
-        status.input_format,
-        &inner.config.limits.mesh_limits(),
-    )
-    .map_err(mesh_error)
+    status
+        .spec
+        .read_asset(
+            &bytes,
+            status.input_format,
+            &inner.config.limits.mesh_limits(),
+        )
+        .map_err(mesh_error)
 }
 
 /// Put `flow` on the job's checkpoint, if it has a usable one; the metrics of the step it is at.

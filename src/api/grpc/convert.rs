@@ -201,6 +201,9 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
     }
     spec.feature_size = p.feature_size;
     spec.falloff = p.falloff;
+    if let Some(v) = p.repair {
+        spec.repair = v;
+    }
     Ok(spec)
 }
 
@@ -454,6 +457,7 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
         measure_deviation: Some(spec.measure_deviation),
         feature_size: spec.feature_size,
         falloff: spec.falloff,
+        repair: Some(spec.repair),
     }
 }
 

@@ -69,6 +69,11 @@ pub struct JobView {
     /// Why, for people.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub outcome_reason: Option<String>,
+    /// What `repair` changed in the upload (file numbering): dropped degenerate faces, split
+    /// vertices, added surface vertices. On the submission's answer only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
+    pub repairs: Option<willow::mesh::io::Repairs>,
     /// The parameters the job runs with, defaults filled in.
     #[schema(value_type = crate::api::schema::JobSpecSchema)]
     pub params: JobSpec,
@@ -91,6 +96,7 @@ impl From<JobStatus> for JobView {
         let base = format!("/v1/jobs/{}", s.id);
         let (outcome, outcome_reason) = s.outcome().unzip();
         JobView {
+            repairs: s.repairs.clone(),
             outcome,
             outcome_reason,
             state: s.state.as_str().to_string(),

@@ -151,6 +151,9 @@ pub struct JobQuery {
     #[serde(rename = "region.group")]
     #[param(rename = "region.group")]
     pub region_group: Option<String>,
+    /// Repair the upload first: drop degenerate faces, split non-manifold vertices and edges
+    /// (default false); the answer's `repairs` says what changed.
+    pub repair: Option<bool>,
 }
 
 impl JobQuery {
@@ -285,6 +288,7 @@ impl JobQuery {
             measure_deviation: self.measure_deviation.unwrap_or(defaults.measure_deviation),
             feature_size: self.feature_size,
             falloff: self.falloff,
+            repair: self.repair.unwrap_or(defaults.repair),
         })
     }
 }

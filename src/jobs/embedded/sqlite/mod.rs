@@ -107,6 +107,7 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
                 started_at,
                 finished_at,
                 expires_at,
+                repairs: None,
             },
             expired: expired != 0,
             seq,

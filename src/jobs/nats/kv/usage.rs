@@ -202,6 +202,7 @@ impl KvStore {
             started_at: None,
             finished_at: None,
             expires_at: None,
+            repairs: None,
         };
         let rec = Record {
             status: status.clone(),
