@@ -15,21 +15,25 @@ fn bumpy() -> Mesh {
     generate::bumpy_sphere(3, 0.15)
 }
 
-/// Submits `obj` with `params` as the multipart JSON part and waits for it to end.
-async fn run_json(srv: &TestServer, obj: &str, params: serde_json::Value) -> serde_json::Value {
+/// Submits `obj` with `params` as the multipart JSON part.
+async fn submit_json(srv: &TestServer, obj: &str, params: &serde_json::Value) -> reqwest::Response {
     let form = reqwest::multipart::Form::new()
         .part(
             "mesh",
             reqwest::multipart::Part::text(obj.to_string()).file_name("m.obj"),
         )
         .text("params", params.to_string());
-    let res = srv
-        .client
+    srv.client
         .post(srv.url("/v1/jobs"))
         .multipart(form)
         .send()
         .await
-        .expect("send");
+        .expect("send")
+}
+
+/// Submits `obj` with `params` as the multipart JSON part and waits for it to end.
+async fn run_json(srv: &TestServer, obj: &str, params: serde_json::Value) -> serde_json::Value {
+    let res = submit_json(srv, obj, &params).await;
     assert_eq!(
         res.status(),
         202,
@@ -454,19 +458,7 @@ async fn bad_controls_are_refused_naming_their_field() {
             "filter.x",
         ),
     ] {
-        let form = reqwest::multipart::Form::new()
-            .part(
-                "mesh",
-                reqwest::multipart::Part::text(obj.clone()).file_name("m.obj"),
-            )
-            .text("params", params.to_string());
-        let res = srv
-            .client
-            .post(srv.url("/v1/jobs"))
-            .multipart(form)
-            .send()
-            .await
-            .expect("send");
+        let res = submit_json(&srv, &obj, &params).await;
         let st = res.status();
         let p: serde_json::Value = res.json().await.expect("problem json");
         assert_eq!(

@@ -394,14 +394,14 @@ fn run_job(
     let asset = match read_asset(inner, rt, &running) {
         Ok(a) => a,
         Err(JobError::InvalidMesh(e)) => {
-            rt.block_on(finish(
+            return fail(
                 inner,
+                rt,
                 id,
-                JobState::Failed,
-                Some((FailureCode::InvalidMesh, e.to_string())),
-                Some(fence),
-            ))?;
-            return Ok(Outcome::Done);
+                fence,
+                FailureCode::InvalidMesh,
+                e.to_string(),
+            );
         }
         Err(e) => return Err(e),
     };
@@ -411,14 +411,14 @@ fn run_job(
         // Admission checked the regions against this file; a stored job from before a change
         // of numbering is the only way here.
         Err(e) => {
-            rt.block_on(finish(
+            return fail(
                 inner,
+                rt,
                 id,
-                JobState::Failed,
-                Some((FailureCode::InvalidParameter, e.to_string())),
-                Some(fence),
-            ))?;
-            return Ok(Outcome::Done);
+                fence,
+                FailureCode::InvalidParameter,
+                e.to_string(),
+            );
         }
     };
     params.threads = thread_budget(
@@ -431,14 +431,14 @@ fn run_job(
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
         Err(e) => {
-            rt.block_on(finish(
+            return fail(
                 inner,
+                rt,
                 id,
-                JobState::Failed,
-                Some((FailureCode::of_flow(&e), e.to_string())),
-                Some(fence),
-            ))?;
-            return Ok(Outcome::Done);
+                fence,
+                FailureCode::of_flow(&e),
+                e.to_string(),
+            );
         }
     };
 
@@ -506,14 +506,14 @@ fn run_job(
     let mut run = match run {
         Ok(r) => r,
         Err(e) => {
-            rt.block_on(finish(
+            return fail(
                 inner,
+                rt,
                 id,
-                JobState::Failed,
-                Some((FailureCode::of_flow(&e), e.to_string())),
-                Some(fence),
-            ))?;
-            return Ok(Outcome::Done);
+                fence,
+                FailureCode::of_flow(&e),
+                e.to_string(),
+            );
         }
     };
     let mut last_checkpoint = (first - 1, Instant::now());
@@ -533,14 +533,14 @@ fn run_job(
             Ok(Event::Stopped { outcome, reason }) => break (outcome, reason),
             Err(e) => {
                 tracing::warn!(step, error = %e, "flow failed");
-                rt.block_on(finish(
+                return fail(
                     inner,
+                    rt,
                     id,
-                    JobState::Failed,
-                    Some((FailureCode::of_flow(&e), e.to_string())),
-                    Some(fence),
-                ))?;
-                return Ok(Outcome::Done);
+                    fence,
+                    FailureCode::of_flow(&e),
+                    e.to_string(),
+                );
             }
         };
         inner
@@ -550,17 +550,14 @@ fn run_job(
         // Accepted safeguarded steps are finite by construction; with the safeguard off a
         // diverging flow may not be, and nothing non-finite is streamed or stored.
         if let Some(bad) = first_non_finite(run.flow().positions()) {
-            rt.block_on(finish(
+            return fail(
                 inner,
+                rt,
                 id,
-                JobState::Failed,
-                Some((
-                    FailureCode::Numerical,
-                    format!("numerical failure at step {step}: vertex {bad} is not finite"),
-                )),
-                Some(fence),
-            ))?;
-            return Ok(Outcome::Done);
+                fence,
+                FailureCode::Numerical,
+                format!("numerical failure at step {step}: vertex {bad} is not finite"),
+            );
         }
         emit(step, metrics, run.flow().positions())?;
         let due = step - last_checkpoint.0 >= inner.config.checkpoint_steps
@@ -600,6 +597,25 @@ fn run_job(
     // The checkpoint has served: a finished job is never resumed.
     let _ = rt.block_on(backend.blobs.delete(BlobKey::Checkpoint { id: id.clone() }));
     tracing::info!(elapsed_ms = ms, "job succeeded");
+    Ok(Outcome::Done)
+}
+
+/// Ends the job failed with `code` and `reason` (the flow is over: nothing more to run).
+fn fail(
+    inner: &Arc<Inner>,
+    rt: &Handle,
+    id: &JobId,
+    fence: &Fence,
+    code: FailureCode,
+    reason: String,
+) -> Result<Outcome, JobError> {
+    rt.block_on(finish(
+        inner,
+        id,
+        JobState::Failed,
+        Some((code, reason)),
+        Some(fence),
+    ))?;
     Ok(Outcome::Done)
 }
 
