@@ -124,6 +124,11 @@ struct Figures {
     region_setup_ms: f64,
     region_median_try_ms: f64,
     region_try_ratio: f64,
+    /// One measurement of the distance from the input (`deviation_max`, `deviation_mean`) on
+    /// the conformal flow's last surface, median of a few, and that over the median try
+    /// (issue 29: at most 10% at 100k triangles).
+    deviation_ms: f64,
+    deviation_ratio: f64,
 }
 
 /// The share of a mesh's vertices the region benchmark fairs.
@@ -204,6 +209,12 @@ pub fn run(args: BenchArgs) -> ExitCode {
                         f.region_setup_ms,
                         f.region_median_try_ms,
                         f.region_try_ratio * 100.0
+                    );
+                    println!(
+                        "    distance from the input (deviation_*): {:.2} ms a frame, {:.1}% of a \
+                         try",
+                        f.deviation_ms,
+                        f.deviation_ratio * 100.0
                     );
                 }
             }
@@ -451,6 +462,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
                 .collect()
         })
         .unwrap_or_default();
+    let deviation_ms = measure_deviation(mesh, flow.positions());
     drop((flow, mcf_flow, unguarded_flow));
     let region = measure_region(mesh, &conformal, args.steps)?;
     let u = median(&mut unguarded_times);
@@ -486,7 +498,29 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         } else {
             f64::NAN
         },
+        deviation_ms,
+        deviation_ratio: if t > 0.0 { deviation_ms / t } else { f64::NAN },
     })
+}
+
+/// Median time of the flow's per-frame distance measurement (`geometry::distance::Deviation`,
+/// built once from the input as the flow builds it) on the surface at `positions`.
+fn measure_deviation(mesh: &Mesh, positions: &[[f64; 3]]) -> f64 {
+    use willow::geometry::distance::Deviation;
+    use willow::geometry::operators::face_areas_into;
+    let topology = willow::mesh::topology::Topology::new(mesh);
+    let mut areas = vec![0.0; mesh.face_count()];
+    face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
+    let mut deviation = Deviation::new(&mesh.positions, &mesh.triangles, &topology, &areas);
+    face_areas_into(positions, &mesh.triangles, &mut areas);
+    let mut times: Vec<f64> = (0..5)
+        .map(|_| {
+            let t = std::time::Instant::now();
+            std::hint::black_box(deviation.measure(positions, &mesh.triangles, &areas));
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    median(&mut times)
 }
 
 struct RegionFigures {
