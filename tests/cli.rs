@@ -499,7 +499,7 @@ fn fair_stops_on_its_rules_and_names_a_bad_flag() {
     }
 
     // A bound between the distances after steps 1 and 2 of the free run: step 1 only.
-    let free = json_lines(&run(&["--steps", "2"]));
+    let free = json_lines(&run(&["--steps", "2", "--measure-deviation"]));
     let d = |l: &serde_json::Value| l["deviation_max"].as_f64().unwrap_or(f64::NAN);
     let bound = 0.5 * (d(&free[0]) + d(&free[1]));
     let out = run(&["--steps", "40", "--max-deviation", &bound.to_string()]);
