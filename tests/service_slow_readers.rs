@@ -134,8 +134,12 @@ async fn succeeded_job(client: &reqwest::Client, base: &str, obj: &str) -> Strin
     id
 }
 
+/// The tests here assert on the process-wide `held_bytes()`: one at a time.
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
+    let _serial = SERIAL.lock().await;
     // 10242 vertices: a result of about a megabyte as OBJ, far more than the client's
     // receive buffer.
     let obj = obj_text(&generate::bumpy_sphere(5, 0.1));
@@ -253,5 +257,101 @@ async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
     assert_eq!(text.len(), probe);
     assert_eq!(obj_vertices(&text).len(), 10242);
     assert_eq!(held_bytes(), 0, "a finished download holds nothing");
+    let _ = stop.send(());
+}
+
+/// The same against HTTP/2 clients that open no flow-control window: the server can send them
+/// no byte, so no socket write ever blocks; the per-connection budget and the download deadline
+/// still bound and free what they pin.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
+    let _serial = SERIAL.lock().await;
+    let obj = obj_text(&generate::bumpy_sphere(5, 0.1));
+    let client = reqwest::Client::new();
+    // A generous server budget: here the connection's budget is the one that binds.
+    let options = ServeOptions {
+        app: AppOptions::default(),
+        conn: ConnLimits {
+            write_timeout: WRITE_TIMEOUT,
+            write_min_rate: MIN_RATE,
+            download_memory: 64 << 20,
+            download_memory_per_connection: 3 << 20,
+            ..ConnLimits::default()
+        },
+    };
+    let (addr, stop) = start(options).await;
+    let base = format!("http://{addr}");
+    let id = succeeded_job(&client, &base, &obj).await;
+    let path = format!("/v1/jobs/{id}/result?format=obj");
+    assert_eq!(held_bytes(), 0);
+
+    const CONNECTIONS: usize = 2;
+    const STREAMS: usize = 10;
+    let mut kept = Vec::new();
+    let mut served = 0;
+    let mut refused = 0;
+    let mut len = 0;
+    for _ in 0..CONNECTIONS {
+        let tcp = TcpStream::connect(&addr).await.expect("connect");
+        let (h2, conn) = h2::client::Builder::new()
+            .initial_window_size(0)
+            .handshake::<_, bytes::Bytes>(tcp)
+            .await
+            .expect("h2 handshake");
+        tokio::spawn(conn);
+        for _ in 0..STREAMS {
+            let mut h2 = h2.clone().ready().await.expect("stream slot");
+            let req = axum::http::Request::get(format!("{base}{path}"))
+                .body(())
+                .expect("request");
+            let (response, _) = h2.send_request(req, true).expect("request sent");
+            let response = response.await.expect("response head");
+            match response.status().as_u16() {
+                200 => {
+                    served += 1;
+                    len = response
+                        .headers()
+                        .get("content-length")
+                        .and_then(|v| v.to_str().ok())
+                        .and_then(|v| v.parse::<usize>().ok())
+                        .expect("content-length");
+                    kept.push(response);
+                }
+                503 => {
+                    assert!(response.headers().contains_key("retry-after"));
+                    refused += 1;
+                }
+                other => panic!("unexpected status {other}"),
+            }
+            assert!(
+                held_bytes() <= CONNECTIONS as u64 * (3 << 20),
+                "held {} beyond the connections' budgets",
+                held_bytes()
+            );
+        }
+        drop(h2);
+    }
+    assert!(len > 500_000, "the result should be large, is {len} bytes");
+    // 3 MiB per connection holds two ~1 MB downloads, or three if they are small enough.
+    let per_connection = ((3u64 << 20) / len as u64) as usize;
+    assert_eq!(served, CONNECTIONS * per_connection);
+    assert_eq!(refused, CONNECTIONS * (STREAMS - per_connection));
+    assert_eq!(held_bytes(), (served * len) as u64);
+
+    // Nobody reads (the windows stay shut); the deadline frees the memory all the same.
+    let started = Instant::now();
+    let patience = WRITE_TIMEOUT
+        + Duration::from_secs_f64(len as f64 / MIN_RATE as f64)
+        + Duration::from_secs(10);
+    while held_bytes() > 0 {
+        assert!(
+            started.elapsed() < patience,
+            "still held after {:?}: {}",
+            started.elapsed(),
+            held_bytes()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    drop(kept);
     let _ = stop.send(());
 }
