@@ -681,3 +681,43 @@ impl<T: AsyncWrite + Unpin> AsyncWrite for TimedIo<T> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    #[tokio::test]
+    async fn a_write_blocked_past_the_timeout_fails_and_a_reader_keeps_it_going() {
+        // Generous against a loaded machine: the reader below pauses 2 ms between reads.
+        let timeout = Duration::from_secs(2);
+        // A 1 KiB pipe: the second KiB blocks until the peer reads.
+        let (ours, mut peer) = tokio::io::duplex(1024);
+        let mut io = TimedIo::new(ours, timeout);
+        let data = vec![7u8; 64 << 10];
+        // The peer reads slowly but steadily: every write goes through eventually.
+        let reader = tokio::spawn(async move {
+            let mut got = 0;
+            let mut buf = [0u8; 1024];
+            while got < 64 << 10 {
+                tokio::time::sleep(Duration::from_millis(2)).await;
+                match peer.read(&mut buf).await {
+                    Ok(0) | Err(_) => break,
+                    Ok(n) => got += n,
+                }
+            }
+            (got, peer)
+        });
+        io.write_all(&data)
+            .await
+            .expect("a reading peer is never cut");
+        let (got, _peer) = reader.await.expect("reader");
+        assert_eq!(got, data.len());
+        // Now nobody reads: the pipe fills and the write fails with TimedOut.
+        let err = io
+            .write_all(&data)
+            .await
+            .expect_err("a peer that stopped reading is cut");
+        assert_eq!(err.kind(), std::io::ErrorKind::TimedOut);
+    }
+}
