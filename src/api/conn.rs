@@ -29,8 +29,17 @@
 //! - **Streams per HTTP/2 connection** (`--max-streams-per-connection`): the
 //!   SETTINGS_MAX_CONCURRENT_STREAMS the server announces.
 //!
-//! None of these limits the *response*: an SSE stream or a gRPC server stream runs as long as
-//! it has something to say (a request in flight is never idle).
+//! - **Writes** (`--write-timeout-secs`): a write to the socket that stays blocked this long
+//!   (the client stopped reading and the kernel's send buffer is full) closes the connection;
+//!   see [`TimedIo`].
+//! - **Downloads** (`--download-memory-mib`, `--download-memory-per-connection-mib`,
+//!   `--write-min-rate-kib`): the memory a rendered mesh holds is charged to the connection
+//!   and the server and must be taken within the write timeout plus its length at the
+//!   minimum rate; see `api::download`.
+//!
+//! None of these limits the *length* of a response: an SSE stream or a gRPC server stream runs
+//! as long as it has something to say and its client reads it (a request in flight is never
+//! idle).
 //!
 //! Shutdown: the listener is closed, every connection is told to finish gracefully (HTTP/1:
 //! after its current response; HTTP/2: GOAWAY) and the loop returns once all have closed.
@@ -51,6 +60,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::task::{Context, Poll};
 use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpListener;
 use tokio::sync::{watch, OwnedSemaphorePermit, Semaphore};
 use tokio::time::{Instant, Sleep};
@@ -58,6 +68,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tower::ServiceExt;
 
+use super::download::{DownloadBudget, DownloadLimits};
 use super::problem::Problem;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
@@ -68,6 +79,11 @@ pub const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
 /// Largest header block an HTTP/2 client may send (hyper's HTTP/1 limit is of the same order:
 /// 100 headers in a 400 KiB buffer). 16 KiB is plenty for our requests.
 const MAX_HEADER_LIST_BYTES: u32 = 16 << 10;
+
+/// Bytes h2 may queue per stream beyond what the peer's window lets it send (h2's default is
+/// ~400 KiB): with 128 streams on a connection whose client opened no window, this is what
+/// one connection can pin in send queues (16 MiB instead of 50).
+const MAX_SEND_BUF_BYTES: usize = 128 << 10;
 
 /// After a connection was told to close gracefully with no request in flight, how long it
 /// gets to do so (an HTTP/2 GOAWAY waits for the client's ping answer) before it is dropped.
@@ -94,6 +110,15 @@ pub struct ConnLimits {
     pub max_requests_per_connection: u64,
     /// HTTP/2 streams open at once on one connection.
     pub max_streams_per_connection: u32,
+    /// A socket write may stay blocked this long; also the grace period of a download.
+    pub write_timeout: Duration,
+    /// Minimum rate (bytes per second) at which a client must take a download once
+    /// `write_timeout` has passed (0: only the timeout).
+    pub write_min_rate: u64,
+    /// Bytes of rendered downloads held at once, server-wide.
+    pub download_memory: u64,
+    /// Bytes of rendered downloads held at once on one connection.
+    pub download_memory_per_connection: u64,
 }
 
 impl Default for ConnLimits {
@@ -107,6 +132,10 @@ impl Default for ConnLimits {
             max_connections: 1024,
             max_requests_per_connection: 1000,
             max_streams_per_connection: 128,
+            write_timeout: Duration::from_secs(30),
+            write_min_rate: 64 << 10,
+            download_memory: 256 << 20,
+            download_memory_per_connection: 32 << 20,
         }
     }
 }
@@ -120,6 +149,12 @@ pub async fn serve(
     stop: CancellationToken,
 ) -> std::io::Result<()> {
     let limits = Arc::new(limits);
+    let downloads = DownloadLimits::new(
+        limits.download_memory,
+        limits.download_memory_per_connection,
+        limits.write_timeout,
+        limits.write_min_rate,
+    );
     let builder = Arc::new(builder(&limits));
     let permits = Arc::new(Semaphore::new(limits.max_connections.max(1)));
     let tracker = TaskTracker::new();
@@ -155,6 +190,7 @@ pub async fn serve(
             app.clone(),
             builder.clone(),
             limits.clone(),
+            downloads.for_connection(),
             stop.clone(),
             permit,
         ));
@@ -177,7 +213,8 @@ fn builder(limits: &ConnLimits) -> auto::Builder<TokioExecutor> {
         .keep_alive_interval(limits.keepalive_interval)
         .keep_alive_timeout(KEEPALIVE_TIMEOUT)
         .max_concurrent_streams(limits.max_streams_per_connection)
-        .max_header_list_size(MAX_HEADER_LIST_BYTES);
+        .max_header_list_size(MAX_HEADER_LIST_BYTES)
+        .max_send_buf_size(MAX_SEND_BUF_BYTES);
     b
 }
 
@@ -206,6 +243,7 @@ struct Activity {
 struct ConnState {
     activity: watch::Sender<Activity>,
     limits: Arc<ConnLimits>,
+    downloads: DownloadBudget,
 }
 
 /// A request in flight; dropped when its response body ends (or the request is abandoned).
@@ -227,6 +265,7 @@ async fn connection(
     app: Router,
     builder: Arc<auto::Builder<TokioExecutor>>,
     limits: Arc<ConnLimits>,
+    downloads: DownloadBudget,
     stop: CancellationToken,
     // Released when the connection is gone.
     _permit: OwnedSemaphorePermit,
@@ -240,10 +279,12 @@ async fn connection(
     let state = Arc::new(ConnState {
         activity: tx,
         limits: limits.clone(),
+        downloads,
     });
     let svc =
         tower::service_fn(move |req: Request<Incoming>| handle(req, app.clone(), state.clone()));
-    let conn = builder.serve_connection(TokioIo::new(tcp), TowerToHyperService::new(svc));
+    let io = TokioIo::new(TimedIo::new(tcp, limits.write_timeout));
+    let conn = builder.serve_connection(io, TowerToHyperService::new(svc));
     tokio::pin!(conn);
     // When the connection was told to close gracefully.
     let mut closing: Option<Instant> = None;
@@ -328,6 +369,8 @@ async fn handle(
         .and_then(|v| v.to_str().ok())
         .is_some_and(|v| v.starts_with("application/grpc"));
     let timed_out = Arc::new(AtomicBool::new(false));
+    let mut req = req;
+    req.extensions_mut().insert(conn.downloads.clone());
     let req = req.map(|body| {
         if body.is_end_stream() {
             Body::new(body)
@@ -533,5 +576,148 @@ where
 
     fn size_hint(&self) -> SizeHint {
         self.inner.size_hint()
+    }
+}
+
+/// A connection's socket with a write deadline: a write (or flush) that stays blocked for
+/// `timeout` without a byte going out fails with `TimedOut`, which ends the connection. A
+/// client that stops reading fills the kernel's send buffer, and without this its response
+/// (and all it holds) would wait for it forever; hyper has no write timeout of its own.
+///
+/// The clock runs only while a write is blocked and restarts with every byte the kernel
+/// accepts, so a slow but reading client is never cut here (the download deadline in
+/// `api::download` is what enforces a minimum rate, where the bytes at stake are large).
+pub struct TimedIo<T> {
+    inner: T,
+    timeout: Duration,
+    /// Armed when a write first blocks; `None` while writes go through.
+    blocked: Option<Pin<Box<Sleep>>>,
+}
+
+impl<T> TimedIo<T> {
+    pub fn new(inner: T, timeout: Duration) -> Self {
+        TimedIo {
+            inner,
+            timeout,
+            blocked: None,
+        }
+    }
+
+    /// A write is blocked: start or check the clock (registering its wake-up with `cx`, so
+    /// the connection is polled again at the deadline even if the socket never frees up).
+    fn blocked<R>(&mut self, cx: &mut Context<'_>) -> Poll<std::io::Result<R>> {
+        let timeout = self.timeout;
+        let sleep = self
+            .blocked
+            .get_or_insert_with(|| Box::pin(tokio::time::sleep(timeout)));
+        if sleep.as_mut().poll(cx).is_ready() {
+            tracing::info!(
+                secs = timeout.as_secs_f64(),
+                "client stopped reading; connection closed"
+            );
+            return Poll::Ready(Err(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                "write timed out: the client stopped reading",
+            )));
+        }
+        Poll::Pending
+    }
+
+    /// The write went through (or failed on its own): the clock stops.
+    fn done<R>(&mut self, r: Poll<std::io::Result<R>>) -> Poll<std::io::Result<R>> {
+        self.blocked = None;
+        r
+    }
+}
+
+impl<T: AsyncRead + Unpin> AsyncRead for TimedIo<T> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl<T: AsyncWrite + Unpin> AsyncWrite for TimedIo<T> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        match Pin::new(&mut self.inner).poll_write(cx, buf) {
+            Poll::Pending => self.blocked(cx),
+            r => self.done(r),
+        }
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        match Pin::new(&mut self.inner).poll_write_vectored(cx, bufs) {
+            Poll::Pending => self.blocked(cx),
+            r => self.done(r),
+        }
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        match Pin::new(&mut self.inner).poll_flush(cx) {
+            Poll::Pending => self.blocked(cx),
+            r => self.done(r),
+        }
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        match Pin::new(&mut self.inner).poll_shutdown(cx) {
+            Poll::Pending => self.blocked(cx),
+            r => self.done(r),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    #[tokio::test]
+    async fn a_write_blocked_past_the_timeout_fails_and_a_reader_keeps_it_going() {
+        // Generous against a loaded machine: the reader below pauses 2 ms between reads.
+        let timeout = Duration::from_secs(2);
+        // A 1 KiB pipe: the second KiB blocks until the peer reads.
+        let (ours, mut peer) = tokio::io::duplex(1024);
+        let mut io = TimedIo::new(ours, timeout);
+        let data = vec![7u8; 64 << 10];
+        // The peer reads slowly but steadily: every write goes through eventually.
+        let reader = tokio::spawn(async move {
+            let mut got = 0;
+            let mut buf = [0u8; 1024];
+            while got < 64 << 10 {
+                tokio::time::sleep(Duration::from_millis(2)).await;
+                match peer.read(&mut buf).await {
+                    Ok(0) | Err(_) => break,
+                    Ok(n) => got += n,
+                }
+            }
+            (got, peer)
+        });
+        io.write_all(&data)
+            .await
+            .expect("a reading peer is never cut");
+        let (got, _peer) = reader.await.expect("reader");
+        assert_eq!(got, data.len());
+        // Now nobody reads: the pipe fills and the write fails with TimedOut.
+        let err = io
+            .write_all(&data)
+            .await
+            .expect_err("a peer that stopped reading is cut");
+        assert_eq!(err.kind(), std::io::ErrorKind::TimedOut);
     }
 }

@@ -14,10 +14,12 @@
 //! - [`auth`]: authentication (API keys, JWT, stream tokens), one layer for HTTP and gRPC.
 //! - [`codec`]: their protobuf codec (a request that does not decode is INVALID_ARGUMENT).
 //! - [`conn`]: the accept loop: connection and request timeouts and limits.
+//! - [`download`]: mesh downloads with bounded memory and a deadline.
 
 pub mod auth;
 pub mod codec;
 pub mod conn;
+pub mod download;
 pub mod grpc;
 pub mod http;
 pub mod problem;

@@ -127,6 +127,21 @@ pub struct ServeArgs {
     /// HTTP/2 streams (gRPC calls, requests) open at once on one connection.
     #[arg(long, default_value_t = 128)]
     pub max_streams_per_connection: u32,
+    /// Seconds a socket write may stay blocked (the client stopped reading) before the
+    /// connection closes; also the grace period of a download before --write-min-rate-kib.
+    #[arg(long, default_value_t = 30.0)]
+    pub write_timeout_secs: f64,
+    /// Minimum rate (KiB/s) at which a client must take a mesh download: one of n bytes must
+    /// be read within --write-timeout-secs + n / rate, or it is dropped; 0: only the timeout.
+    #[arg(long, default_value_t = 64)]
+    pub write_min_rate_kib: u64,
+    /// MiB of rendered mesh downloads held for clients at once, server-wide; beyond it
+    /// downloads answer 503 `downloads_busy` (gRPC UNAVAILABLE) with Retry-After.
+    #[arg(long, default_value_t = 256)]
+    pub download_memory_mib: u64,
+    /// MiB of rendered mesh downloads held at once for one connection.
+    #[arg(long, default_value_t = 32)]
+    pub download_memory_per_connection_mib: u64,
 }
 
 /// Longest timeout the flags accept (a day): beyond it `Duration` conversions could overflow
@@ -232,6 +247,12 @@ impl ServeArgs {
         if self.max_connections == 0 || self.max_connections > 1_000_000 {
             return Err("--max-connections must be between 1 and 1000000".into());
         }
+        if self.download_memory_mib == 0 || self.download_memory_per_connection_mib == 0 {
+            return Err(
+                "--download-memory-mib and --download-memory-per-connection-mib must be at least 1"
+                    .into(),
+            );
+        }
         if self.max_streams_per_connection == 0 {
             return Err("--max-streams-per-connection must be at least 1".into());
         }
@@ -249,6 +270,12 @@ impl ServeArgs {
                 max_connections: self.max_connections,
                 max_requests_per_connection: self.max_requests_per_connection,
                 max_streams_per_connection: self.max_streams_per_connection,
+                write_timeout: secs("write-timeout-secs", self.write_timeout_secs)?,
+                write_min_rate: self.write_min_rate_kib.saturating_mul(1024),
+                download_memory: self.download_memory_mib.saturating_mul(1 << 20),
+                download_memory_per_connection: self
+                    .download_memory_per_connection_mib
+                    .saturating_mul(1 << 20),
             },
         })
     }

@@ -13,12 +13,19 @@ use super::pb::google::longrunning as lro;
 use super::pb::willow::v1;
 use super::upload::UploadAssembly;
 use super::{BoxStream, GrpcApi, WAIT_DEADLINE_MARGIN};
+use crate::api::download::{self, Busy, DownloadBudget, BUSY_RETRY_SECS};
 use crate::jobs::curve::{CurveInput, CurveSpec};
 use crate::jobs::{JobError, JobEvent, UploadRef};
+use std::time::Duration;
+use tonic::Code;
+use tonic_types::{ErrorDetails, StatusExt};
 
-/// Size of the chunks `DownloadResult` sends: well under every client's 4 MiB default, large
-/// enough that per-message overhead is negligible.
-const DOWNLOAD_CHUNK_BYTES: usize = 1 << 20;
+/// UNAVAILABLE with RetryInfo: too many downloads are waiting to be read.
+fn downloads_busy(b: Busy) -> Status {
+    let mut details = ErrorDetails::new();
+    details.set_retry_info(Some(Duration::from_secs(BUSY_RETRY_SECS)));
+    Status::with_error_details(Code::Unavailable, b.detail(), details)
+}
 
 #[tonic::async_trait]
 impl v1::fairing_server::Fairing for GrpcApi {
@@ -218,6 +225,10 @@ impl v1::fairing_server::Fairing for GrpcApi {
         request: Request<v1::DownloadResultRequest>,
     ) -> Result<Response<Self::DownloadResultStream>, Status> {
         let caller = caller(&request)?;
+        let budget = request.extensions().get::<DownloadBudget>().cloned();
+        if let Some(b) = &budget {
+            b.check().map_err(downloads_busy)?;
+        }
         let request = request.into_inner();
         let id = parse_name("name", "jobs/", &request.name)?;
         let format = match v1::MeshFormat::try_from(request.format) {
@@ -230,25 +241,25 @@ impl v1::fairing_server::Fairing for GrpcApi {
             }
             _ => format_from_pb("format", request.format)?,
         };
-        let file = Bytes::from(
-            self.jobs
-                .result(&caller, &id, format)
-                .await
-                .map_err(|e| job_error(e, "name"))?,
-        );
-        // Slices of one `Bytes` share its buffer: chunking copies nothing.
-        let chunks: Vec<Result<v1::DownloadResultChunk, Status>> = (0..file.len())
-            .step_by(DOWNLOAD_CHUNK_BYTES)
-            .enumerate()
-            .map(|(i, start)| {
-                let end = (start + DOWNLOAD_CHUNK_BYTES).min(file.len());
-                Ok(v1::DownloadResultChunk {
-                    format: if i == 0 { format_pb(format) as i32 } else { 0 },
-                    data: file.slice(start..end),
+        let bytes = self
+            .jobs
+            .result(&caller, &id, format)
+            .await
+            .map_err(|e| job_error(e, "name"))?;
+        let download = download::start(budget.as_ref(), bytes).map_err(downloads_busy)?;
+        // Chunks are handed out as the client takes them, and the download's deadline drops
+        // the buffer of a client that does not (see api::download).
+        let chunks = futures::stream::unfold((download, true), move |(mut d, first)| async move {
+            let chunk = d.next_chunk()?;
+            let item = chunk
+                .map(|data| v1::DownloadResultChunk {
+                    format: if first { format_pb(format) as i32 } else { 0 },
+                    data,
                 })
-            })
-            .collect();
-        Ok(Response::new(futures::stream::iter(chunks).boxed()))
+                .map_err(|e| Status::deadline_exceeded(e.to_string()));
+            Some((item, (d, false)))
+        });
+        Ok(Response::new(chunks.boxed()))
     }
 
     async fn fair_curve(

@@ -5,6 +5,7 @@ use super::body::{drain_refused, read_limited, MULTIPART_SLACK};
 use super::params::{
     parse_out_format, query, spec_from_json, FormatQuery, FramesQuery, JobQuery, ListQuery,
 };
+use crate::api::download::{self, Download, DownloadBudget};
 use crate::api::problem::{clip, Problem};
 use crate::api::state::AppState;
 use crate::jobs::{
@@ -12,7 +13,7 @@ use crate::jobs::{
     UploadRef,
 };
 use axum::body::Body;
-use axum::extract::{FromRequest, Path, Request, State};
+use axum::extract::{Extension, FromRequest, Path, Request, State};
 use axum::http::{header, HeaderValue, StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
@@ -196,8 +197,8 @@ fn job_response(status: StatusCode, s: JobStatus) -> Response {
     res
 }
 
-fn mesh_response(id: &str, name: &str, format: Format, bytes: Vec<u8>) -> Response {
-    let mut res = (StatusCode::OK, bytes).into_response();
+fn mesh_response(id: &str, name: &str, format: Format, download: Download) -> Response {
+    let mut res = (StatusCode::OK, download.into_body()).into_response();
     let h = res.headers_mut();
     h.insert(
         header::CONTENT_TYPE,
@@ -578,11 +579,13 @@ pub async fn list_frames(
     responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
         (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
-        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Too many downloads waiting to be read (`downloads_busy`; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
     State(st): State<AppState>,
     caller: Caller,
     Path((id, step)): Path<(String, String)>,
+    budget: Option<Extension<DownloadBudget>>,
     uri: Uri,
 ) -> Response {
     record_job(&id);
@@ -595,8 +598,12 @@ pub async fn frame_mesh(
             .with("field", "step")
         })?;
         let format = parse_out_format(&query(&uri)?)?.unwrap_or(Format::Glb);
+        let budget = budget.as_ref().map(|Extension(b)| b);
+        // Refused before rendering when no budget is left: a refusal costs nothing.
+        budget.map(DownloadBudget::check).transpose()?;
         let bytes = st.jobs.frame_mesh(&caller, &id, step, format).await?;
-        Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, bytes))
+        let download = download::start(budget, bytes)?;
+        Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, download))
     };
     match run.await {
         Ok(r) => r,
@@ -612,21 +619,26 @@ pub async fn frame_mesh(
         (status = 400, description = "Bad parameters (`format`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
-        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json")))]
+        (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Too many downloads waiting to be read (`downloads_busy`; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_result(
     State(st): State<AppState>,
     caller: Caller,
     Path(id): Path<String>,
+    budget: Option<Extension<DownloadBudget>>,
     uri: Uri,
 ) -> Response {
     record_job(&id);
     let run = async {
+        let budget = budget.as_ref().map(|Extension(b)| b);
+        budget.map(DownloadBudget::check).transpose()?;
         let format = match parse_out_format(&query(&uri)?)? {
             Some(f) => f,
             None => st.jobs.get(&caller, &id).await?.input_format,
         };
         let bytes = st.jobs.result(&caller, &id, format).await?;
-        Ok::<_, Problem>(mesh_response(&id, "result", format, bytes))
+        let download = download::start(budget, bytes)?;
+        Ok::<_, Problem>(mesh_response(&id, "result", format, download))
     };
     match run.await {
         Ok(r) => r,

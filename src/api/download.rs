@@ -1,0 +1,412 @@
+//! Bounded memory for mesh downloads (`/result`, `/frames/{step}`, gRPC `DownloadResult`;
+//! issue 25, item 6).
+//!
+//! A rendered mesh is built in memory (the writers in `willow::mesh` need the whole asset), and
+//! before this module a client that asked for one and never read it kept it alive for as long
+//! as its connection stayed: ~12 MB each, without bound. Now
+//!
+//! - every download is **charged** against two byte budgets, the connection's
+//!   (`--download-memory-per-connection-mib`) and the server's (`--download-memory-mib`); a
+//!   download that does not fit answers 503 `downloads_busy` with `Retry-After` (gRPC:
+//!   UNAVAILABLE) instead of being built, so the memory pinned by downloads is bounded per
+//!   connection and in total;
+//! - every download has a **deadline**: it must be taken by the client within
+//!   `--write-timeout-secs` plus its length at `--write-min-rate-kib` (a floor: an honest reader
+//!   at that rate always makes it). At the deadline a watchdog drops the buffer and releases the
+//!   charge even if the connection is never polled again (an HTTP/2 stream with a zero window);
+//!   the body then ends with an error, which resets the stream or closes the HTTP/1 connection;
+//! - the body is handed to hyper in [`CHUNK_BYTES`] copies, so what hyper and h2 queue per
+//!   stream is a chunk or two, never a slice that keeps the whole buffer alive after the
+//!   watchdog dropped it.
+//!
+//! The connection's socket has its own write deadline (`conn::TimedIo`): a write that stays
+//! blocked for `--write-timeout-secs` closes the connection, whatever the response.
+
+use axum::body::{Body, Bytes, HttpBody};
+use http_body::{Frame, SizeHint};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll};
+use std::time::Duration;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::task::JoinHandle;
+
+/// Size of the copies a download is handed out in: large enough that per-chunk overhead is
+/// negligible, small enough that what hyper queues per stream stays small.
+pub const CHUNK_BYTES: usize = 64 << 10;
+
+/// The budgets count KiB: `Semaphore::acquire_many` takes a `u32`, and a KiB grain keeps any
+/// budget up to 4 TiB representable.
+const UNIT: u64 = 1024;
+
+/// `Retry-After` of a download refused for want of budget: a download in the budget is either
+/// taken or dropped by its deadline, so a few seconds usually frees room.
+pub const BUSY_RETRY_SECS: u64 = 5;
+
+/// Bytes held by downloads in this process (all servers), for tests and metrics.
+static HELD_BYTES: AtomicU64 = AtomicU64::new(0);
+
+/// Bytes of rendered meshes currently held for clients in this process.
+pub fn held_bytes() -> u64 {
+    HELD_BYTES.load(Ordering::Relaxed)
+}
+
+/// The server-wide limits; one per `serve`.
+#[derive(Debug)]
+pub struct DownloadLimits {
+    global: Arc<Semaphore>,
+    global_units: u64,
+    per_connection_units: u64,
+    write_timeout: Duration,
+    write_min_rate: u64,
+}
+
+impl DownloadLimits {
+    /// `total` and `per_connection` in bytes (at least 1 KiB each); `write_min_rate` in bytes
+    /// per second (0: only `write_timeout`).
+    pub fn new(
+        total: u64,
+        per_connection: u64,
+        write_timeout: Duration,
+        write_min_rate: u64,
+    ) -> Arc<Self> {
+        let global_units = units(total).min(Semaphore::MAX_PERMITS as u64);
+        Arc::new(DownloadLimits {
+            global: Arc::new(Semaphore::new(global_units as usize)),
+            global_units,
+            per_connection_units: units(per_connection).min(Semaphore::MAX_PERMITS as u64),
+            write_timeout,
+            write_min_rate,
+        })
+    }
+
+    /// A connection's budget (a request extension, set by `conn::handle`).
+    pub fn for_connection(self: &Arc<Self>) -> DownloadBudget {
+        DownloadBudget {
+            limits: self.clone(),
+            conn: Arc::new(Semaphore::new(self.per_connection_units as usize)),
+        }
+    }
+}
+
+fn units(bytes: u64) -> u64 {
+    bytes.div_ceil(UNIT).max(1)
+}
+
+/// One connection's share of the download budget.
+#[derive(Debug, Clone)]
+pub struct DownloadBudget {
+    limits: Arc<DownloadLimits>,
+    conn: Arc<Semaphore>,
+}
+
+/// No budget left for a download of this size right now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Busy {
+    /// Which budget is exhausted: `"connection"` or `"server"`.
+    pub scope: &'static str,
+}
+
+/// A download's hold on both budgets, released on drop.
+#[derive(Debug)]
+pub struct Charge {
+    _global: OwnedSemaphorePermit,
+    _conn: OwnedSemaphorePermit,
+    bytes: u64,
+}
+
+impl Drop for Charge {
+    fn drop(&mut self) {
+        HELD_BYTES.fetch_sub(self.bytes, Ordering::Relaxed);
+    }
+}
+
+impl DownloadBudget {
+    /// Whether a download could start at all (checked before rendering, so a refused request
+    /// costs no rendering).
+    pub fn check(&self) -> Result<(), Busy> {
+        if self.conn.available_permits() == 0 {
+            return Err(Busy {
+                scope: "connection",
+            });
+        }
+        if self.limits.global.available_permits() == 0 {
+            return Err(Busy { scope: "server" });
+        }
+        Ok(())
+    }
+
+    /// Charge `len` bytes to this connection and the server. A download larger than a budget
+    /// takes all of it (so it is served alone, never refused forever).
+    pub fn charge(&self, len: usize) -> Result<Charge, Busy> {
+        let want = units(len as u64);
+        let conn_units = want.min(self.limits.per_connection_units) as u32;
+        let global_units = want.min(self.limits.global_units) as u32;
+        let conn = self
+            .conn
+            .clone()
+            .try_acquire_many_owned(conn_units)
+            .map_err(|_| Busy {
+                scope: "connection",
+            })?;
+        let global = self
+            .limits
+            .global
+            .clone()
+            .try_acquire_many_owned(global_units)
+            .map_err(|_| Busy { scope: "server" })?;
+        HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
+        Ok(Charge {
+            _global: global,
+            _conn: conn,
+            bytes: len as u64,
+        })
+    }
+
+    /// How long a client may take to read `len` bytes: the write timeout plus `len` at the
+    /// minimum rate.
+    pub fn allowance(&self, len: usize) -> Duration {
+        allowance(len, self.limits.write_timeout, self.limits.write_min_rate)
+    }
+}
+
+/// `timeout + len / min_rate` (saturating; `min_rate` 0: `timeout` alone).
+pub fn allowance(len: usize, timeout: Duration, min_rate: u64) -> Duration {
+    if min_rate == 0 {
+        return timeout;
+    }
+    let earned = Duration::try_from_secs_f64(len as f64 / min_rate as f64).unwrap_or(Duration::MAX);
+    timeout.saturating_add(earned)
+}
+
+/// A rendered mesh on its way to a client, with its charge and deadline.
+pub struct Download {
+    shared: Arc<Mutex<Option<Held>>>,
+    len: usize,
+    pos: usize,
+    watchdog: Option<JoinHandle<()>>,
+}
+
+struct Held {
+    data: Vec<u8>,
+    _charge: Option<Charge>,
+}
+
+impl Download {
+    /// Hold `data` (charged by `charge`, if any) until it is read or `allowance` passes.
+    pub fn new(data: Vec<u8>, charge: Option<Charge>, allowance: Duration) -> Download {
+        let len = data.len();
+        let shared = Arc::new(Mutex::new(Some(Held {
+            data,
+            _charge: charge,
+        })));
+        let held = shared.clone();
+        let watchdog = tokio::spawn(async move {
+            tokio::time::sleep(allowance).await;
+            let dropped = lock(&held).take();
+            if dropped.is_some() {
+                tracing::info!(
+                    bytes = len,
+                    secs = allowance.as_secs_f64(),
+                    "download not taken in time; dropped"
+                );
+            }
+        });
+        Download {
+            shared,
+            len,
+            pos: 0,
+            watchdog: Some(watchdog),
+        }
+    }
+
+    /// The next chunk (a copy), `None` at the end, or an error once the deadline dropped it.
+    pub fn next_chunk(&mut self) -> Option<Result<Bytes, TooSlow>> {
+        if self.pos >= self.len {
+            return None;
+        }
+        let mut guard = lock(&self.shared);
+        let Some(held) = guard.as_ref() else {
+            self.pos = self.len;
+            return Some(Err(TooSlow));
+        };
+        let end = (self.pos + CHUNK_BYTES).min(self.len);
+        let chunk = Bytes::copy_from_slice(&held.data[self.pos..end]);
+        self.pos = end;
+        if end == self.len {
+            // All handed out: free the buffer and the charge now, not when hyper drops us.
+            guard.take();
+            if let Some(w) = self.watchdog.take() {
+                w.abort();
+            }
+        }
+        Some(Ok(chunk))
+    }
+
+    /// The total length.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether there is nothing to send.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// As a response body with an exact length (so HTTP/1 sends `Content-Length`).
+    pub fn into_body(self) -> Body {
+        Body::new(self)
+    }
+}
+
+fn lock(m: &Mutex<Option<Held>>) -> std::sync::MutexGuard<'_, Option<Held>> {
+    // A panic while holding this lock cannot leave the Option half-written.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl Drop for Download {
+    fn drop(&mut self) {
+        if let Some(w) = self.watchdog.take() {
+            w.abort();
+        }
+    }
+}
+
+/// The error a download ends with when its client did not take it in time.
+#[derive(Debug, Clone, Copy, thiserror::Error)]
+#[error("the client did not read the download in time (write deadline)")]
+pub struct TooSlow;
+
+impl HttpBody for Download {
+    type Data = Bytes;
+    type Error = TooSlow;
+
+    fn poll_frame(
+        self: Pin<&mut Self>,
+        _cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, TooSlow>>> {
+        Poll::Ready(self.get_mut().next_chunk().map(|r| r.map(Frame::data)))
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.pos >= self.len
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        SizeHint::with_exact((self.len - self.pos) as u64)
+    }
+}
+
+impl Busy {
+    /// What the client is told.
+    pub fn detail(&self) -> String {
+        format!(
+            "too many downloads are waiting to be read on this {}; retry in {BUSY_RETRY_SECS} s",
+            self.scope
+        )
+    }
+}
+
+impl From<Busy> for super::problem::Problem {
+    fn from(b: Busy) -> Self {
+        let mut p = super::problem::Problem::new(
+            axum::http::StatusCode::SERVICE_UNAVAILABLE,
+            "downloads_busy",
+            b.detail(),
+        )
+        .with("scope", b.scope)
+        .with("retry_after_secs", BUSY_RETRY_SECS);
+        p.retry_after = Some(BUSY_RETRY_SECS);
+        p
+    }
+}
+
+/// Start a download of `data` under `budget` (none: the router is used without `conn::serve`,
+/// as in some tests, and nothing is charged; the deadline is then the default write timeout).
+pub fn start(budget: Option<&DownloadBudget>, data: Vec<u8>) -> Result<Download, Busy> {
+    match budget {
+        Some(b) => {
+            let charge = b.charge(data.len())?;
+            let allowance = b.allowance(data.len());
+            Ok(Download::new(data, Some(charge), allowance))
+        }
+        None => {
+            let d = super::conn::ConnLimits::default();
+            let allowance = allowance(data.len(), d.write_timeout, d.write_min_rate);
+            Ok(Download::new(data, None, allowance))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn allowance_is_timeout_plus_length_at_the_floor() {
+        let t = Duration::from_secs(30);
+        assert_eq!(allowance(64 << 10, t, 32 << 10), Duration::from_secs(32));
+        assert_eq!(allowance(usize::MAX, t, 0), t);
+        assert_eq!(allowance(usize::MAX, Duration::MAX, 1), Duration::MAX);
+    }
+
+    #[tokio::test]
+    async fn budgets_bound_what_is_held_and_free_it_on_drop() {
+        let limits = DownloadLimits::new(10 << 10, 4 << 10, Duration::from_secs(60), 0);
+        let a = limits.for_connection();
+        let b = limits.for_connection();
+        let c1 = a.charge(3 << 10).expect("fits the connection");
+        assert_eq!(a.charge(2 << 10).unwrap_err().scope, "connection");
+        let c2 = b.charge(4 << 10).expect("another connection");
+        let c = limits.for_connection();
+        let c3 = c.charge(3 << 10).expect("fits the server");
+        // 3 + 4 + 3 = 10 KiB: the server is full, a fresh connection is refused.
+        let d = limits.for_connection();
+        assert_eq!(d.check().unwrap_err().scope, "server");
+        drop((c1, c2, c3));
+        // Larger than the connection's budget: takes all of it, served alone.
+        let big = d
+            .charge(100 << 10)
+            .expect("an oversized download takes the whole budget");
+        assert_eq!(d.check().unwrap_err().scope, "connection");
+        drop(big);
+        assert!(d.check().is_ok());
+    }
+
+    #[tokio::test]
+    async fn a_download_comes_back_whole_in_chunks() {
+        let data: Vec<u8> = (0..(3 * CHUNK_BYTES + 17))
+            .map(|i| (i % 251) as u8)
+            .collect();
+        let mut d = Download::new(data.clone(), None, Duration::from_secs(60));
+        let mut out = Vec::new();
+        while let Some(c) = d.next_chunk() {
+            let c = c.expect("in time");
+            assert!(c.len() <= CHUNK_BYTES);
+            out.extend_from_slice(&c);
+        }
+        assert_eq!(out, data);
+    }
+
+    #[tokio::test]
+    async fn the_deadline_drops_an_unread_download_and_its_charge() {
+        let limits = DownloadLimits::new(1 << 20, 1 << 20, Duration::from_secs(60), 0);
+        let budget = limits.for_connection();
+        let charge = budget.charge(300 << 10).expect("fits");
+        let mut d = Download::new(vec![7; 300 << 10], Some(charge), Duration::from_millis(50));
+        let first = d.next_chunk().expect("a chunk").expect("in time");
+        assert_eq!(first.len(), CHUNK_BYTES);
+        // Nobody polls the body: the watchdog frees the charge on its own.
+        let freed = async {
+            while limits.global.available_permits() < limits.global_units as usize {
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        };
+        tokio::time::timeout(Duration::from_secs(10), freed)
+            .await
+            .expect("charge released by the deadline");
+        assert!(matches!(d.next_chunk(), Some(Err(TooSlow))));
+        assert!(d.next_chunk().is_none());
+    }
+}

@@ -1,0 +1,357 @@
+//! Slow readers (issue 25, item 6): clients that request a large result and never read it are
+//! cut off after the write deadline, the memory their downloads hold stays within the budget
+//! (beyond it they get 503 `downloads_busy` + `Retry-After`), and a normal client is served
+//! while they hang.
+//!
+//! Alone in its binary: it asserts on `download::held_bytes()`, the process-wide count of bytes
+//! held for downloads, which other tests' downloads would disturb.
+
+mod service_http_support;
+
+use service_http_support::{obj_text, obj_vertices, poll_until};
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpSocket, TcpStream};
+use willow::mesh::generate;
+use willow_service::api::conn::ConnLimits;
+use willow_service::api::download::held_bytes;
+use willow_service::api::server::{serve_with, AppOptions, ServeOptions};
+use willow_service::jobs::{Config, Jobs};
+
+/// The write timeout under test (the default is 30 s).
+const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// The rate floor under test: 1 MiB/s, so a ~1 MB result must be taken within ~3 s.
+const MIN_RATE: u64 = 1 << 20;
+
+/// Clients that ask for the result and never read.
+const HANGERS: usize = 8;
+
+/// A client whose receive buffer is tiny, so the server's writes block after a few KiB
+/// instead of filling megabytes of loopback buffers.
+async fn stingy_connect(addr: &str) -> TcpStream {
+    let addr = addr.parse().expect("socket address");
+    let socket = TcpSocket::new_v4().expect("socket");
+    socket.set_recv_buffer_size(4096).expect("SO_RCVBUF");
+    socket.connect(addr).await.expect("connect")
+}
+
+/// Send a GET and read only the response head: (status, content-length, retry-after).
+async fn request_head(s: &mut TcpStream, path: &str) -> (u16, Option<usize>, Option<String>) {
+    let req = format!("GET {path} HTTP/1.1\r\nHost: willow\r\n\r\n");
+    s.write_all(req.as_bytes()).await.expect("request sent");
+    let mut buf = Vec::new();
+    let mut byte = [0u8; 1];
+    // One byte at a time: the client must not read past the head.
+    while !buf.ends_with(b"\r\n\r\n") {
+        let n = s.read(&mut byte).await.expect("head read");
+        assert!(n == 1, "connection closed inside the head: {buf:?}");
+        buf.push(byte[0]);
+    }
+    let head = String::from_utf8_lossy(&buf).to_string();
+    let status = head
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .expect("a status line");
+    let header = |name: &str| {
+        head.split("\r\n")
+            .filter_map(|l| l.split_once(':'))
+            .find(|(k, _)| k.trim().eq_ignore_ascii_case(name))
+            .map(|(_, v)| v.trim().to_string())
+    };
+    let len = header("content-length").and_then(|v| v.parse().ok());
+    (status, len, header("retry-after"))
+}
+
+/// Read until the server ends the connection (or `patience` passes): bytes read, and whether
+/// it ended.
+async fn drain(s: &mut TcpStream, patience: Duration) -> (usize, bool) {
+    let mut total = 0;
+    let mut chunk = vec![0u8; 64 << 10];
+    let reading = async {
+        loop {
+            match s.read(&mut chunk).await {
+                Ok(0) | Err(_) => return,
+                Ok(n) => total += n,
+            }
+        }
+    };
+    let ended = tokio::time::timeout(patience, reading).await.is_ok();
+    (total, ended)
+}
+
+/// The real server on a loopback listener whose accepted sockets have a small, fixed send
+/// buffer (Linux: accepted sockets inherit it). With the kernel's autotuning a loopback socket
+/// absorbs up to 4 MiB, and the results a test can afford to compute are smaller than that.
+async fn start(options: ServeOptions) -> (String, tokio::sync::oneshot::Sender<()>) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = Config::new(dir.path());
+    config.workers = 1;
+    let (jobs, core) = Jobs::start(config).await.expect("job core starts");
+    let socket = TcpSocket::new_v4().expect("socket");
+    socket.set_send_buffer_size(16 << 10).expect("SO_SNDBUF");
+    socket
+        .bind("127.0.0.1:0".parse().expect("address"))
+        .expect("bind loopback");
+    let listener = socket.listen(1024).expect("listen");
+    let addr = listener.local_addr().expect("local addr").to_string();
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    tokio::spawn(async move {
+        let _dir = dir;
+        let shutdown = async move {
+            let _ = rx.await;
+        };
+        serve_with(
+            listener,
+            jobs,
+            core,
+            shutdown,
+            Duration::from_secs(2),
+            options,
+        )
+        .await
+    });
+    (addr, tx)
+}
+
+async fn succeeded_job(client: &reqwest::Client, base: &str, obj: &str) -> String {
+    let res = client
+        .post(format!("{base}/v1/jobs?steps=1"))
+        .header("content-type", "model/obj")
+        .body(obj.to_string())
+        .send()
+        .await
+        .expect("POST /v1/jobs");
+    assert_eq!(res.status(), 202);
+    let job: serde_json::Value = res.json().await.expect("job json");
+    let id = job["id"].as_str().expect("job id").to_string();
+    let done = poll_until(client, base, &id, Duration::from_secs(120), |v| {
+        v["state"] != "queued" && v["state"] != "running"
+    })
+    .await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    id
+}
+
+/// The tests here assert on the process-wide `held_bytes()`: one at a time.
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
+    let _serial = SERIAL.lock().await;
+    // 10242 vertices: a result of about a megabyte as OBJ, far more than the client's
+    // receive buffer.
+    let obj = obj_text(&generate::bumpy_sphere(5, 0.1));
+    let client = reqwest::Client::new();
+    let probe = {
+        let (addr, stop) = start(ServeOptions::default()).await;
+        let base = format!("http://{addr}");
+        let id = succeeded_job(&client, &base, &obj).await;
+        let res = client
+            .get(format!("{base}/v1/jobs/{id}/result?format=obj"))
+            .send()
+            .await
+            .expect("GET result");
+        assert_eq!(res.status(), 200);
+        let len = res.bytes().await.expect("result").len();
+        let _ = stop.send(());
+        len
+    };
+    assert!(
+        probe > 500_000,
+        "the result should be large, is {probe} bytes"
+    );
+    // Room for three hanging downloads on the server (and a whole one per connection).
+    let budget = 3 * probe as u64 + (probe as u64 / 2);
+    let options = ServeOptions {
+        app: AppOptions::default(),
+        conn: ConnLimits {
+            write_timeout: WRITE_TIMEOUT,
+            write_min_rate: MIN_RATE,
+            download_memory: budget,
+            download_memory_per_connection: 2 * probe as u64,
+            ..ConnLimits::default()
+        },
+    };
+    let (addr, stop) = start(options).await;
+    let base = format!("http://{addr}");
+    let id = succeeded_job(&client, &base, &obj).await;
+    let path = format!("/v1/jobs/{id}/result?format=obj");
+    assert_eq!(held_bytes(), 0, "nothing held before the downloads");
+
+    let mut hanging = Vec::new();
+    let mut refused = 0;
+    for _ in 0..HANGERS {
+        let mut s = stingy_connect(&addr).await;
+        let (status, len, retry_after) = request_head(&mut s, &path).await;
+        match status {
+            200 => {
+                assert_eq!(len, Some(probe), "the full length is announced");
+                hanging.push(s);
+            }
+            503 => {
+                let secs: u64 = retry_after
+                    .expect("503 carries Retry-After")
+                    .parse()
+                    .expect("Retry-After in seconds");
+                assert!(secs >= 1);
+                refused += 1;
+            }
+            other => panic!("unexpected status {other}"),
+        }
+        // The budget bounds what the hanging clients pin.
+        assert!(
+            held_bytes() <= budget,
+            "held {} > budget {budget}",
+            held_bytes()
+        );
+    }
+    let started = Instant::now();
+    assert_eq!(hanging.len(), 3, "exactly the budget's worth are served");
+    assert_eq!(refused, HANGERS - 3);
+    assert_eq!(held_bytes(), 3 * probe as u64);
+
+    // While they hang, a normal client is answered.
+    let asked = Instant::now();
+    let res = client
+        .get(format!("{base}/v1/jobs/{id}"))
+        .send()
+        .await
+        .expect("GET job");
+    assert_eq!(res.status(), 200);
+    let v: serde_json::Value = res.json().await.expect("job json");
+    eprintln!("status answered in {:?} while they hang", asked.elapsed());
+    assert_eq!(v["state"], "succeeded");
+
+    // The deadline (timeout + length at the floor) frees their memory without their help…
+    let allowance = WRITE_TIMEOUT + Duration::from_secs_f64(probe as f64 / MIN_RATE as f64);
+    let patience = allowance + Duration::from_secs(10);
+    while held_bytes() > 0 {
+        assert!(
+            started.elapsed() < patience,
+            "still held after {:?}: {}",
+            started.elapsed(),
+            held_bytes()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    // …and their connections are closed: what remains in the pipes is less than the result.
+    for mut s in hanging {
+        let (got, ended) = drain(&mut s, Duration::from_secs(10)).await;
+        assert!(ended, "a hanging connection was not closed");
+        assert!(
+            got < probe,
+            "a cut download arrived whole ({got} of {probe} bytes)"
+        );
+    }
+
+    // With the budget free again, a reading client gets the whole result, intact.
+    let res = client
+        .get(format!("{base}{path}"))
+        .send()
+        .await
+        .expect("GET result");
+    assert_eq!(res.status(), 200);
+    let text = res.text().await.expect("result text");
+    assert_eq!(text.len(), probe);
+    assert_eq!(obj_vertices(&text).len(), 10242);
+    assert_eq!(held_bytes(), 0, "a finished download holds nothing");
+    let _ = stop.send(());
+}
+
+/// The same against HTTP/2 clients that open no flow-control window: the server can send them
+/// no byte, so no socket write ever blocks; the per-connection budget and the download deadline
+/// still bound and free what they pin.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
+    let _serial = SERIAL.lock().await;
+    let obj = obj_text(&generate::bumpy_sphere(5, 0.1));
+    let client = reqwest::Client::new();
+    // A generous server budget: here the connection's budget is the one that binds.
+    let options = ServeOptions {
+        app: AppOptions::default(),
+        conn: ConnLimits {
+            write_timeout: WRITE_TIMEOUT,
+            write_min_rate: MIN_RATE,
+            download_memory: 64 << 20,
+            download_memory_per_connection: 3 << 20,
+            ..ConnLimits::default()
+        },
+    };
+    let (addr, stop) = start(options).await;
+    let base = format!("http://{addr}");
+    let id = succeeded_job(&client, &base, &obj).await;
+    let path = format!("/v1/jobs/{id}/result?format=obj");
+    assert_eq!(held_bytes(), 0);
+
+    const CONNECTIONS: usize = 2;
+    const STREAMS: usize = 10;
+    let mut kept = Vec::new();
+    let mut served = 0;
+    let mut refused = 0;
+    let mut len = 0;
+    for _ in 0..CONNECTIONS {
+        let tcp = TcpStream::connect(&addr).await.expect("connect");
+        let (h2, conn) = h2::client::Builder::new()
+            .initial_window_size(0)
+            .handshake::<_, bytes::Bytes>(tcp)
+            .await
+            .expect("h2 handshake");
+        tokio::spawn(conn);
+        for _ in 0..STREAMS {
+            let mut h2 = h2.clone().ready().await.expect("stream slot");
+            let req = axum::http::Request::get(format!("{base}{path}"))
+                .body(())
+                .expect("request");
+            let (response, _) = h2.send_request(req, true).expect("request sent");
+            let response = response.await.expect("response head");
+            match response.status().as_u16() {
+                200 => {
+                    served += 1;
+                    len = response
+                        .headers()
+                        .get("content-length")
+                        .and_then(|v| v.to_str().ok())
+                        .and_then(|v| v.parse::<usize>().ok())
+                        .expect("content-length");
+                    kept.push(response);
+                }
+                503 => {
+                    assert!(response.headers().contains_key("retry-after"));
+                    refused += 1;
+                }
+                other => panic!("unexpected status {other}"),
+            }
+            assert!(
+                held_bytes() <= CONNECTIONS as u64 * (3 << 20),
+                "held {} beyond the connections' budgets",
+                held_bytes()
+            );
+        }
+        drop(h2);
+    }
+    assert!(len > 500_000, "the result should be large, is {len} bytes");
+    // 3 MiB per connection holds two ~1 MB downloads, or three if they are small enough.
+    let per_connection = ((3u64 << 20) / len as u64) as usize;
+    assert_eq!(served, CONNECTIONS * per_connection);
+    assert_eq!(refused, CONNECTIONS * (STREAMS - per_connection));
+    assert_eq!(held_bytes(), (served * len) as u64);
+
+    // Nobody reads (the windows stay shut); the deadline frees the memory all the same.
+    let started = Instant::now();
+    let patience = WRITE_TIMEOUT
+        + Duration::from_secs_f64(len as f64 / MIN_RATE as f64)
+        + Duration::from_secs(10);
+    while held_bytes() > 0 {
+        assert!(
+            started.elapsed() < patience,
+            "still held after {:?}: {}",
+            started.elapsed(),
+            held_bytes()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    drop(kept);
+    let _ = stop.send(());
+}
