@@ -70,6 +70,12 @@ pub struct JobSpecSchema {
     /// Width (model units, > 0) over which a region's motion blends to zero toward its
     /// border. Needs a region.
     pub falloff: Option<f64>,
+    /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed as a
+    /// Standard Webhooks event (`webhook-id`, `webhook-timestamp`, `webhook-signature:
+    /// v1,<base64 HMAC-SHA256 of "{id}.{timestamp}.{body}">`, keyed by the tenant's webhook
+    /// secret), retried with backoff until answered 2xx. `https` to a public address only,
+    /// unless the server runs with `--allow-insecure-callbacks`.
+    pub callback_url: Option<String>,
 }
 
 /// What each component keeps after every step.

@@ -60,6 +60,8 @@ struct HashedSpec<'a> {
     feature_size: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     falloff: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    callback_url: Option<&'a str>,
 }
 
 fn is_area(p: &willow::flow::Preserve) -> bool {
@@ -107,6 +109,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             measure_deviation,
             feature_size,
             falloff,
+            callback_url,
         } = s;
         HashedSpec {
             method: *method,
@@ -130,6 +133,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             measure_deviation: *measure_deviation,
             feature_size: *feature_size,
             falloff: *falloff,
+            callback_url: callback_url.as_deref(),
         }
     }
 }

@@ -201,6 +201,7 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
     }
     spec.feature_size = p.feature_size;
     spec.falloff = p.falloff;
+    spec.callback_url = p.callback_url.filter(|u| !u.is_empty());
     Ok(spec)
 }
 
@@ -454,6 +455,7 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
         measure_deviation: Some(spec.measure_deviation),
         feature_size: spec.feature_size,
         falloff: spec.falloff,
+        callback_url: spec.callback_url.clone(),
     }
 }
 
@@ -614,6 +616,7 @@ pub(super) fn job_pb(status: &JobStatus) -> v1::Job {
         stopped_early: job_stopped_early(status),
         outcome: status.outcome().map(|o| o.0).unwrap_or_default(),
         outcome_reason: status.outcome().map(|o| o.1).unwrap_or_default(),
+        percent_complete: status.percent_complete(),
     }
 }
 
