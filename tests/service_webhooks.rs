@@ -152,3 +152,38 @@ async fn insecure_and_private_callbacks_are_refused_naming_the_field() {
     }
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failed_job_sends_job_failed_with_its_error_code() {
+    let (url, mut rx, _) = receiver(&[]).await;
+    let server = start(allow_loopback_hooks).await;
+    // A deadline far shorter than one step of the larger mesh: the job fails
+    // `deadline_exceeded`.
+    let (status, _, job) = server
+        .submit_obj(
+            &slow_obj(),
+            &format!(
+                "steps=5000&until_converged=false&deadline_secs=0.001&callback_url={}",
+                query_escape(&url)
+            ),
+        )
+        .await;
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().expect("id").to_string();
+    let d = next(&mut rx).await;
+    assert!(d.signature_ok, "{d:?}");
+    assert_eq!(d.body["type"], "job.failed");
+    assert_eq!(d.body["data"]["id"], id.as_str());
+    assert_eq!(
+        d.body["data"]["error_code"], "deadline_exceeded",
+        "{:?}",
+        d.body
+    );
+    assert!(
+        d.body["data"]["percent_complete"]
+            .as_f64()
+            .expect("percent")
+            < 100.0
+    );
+    server.stop().await;
+}
