@@ -16,7 +16,8 @@
 //!   loop reads the pending jobs at start, whenever a job ends on this node and every
 //!   [`POLL`], so a job that ended while the process was down, or on another node, is sent
 //!   too. Tries back off 1 s, 2 s, 4 s, … up to [`MAX_BACKOFF`]; a restart starts the count
-//!   again.
+//!   again. The loop stops when draining begins (with the workers' polling): a job that ends
+//!   in the grace period is delivered after the next start.
 //! - **Addresses**: `https` only, and a host that resolves to a public address only (checked
 //!   at submission, [`check_callback`], and again at each delivery by the connector's
 //!   resolver, so DNS that changes after submission cannot point the server at its own
