@@ -381,6 +381,15 @@ pub(crate) async fn delivery_loop(jobs: Jobs, stop: CancellationToken) {
                 Vec::new()
             }
         };
+        if pending.len() < BATCH {
+            // Every pending job was read: forget the tries of jobs no longer pending (deleted,
+            // expired, or settled by another node).
+            let ids: HashSet<&str> = pending.iter().map(|j| j.id.as_str()).collect();
+            attempts
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .retain(|id, _| ids.contains(id.as_str()));
+        }
         let now = tokio::time::Instant::now();
         let mut next_wake = now + POLL;
         for job in pending {
