@@ -147,10 +147,17 @@ pub async fn check_callback(url: &str, config: &Config) -> Result<(), JobError> 
         )));
     }
     let (host, port) = host_port(&uri).ok_or_else(|| bad("must name a host".into()))?;
-    let addrs: Vec<SocketAddr> = tokio::net::lookup_host((host.as_str(), port))
-        .await
-        .map_err(|e| bad(format!("host `{host}` does not resolve: {e}")))?
-        .collect();
+    // Bounded: a submission must not wait on a slow resolver for long.
+    let addrs: Vec<SocketAddr> =
+        tokio::time::timeout(TRY_TIMEOUT, tokio::net::lookup_host((host.as_str(), port)))
+            .await
+            .map_err(|_| {
+                bad(format!(
+                    "host `{host}` did not resolve within {TRY_TIMEOUT:?}"
+                ))
+            })?
+            .map_err(|e| bad(format!("host `{host}` does not resolve: {e}")))?
+            .collect();
     if addrs.is_empty() {
         return Err(bad(format!("host `{host}` resolves to no address")));
     }
