@@ -74,6 +74,12 @@ pub struct JobSpecSchema {
     /// vertices and edges; the submission's answer has `repairs`. Default false: such a file
     /// is refused, naming its own vertex and face numbers.
     pub repair: bool,
+    /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed as a
+    /// Standard Webhooks event (`webhook-id`, `webhook-timestamp`, `webhook-signature:
+    /// v1,<base64 HMAC-SHA256 of "{id}.{timestamp}.{body}">`, keyed by the tenant's webhook
+    /// secret), retried with backoff until answered 2xx. `https` to a public address only,
+    /// unless the server runs with `--allow-insecure-callbacks`.
+    pub callback_url: Option<String>,
 }
 
 /// What each component keeps after every step.

@@ -92,6 +92,20 @@ pub struct ServeArgs {
     /// Per tenant: meshes received (jobs and uploads) in any minute (0 = no limit).
     #[arg(long, default_value_t = 120)]
     pub tenant_uploads_per_minute: usize,
+    /// Let jobs' `callback_url` use plain `http` and reach loopback, private and link-local
+    /// addresses. For tests and closed networks: otherwise a client could make the server
+    /// probe its own network.
+    #[arg(long)]
+    pub allow_insecure_callbacks: bool,
+    /// A file holding the server secret of webhook signatures (at least 16 bytes, surrounding
+    /// whitespace ignored; a file, so the secret is not in the process list). Each tenant's
+    /// key is HMAC-SHA256(secret, tenant id). Default: random per process, so receivers cannot
+    /// check signatures across a restart.
+    #[arg(long)]
+    pub webhook_secret_file: Option<PathBuf>,
+    /// Tries of one webhook before it is given up (retries wait 1 s, 2 s, 4 s, … up to 5 min).
+    #[arg(long, default_value_t = 12)]
+    pub webhook_max_attempts: u32,
     #[command(flatten)]
     pub auth: AuthArgs,
     /// An origin (`https://app.example`, exactly as browsers send it) whose pages may call the
@@ -330,6 +344,23 @@ impl ServeArgs {
             return Err("--max-deliveries must be at least 1".into());
         }
         c.max_deliveries = self.max_deliveries;
+        c.allow_insecure_callbacks = self.allow_insecure_callbacks;
+        if let Some(path) = &self.webhook_secret_file {
+            let text = std::fs::read(path)
+                .map_err(|e| format!("--webhook-secret-file {}: {e}", path.display()))?;
+            let secret = text.trim_ascii();
+            if secret.len() < 16 {
+                return Err(format!(
+                    "--webhook-secret-file {}: the secret must be at least 16 bytes",
+                    path.display()
+                ));
+            }
+            c.webhook_secret = Some(secret.to_vec());
+        }
+        if self.webhook_max_attempts == 0 {
+            return Err("--webhook-max-attempts must be at least 1".into());
+        }
+        c.webhook_max_attempts = self.webhook_max_attempts;
         c.quotas = crate::jobs::TenantQuotas {
             max_live_jobs: self.tenant_max_live_jobs,
             max_stored_bytes: self.tenant_max_stored_mib.saturating_mul(1 << 20),

@@ -33,6 +33,9 @@ impl Jobs {
             return Err(JobError::ShuttingDown);
         }
         spec.validate(&self.inner.config)?;
+        if let Some(url) = &spec.callback_url {
+            super::webhooks::check_callback(url, &self.inner.config).await?;
+        }
         let backend = &self.inner.backend;
         let received = matches!(upload, UploadRef::Bytes { .. });
         let (data, format) = match upload {

@@ -62,6 +62,8 @@ struct HashedSpec<'a> {
     falloff: Option<f64>,
     #[serde(skip_serializing_if = "is_false")]
     repair: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    callback_url: Option<&'a str>,
 }
 
 fn is_area(p: &willow::flow::Preserve) -> bool {
@@ -110,6 +112,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             feature_size,
             falloff,
             repair,
+            callback_url,
         } = s;
         HashedSpec {
             method: *method,
@@ -134,6 +137,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             feature_size: *feature_size,
             falloff: *falloff,
             repair: *repair,
+            callback_url: callback_url.as_deref(),
         }
     }
 }

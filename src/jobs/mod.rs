@@ -18,6 +18,7 @@
 //!   checkpointing.
 //! - [`telemetry`]: the Prometheus metrics of the core (queue depth, running, outcomes, durations).
 //! - [`spec`]: the filter and boundary options of a [`JobSpec`], as the network may send them.
+//! - [`webhooks`]: a job's end POSTed, signed, to its `callback_url`, at least once.
 //! - [`curve`]: synchronous curve fairing ([`Jobs::fair_curve`]) on its own bounded slots.
 //!
 //! Times in [`JobStatus`] are **unix milliseconds** (`u64`): cheap to compare and to turn into a
@@ -40,6 +41,7 @@ pub mod ports;
 pub mod spec;
 pub mod telemetry;
 pub mod watch;
+pub mod webhooks;
 pub mod worker;
 
 pub use error::{FailureCode, JobError};
@@ -92,6 +94,8 @@ pub(crate) struct Inner {
     pub avg_job_ms: AtomicU64,
     /// Permits for curve requests ([`Config::curve_slots`]).
     pub curve_slots: Arc<tokio::sync::Semaphore>,
+    /// Woken when a job with a `callback_url` ends on this node ([`webhooks::delivery_loop`]).
+    pub callbacks_due: Arc<tokio::sync::Notify>,
 }
 
 /// The cheap, cloneable handle every transport holds.
@@ -160,6 +164,7 @@ impl Jobs {
             workers_alive: AtomicUsize::new(0),
             avg_job_ms: AtomicU64::new(0),
             curve_slots: Arc::new(tokio::sync::Semaphore::new(config.curve_slots)),
+            callbacks_due: Arc::new(tokio::sync::Notify::new()),
         });
         let jobs = Jobs { inner };
         jobs.inner
@@ -173,6 +178,13 @@ impl Jobs {
             for n in 0..config.workers {
                 tracker.spawn(worker::worker_loop(jobs.clone(), n, stop_polling.clone()));
             }
+        }
+        // Every node delivers: jobs end on workers, and queued jobs are cancelled on API
+        // nodes. Two nodes may both send one event (at least once); its `webhook-id` is the
+        // same, for the receiver to drop the repeat.
+        {
+            let (deliverer, stop) = (jobs.clone(), stop_polling.clone());
+            tokio::spawn(async move { webhooks::delivery_loop(deliverer, stop).await });
         }
         if config.role.serves_api() {
             let sweeper = jobs.clone();

@@ -84,6 +84,10 @@ pub struct JobSpec {
     /// vertices and edges (`Asset::read_repaired`); the submission's answer says what changed.
     /// Off, such a file is refused naming its own vertex and face numbers.
     pub repair: bool,
+    /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed, signed
+    /// as Standard Webhooks ([`super::webhooks`]). `https` only, to a public address, unless
+    /// the server allows otherwise ([`Config::allow_insecure_callbacks`]).
+    pub callback_url: Option<String>,
 }
 
 impl Default for JobSpec {
@@ -112,6 +116,7 @@ impl Default for JobSpec {
             feature_size: flow.feature_size,
             falloff: flow.falloff,
             repair: false,
+            callback_url: None,
         }
     }
 }
@@ -176,6 +181,14 @@ impl JobSpec {
                     format!("must be at most {max_deadline_secs} (the server's maximum), got {d}"),
                 );
             }
+        }
+        if let Some(url) = &self.callback_url {
+            // The scheme and address policy needs the server's flag and a DNS lookup: it is
+            // `webhooks::check_callback`'s, at submission. Here only the form.
+            super::webhooks::parse_callback(url).map_err(|reason| JobError::InvalidSpec {
+                field: "callback_url",
+                reason,
+            })?;
         }
         // The boundary first: its checks name the field path inside it, where the library
         // names `boundary` as a whole.
@@ -461,6 +474,18 @@ impl JobStatus {
         })
     }
 
+    /// Progress in percent: `step / total_steps × 100`, and 100 once succeeded (a run that
+    /// converged early ends before its last step).
+    pub fn percent_complete(&self) -> f64 {
+        if self.state == JobState::Succeeded {
+            return 100.0;
+        }
+        if self.total_steps == 0 {
+            return 0.0;
+        }
+        (self.step as f64 / self.total_steps as f64 * 100.0).clamp(0.0, 100.0)
+    }
+
     /// The typed view of [`JobStatus::error_code`]: `None` when there is none, or when it is a
     /// code this version does not know.
     pub fn failure(&self) -> Option<FailureCode> {
@@ -607,6 +632,17 @@ pub struct Config {
     pub max_deliveries: u32,
     /// What one tenant may hold at once.
     pub quotas: TenantQuotas,
+    /// Callbacks may use `http` and reach loopback, private and link-local addresses (tests
+    /// and closed networks only: otherwise a client could make the server probe its own
+    /// network).
+    pub allow_insecure_callbacks: bool,
+    /// The server's webhook secret; each tenant signs with HMAC-SHA256(secret, tenant)
+    /// ([`super::webhooks::tenant_key`]). `None`: a random secret per process, so signatures
+    /// cannot be checked across a restart — set one in production.
+    pub webhook_secret: Option<Vec<u8>>,
+    /// Tries of one callback before it is given up (the first, then retries after 1 s, 2 s,
+    /// 4 s, … capped at [`super::webhooks::MAX_BACKOFF`]).
+    pub webhook_max_attempts: u32,
 }
 
 /// Per-tenant quotas: each refusal names its quota (`QuotaExceeded`, 429 /
@@ -694,6 +730,10 @@ impl Config {
             heartbeat_interval: Duration::from_secs(5),
             max_deliveries: 3,
             quotas: TenantQuotas::default(),
+            allow_insecure_callbacks: false,
+            webhook_secret: None,
+            // 1 + 2 + … + 256 s plus the cap: about an hour of a receiver being down.
+            webhook_max_attempts: 12,
         }
     }
 }

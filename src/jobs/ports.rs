@@ -306,6 +306,12 @@ pub trait JobStore: Send + Sync + 'static {
     async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError>;
     /// What `tenant` holds at `now` (unix ms), with the meshes it sent in the minute before.
     async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError>;
+    /// Terminal, unexpired jobs whose `callback_url` has not been settled, oldest first (at
+    /// most `limit`): what [`super::webhooks`] still has to deliver. Kept in the record, so a
+    /// restart (or another node) finds them again.
+    async fn pending_callbacks(&self, limit: usize) -> Result<Vec<JobStatus>, JobError>;
+    /// The job's callback is delivered (or given up): it is pending no more.
+    async fn settle_callback(&self, id: &str) -> Result<(), JobError>;
 }
 
 /// What [`JobStore::start`] found.

@@ -789,6 +789,9 @@ pub(crate) async fn finish(
         .publish(id, JobEvent::Done(status.clone()))
         .await?;
     backend.events.close(id).await;
+    if status.spec.callback_url.is_some() {
+        inner.callbacks_due.notify_one();
+    }
     inner.telemetry.record_outcome(
         state,
         code,

@@ -293,6 +293,8 @@ pub struct NodeOpts {
     pub grace_secs: f64,
     /// `--max-deliveries`.
     pub max_deliveries: u32,
+    /// More flags, as given.
+    pub extra: Vec<String>,
 }
 
 impl NodeOpts {
@@ -327,7 +329,14 @@ impl NodeOpts {
             ack_wait_secs: 3,
             grace_secs: 2.0,
             max_deliveries: 3,
+            extra: Vec::new(),
         }
+    }
+
+    /// One more flag (or flag value) on the command line.
+    pub fn arg(mut self, a: impl Into<String>) -> NodeOpts {
+        self.extra.push(a.into());
+        self
     }
 
     pub fn queue_capacity(mut self, n: usize) -> NodeOpts {
@@ -391,6 +400,7 @@ impl Node {
         if let Some(role) = opts.role {
             cmd.args(["--role", role]);
         }
+        cmd.args(&opts.extra);
         let mut child = cmd
             .env("RUST_LOG", "info")
             .stdin(Stdio::null())

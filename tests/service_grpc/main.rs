@@ -20,12 +20,15 @@ use willow_service::api::grpc::pb::willow::v1;
 use willow_service::jobs::{Config, Jobs, Shutdown};
 #[path = "../service_http_support/mod.rs"]
 mod service_http_support;
+#[path = "../webhook_support/mod.rs"]
+mod webhook_support;
 
 mod curves;
 mod errors;
 mod jobs;
 mod options;
 mod service;
+mod webhooks;
 
 use service_http_support::obj_text;
 use willow::mesh::generate;

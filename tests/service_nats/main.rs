@@ -16,11 +16,14 @@
 mod nats_support;
 #[path = "../service_http_support/mod.rs"]
 mod service_http_support;
+#[path = "../webhook_support/mod.rs"]
+mod webhook_support;
 
 mod consumers;
 mod fencing;
 mod nodes;
 mod queue;
+mod webhooks;
 
 use nats_support::*;
 use service_http_support::{frame_steps, is_terminal, slow_obj, small_obj, Sse};

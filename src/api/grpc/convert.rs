@@ -204,6 +204,7 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
     if let Some(v) = p.repair {
         spec.repair = v;
     }
+    spec.callback_url = p.callback_url.filter(|u| !u.is_empty());
     Ok(spec)
 }
 
@@ -458,6 +459,7 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
         feature_size: spec.feature_size,
         falloff: spec.falloff,
         repair: Some(spec.repair),
+        callback_url: spec.callback_url.clone(),
     }
 }
 
@@ -618,6 +620,7 @@ pub(super) fn job_pb(status: &JobStatus) -> v1::Job {
         stopped_early: job_stopped_early(status),
         outcome: status.outcome().map(|o| o.0).unwrap_or_default(),
         outcome_reason: status.outcome().map(|o| o.1).unwrap_or_default(),
+        percent_complete: status.percent_complete(),
     }
 }
 

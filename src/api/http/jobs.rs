@@ -25,6 +25,8 @@ use willow::mesh::io::Format;
 pub struct Progress {
     pub step: usize,
     pub total_steps: usize,
+    /// `step / total_steps × 100`; 100 once the job succeeded (also when it stopped early).
+    pub percent_complete: f64,
 }
 
 #[derive(Debug, Serialize, ToSchema)]
@@ -104,6 +106,7 @@ impl From<JobStatus> for JobView {
             progress: Progress {
                 step: s.step,
                 total_steps: s.total_steps,
+                percent_complete: s.percent_complete(),
             },
             metrics: LatestMetrics { latest: s.latest },
             error: s.error,

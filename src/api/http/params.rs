@@ -147,6 +147,9 @@ pub struct JobQuery {
     pub feature_size: Option<f64>,
     /// Width, in model units, over which a region's motion blends to zero toward its border.
     pub falloff: Option<f64>,
+    /// Where the job's end is POSTed as a signed Standard Webhooks event (https only unless
+    /// the server allows insecure callbacks).
+    pub callback_url: Option<String>,
     /// A region of the faces of this file group: an OBJ `g`/`o` name, a glTF node or mesh name.
     #[serde(rename = "region.group")]
     #[param(rename = "region.group")]
@@ -289,6 +292,7 @@ impl JobQuery {
             feature_size: self.feature_size,
             falloff: self.falloff,
             repair: self.repair.unwrap_or(defaults.repair),
+            callback_url: self.callback_url.clone(),
         })
     }
 }

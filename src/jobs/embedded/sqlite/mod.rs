@@ -234,8 +234,8 @@ impl SqliteStore {
             }
             tx.prepare_cached(
                 "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at,
-                                   tenant, input_bytes, received)
-                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
+                                   tenant, input_bytes, received, callback_pending)
+                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
             )?
             .execute(params![
                     job.id,
@@ -246,7 +246,8 @@ impl SqliteStore {
                     ms(job.created_at),
                     job.tenant,
                     ms(job.input_bytes),
-                    job.received
+                    job.received,
+                    job.spec.callback_url.is_some()
                 ],
             )?;
             if let Some((key, hash)) = &job.idempotency {

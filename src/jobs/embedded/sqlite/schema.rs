@@ -32,7 +32,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     crashes         INTEGER NOT NULL DEFAULT 0,
     tenant          TEXT NOT NULL DEFAULT 'default',
     input_bytes     INTEGER NOT NULL DEFAULT 0,
-    received        INTEGER NOT NULL DEFAULT 1
+    received        INTEGER NOT NULL DEFAULT 1,
+    callback_pending INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_expiry ON jobs(expires_at) WHERE expired = 0;
@@ -61,12 +62,13 @@ CREATE TABLE IF NOT EXISTS uploads (
 /// Columns added after the first release, with their definitions: databases from before them
 /// get them at open (SQLite has no `ADD COLUMN IF NOT EXISTS`). Rows from before tenants
 /// belong to the default tenant.
-const ADDED_COLUMNS: [(&str, &str, &str); 5] = [
+const ADDED_COLUMNS: [(&str, &str, &str); 6] = [
     ("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
     ("jobs", "input_bytes", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "received", "INTEGER NOT NULL DEFAULT 1"),
     ("uploads", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
+    ("jobs", "callback_pending", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 /// The statement a trigger runs for a mesh received (a job or an upload row `NEW`): what
@@ -119,6 +121,7 @@ CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant_state ON jobs(tenant, state);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant_created ON jobs(tenant, created_at);
 CREATE INDEX IF NOT EXISTS uploads_by_tenant ON uploads(tenant, created_at);
+CREATE INDEX IF NOT EXISTS jobs_callback_pending ON jobs(seq) WHERE callback_pending != 0;
 DROP TRIGGER IF EXISTS tenant_bytes_job_in;
 DROP TRIGGER IF EXISTS tenant_bytes_job_expired;
 DROP TRIGGER IF EXISTS tenant_bytes_job_out;

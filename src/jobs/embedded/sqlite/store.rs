@@ -8,7 +8,7 @@ use super::super::super::ports::{
 use super::super::super::{
     format_name, now_ms, parse_format, FailureCode, JobError, JobId, JobState, JobStatus,
 };
-use super::{ms, usage_on, SqliteStore};
+use super::{ms, row_to_status, usage_on, SqliteStore, STATUS_COLUMNS};
 use async_trait::async_trait;
 use rusqlite::{params, OptionalExtension};
 use willow::mesh::io::Format;
@@ -312,6 +312,38 @@ impl JobStore for SqliteStore {
             }
             parse_format(&format)
                 .ok_or_else(|| JobError::Internal(format!("unknown stored format `{format}`")))
+        })
+        .await
+    }
+
+    async fn pending_callbacks(&self, limit: usize) -> Result<Vec<JobStatus>, JobError> {
+        self.blocking(move |s| {
+            let conn = s.conn()?;
+            // The partial index holds only the pending rows: this stays cheap however many
+            // jobs the store keeps.
+            let mut st = conn.prepare_cached(&format!(
+                "SELECT {STATUS_COLUMNS} FROM jobs WHERE callback_pending != 0
+                   AND state IN ('succeeded', 'failed', 'cancelled') AND expired = 0
+                 ORDER BY seq LIMIT ?1"
+            ))?;
+            let rows = st.query_map(params![ms(limit as u64)], row_to_status)?;
+            let mut out = Vec::new();
+            for row in rows {
+                out.push(row??.status);
+            }
+            Ok(out)
+        })
+        .await
+    }
+
+    async fn settle_callback(&self, id: &str) -> Result<(), JobError> {
+        let id = id.to_string();
+        self.blocking(move |s| {
+            s.conn()?.execute(
+                "UPDATE jobs SET callback_pending = 0 WHERE id = ?1",
+                params![id],
+            )?;
+            Ok(())
         })
         .await
     }

@@ -57,6 +57,10 @@ struct Record {
     /// while the job waits).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     hold: Option<Hold>,
+    /// The job has a `callback_url` whose delivery is not settled yet (absent in records from
+    /// before webhooks: they have none).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    callback_pending: bool,
 }
 
 /// A worker's hold on a running job: its [`Fence`]'s token, and until when (unix ms, the

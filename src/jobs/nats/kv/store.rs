@@ -470,6 +470,33 @@ impl JobStore for KvStore {
         Ok(swept)
     }
 
+    async fn pending_callbacks(&self, limit: usize) -> Result<Vec<JobStatus>, JobError> {
+        // A scan of every record, as `sweep_expired`'s: the webhook loop calls it at start,
+        // after each job that ends on this node and every few seconds (jobs that ended on
+        // other nodes), which keeps a bucket of thousands of jobs to a few reads a second.
+        let mut out = Vec::new();
+        for rec in self.list_records().await? {
+            if rec.callback_pending && rec.status.state.is_terminal() && !rec.expired {
+                out.push(rec.status()?);
+            }
+        }
+        out.sort_by_key(|s| (s.finished_at, s.created_at));
+        out.truncate(limit);
+        Ok(out)
+    }
+
+    async fn settle_callback(&self, id: &str) -> Result<(), JobError> {
+        match self
+            .update(id, |r| {
+                Ok(std::mem::replace(&mut r.callback_pending, false))
+            })
+            .await
+        {
+            Ok(_) | Err(JobError::NotFound(_)) => Ok(()),
+            Err(e) => Err(e),
+        }
+    }
+
     async fn recover(&self) -> Result<Vec<Recovered>, JobError> {
         // The work-queue stream is durable: queued jobs are still in it, and running ones are
         // delivered again when their lease lapses.

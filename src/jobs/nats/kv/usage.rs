@@ -210,6 +210,7 @@ impl KvStore {
             idem,
             expired: false,
             hold: None,
+            callback_pending: job.spec.callback_url.is_some(),
         };
         kv.create(job_key(&job.id), to_json(&rec)?)
             .await
