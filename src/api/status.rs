@@ -44,6 +44,11 @@ pub fn of_error(e: &JobError) -> Statuses {
         JobError::ShuttingDown | JobError::Unavailable(_) => {
             (StatusCode::SERVICE_UNAVAILABLE, Code::Unavailable)
         }
+        // 507 Insufficient Storage (RFC 4918 §11.5): the server cannot store what the request
+        // needs. gRPC: RESOURCE_EXHAUSTED, whose definition names "the entire file system is
+        // out of space", with RetryInfo: space comes back (sweep, DELETE), unlike UNAVAILABLE
+        // it is not a blip a client should retry within seconds.
+        JobError::StorageFull { .. } => (StatusCode::INSUFFICIENT_STORAGE, Code::ResourceExhausted),
         // 504 as google.rpc maps DEADLINE_EXCEEDED: the server gave up within the budget.
         JobError::DeadlineExceeded { .. } => (StatusCode::GATEWAY_TIMEOUT, Code::DeadlineExceeded),
         // The input is valid but the flow broke down on it: not the client's fault, not a

@@ -100,6 +100,13 @@ pub(crate) async fn worker_loop(jobs: Jobs, n: usize, stop: CancellationToken) {
     let _alive = AliveGuard(&inner);
     let backend = inner.backend.clone();
     loop {
+        if inner.storage.is_full() {
+            // Any job taken now would stop at its first write: leave them queued.
+            tokio::select! {
+                _ = stop.cancelled() => break,
+                _ = tokio::time::sleep(Duration::from_secs(super::storage::STORAGE_PROBE_SECS)) => continue,
+            }
+        }
         let lease = tokio::select! {
             biased;
             _ = stop.cancelled() => break,
@@ -250,6 +257,17 @@ async fn settle(
             let _ = inner.backend.store.requeue(id, fence).await;
             lease.control.release().await
         }
+        Err(JobError::StorageFull { detail }) => {
+            // A full disk is not the job's fault either: back to the queue, to resume from
+            // its checkpoint once there is room (the re-queue writes into the reserve the
+            // first full write released). Meanwhile this worker waits instead of taking the
+            // job again at once.
+            let _ = inner.storage.noted(JobError::StorageFull { detail });
+            tracing::warn!(job_id = %id, "storage full: the job is re-queued and waits for room");
+            let _ = inner.backend.store.requeue(id, fence).await;
+            wait_for_room(inner).await;
+            lease.control.release().await
+        }
         Err(e) => {
             // The job could not even be recorded as failed (store error or a panic in the
             // flow): try once more to fail it alone, and keep the worker going.
@@ -271,6 +289,17 @@ async fn settle(
     if let Err(e) = settled {
         // The queue delivers it again; the store says it is terminal, and `start` refuses it.
         tracing::warn!(job_id = %id, error = %e, "could not settle the lease");
+    }
+}
+
+/// Wait until storage has room again (the probe clears the mark) or shutdown begins.
+async fn wait_for_room(inner: &Inner) {
+    let period = Duration::from_secs(super::storage::STORAGE_PROBE_SECS);
+    while inner.storage.is_full() && !inner.shutdown.is_cancelled() {
+        tokio::select! {
+            _ = inner.shutdown.cancelled() => return,
+            _ = tokio::time::sleep(period) => {}
+        }
     }
 }
 

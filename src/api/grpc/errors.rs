@@ -135,6 +135,15 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
             }
             details.set_error_info("QUOTA_EXCEEDED", ERROR_DOMAIN, meta);
         }
+        JobError::StorageFull { detail } => {
+            // The file names stay in the log; the client learns which resource ran out.
+            tracing::warn!(error = %detail, "storage full in a gRPC call");
+            details.add_quota_failure_violation(
+                "storage",
+                "the server's data volume is full; retry once space has been freed",
+            );
+            details.set_error_info("STORAGE_FULL", ERROR_DOMAIN, HashMap::new());
+        }
         JobError::InvalidMesh(mesh) => {
             details.add_bad_request_violation(mesh_field, cap_detail(mesh.to_string()));
             details.set_error_info(
