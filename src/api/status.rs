@@ -128,6 +128,30 @@ mod tests {
         }
     }
 
+    /// A full disk: 507 and RESOURCE_EXHAUSTED, retryable (space comes back), whether the
+    /// file system or SQLite said so.
+    #[test]
+    fn a_full_disk_answers_507_and_resource_exhausted() {
+        let io = JobError::from(std::io::Error::from(std::io::ErrorKind::StorageFull));
+        let sqlite = JobError::from(rusqlite::Error::SqliteFailure(
+            rusqlite::ffi::Error::new(rusqlite::ffi::SQLITE_FULL),
+            None,
+        ));
+        for e in [io, sqlite] {
+            assert_eq!(e.code(), "storage_full", "{e:?}");
+            assert_eq!(
+                of_error(&e),
+                Statuses {
+                    http: StatusCode::INSUFFICIENT_STORAGE,
+                    grpc: Code::ResourceExhausted
+                }
+            );
+            assert!(e.retry_after_secs().is_some_and(|s| s >= 1));
+        }
+        let other = JobError::from(std::io::Error::from(std::io::ErrorKind::PermissionDenied));
+        assert_eq!(of_error(&other).http, StatusCode::INTERNAL_SERVER_ERROR);
+    }
+
     #[test]
     fn cancelled_jobs_answer_cancelled_whatever_their_code() {
         for code in FailureCode::ALL.map(Some).into_iter().chain([None]) {

@@ -263,6 +263,27 @@ mod tests {
     }
 
     #[test]
+    fn storage_full_is_resource_exhausted_with_quota_failure_and_retry_info() {
+        let status = job_error(
+            JobError::StorageFull {
+                detail: "file: /data/jobs/x: No space left on device".into(),
+            },
+            "inline_mesh.data",
+        );
+        assert_eq!(status.code(), Code::ResourceExhausted);
+        assert!(!status.message().contains("/data"), "{}", status.message());
+        let retry = status.get_details_retry_info().and_then(|r| r.retry_delay);
+        assert_eq!(
+            retry,
+            Some(Duration::from_secs(crate::jobs::STORAGE_FULL_RETRY_SECS))
+        );
+        let quota = status.get_details_quota_failure().expect("QuotaFailure");
+        assert_eq!(quota.violations[0].subject, "storage");
+        let info = status.get_details_error_info().expect("ErrorInfo");
+        assert_eq!(info.reason, "STORAGE_FULL");
+    }
+
+    #[test]
     fn spec_fields_map_to_request_paths() {
         let status = job_error(
             JobError::InvalidSpec {
