@@ -131,6 +131,17 @@ impl StorageHealth {
         }
     }
 
+    /// Wait until storage has room again (the probe clears the mark) or `stop` is cancelled.
+    pub async fn wait_for_room(&self, stop: &tokio_util::sync::CancellationToken) {
+        let period = std::time::Duration::from_secs(STORAGE_PROBE_SECS);
+        while self.is_full() && !stop.is_cancelled() {
+            tokio::select! {
+                _ = stop.cancelled() => return,
+                _ = tokio::time::sleep(period) => {}
+            }
+        }
+    }
+
     /// Check a full disk again (blocking: call on a blocking thread): with a data dir, the
     /// reserve is written back and [`PROBE_BYTES`] more must fit; without one, storage counts
     /// full for [`REMOTE_FULL_MS`] after the last full write. Returns whether storage is full.

@@ -100,13 +100,8 @@ pub(crate) async fn worker_loop(jobs: Jobs, n: usize, stop: CancellationToken) {
     let _alive = AliveGuard(&inner);
     let backend = inner.backend.clone();
     loop {
-        if inner.storage.is_full() {
-            // Any job taken now would stop at its first write: leave them queued.
-            tokio::select! {
-                _ = stop.cancelled() => break,
-                _ = tokio::time::sleep(Duration::from_secs(super::storage::STORAGE_PROBE_SECS)) => continue,
-            }
-        }
+        // Any job taken while the disk is full would stop at its first write: leave them queued.
+        inner.storage.wait_for_room(&stop).await;
         let lease = tokio::select! {
             biased;
             _ = stop.cancelled() => break,
@@ -265,7 +260,7 @@ async fn settle(
             let _ = inner.storage.noted(JobError::StorageFull { detail });
             tracing::warn!(job_id = %id, "storage full: the job is re-queued and waits for room");
             let _ = inner.backend.store.requeue(id, fence).await;
-            wait_for_room(inner).await;
+            inner.storage.wait_for_room(&inner.shutdown).await;
             lease.control.release().await
         }
         Err(e) => {
@@ -289,17 +284,6 @@ async fn settle(
     if let Err(e) = settled {
         // The queue delivers it again; the store says it is terminal, and `start` refuses it.
         tracing::warn!(job_id = %id, error = %e, "could not settle the lease");
-    }
-}
-
-/// Wait until storage has room again (the probe clears the mark) or shutdown begins.
-async fn wait_for_room(inner: &Inner) {
-    let period = Duration::from_secs(super::storage::STORAGE_PROBE_SECS);
-    while inner.storage.is_full() && !inner.shutdown.is_cancelled() {
-        tokio::select! {
-            _ = inner.shutdown.cancelled() => return,
-            _ = tokio::time::sleep(period) => {}
-        }
     }
 }
 
