@@ -133,6 +133,10 @@ impl From<JobError> for Problem {
                 tracing::warn!(error = %msg, "backend unavailable");
                 "the job backend is unavailable; retry shortly".to_string()
             }
+            JobError::StorageFull { detail } => {
+                tracing::warn!(error = %detail, "storage full");
+                e.to_string()
+            }
             JobError::Internal(msg) => {
                 // The cause goes to the log, not to the client.
                 tracing::error!(error = %msg, "internal error");
@@ -191,6 +195,9 @@ impl From<JobError> for Problem {
                 p.with("step", step).with("steps", steps)
             }
             JobError::Numerical { step, .. } => p.with("step", step),
+            JobError::StorageFull { .. } => {
+                p.with("retry_after_secs", crate::jobs::STORAGE_FULL_RETRY_SECS)
+            }
             JobError::InvalidMesh(_)
             | JobError::Conflict(_)
             | JobError::IdempotencyMismatch(_)

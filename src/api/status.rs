@@ -44,6 +44,11 @@ pub fn of_error(e: &JobError) -> Statuses {
         JobError::ShuttingDown | JobError::Unavailable(_) => {
             (StatusCode::SERVICE_UNAVAILABLE, Code::Unavailable)
         }
+        // 507 Insufficient Storage (RFC 4918 §11.5): the server cannot store what the request
+        // needs. gRPC: RESOURCE_EXHAUSTED, whose definition names "the entire file system is
+        // out of space", with RetryInfo: space comes back (sweep, DELETE), unlike UNAVAILABLE
+        // it is not a blip a client should retry within seconds.
+        JobError::StorageFull { .. } => (StatusCode::INSUFFICIENT_STORAGE, Code::ResourceExhausted),
         // 504 as google.rpc maps DEADLINE_EXCEEDED: the server gave up within the budget.
         JobError::DeadlineExceeded { .. } => (StatusCode::GATEWAY_TIMEOUT, Code::DeadlineExceeded),
         // The input is valid but the flow broke down on it: not the client's fault, not a
@@ -121,6 +126,30 @@ mod tests {
                 "{code}"
             );
         }
+    }
+
+    /// A full disk: 507 and RESOURCE_EXHAUSTED, retryable (space comes back), whether the
+    /// file system or SQLite said so.
+    #[test]
+    fn a_full_disk_answers_507_and_resource_exhausted() {
+        let io = JobError::from(std::io::Error::from(std::io::ErrorKind::StorageFull));
+        let sqlite = JobError::from(rusqlite::Error::SqliteFailure(
+            rusqlite::ffi::Error::new(rusqlite::ffi::SQLITE_FULL),
+            None,
+        ));
+        for e in [io, sqlite] {
+            assert_eq!(e.code(), "storage_full", "{e:?}");
+            assert_eq!(
+                of_error(&e),
+                Statuses {
+                    http: StatusCode::INSUFFICIENT_STORAGE,
+                    grpc: Code::ResourceExhausted
+                }
+            );
+            assert!(e.retry_after_secs().is_some_and(|s| s >= 1));
+        }
+        let other = JobError::from(std::io::Error::from(std::io::ErrorKind::PermissionDenied));
+        assert_eq!(of_error(&other).http, StatusCode::INTERNAL_SERVER_ERROR);
     }
 
     #[test]

@@ -32,6 +32,8 @@ impl Jobs {
         if self.inner.draining.load(Ordering::SeqCst) {
             return Err(JobError::ShuttingDown);
         }
+        // While the disk is full a submission would only eat the reserve deletes need.
+        self.inner.storage.refuse_if_full()?;
         spec.validate(&self.inner.config)?;
         if let Some(url) = &spec.callback_url {
             super::webhooks::check_callback(url, &self.inner.config).await?;
@@ -116,16 +118,16 @@ impl Jobs {
         // Write the blob before taking the admission lock: fsync is slow and need not be
         // serialised. A refused job's blob is removed again below.
         let t = Instant::now();
-        backend
-            .blobs
-            .put(
-                BlobKey::Input {
-                    id: id.clone(),
-                    format,
-                },
-                data,
-            )
-            .await?;
+        let input = BlobKey::Input {
+            id: id.clone(),
+            format,
+        };
+        let put = backend.blobs.put(input, data).await;
+        if put.is_err() {
+            // A full disk may have left the job's directory behind.
+            let _ = backend.blobs.delete_job(&id).await;
+        }
+        self.inner.storage.note(put)?;
         telemetry.phase("blob_put", t);
         let job = NewJob {
             id: id.clone(),
@@ -192,7 +194,7 @@ impl Jobs {
         job.quotas = self.inner.config.quotas.clone();
         let (id, tenant) = (job.id.clone(), job.tenant.clone());
         let t = Instant::now();
-        let inserted = backend.store.insert(job).await?;
+        let inserted = self.inner.storage.note(backend.store.insert(job).await)?;
         telemetry.phase("insert", t);
         if !matches!(inserted, Inserted::New(_)) {
             return Ok(inserted);
@@ -292,6 +294,7 @@ impl Jobs {
         if self.inner.draining.load(Ordering::SeqCst) {
             return Err(JobError::ShuttingDown);
         }
+        self.inner.storage.refuse_if_full()?;
         let limit = self.inner.config.limits.max_upload_bytes;
         if data.len() as u64 > limit {
             return Err(JobError::TooLarge {
@@ -320,11 +323,14 @@ impl Jobs {
                 id: id.clone(),
                 format,
             };
-            backend.blobs.put(key, data).await?;
-            backend
-                .store
-                .put_upload(&caller.tenant, &id, format, size, expires)
-                .await?;
+            let storage = &self.inner.storage;
+            storage.note(backend.blobs.put(key, data).await)?;
+            storage.note(
+                backend
+                    .store
+                    .put_upload(&caller.tenant, &id, format, size, expires)
+                    .await,
+            )?;
         }
         audit("upload", caller, &id);
         Ok(id)

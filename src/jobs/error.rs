@@ -48,6 +48,13 @@ pub enum JobError {
     /// from its checkpoint; it is never failed for it.
     #[error("the job backend is unavailable: {0}")]
     Unavailable(String),
+    /// The data dir's file system (or SQLite's database in it) has no room left: ENOSPC,
+    /// EDQUOT, `SQLITE_FULL`. Not the request's fault and not a bug: retryable once space is
+    /// freed (the expiry sweep, a DELETE, an operator). A running job that meets it is
+    /// re-queued and resumes from its checkpoint; it is never failed for it. `detail` names
+    /// files and is for the log, never for the client (hence not in the message).
+    #[error("the server's storage is full; retry once space has been freed")]
+    StorageFull { detail: String },
     /// A step that exists but kept no positions, or a step past the job's progress.
     #[error("job `{id}` has no mesh for step {step}: {detail}")]
     FrameNotFound {
@@ -92,6 +99,7 @@ impl JobError {
             JobError::ShuttingDown => "shutting_down",
             JobError::Internal(_) => "internal",
             JobError::Unavailable(_) => "unavailable",
+            JobError::StorageFull { .. } => "storage_full",
             JobError::FrameNotFound { .. } => "frame_not_found",
             JobError::UploadNotFound(_) => "upload_not_found",
             JobError::InvalidCurve(e) => curve_error_code(e),
@@ -121,10 +129,16 @@ impl JobError {
             JobError::ShuttingDown => Some(SHUTDOWN_RETRY_SECS),
             // NATS restarting or a partition healing: seconds, not minutes.
             JobError::Unavailable(_) => Some(2),
+            // Space comes back when the sweeper or a client deletes results, or an operator
+            // acts: the readiness probe re-checks every `STORAGE_PROBE_SECS`.
+            JobError::StorageFull { .. } => Some(STORAGE_FULL_RETRY_SECS),
             _ => None,
         }
     }
 }
+
+/// The retry hint of [`JobError::StorageFull`]: a few of the readiness probe's periods.
+pub const STORAGE_FULL_RETRY_SECS: u64 = 30;
 
 /// The retry hint of [`JobError::ShuttingDown`]: about as long as a replica takes to restart.
 const SHUTDOWN_RETRY_SECS: u64 = 5;
@@ -150,14 +164,34 @@ fn quota_detail(used: &Option<u64>) -> String {
 
 impl From<rusqlite::Error> for JobError {
     fn from(e: rusqlite::Error) -> Self {
+        // SQLITE_FULL is what SQLite answers when a write meets ENOSPC (and when the database
+        // reaches `max_page_count`); an I/O error whose cause is ENOSPC counts the same.
+        if e.sqlite_error_code() == Some(rusqlite::ErrorCode::DiskFull) {
+            return JobError::StorageFull {
+                detail: format!("store: {e}"),
+            };
+        }
         JobError::Internal(format!("store: {e}"))
     }
 }
 
 impl From<std::io::Error> for JobError {
     fn from(e: std::io::Error) -> Self {
+        if is_storage_full(&e) {
+            return JobError::StorageFull {
+                detail: format!("file: {e}"),
+            };
+        }
         JobError::Internal(format!("file: {e}"))
     }
+}
+
+/// ENOSPC (`StorageFull`) or a user's disk quota (EDQUOT, `QuotaExceeded`): no room to write.
+pub fn is_storage_full(e: &std::io::Error) -> bool {
+    matches!(
+        e.kind(),
+        std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded
+    )
 }
 
 /// Why a job failed, was cancelled or (`NoProgress`) stopped early: the machine-readable

@@ -39,12 +39,13 @@ mod model;
 pub mod nats;
 pub mod ports;
 pub mod spec;
+pub mod storage;
 pub mod telemetry;
 pub mod watch;
 pub mod webhooks;
 pub mod worker;
 
-pub use error::{FailureCode, JobError};
+pub use error::{is_storage_full, FailureCode, JobError, STORAGE_FULL_RETRY_SECS};
 pub use ids::JobId;
 pub use model::*;
 
@@ -96,6 +97,8 @@ pub(crate) struct Inner {
     pub curve_slots: Arc<tokio::sync::Semaphore>,
     /// Woken when a job with a `callback_url` ends on this node ([`webhooks::delivery_loop`]).
     pub callbacks_due: Arc<tokio::sync::Notify>,
+    /// Whether the data dir is full ([`storage`]).
+    pub storage: storage::StorageHealth,
 }
 
 /// The cheap, cloneable handle every transport holds.
@@ -114,11 +117,24 @@ pub struct Shutdown {
 
 impl Jobs {
     /// The embedded backend under `config.data_dir`: see [`Jobs::start_with`].
+    ///
+    /// On a full disk it still starts and serves reads: a first open that fails releases the
+    /// reserves ([`storage`]) and tries once more.
     pub async fn start(config: Config) -> Result<(Jobs, Shutdown), JobError> {
         let (dir, capacity) = (config.data_dir.clone(), config.queue_capacity);
-        let backend = tokio::task::spawn_blocking(move || embedded::open(&dir, capacity))
-            .await
-            .map_err(join_err)??;
+        let backend = tokio::task::spawn_blocking(move || {
+            match embedded::open(&dir, capacity) {
+                // SQLite reports ENOSPC on its `-shm` file as a plain I/O error, so any failure
+                // is worth one more try if there was a reserve to free.
+                Err(e) if storage::release_for_start(&dir) => {
+                    tracing::error!(error = %e, "the store did not open: reserves released, trying again (a full disk?)");
+                    embedded::open(&dir, capacity)
+                }
+                other => other,
+            }
+        })
+        .await
+        .map_err(join_err)??;
         Jobs::start_with(config, backend).await
     }
 
@@ -142,14 +158,29 @@ impl Jobs {
                 reason: "must be at least 1".into(),
             });
         }
-        let recovered = backend.store.recover().await?;
-        let count = recovered.len();
-        for job in recovered {
-            // Recovered jobs bypass the capacity check: they were admitted before.
-            backend.queue.push_recovered(job).await?;
+        // The embedded backend's storage is the data dir: probed, and holding the reserve.
+        let storage = storage::StorageHealth::new(
+            (backend.name == "embedded").then(|| config.data_dir.clone()),
+        );
+        if let Some(dir) = (backend.name == "embedded").then(|| config.data_dir.clone()) {
+            let made = tokio::task::spawn_blocking(move || storage::ensure_reserve(&dir))
+                .await
+                .map_err(join_err)?;
+            if let Err(e) = made {
+                // No room for it: the disk is full now, and the server says so.
+                tracing::warn!(error = %e, "could not write the storage reserve");
+                let _ = storage.noted(JobError::from(e));
+            }
         }
-        if count > 0 {
-            tracing::info!(count, "re-queued jobs from the store");
+        // On a full disk recovery cannot write: the server starts anyway (reads work), and
+        // recovers once the probe finds room.
+        let recovered = match storage.note(backend.store.recover().await) {
+            Err(JobError::StorageFull { .. }) => None,
+            other => Some(other?),
+        };
+        let pending_recovery = recovered.is_none();
+        if let Some(recovered) = recovered {
+            requeue_recovered(&backend, recovered).await?;
         }
         let inner = Arc::new(Inner {
             config: config.clone(),
@@ -165,6 +196,7 @@ impl Jobs {
             avg_job_ms: AtomicU64::new(0),
             curve_slots: Arc::new(tokio::sync::Semaphore::new(config.curve_slots)),
             callbacks_due: Arc::new(tokio::sync::Notify::new()),
+            storage,
         });
         let jobs = Jobs { inner };
         jobs.inner
@@ -191,6 +223,9 @@ impl Jobs {
             let stop = stop_polling.clone();
             tokio::spawn(async move { sweeper.sweep_loop(stop).await });
         }
+        let prober = jobs.clone();
+        let stop = stop_polling.clone();
+        tokio::spawn(async move { prober.storage_loop(stop, pending_recovery).await });
         tracker.close();
         Ok((
             jobs.clone(),
@@ -292,9 +327,24 @@ impl Jobs {
     /// `Conflict`.
     pub async fn delete(&self, caller: &Caller, id: &str) -> Result<(), JobError> {
         let backend = &self.inner.backend;
-        backend.store.delete(&caller.tenant, id).await?;
+        // Files first: on a full disk they free the room SQLite's delete needs for its WAL
+        // frames (the reserve covers a disk with nothing else to free). A delete the store
+        // then refuses (not found, another tenant's, still running) must not have removed
+        // them: so the store is asked first whether it would.
+        let status = backend.store.status(id, Some(&caller.tenant)).await;
+        match status {
+            Ok(s) if s.state.is_terminal() => self
+                .inner
+                .storage
+                .note(backend.blobs.delete_job(id).await)?,
+            // Expired, unknown or not deletable: the store's delete says which.
+            _ => {}
+        }
+        self.inner
+            .storage
+            .note(backend.store.delete(&caller.tenant, id).await)?;
         audit("delete", caller, id);
-        backend.blobs.delete_job(id).await
+        self.inner.storage.note(backend.blobs.delete_job(id).await)
     }
 
     /// Events of a job from `from_step` on: its current state, the stored frames (replay),
@@ -488,11 +538,14 @@ impl Jobs {
         self.inner.draining.load(Ordering::SeqCst)
     }
 
-    /// Ready to take traffic: not draining, the backend reachable, every worker loop alive,
-    /// and, when a job is running, a step finished within `stall_after`.
+    /// Ready to take traffic: not draining, the backend reachable, storage not full, every
+    /// worker loop alive, and, when a job is running, a step finished within `stall_after`.
     pub fn is_ready(&self) -> bool {
         let inner = &self.inner;
-        if inner.draining.load(Ordering::SeqCst) || !inner.backend.queue.connected() {
+        if inner.draining.load(Ordering::SeqCst)
+            || !inner.backend.queue.connected()
+            || inner.storage.is_full()
+        {
             return false;
         }
         let workers = if inner.config.role.runs_workers() {
@@ -506,6 +559,11 @@ impl Jobs {
         let idle = inner.running.load(Ordering::SeqCst) == 0;
         let since = now_ms().saturating_sub(inner.last_progress_ms.load(Ordering::SeqCst));
         idle || since <= inner.config.stall_after.as_millis() as u64
+    }
+
+    /// Whether the data dir is known full (readiness says so until a probe finds room).
+    pub fn storage_full(&self) -> bool {
+        self.inner.storage.is_full()
     }
 
     /// Whether the backend's server is reachable (always, embedded).
@@ -551,6 +609,33 @@ impl Jobs {
         }
     }
 
+    /// While storage is full, probe it every [`storage::STORAGE_PROBE_SECS`]; once it has
+    /// room, run a recovery the start could not write (`pending_recovery`).
+    async fn storage_loop(self, stop: CancellationToken, mut pending_recovery: bool) {
+        let period = Duration::from_secs(storage::STORAGE_PROBE_SECS);
+        loop {
+            tokio::select! {
+                _ = stop.cancelled() => return,
+                _ = tokio::time::sleep(period) => {}
+            }
+            let me = self.clone();
+            let full = tokio::task::spawn_blocking(move || me.inner.storage.probe(now_ms()))
+                .await
+                .unwrap_or(true);
+            if full || !pending_recovery {
+                continue;
+            }
+            let backend = &self.inner.backend;
+            match self.inner.storage.note(backend.store.recover().await) {
+                Ok(recovered) => match requeue_recovered(backend, recovered).await {
+                    Ok(()) => pending_recovery = false,
+                    Err(e) => tracing::warn!(error = %e, "recovery after a full disk failed"),
+                },
+                Err(e) => tracing::warn!(error = %e, "recovery after a full disk failed"),
+            }
+        }
+    }
+
     async fn sweep(&self) -> Result<usize, JobError> {
         let backend = &self.inner.backend;
         let swept = backend.store.sweep_expired(now_ms()).await?;
@@ -562,6 +647,22 @@ impl Jobs {
         }
         Ok(swept.jobs.len())
     }
+}
+
+/// Put the jobs a recovery found back on the queue.
+async fn requeue_recovered(
+    backend: &Backend,
+    recovered: Vec<ports::Recovered>,
+) -> Result<(), JobError> {
+    let count = recovered.len();
+    for job in recovered {
+        // Recovered jobs bypass the capacity check: they were admitted before.
+        backend.queue.push_recovered(job).await?;
+    }
+    if count > 0 {
+        tracing::info!(count, "re-queued jobs from the store");
+    }
+    Ok(())
 }
 
 impl Shutdown {

@@ -100,6 +100,8 @@ pub(crate) async fn worker_loop(jobs: Jobs, n: usize, stop: CancellationToken) {
     let _alive = AliveGuard(&inner);
     let backend = inner.backend.clone();
     loop {
+        // Any job taken while the disk is full would stop at its first write: leave them queued.
+        inner.storage.wait_for_room(&stop).await;
         let lease = tokio::select! {
             biased;
             _ = stop.cancelled() => break,
@@ -248,6 +250,17 @@ async fn settle(
             // the wait for it to lapse.
             tracing::warn!(job_id = %id, error = %e, "backend unavailable: the job will be delivered again");
             let _ = inner.backend.store.requeue(id, fence).await;
+            lease.control.release().await
+        }
+        Err(JobError::StorageFull { detail }) => {
+            // A full disk is not the job's fault either: back to the queue, to resume from
+            // its checkpoint once there is room (the re-queue writes into the reserve the
+            // first full write released). Meanwhile this worker waits instead of taking the
+            // job again at once.
+            let _ = inner.storage.noted(JobError::StorageFull { detail });
+            tracing::warn!(job_id = %id, "storage full: the job is re-queued and waits for room");
+            let _ = inner.backend.store.requeue(id, fence).await;
+            inner.storage.wait_for_room(&inner.shutdown).await;
             lease.control.release().await
         }
         Err(e) => {

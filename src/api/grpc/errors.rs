@@ -135,6 +135,15 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
             }
             details.set_error_info("QUOTA_EXCEEDED", ERROR_DOMAIN, meta);
         }
+        JobError::StorageFull { detail } => {
+            // The file names stay in the log; the client learns which resource ran out.
+            tracing::warn!(error = %detail, "storage full in a gRPC call");
+            details.add_quota_failure_violation(
+                "storage",
+                "the server's data volume is full; retry once space has been freed",
+            );
+            details.set_error_info("STORAGE_FULL", ERROR_DOMAIN, HashMap::new());
+        }
         JobError::InvalidMesh(mesh) => {
             details.add_bad_request_violation(mesh_field, cap_detail(mesh.to_string()));
             details.set_error_info(
@@ -251,6 +260,27 @@ mod tests {
         assert_eq!(status.code(), Code::ResourceExhausted);
         let retry = status.get_details_retry_info().and_then(|r| r.retry_delay);
         assert_eq!(retry, Some(Duration::from_secs(7)));
+    }
+
+    #[test]
+    fn storage_full_is_resource_exhausted_with_quota_failure_and_retry_info() {
+        let status = job_error(
+            JobError::StorageFull {
+                detail: "file: /data/jobs/x: No space left on device".into(),
+            },
+            "inline_mesh.data",
+        );
+        assert_eq!(status.code(), Code::ResourceExhausted);
+        assert!(!status.message().contains("/data"), "{}", status.message());
+        let retry = status.get_details_retry_info().and_then(|r| r.retry_delay);
+        assert_eq!(
+            retry,
+            Some(Duration::from_secs(crate::jobs::STORAGE_FULL_RETRY_SECS))
+        );
+        let quota = status.get_details_quota_failure().expect("QuotaFailure");
+        assert_eq!(quota.violations[0].subject, "storage");
+        let info = status.get_details_error_info().expect("ErrorInfo");
+        assert_eq!(info.reason, "STORAGE_FULL");
     }
 
     #[test]

@@ -238,6 +238,7 @@ pub(super) fn record_job(id: &str) {
         (status = 422, description = "Invalid mesh, or idempotency key reused with another request", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full; see Retry-After", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down", body = Problem, content_type = "application/problem+json"),
+        (status = 507, description = "The server's disk is full (`storage_full`); see Retry-After", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn create_job(State(st): State<AppState>, caller: Caller, req: Request) -> Response {

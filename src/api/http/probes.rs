@@ -13,7 +13,7 @@ pub async fn healthz() -> &'static str {
 
 /// Readiness: not draining, workers alive and making progress.
 #[utoipa::path(get, path = "/readyz", tag = "ops",
-    responses((status = 200, description = "ready"), (status = 503, description = "draining or stalled")))]
+    responses((status = 200, description = "ready"), (status = 503, description = "draining, backend unreachable, storage full or stalled")))]
 pub async fn readyz(State(st): State<AppState>) -> Response {
     if st.jobs.is_ready() {
         (StatusCode::OK, "ready").into_response()
@@ -22,6 +22,8 @@ pub async fn readyz(State(st): State<AppState>) -> Response {
             "draining"
         } else if !st.jobs.backend_connected() {
             "backend unreachable"
+        } else if st.jobs.storage_full() {
+            "storage full"
         } else {
             "workers stalled"
         };

@@ -209,6 +209,51 @@ pub(super) fn prepare(conn: &Connection) -> Result<(), JobError> {
     // (SIGKILL), and power loss can lose only the last transactions, not corrupt the file.
     conn.pragma_update(None, "journal_mode", "WAL")?;
     conn.pragma_update(None, "synchronous", "NORMAL")?;
+    match upgrade(conn) {
+        Ok(()) => Ok(()),
+        // A full disk: the tables of the previous start serve as they are (their triggers are
+        // the last release's; `tenant_usage` was kept current by them), so the server starts
+        // and serves reads. A database that has no tables yet cannot.
+        Err(JobError::StorageFull { detail }) if has_tables(conn)? => {
+            tracing::error!(error = %detail, "storage full: schema check skipped, the database is used as it is");
+            Ok(())
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// Whether every table exists already (a database this or an earlier release created).
+fn has_tables(conn: &Connection) -> Result<bool, JobError> {
+    let n: i64 = conn.query_row(
+        "SELECT count(*) FROM sqlite_master WHERE type = 'table'
+         AND name IN ('jobs', 'frames', 'idempotency', 'uploads', 'tenant_usage')",
+        [],
+        |r| r.get(0),
+    )?;
+    Ok(n == 5)
+}
+
+/// Create, extend and recount, in one transaction: a write that fails half way (a full disk)
+/// leaves the database as it was.
+fn upgrade(conn: &Connection) -> Result<(), JobError> {
+    conn.execute_batch("BEGIN IMMEDIATE")?;
+    let done = upgrade_in_transaction(conn);
+    match done {
+        Ok(()) => {
+            if let Err(e) = conn.execute_batch("COMMIT") {
+                let _ = conn.execute_batch("ROLLBACK");
+                return Err(e.into());
+            }
+            Ok(())
+        }
+        Err(e) => {
+            let _ = conn.execute_batch("ROLLBACK");
+            Err(e)
+        }
+    }
+}
+
+fn upgrade_in_transaction(conn: &Connection) -> Result<(), JobError> {
     conn.execute_batch(SCHEMA)?;
     for (table, column, definition) in ADDED_COLUMNS {
         let present: bool = conn

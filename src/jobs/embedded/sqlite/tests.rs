@@ -175,3 +175,66 @@ async fn triggers_keep_tenant_usage_equal_to_a_recount() {
     let unknown = store.usage("nobody", now).await.expect("usage");
     assert_eq!(unknown, Usage::default());
 }
+
+/// A database that can grow no more (`max_page_count` at its size: SQLite answers SQLITE_FULL
+/// as on a full disk) refuses new jobs with `storage_full`, and still deletes a finished job,
+/// frees its rows and reads the rest.
+#[tokio::test]
+async fn a_full_database_refuses_inserts_as_storage_full_and_still_deletes() {
+    let dir = tempfile::tempdir().expect("dir");
+    let store = SqliteStore::open(dir.path()).expect("open");
+    let now = now_ms();
+    let (kept, doomed) = (job("t", 10, now), job("t", 10, now));
+    for j in [&kept, &doomed] {
+        assert!(matches!(
+            store.insert(j.clone()).await.expect("insert"),
+            Inserted::New(_)
+        ));
+        store
+            .finish(
+                j.id.as_str(),
+                JobState::Succeeded,
+                None,
+                now,
+                now + 60 * MIN,
+                None,
+            )
+            .await
+            .expect("finish");
+    }
+    {
+        let conn = store.conn().expect("conn");
+        // Everything in the main file, then no page more.
+        conn.execute_batch("PRAGMA wal_checkpoint(TRUNCATE)")
+            .expect("checkpoint");
+        let pages: i64 = conn
+            .query_row("PRAGMA page_count", [], |r| r.get(0))
+            .expect("page_count");
+        conn.pragma_update(None, "max_page_count", pages)
+            .expect("max_page_count");
+    }
+    let mut refused = None;
+    // Fill the free room in the last pages, then the next job needs a page more.
+    for _ in 0..10_000 {
+        if let Err(e) = store.insert(job("t", 10, now)).await {
+            refused = Some(e);
+            break;
+        }
+    }
+    let refused = refused.expect("the database filled up");
+    assert_eq!(refused.code(), "storage_full", "{refused:?}");
+    store
+        .delete("t", doomed.id.as_str())
+        .await
+        .expect("delete on a full database");
+    assert_eq!(
+        store
+            .status(doomed.id.as_str(), None)
+            .await
+            .map_err(|e| e.code())
+            .err(),
+        Some("not_found")
+    );
+    let read = store.status(kept.id.as_str(), None).await.expect("read");
+    assert_eq!(read.state, JobState::Succeeded);
+}
