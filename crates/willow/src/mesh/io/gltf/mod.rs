@@ -18,17 +18,14 @@ use std::collections::HashMap;
 
 mod accessors;
 use accessors::*;
+mod meshopt;
 mod write;
 pub(crate) use write::*;
 #[cfg(test)]
 mod tests;
 
 /// Extensions that change how vertex data is stored: reading around them would give garbage.
-const REFUSED_EXTENSIONS: [&str; 3] = [
-    "KHR_draco_mesh_compression",
-    "EXT_meshopt_compression",
-    "KHR_meshopt_compression",
-];
+const REFUSED_EXTENSIONS: [&str; 1] = ["KHR_draco_mesh_compression"];
 
 /// Quantized attributes (gltfpack's default output): integer and normalized-integer
 /// POSITION, NORMAL and TEXCOORD accessors, read here (see `accessors::read_vec3`). The `gltf`
@@ -231,7 +228,7 @@ pub(crate) fn read(
 ) -> Result<(FileGeometry, GltfSource), MeshError> {
     let name = format_name(format);
     let (json_bytes, bin) = split_container(bytes, format)?;
-    let json: Value =
+    let mut json: Value =
         serde_json::from_slice(json_bytes).map_err(|e| MeshError::parse(name, e.to_string()))?;
     // Checked on the raw JSON: the gltf crate refuses unknown required extensions with a
     // generic validation error, and these deserve a precise "unsupported".
@@ -246,6 +243,20 @@ pub(crate) fn read(
     check_asset_version(&json)?;
     check_primitive_references(&json)?;
     check_images(&json)?;
+    // Meshopt-compressed views are decoded first, on the raw JSON, which then describes plain
+    // data (see `meshopt`); the gltf crate validates that document.
+    let decoded = match meshopt::used(&json) {
+        Some(ext) => Some(meshopt::decompress(&mut json, bin, ext, limits)?),
+        None => None,
+    };
+    let plain_json;
+    let json_bytes = if decoded.is_some() {
+        plain_json =
+            serde_json::to_vec(&json).map_err(|e| MeshError::parse(name, e.to_string()))?;
+        &plain_json[..]
+    } else {
+        json_bytes
+    };
     let mut root = gltf::json::Root::from_slice(json_bytes)
         .map_err(|e| MeshError::parse(name, e.to_string()))?;
     let quantized = root.extensions_used.iter().any(|e| e == MESH_QUANTIZATION);
@@ -253,8 +264,8 @@ pub(crate) fn read(
     let doc = gltf::Document::from_json(root).map_err(|e| MeshError::parse(name, e.to_string()))?;
 
     // Resolve buffers: GLB BIN chunk or data: URIs; nothing else is ever opened.
-    let mut buffers = Vec::new();
-    for b in doc.buffers() {
+    let mut buffers = decoded.unwrap_or_default();
+    for b in doc.buffers().skip(buffers.len()) {
         let mut data = match b.source() {
             gltf::buffer::Source::Bin => match bin {
                 Some(bin) if b.index() == 0 => bin.to_vec(),
