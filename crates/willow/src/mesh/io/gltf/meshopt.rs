@@ -7,7 +7,8 @@
 //! (`"fallback": true`, no `uri`), which is allocated here. Afterwards the document is an
 //! ordinary one: the extension is taken out of the views, the buffers and `extensionsUsed` /
 //! `extensionsRequired`, so the result is written as plain (possibly still quantized) data —
-//! re-encoding meshopt is not done (see `docs/formats.md`).
+//! re-encoding meshopt is not done (the job keeps the data plain and valid rather than
+//! re-running an encoder whose choices, e.g. filters and bit counts, the file does not record).
 
 use super::{decode_data_uri, Limits, MeshError};
 use serde_json::Value;
