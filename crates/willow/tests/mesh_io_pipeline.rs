@@ -1,6 +1,7 @@
 //! glTF as pipelines write it: the real tools (`gltfpack` and `@gltf-transform/cli`, npm,
 //! pinned in tests/tools/package-lock.json) make meshopt-compressed variants of a shared mesh
-//! (`EXT_meshopt_compression` and `KHR_meshopt_compression`); each is read exactly like its
+//! (`EXT_meshopt_compression` and `KHR_meshopt_compression`) and Draco-compressed ones
+//! (`KHR_draco_mesh_compression`); each is read exactly like its
 //! uncompressed twin, faired for a few steps, and written as a validator-clean plain document
 //! whose UVs and indices are the input's.
 
@@ -96,6 +97,10 @@ fn assert_same_geometry(a: &Asset, b: &Asset, what: &str) {
 
 /// A few conformal steps, the written GLB validated, and its indices and UVs the input's.
 fn fair_and_check_output(a: &Asset, what: &str) {
+    let ext_left = |l: &[String]| {
+        l.iter()
+            .any(|e| e.contains("meshopt") || e.contains("draco"))
+    };
     let params = FlowParams {
         method: Method::Conformal,
         ..FlowParams::default()
@@ -116,10 +121,7 @@ fn fair_and_check_output(a: &Asset, what: &str) {
     let json = json_of(&out);
     for key in ["extensionsUsed", "extensionsRequired"] {
         let listed = extensions(&json, key);
-        assert!(
-            !listed.iter().any(|e| e.contains("meshopt")),
-            "{what}: {key} still lists {listed:?}"
-        );
+        assert!(!ext_left(&listed), "{what}: {key} still lists {listed:?}");
     }
     let b = read(&out);
     let diff = first_difference(&b.file_triangles(), &a.file_triangles());
@@ -214,4 +216,47 @@ fn gltf_transform_meshopt_reads_like_its_twin_and_fairs() {
     let twin = read(&std::fs::read(dir.path().join("rq.glb")).unwrap());
     assert_same_geometry(&a, &twin, "gltf-transform meshopt");
     fair_and_check_output(&a, "gltf-transform meshopt");
+}
+
+#[test]
+fn gltf_transform_draco_decodes_like_googles_decoder_and_fairs() {
+    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let obj = obj.to_str().unwrap();
+    tool(
+        "gltfpack",
+        &["-i", obj, "-o", "plain.glb", "-noq", "-kv"],
+        dir.path(),
+    );
+    tool(
+        "gltf-transform",
+        &["draco", "plain.glb", "d.glb"],
+        dir.path(),
+    );
+    // The twin: the same file decoded by Google's Draco decoder (draco3dgltf) and written
+    // without the extension, by tests/tools/draco_to_plain.mjs.
+    let script = tools_dir().join("draco_to_plain.mjs");
+    let out = std::process::Command::new("node")
+        .arg(&script)
+        .args(["d.glb", "twin.glb"])
+        .current_dir(dir.path())
+        .output()
+        .expect("node runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let bytes = std::fs::read(dir.path().join("d.glb")).unwrap();
+    assert!(extensions(&json_of(&bytes), "extensionsRequired")
+        .contains(&"KHR_draco_mesh_compression".to_string()));
+    let a = read(&bytes);
+    let twin = read(&std::fs::read(dir.path().join("twin.glb")).unwrap());
+    assert_same_geometry(&a, &twin, "gltf-transform draco");
+    // And it is spot: the same triangle count as the uncompressed file.
+    let plain = read(&std::fs::read(dir.path().join("plain.glb")).unwrap());
+    assert_eq!(a.file_triangles().len(), plain.file_triangles().len());
+    fair_and_check_output(&a, "gltf-transform draco");
 }

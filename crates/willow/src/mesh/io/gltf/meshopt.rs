@@ -62,21 +62,18 @@ pub(super) fn used(json: &Value) -> Option<&'static str> {
         .find(|m| used.iter().any(|e| e.as_str() == Some(m)))
 }
 
-/// Resolves every buffer (GLB BIN chunk for buffer 0 without `uri`, base64 `data:` URIs,
-/// zeros for a fallback buffer), decodes every compressed view into place and strips the
-/// extension from `json`. Returns the buffers, each exactly `byteLength` long.
+/// Decodes every compressed view into place in `buffers` (from [`resolve_buffers`]) and
+/// strips the extension from `json`.
 pub(super) fn decompress(
     json: &mut Value,
-    bin: Option<&[u8]>,
+    buffers: &mut [Vec<u8>],
     ext: &str,
-    limits: &Limits,
-) -> Result<Vec<Vec<u8>>, MeshError> {
-    let mut buffers = resolve_buffers(json, bin, ext, limits)?;
+) -> Result<(), MeshError> {
     let views = json.get("bufferViews").and_then(Value::as_array);
     let mut jobs = Vec::new();
     for (i, v) in views.into_iter().flatten().enumerate() {
         if let Some(e) = v.get("extensions").and_then(|x| x.get(ext)) {
-            jobs.push(parse_view(i, v, e, ext, &buffers)?);
+            jobs.push(parse_view(i, v, e, ext, buffers)?);
         }
     }
     for job in &jobs {
@@ -86,13 +83,16 @@ pub(super) fn decompress(
             .copy_from_slice(&decoded);
     }
     strip(json, ext);
-    Ok(buffers)
+    Ok(())
 }
 
-fn resolve_buffers(
+/// Resolves every buffer on the raw JSON: the GLB BIN chunk for buffer 0 without `uri`, base64
+/// `data:` URIs, and zeros for a meshopt fallback buffer (`ext`), to be filled by decoding.
+/// Each is exactly `byteLength` long.
+pub(super) fn resolve_buffers(
     json: &Value,
     bin: Option<&[u8]>,
-    ext: &str,
+    ext: Option<&str>,
     limits: &Limits,
 ) -> Result<Vec<Vec<u8>>, MeshError> {
     let list = json.get("buffers").and_then(Value::as_array);
@@ -108,7 +108,7 @@ fn resolve_buffers(
             .ok_or_else(|| MeshError::parse("glTF", format!("buffer {i}: bad byteLength")))?;
         let fallback = b
             .get("extensions")
-            .and_then(|x| x.get(ext))
+            .and_then(|x| x.get(ext?))
             .and_then(|x| x.get("fallback"))
             .and_then(Value::as_bool)
             == Some(true);
