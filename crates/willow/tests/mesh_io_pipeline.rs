@@ -259,4 +259,23 @@ fn gltf_transform_draco_decodes_like_googles_decoder_and_fairs() {
     let plain = read(&std::fs::read(dir.path().join("plain.glb")).unwrap());
     assert_eq!(a.file_triangles().len(), plain.file_triangles().len());
     fair_and_check_output(&a, "gltf-transform draco");
+
+    // The same file with its Draco stream cut to 16 bytes: an error naming the primitive and
+    // the extension, not a panic or an empty mesh.
+    let mut json = json_of(&bytes);
+    let view = json["meshes"][0]["primitives"][0]["extensions"]["KHR_draco_mesh_compression"]
+        ["bufferView"]
+        .as_u64()
+        .unwrap() as usize;
+    json["bufferViews"][view]["byteLength"] = 16.into();
+    let json_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
+    let bin = &bytes[20 + json_len + 8..];
+    let e = Asset::read(&glb_bytes(&json, bin), Format::Glb, &Limits::default()).unwrap_err();
+    assert!(
+        e.to_string().starts_with(&format!(
+            "cannot parse glTF: mesh 0 primitive 0: KHR_draco_mesh_compression: the Draco \
+             stream in bufferView {view} does not decode"
+        )),
+        "{e}"
+    );
 }
