@@ -15,9 +15,11 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 
-# Khronos glTF-Validator (npm), pinned by tests/tools/package-lock.json.
-if [[ ! -d tests/tools/node_modules/gltf-validator ]]; then
-    echo "test.sh: installing the glTF validator (npm ci)"
+# Khronos glTF-Validator and the pipeline tools the glTF tests make their variants with
+# (gltfpack, @gltf-transform/cli), npm, pinned by tests/tools/package-lock.json.
+if [[ ! -d tests/tools/node_modules/gltf-validator || ! -x tests/tools/node_modules/.bin/gltfpack \
+      || ! -x tests/tools/node_modules/.bin/gltf-transform ]]; then
+    echo "test.sh: installing the glTF validator, gltfpack and gltf-transform (npm ci)"
     npm ci --prefix tests/tools --no-audit --no-fund --loglevel=error
 fi
 

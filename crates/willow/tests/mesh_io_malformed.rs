@@ -279,8 +279,14 @@ fn gltf_points_only_and_unsupported_features_are_refused() {
     let (mut json, bin, _, _) = textured_cube_gltf();
     json["extensionsUsed"] = serde_json::json!(["KHR_draco_mesh_compression"]);
     json["extensionsRequired"] = serde_json::json!(["KHR_draco_mesh_compression"]);
+    json["meshes"][0]["primitives"][0]["extensions"] =
+        serde_json::json!({"KHR_draco_mesh_compression": {"bufferView": 99, "attributes": {}}});
     let e = refuse(&glb_bytes(&json, &bin), Format::Glb);
-    assert_eq!(e.code(), "unsupported");
+    assert_eq!(
+        e.to_string(),
+        "cannot parse glTF: mesh 0 primitive 0: KHR_draco_mesh_compression: bufferView 99 \
+         does not exist"
+    );
 
     let (mut json, bin, _, _) = textured_cube_gltf();
     json["nodes"][0]["scale"] = serde_json::json!([0.0, 1.0, 1.0]);

@@ -260,3 +260,46 @@ pub fn textured_cube_gltf() -> (serde_json::Value, Vec<u8>, Vec<[f32; 3]>, Vec<u
     });
     (json, bin, pos, png)
 }
+
+// ---------------------------------------------------------------------------------------
+// Khronos glTF-Validator
+
+pub fn tools_dir() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/tools")
+}
+
+/// Runs the Khronos validator on `bytes`; fails on any error. Skipped only with
+/// WILLOW_SKIP_NODE=1.
+pub fn validate_with_khronos(bytes: &[u8], ext: &str) {
+    if std::env::var("WILLOW_SKIP_NODE").as_deref() == Ok("1") {
+        eprintln!("note: WILLOW_SKIP_NODE=1, skipping the Khronos glTF validator");
+        return;
+    }
+    assert!(
+        tools_dir().join("node_modules/gltf-validator").is_dir(),
+        "tests/tools/node_modules is missing: run scripts/test.sh (it runs `npm ci --prefix \
+         tests/tools`) or set WILLOW_SKIP_NODE=1"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join(format!("out.{ext}"));
+    std::fs::write(&file, bytes).unwrap();
+    let out = std::process::Command::new("node")
+        .arg(tools_dir().join("validate_gltf.js"))
+        .arg(&file)
+        .output()
+        .expect("node must be installed to run the glTF validator (or set WILLOW_SKIP_NODE=1)");
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "validator gave no report ({e}): {}",
+            String::from_utf8_lossy(&out.stderr)
+        )
+    });
+    let errors = report["issues"]["numErrors"].as_u64().unwrap();
+    assert_eq!(
+        errors,
+        0,
+        "Khronos validator errors: {}",
+        serde_json::to_string_pretty(&report["issues"]["messages"]).unwrap()
+    );
+    assert!(out.status.success());
+}

@@ -18,17 +18,12 @@ use std::collections::HashMap;
 
 mod accessors;
 use accessors::*;
+mod draco;
+mod meshopt;
 mod write;
 pub(crate) use write::*;
 #[cfg(test)]
 mod tests;
-
-/// Extensions that change how vertex data is stored: reading around them would give garbage.
-const REFUSED_EXTENSIONS: [&str; 3] = [
-    "KHR_draco_mesh_compression",
-    "EXT_meshopt_compression",
-    "KHR_meshopt_compression",
-];
 
 /// Quantized attributes (gltfpack's default output): integer and normalized-integer
 /// POSITION, NORMAL and TEXCOORD accessors, read here (see `accessors::read_vec3`). The `gltf`
@@ -231,21 +226,35 @@ pub(crate) fn read(
 ) -> Result<(FileGeometry, GltfSource), MeshError> {
     let name = format_name(format);
     let (json_bytes, bin) = split_container(bytes, format)?;
-    let json: Value =
+    let mut json: Value =
         serde_json::from_slice(json_bytes).map_err(|e| MeshError::parse(name, e.to_string()))?;
-    // Checked on the raw JSON: the gltf crate refuses unknown required extensions with a
-    // generic validation error, and these deserve a precise "unsupported".
-    let required = json.get("extensionsRequired").and_then(Value::as_array);
-    for ext in required.into_iter().flatten().filter_map(Value::as_str) {
-        if REFUSED_EXTENSIONS.contains(&ext) {
-            return Err(MeshError::unsupported(format!(
-                "required extension {ext} (compressed or quantized vertex data)"
-            )));
-        }
-    }
     check_asset_version(&json)?;
     check_primitive_references(&json)?;
     check_images(&json)?;
+    // Meshopt-compressed views and Draco primitives are decoded first, on the raw JSON, which
+    // then describes plain data (see `meshopt`, `draco`); the gltf crate validates that.
+    let meshopt_ext = meshopt::used(&json);
+    let draco = draco::used(&json);
+    let decoded = if meshopt_ext.is_some() || draco {
+        let mut buffers = meshopt::resolve_buffers(&json, bin, meshopt_ext, limits)?;
+        if let Some(ext) = meshopt_ext {
+            meshopt::decompress(&mut json, &mut buffers, ext)?;
+        }
+        if draco {
+            draco::decompress(&mut json, &mut buffers, limits)?;
+        }
+        Some(buffers)
+    } else {
+        None
+    };
+    let plain_json;
+    let json_bytes = if decoded.is_some() {
+        plain_json =
+            serde_json::to_vec(&json).map_err(|e| MeshError::parse(name, e.to_string()))?;
+        &plain_json[..]
+    } else {
+        json_bytes
+    };
     let mut root = gltf::json::Root::from_slice(json_bytes)
         .map_err(|e| MeshError::parse(name, e.to_string()))?;
     let quantized = root.extensions_used.iter().any(|e| e == MESH_QUANTIZATION);
@@ -253,8 +262,8 @@ pub(crate) fn read(
     let doc = gltf::Document::from_json(root).map_err(|e| MeshError::parse(name, e.to_string()))?;
 
     // Resolve buffers: GLB BIN chunk or data: URIs; nothing else is ever opened.
-    let mut buffers = Vec::new();
-    for b in doc.buffers() {
+    let mut buffers = decoded.unwrap_or_default();
+    for b in doc.buffers().skip(buffers.len()) {
         let mut data = match b.source() {
             gltf::buffer::Source::Bin => match bin {
                 Some(bin) if b.index() == 0 => bin.to_vec(),

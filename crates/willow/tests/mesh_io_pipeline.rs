@@ -1,0 +1,281 @@
+//! glTF as pipelines write it: the real tools (`gltfpack` and `@gltf-transform/cli`, npm,
+//! pinned in tests/tools/package-lock.json) make meshopt-compressed variants of a shared mesh
+//! (`EXT_meshopt_compression` and `KHR_meshopt_compression`) and Draco-compressed ones
+//! (`KHR_draco_mesh_compression`); each is read exactly like its
+//! uncompressed twin, faired for a few steps, and written as a validator-clean plain document
+//! whose UVs and indices are the input's.
+
+mod mesh_support;
+
+use mesh_support::*;
+use std::path::Path;
+use willow::flow::{new_flow, FlowParams, Method};
+use willow::mesh::io::{Asset, Format, Limits};
+
+/// Runs `tests/tools/node_modules/.bin/<name>` and fails with its output if it fails.
+fn tool(name: &str, args: &[&str], dir: &Path) {
+    let bin = tools_dir().join("node_modules/.bin").join(name);
+    assert!(
+        bin.is_file(),
+        "{} is missing: run scripts/test.sh (it runs `npm ci --prefix tests/tools`)",
+        bin.display()
+    );
+    let out = std::process::Command::new(&bin)
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap_or_else(|e| panic!("{name} does not run (node must be installed): {e}"));
+    assert!(
+        out.status.success(),
+        "{name} {args:?} failed: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+fn read(bytes: &[u8]) -> Asset {
+    Asset::read(bytes, Format::Glb, &Limits::default()).unwrap()
+}
+
+fn json_of(glb: &[u8]) -> serde_json::Value {
+    let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
+    serde_json::from_slice(&glb[20..20 + n]).unwrap()
+}
+
+fn extensions(json: &serde_json::Value, key: &str) -> Vec<String> {
+    json[key]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|e| e.as_str().map(String::from))
+        .collect()
+}
+
+/// Where two lists first differ (asserting on whole meshes would print thousands of lines).
+fn first_difference<T: PartialEq + std::fmt::Debug>(a: &[T], b: &[T]) -> Option<String> {
+    if a.len() != b.len() {
+        return Some(format!("lengths {} and {}", a.len(), b.len()));
+    }
+    let i = a.iter().zip(b).position(|(x, y)| x != y)?;
+    Some(format!("item {i}: {:?} vs {:?}", a[i], b[i]))
+}
+
+/// Each triangle as its three corners (file position, UV) by bits, rotated to start at its
+/// smallest corner (winding kept), all sorted: the geometry independent of vertex order and
+/// of the rotation the meshopt index codec may apply to each triangle.
+fn corner_triangles(a: &Asset) -> Vec<[([u32; 3], [u32; 2]); 3]> {
+    let p = a.file_positions(&a.surface().positions);
+    let uvs = a.corner_uvs().unwrap_or_default();
+    let mut out: Vec<_> = a
+        .file_triangles()
+        .iter()
+        .enumerate()
+        .map(|(t, tri)| {
+            let c: [([u32; 3], [u32; 2]); 3] = std::array::from_fn(|k| {
+                let uv = uvs.get(t).map_or([0.0; 2], |u| u[k]);
+                (p[tri[k]].map(f32::to_bits), uv.map(f32::to_bits))
+            });
+            let first = (0..3).min_by_key(|&k| c[k]).unwrap_or(0);
+            std::array::from_fn(|k| c[(first + k) % 3])
+        })
+        .collect();
+    out.sort_unstable();
+    out
+}
+
+/// The same triangles with the same corner positions and UVs, bit for bit.
+fn assert_same_geometry(a: &Asset, b: &Asset, what: &str) {
+    assert!(a.corner_uvs().is_some(), "{what}: UVs were lost");
+    assert_eq!(
+        a.file_vertex_count(),
+        b.file_vertex_count(),
+        "{what}: vertices"
+    );
+    let diff = first_difference(&corner_triangles(a), &corner_triangles(b));
+    assert!(diff.is_none(), "{what}: triangles differ at {diff:?}");
+}
+
+/// A few conformal steps, the written GLB validated, and its indices and UVs the input's.
+fn fair_and_check_output(a: &Asset, what: &str) {
+    let ext_left = |l: &[String]| {
+        l.iter()
+            .any(|e| e.contains("meshopt") || e.contains("draco"))
+    };
+    let params = FlowParams {
+        method: Method::Conformal,
+        ..FlowParams::default()
+    };
+    let mut flow = new_flow(a.surface(), &params).expect("flow");
+    for _ in 0..2 {
+        flow.step().unwrap_or_else(|e| panic!("{what}: step: {e}"));
+    }
+    let moved = flow.positions().to_vec();
+    let moved_by = moved
+        .iter()
+        .zip(&a.surface().positions)
+        .map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    assert!(moved_by > 0.0, "{what}: the flow did not move the surface");
+    let out = a.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let json = json_of(&out);
+    for key in ["extensionsUsed", "extensionsRequired"] {
+        let listed = extensions(&json, key);
+        assert!(!ext_left(&listed), "{what}: {key} still lists {listed:?}");
+    }
+    let b = read(&out);
+    let diff = first_difference(&b.file_triangles(), &a.file_triangles());
+    assert!(diff.is_none(), "{what}: written indices differ at {diff:?}");
+    assert!(
+        b.corner_uvs().is_some() && b.corner_uvs() == a.corner_uvs(),
+        "{what}: UVs"
+    );
+    // Positions are the faired ones (f32 in the file).
+    let expect = a.file_positions(&moved);
+    let got = b.file_positions(&b.surface().positions);
+    assert_eq!(expect.len(), got.len());
+    for (i, (e, g)) in expect.iter().zip(&got).enumerate() {
+        for k in 0..3 {
+            assert!(
+                (e[k] - g[k]).abs() <= 1e-5 * (1.0 + e[k].abs()),
+                "{what}: vertex {i}"
+            );
+        }
+    }
+}
+
+#[test]
+fn gltfpack_meshopt_variants_read_like_their_twin_and_fair() {
+    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let obj = obj.to_str().unwrap();
+    let make = |name: &str, extra: &[&str]| -> Vec<u8> {
+        let mut args = vec!["-i", obj, "-o", name, "-kv"];
+        args.extend_from_slice(extra);
+        tool("gltfpack", &args, dir.path());
+        std::fs::read(dir.path().join(name)).unwrap()
+    };
+    // The twin: gltfpack's default (quantized, not compressed), the same data before the
+    // meshopt codec; the compressed variants must decode to it exactly.
+    let twin = read(&make("q.glb", &[]));
+    for (file, args, ext) in [
+        ("ext.glb", &["-cc"][..], "EXT_meshopt_compression"),
+        (
+            "khr.glb",
+            &["-cc", "-ce", "khr"][..],
+            "KHR_meshopt_compression",
+        ),
+        ("c.glb", &["-c"][..], "EXT_meshopt_compression"),
+    ] {
+        let bytes = make(file, args);
+        let json = json_of(&bytes);
+        assert!(
+            extensions(&json, "extensionsRequired").contains(&ext.to_string()),
+            "{file} should require {ext}"
+        );
+        let a = read(&bytes);
+        assert_same_geometry(&a, &twin, file);
+        fair_and_check_output(&a, file);
+    }
+}
+
+#[test]
+fn gltf_transform_meshopt_reads_like_its_twin_and_fairs() {
+    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let obj = obj.to_str().unwrap();
+    tool(
+        "gltfpack",
+        &["-i", obj, "-o", "plain.glb", "-noq", "-kv"],
+        dir.path(),
+    );
+    // gltf-transform's `meshopt` is reorder + quantize + the codec; the twin is the first two.
+    tool(
+        "gltf-transform",
+        &["meshopt", "plain.glb", "m.glb"],
+        dir.path(),
+    );
+    tool(
+        "gltf-transform",
+        &["reorder", "plain.glb", "r.glb"],
+        dir.path(),
+    );
+    tool(
+        "gltf-transform",
+        &["quantize", "r.glb", "rq.glb"],
+        dir.path(),
+    );
+    let bytes = std::fs::read(dir.path().join("m.glb")).unwrap();
+    assert!(extensions(&json_of(&bytes), "extensionsRequired")
+        .contains(&"EXT_meshopt_compression".to_string()));
+    let a = read(&bytes);
+    let twin = read(&std::fs::read(dir.path().join("rq.glb")).unwrap());
+    assert_same_geometry(&a, &twin, "gltf-transform meshopt");
+    fair_and_check_output(&a, "gltf-transform meshopt");
+}
+
+#[test]
+fn gltf_transform_draco_decodes_like_googles_decoder_and_fairs() {
+    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let obj = obj.to_str().unwrap();
+    tool(
+        "gltfpack",
+        &["-i", obj, "-o", "plain.glb", "-noq", "-kv"],
+        dir.path(),
+    );
+    tool(
+        "gltf-transform",
+        &["draco", "plain.glb", "d.glb"],
+        dir.path(),
+    );
+    // The twin: the same file decoded by Google's Draco decoder (draco3dgltf) and written
+    // without the extension, by tests/tools/draco_to_plain.mjs.
+    let script = tools_dir().join("draco_to_plain.mjs");
+    let out = std::process::Command::new("node")
+        .arg(&script)
+        .args(["d.glb", "twin.glb"])
+        .current_dir(dir.path())
+        .output()
+        .expect("node runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let bytes = std::fs::read(dir.path().join("d.glb")).unwrap();
+    assert!(extensions(&json_of(&bytes), "extensionsRequired")
+        .contains(&"KHR_draco_mesh_compression".to_string()));
+    let a = read(&bytes);
+    let twin = read(&std::fs::read(dir.path().join("twin.glb")).unwrap());
+    assert_same_geometry(&a, &twin, "gltf-transform draco");
+    // And it is spot: the same triangle count as the uncompressed file.
+    let plain = read(&std::fs::read(dir.path().join("plain.glb")).unwrap());
+    assert_eq!(a.file_triangles().len(), plain.file_triangles().len());
+    fair_and_check_output(&a, "gltf-transform draco");
+
+    // The same file with its Draco stream cut to 16 bytes: an error naming the primitive and
+    // the extension, not a panic or an empty mesh.
+    let mut json = json_of(&bytes);
+    let view = json["meshes"][0]["primitives"][0]["extensions"]["KHR_draco_mesh_compression"]
+        ["bufferView"]
+        .as_u64()
+        .unwrap() as usize;
+    json["bufferViews"][view]["byteLength"] = 16.into();
+    let json_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
+    let bin = &bytes[20 + json_len + 8..];
+    let e = Asset::read(&glb_bytes(&json, bin), Format::Glb, &Limits::default()).unwrap_err();
+    assert!(
+        e.to_string().starts_with(&format!(
+            "cannot parse glTF: mesh 0 primitive 0: KHR_draco_mesh_compression: the Draco \
+             stream in bufferView {view} does not decode"
+        )),
+        "{e}"
+    );
+}
