@@ -165,7 +165,7 @@ const OPTIONAL_METRICS: [OptionalMetric; 7] = [
 ];
 
 /// The binary form of [`StepMetrics`]: [`METRICS_BYTES`], then the optional metrics the step
-/// has ([`OPTIONAL_METRICS`]). Binary and not JSON because a metric may legitimately be NaN or
+/// has (`OPTIONAL_METRICS`). Binary and not JSON because a metric may legitimately be NaN or
 /// infinite, which JSON cannot carry.
 pub fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
     let mut out = Vec::with_capacity(METRICS_BYTES + 9 * OPTIONAL_METRICS.len());

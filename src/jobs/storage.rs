@@ -144,7 +144,7 @@ impl StorageHealth {
 
     /// Check a full disk again (blocking: call on a blocking thread): with a data dir, the
     /// reserve is written back and [`PROBE_BYTES`] more must fit; without one, storage counts
-    /// full for [`REMOTE_FULL_MS`] after the last full write. Returns whether storage is full.
+    /// full for `REMOTE_FULL_MS` after the last full write. Returns whether storage is full.
     pub fn probe(&self, now: u64) -> bool {
         let since = self.full_since.load(Ordering::SeqCst);
         if since == 0 {
