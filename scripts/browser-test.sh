@@ -5,6 +5,7 @@
 # downloaded result go to target/browser-artifacts/.
 #
 #   scripts/browser-test.sh            the tests (node --test tests/browser/*.test.mjs)
+#   scripts/browser-test.sh FILE...    only these test files (e.g. tests/browser/region.test.mjs)
 #   scripts/browser-test.sh --timing   the 100k-triangle timing instead (prints figures)
 #
 # Installs what it needs on a fresh machine: `chromium` with apt-get (as root) when
@@ -15,6 +16,8 @@ cd "$root"
 
 mode=tests
 if [[ "${1:-}" == "--timing" ]]; then mode=timing; fi
+tests=("$@")
+if [[ $mode == tests && ${#tests[@]} == 0 ]]; then tests=(tests/browser/); fi
 
 export CHROMIUM="${CHROMIUM:-/usr/bin/chromium}"
 if [[ ! -x "$CHROMIUM" ]]; then
@@ -78,7 +81,7 @@ if [[ "$mode" == timing ]]; then
     node tests/browser/timing-100k.mjs
 else
     # One file at a time: the tests share the one server and its two workers.
-    if ! node --test --test-concurrency=1 tests/browser/; then
+    if ! node --test --test-concurrency=1 "${tests[@]}"; then
         echo "browser-test.sh: FAILED; the server's log (last 40 lines):" >&2
         tail -n 40 "$server_out" "$data_dir/server.err" >&2
         if [[ -n "${WILLOW_KEEP_LOG:-}" ]]; then cp "$server_out" "$WILLOW_KEEP_LOG"; fi

@@ -7,7 +7,11 @@
 //     parts: [{ gather: Uint32Array (render vertex -> file vertex), index: Uint32Array,
 //               uv: Float32Array | null, matrix: number[16] | null (column-major, world) ,
 //               image: number | null (index into images) }],
-//     images: [Blob], uvFlipY: bool (OBJ: v runs up, the image must be flipped) }
+//     images: [Blob], uvFlipY: bool (OBJ: v runs up, the image must be flipped),
+//     groups: Map(name -> Set of file vertices) }: the file's named groups of faces as the
+//     server reads them for `{"group": name}` regions (OBJ `g`/`o` names, glTF node and mesh
+//     names), each the corners of its faces, in order of first appearance; names without a
+//     face are left out, as the server leaves them out.
 // Connectivity and UVs never change during a flow: frames only move file vertices.
 
 /** Parse OBJ text: `v` lines in order are the file vertices, (v, vt) pairs the render vertices. */
@@ -15,6 +19,10 @@ export function parseObj(text) {
   const filePos = [];
   const uvs = [];
   const corners = []; // v, vt (-1: none), per triangle corner
+  // The groups the next faces go to: those of the last `g` line and of the last `o` line.
+  const groups = new Map();
+  let currentG = [];
+  let currentO = null;
   let line = 0;
   let start = 0;
   const n = text.length;
@@ -53,10 +61,26 @@ export function parseObj(text) {
       for (let k = 2; k < vs.length / 2; k++) {
         corners.push(vs[0], vs[1], vs[2 * k - 2], vs[2 * k - 1], vs[2 * k], vs[2 * k + 1]);
       }
+      if (vs.length >= 6) {
+        for (const name of currentO === null ? currentG : [...currentG, currentO]) {
+          const set = groups.get(name);
+          for (let k = 0; k < vs.length; k += 2) set.add(vs[k]);
+        }
+      }
+    } else if (c0 === 103 /* g */ && (c1 === 32 || c1 === 9 || c1 === 13 || start + 1 === end)) {
+      // `g a b`: the faces that follow belong to a and b (a bare `g`: to no group). Names are
+      // listed in the order their lines first appear, as the server lists them.
+      currentG = text.slice(start + 1, end).trim().split(/\s+/).filter((w) => w !== '');
+      for (const name of currentG) if (!groups.has(name)) groups.set(name, new Set());
+    } else if (c0 === 111 /* o */ && (c1 === 32 || c1 === 9 || c1 === 13 || start + 1 === end)) {
+      const name = text.slice(start + 1, end).trim();
+      currentO = name === '' ? null : name;
+      if (currentO !== null && !groups.has(name)) groups.set(name, new Set());
     }
     start = end + 1;
   }
   if (corners.length === 0) throw new Error('the OBJ file has no faces');
+  for (const [name, set] of groups) if (set.size === 0) groups.delete(name);
   const nt = uvs.length / 2;
   const keyOf = new Map();
   const gather = [];
@@ -81,6 +105,7 @@ export function parseObj(text) {
     parts: [{ gather: Uint32Array.from(gather), index, uv: hasUv ? new Float32Array(uv) : null, matrix: null, image: null }],
     images: [],
     uvFlipY: true,
+    groups,
   };
 }
 
@@ -156,6 +181,7 @@ export function parseGltf(data) {
   const filePos = [];
   let fileVertexCount = 0;
   const parts = [];
+  const groups = new Map();
   const visit = (ni, parent) => {
     const node = json.nodes[ni];
     const world = mul(parent, localMatrix(node));
@@ -181,6 +207,13 @@ export function parseGltf(data) {
         const tex = mat?.pbrMetallicRoughness?.baseColorTexture;
         const image = tex && json.textures?.[tex.index]?.source !== undefined ? json.textures[tex.index].source : null;
         parts.push({ gather, index, uv: uvA !== undefined ? readAccessor(uvA, true) : null, matrix: world, image });
+        // The node's name and its mesh's name each name the node's faces (a group region).
+        for (const name of [node.name, json.meshes[node.mesh].name]) {
+          if (typeof name !== 'string' || index.length < 3) continue;
+          if (!groups.has(name)) groups.set(name, new Set());
+          const set = groups.get(name);
+          for (let k = 0; k < index.length; k++) set.add(gather[index[k]]);
+        }
       }
     }
     for (const c of node.children || []) visit(c, world);
@@ -197,7 +230,7 @@ export function parseGltf(data) {
     }
     return null; // external image: not available
   });
-  return { fileVertexCount, filePositions: new Float32Array(filePos), parts, images, uvFlipY: false };
+  return { fileVertexCount, filePositions: new Float32Array(filePos), parts, images, uvFlipY: false, groups };
 }
 
 /** A model from a mesh file by format (`obj`, `glb`, `gltf`, `stl`, `ply`, `off`). */
@@ -233,6 +266,7 @@ function indexedModel(filePos, index, uv) {
     parts: [{ gather, index: Uint32Array.from(index), uv: uv ? new Float32Array(uv) : null, matrix: null, image: null }],
     images: [],
     uvFlipY: true,
+    groups: new Map(),
   };
 }
 

@@ -11,7 +11,7 @@ import {
  * decides it: a sphere holds its boundary, a box its faces, a vertex list names file vertices
  * (willow::flow::region). */
 export function insideRegion(region, P, i) {
-  if (region.kind === 'vertices') return region.set.has(i);
+  if (region.kind === 'vertices' || region.kind === 'group') return !!region.set?.has(i);
   const x = P[3 * i], y = P[3 * i + 1], z = P[3 * i + 2];
   if (region.kind === 'sphere') {
     const [cx, cy, cz] = region.center;
@@ -119,7 +119,8 @@ export class Overlays {
           outer.userData.falloff = true;
           this.outlines.push(outer);
         }
-      } else {
+      } else if (region.kind === 'box') {
+        // Vertex lists and groups have no outline: their tint shows them.
         const { min, max } = region;
         const box = new LineSegments(sh.box, sh.boxMaterial);
         box.position.set((min[0] + max[0]) / 2, (min[1] + max[1]) / 2, (min[2] + max[2]) / 2);

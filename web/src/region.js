@@ -1,6 +1,7 @@
 // The region and shape controls of the form (issue 29 item 6): pick a region on the 3D view
 // (press on the model, drag out a radius: a sphere, or a cube of that half-size in box mode),
-// its numbers editable in the form; the detail size shown as a ring on the model; preserve,
+// its numbers editable in the form; or a named group of the file's faces, picked from a list
+// of the uploaded file's own `g`/`o` (glTF node and mesh) names; the detail size shown as a ring on the model; preserve,
 // max_deviation, until_willmore, falloff. Each parameter is sent only when the user set it:
 // leaving a field empty leaves the server's default (and a server that does not know the
 // parameter is never asked about it).
@@ -18,6 +19,7 @@ class FieldError extends Error {
 function toWire(r) {
   if (r.kind === 'sphere') return { sphere: { center: r.center, radius: r.radius } };
   if (r.kind === 'box') return { box: { min: r.min, max: r.max } };
+  if (r.kind === 'group') return { group: r.name };
   return { vertices: r.vertices };
 }
 
@@ -26,6 +28,7 @@ function fromWire(w) {
   if (w?.sphere) return { kind: 'sphere', center: w.sphere.center, radius: w.sphere.radius };
   if (w?.box) return { kind: 'box', min: w.box.min, max: w.box.max };
   if (Array.isArray(w?.vertices)) return { kind: 'vertices', vertices: w.vertices, set: new Set(w.vertices) };
+  if (typeof w?.group === 'string') return { kind: 'group', name: w.group };
   return null;
 }
 
@@ -33,6 +36,7 @@ function describe(r) {
   const v = (a) => a.map((x) => +x.toPrecision(4)).join(', ');
   if (r.kind === 'sphere') return `sphere at (${v(r.center)}), radius ${+r.radius.toPrecision(4)}`;
   if (r.kind === 'box') return `box (${v(r.min)}) – (${v(r.max)})`;
+  if (r.kind === 'group') return `group ${r.name}`;
   return `${r.vertices.length} listed vertices`;
 }
 
@@ -68,12 +72,28 @@ export class RegionControls {
     canvas.addEventListener('pointerup', (e) => this.up(e));
     canvas.addEventListener('pointercancel', (e) => this.up(e));
     window.addEventListener('keydown', (e) => { if (e.key === 'Escape' && this.picking && !this.drag) { this.setPicking(false); this.fromForm(); } });
-    view.onModel(() => { this.anchor = null; this.setPicking(false); queueMicrotask(() => this.fromForm()); });
+    view.onModel(() => { this.anchor = null; this.setPicking(false); this.listGroups(); queueMicrotask(() => this.fromForm()); });
     this.fromForm();
   }
 
   owns(el) {
     return el.name === 'region' || el.name?.startsWith('region.') || el.name === 'feature_size' || el.name === 'falloff';
+  }
+
+  /** The model's group names as the choices of `region.group` (the one chosen kept when the
+   * new model has it too); the `group` mode is offered only when the file names groups. */
+  listGroups() {
+    const e = this.form.elements;
+    const chosen = e['region.group'].value;
+    const names = [...(this.view.model?.groups?.keys() ?? [])];
+    e['region.group'].replaceChildren(...names.map((name) => {
+      const o = document.createElement('option');
+      o.value = name;
+      o.textContent = `${name} (${this.view.model.groups.get(name).size} vertices)`;
+      return o;
+    }));
+    if (names.includes(chosen)) e['region.group'].value = chosen;
+    e.region.querySelector('option[value="group"]').disabled = !names.length;
   }
 
   setPicking(on) {
@@ -82,7 +102,7 @@ export class RegionControls {
     this.view.canvas.classList.toggle('picking', this.picking);
     this.pickButton.setAttribute('aria-pressed', String(this.picking));
     this.pickButton.classList.toggle('active', this.picking);
-    if (this.picking && this.form.elements.region.value === '') {
+    if (this.picking && !['sphere', 'box'].includes(this.form.elements.region.value)) {
       this.form.elements.region.value = 'sphere';
       this.updateVisibility();
     }
@@ -140,6 +160,7 @@ export class RegionControls {
     if (!region) { this.info.textContent = 'pick or type a region first, then add another'; return; }
     this.kept.push(region);
     const e = this.form.elements;
+    if (region.kind === 'group') e.region.value = '';
     for (const name of ['region.sphere.center', 'region.sphere.radius', 'region.box.min', 'region.box.max']) e[name].value = '';
     this.fromForm();
   }
@@ -158,6 +179,7 @@ export class RegionControls {
     const mode = this.form.elements.region.value;
     document.getElementById('region-sphere').hidden = mode !== 'sphere';
     document.getElementById('region-box').hidden = mode !== 'box';
+    document.getElementById('region-group').hidden = mode !== 'group';
   }
 
   /** The region the form describes, or null (none, or not yet complete). */
@@ -178,13 +200,19 @@ export class RegionControls {
       const min = triple('region.box.min'), max = triple('region.box.max');
       return min && max ? { kind: 'box', min, max } : null;
     }
+    if (mode === 'group') {
+      const name = e['region.group'].value;
+      return name ? { kind: 'group', name, set: this.view.model?.groups?.get(name) } : null;
+    }
     return null;
   }
 
   /** The regions the job will get: those kept, then the form's own (if complete). */
   regions() {
     const current = this.region();
-    return current ? [...this.kept, current] : [...this.kept];
+    // A group kept from a job's parameters learns its vertices from the model shown now.
+    const kept = this.kept.map((r) => (r.kind === 'group' && !r.set ? { ...r, set: this.view.model?.groups?.get(r.name) } : r));
+    return current ? [...kept, current] : kept;
   }
 
   /** Redraw the regions, their list and the ring from what the form says. */
@@ -192,6 +220,7 @@ export class RegionControls {
     const e = this.form.elements;
     // With regions kept, the form edits one more of them, never "the whole surface".
     if (this.kept.length && e.region.value === '') e.region.value = this.kept[this.kept.length - 1].kind === 'box' ? 'box' : 'sphere';
+    if (e.region.value === 'group' && e['region.group'].value === '' && e['region.group'].options.length) e['region.group'].selectedIndex = 0;
     this.updateVisibility();
     const regions = this.regions();
     const falloff = Number(e.falloff.value);
@@ -226,7 +255,7 @@ export class RegionControls {
     if (el.value.trim() !== '' && length > 0 && this.view.model) {
       if (region && region === this.region() && this.anchor) {
         point = this.anchor.point;
-      } else if (region && region.kind !== 'vertices') {
+      } else if (region && (region.kind === 'sphere' || region.kind === 'box')) {
         const c = region.kind === 'sphere' ? region.center : region.min.map((v, d) => (v + region.max[d]) / 2);
         point = new Vector3().fromArray(c);
       } else {
@@ -247,6 +276,7 @@ export class RegionControls {
     const mode = e.region.value;
     if (mode && !this.region()) {
       // An empty form beside kept regions is fine; a half-typed region is not.
+      if (mode === 'group') throw new FieldError('region.group', 'the group region needs a group: this file names none (OBJ g or o lines, glTF node or mesh names)');
       const fields = mode === 'sphere' ? ['region.sphere.center', 'region.sphere.radius'] : ['region.box.min', 'region.box.max'];
       if (!this.kept.length || fields.some((f) => e[f].value.trim() !== '')) {
         throw new FieldError(fields[0], `the ${mode} region needs its numbers: pick it on the view or type them (x,y,z)`);
@@ -286,6 +316,13 @@ export class RegionControls {
       e.region.value = 'box';
       e['region.box.min'].value = first.box.min.join(',');
       e['region.box.max'].value = first.box.max.join(',');
+    } else if (first?.group !== undefined) {
+      // The job's model may not be here yet: offer its group by name until it is.
+      const select = e['region.group'];
+      if (![...select.options].some((o) => o.value === first.group)) select.add(new Option(first.group, first.group));
+      select.value = first.group;
+      e.region.querySelector('option[value="group"]').disabled = false;
+      e.region.value = 'group';
     } else {
       e.region.value = '';
     }
