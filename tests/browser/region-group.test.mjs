@@ -6,7 +6,7 @@ import assert from 'node:assert/strict';
 import { mkdtempSync, readFileSync, writeFileSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { join } from 'node:path';
-import { ARTIFACTS, URL_BASE, launch, sharedMesh, waitStats, watchedPage } from './support.mjs';
+import { ARTIFACTS, URL_BASE, launch, paramsPart, sharedMesh, waitStats, watchedPage } from './support.mjs';
 
 const spot = sharedMesh('spot_triangulated.obj');
 const skip = !spot ? 'spot is not on this machine' : false;
@@ -48,16 +48,6 @@ function spotWithGroups(text) {
 
 function objVertices(text) {
   return text.split('\n').filter((l) => /^v\s/.test(l)).map((l) => l.trim().split(/\s+/).slice(1, 4).map(Number));
-}
-
-/** The `params` part of a multipart job submission. */
-function paramsPart(body) {
-  const text = body.toString('latin1');
-  const at = text.indexOf('name="params"');
-  assert.ok(at >= 0, 'the submission has a params part');
-  const start = text.indexOf('\r\n\r\n', at) + 4;
-  const end = text.indexOf('\r\n--', start);
-  return JSON.parse(Buffer.from(text.slice(start, end), 'latin1').toString('utf8'));
 }
 
 test('a group of the uploaded OBJ is picked from its names, tinted, sent as {group} and only it moves', { skip }, async () => {

@@ -6,7 +6,7 @@ import { after, before, test } from 'node:test';
 import assert from 'node:assert/strict';
 import { readFileSync } from 'node:fs';
 import { join } from 'node:path';
-import { ARTIFACTS, URL_BASE, launch, sharedMesh, stats, waitStats, watchedPage } from './support.mjs';
+import { ARTIFACTS, URL_BASE, launch, paramsPart, sharedMesh, stats, waitStats, watchedPage } from './support.mjs';
 
 const spot = sharedMesh('spot_triangulated.obj');
 const spotTexture = sharedMesh('spot_texture.png');
@@ -75,16 +75,6 @@ function objTriangles(text) {
     for (let k = 2; k < t.length; k++) out.push([t[0], t[k - 1], t[k]]);
   }
   return out;
-}
-
-/** The `params` part of a multipart job submission. */
-function paramsPart(body) {
-  const text = body.toString('latin1');
-  const at = text.indexOf('name="params"');
-  assert.ok(at >= 0, 'the submission has a params part');
-  const start = text.indexOf('\r\n\r\n', at) + 4;
-  const end = text.indexOf('\r\n--', start);
-  return JSON.parse(Buffer.from(text.slice(start, end), 'latin1').toString('utf8'));
 }
 
 test('a sphere region picked by mouse on the view moves only what it holds; before/after and distance colours', { skip }, async () => {

@@ -145,3 +145,13 @@ export function newKey(tenant, name) {
   const [key, line] = out.split('\n');
   return { key: key.trim(), line: line.trim() };
 }
+
+/** The `params` part of a multipart job submission. */
+export function paramsPart(body) {
+  const text = body.toString('latin1');
+  const at = text.indexOf('name="params"');
+  if (at < 0) throw new Error('the submission has no params part');
+  const start = text.indexOf('\r\n\r\n', at) + 4;
+  const end = text.indexOf('\r\n--', start);
+  return JSON.parse(Buffer.from(text.slice(start, end), 'latin1').toString('utf8'));
+}
