@@ -514,7 +514,33 @@ pub struct Frame {
     pub metrics: StepMetrics,
     /// Vertex positions after the step, in the uploaded file's vertex order, when this step
     /// keeps positions ([`JobSpec::keeps_positions`]). Shared, so fan-out copies no vertices.
-    pub positions: Option<Arc<Vec<[f32; 3]>>>,
+    pub positions: Option<Arc<FramePositions>>,
+}
+
+/// A frame's vertex positions: f32 offsets from an f64 origin, so a model far from the
+/// origin (map-grid coordinates) streams with ~1e-7 of its size instead of snapping to the
+/// f32 grid of its distance (issue 27, item 4). The origin is the job's
+/// [`willow::mesh::io::Asset::frame_origin`]: the same in every frame of a job, and exactly
+/// zero for a model around the origin, where `relative` are the coordinates themselves.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FramePositions {
+    pub origin: [f64; 3],
+    pub relative: Vec<[f32; 3]>,
+}
+
+impl FramePositions {
+    /// Is the origin zero (then clients that ignore it read the frame right)?
+    pub fn at_zero(&self) -> bool {
+        self.origin == [0.0; 3]
+    }
+
+    /// The positions in f64: origin + offset.
+    pub fn absolute(&self) -> Vec<[f64; 3]> {
+        self.relative
+            .iter()
+            .map(|p| [0, 1, 2].map(|k| self.origin[k] + f64::from(p[k])))
+            .collect()
+    }
 }
 
 /// What a watcher sees: state changes, one frame per step, then the final status.

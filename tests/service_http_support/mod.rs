@@ -492,3 +492,71 @@ pub async fn assert_stored_upload_jobs_receive_no_mesh(
         .await
         .expect("a job from the stored upload, the minute's meshes spent");
 }
+
+/// spot (`crates/willow/tests/data`, 2930 `v` lines) moved to map-grid coordinates:
+/// `offset` added to x, taken from y and half of it added to z; every other line as it is.
+pub fn spot_at(offset: f64) -> String {
+    let spot = include_str!("../../crates/willow/tests/data/spot_triangulated.obj");
+    let mut s = String::with_capacity(spot.len() + 64 * 2930);
+    for line in spot.lines() {
+        match line.strip_prefix("v ") {
+            Some(rest) => {
+                let c: Vec<f64> = rest
+                    .split_whitespace()
+                    .map(|t| t.parse().expect("spot's coordinates are numbers"))
+                    .collect();
+                s.push_str(&format!(
+                    "v {} {} {}\n",
+                    c[0] + offset,
+                    c[1] - offset,
+                    c[2] + 0.5 * offset
+                ));
+            }
+            None => {
+                s.push_str(line);
+                s.push('\n');
+            }
+        }
+    }
+    s
+}
+
+/// A frame's positions as a client computes them: `origin` (absent = zero) + each f32 offset,
+/// added in f64.
+pub fn frame_absolute(relative: &[[f32; 3]], origin: Option<[f64; 3]>) -> Vec<[f64; 3]> {
+    let o = origin.unwrap_or([0.0; 3]);
+    relative
+        .iter()
+        .map(|p| [0, 1, 2].map(|k| o[k] + f64::from(p[k])))
+        .collect()
+}
+
+/// Every position of `frame` within 1e-6 of the model's size (its bounding box's largest
+/// side) of the same `v` line of the OBJ `result` (issue 27, item 4). Checks first that the
+/// bound is one plain f32 coordinates could not meet at the result's distance from the origin,
+/// so the check can fail.
+pub fn assert_frame_within_a_millionth(frame: &[[f64; 3]], result: &str, offset: f64) {
+    let result = obj_vertices(result);
+    assert_eq!(frame.len(), result.len());
+    let size = (0..3)
+        .map(|k| {
+            let (lo, hi) = result
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), p| {
+                    (l.min(p[k]), h.max(p[k]))
+                });
+            hi - lo
+        })
+        .fold(0.0, f64::max);
+    let tol = 1e-6 * size;
+    assert!(
+        offset * f64::from(f32::EPSILON) / 2.0 > 10.0 * tol,
+        "f32 coordinates would meet {tol} at {offset}: the test could not fail"
+    );
+    let worst = frame
+        .iter()
+        .zip(&result)
+        .map(|(f, r)| (0..3).map(|k| (f[k] - r[k]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    assert!(worst < tol, "at {offset}: off by {worst}, allowed {tol}");
+}

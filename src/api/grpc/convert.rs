@@ -547,7 +547,18 @@ pub(super) fn frame_pb(frame: &Frame) -> v1::Frame {
     v1::Frame {
         step: count(frame.step),
         metrics: Some(metrics_pb(&frame.metrics)),
-        positions: frame.positions.as_deref().map(|p| positions_bytes(p)),
+        positions: frame
+            .positions
+            .as_deref()
+            .map(|p| positions_bytes(&p.relative)),
+        origin: frame
+            .positions
+            .as_deref()
+            .filter(|p| !p.at_zero())
+            .map(|p| {
+                let [x, y, z] = p.origin;
+                v1::Vector3 { x, y, z }
+            }),
     }
 }
 
