@@ -450,11 +450,16 @@ pub struct JobStatus {
     pub finished_at: Option<u64>,
     /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
     pub expires_at: Option<u64>,
-    /// What `repair` changed in the upload, in the file's numbering; set on the submission's
-    /// answer only (not stored: the job's parameters say it was repaired, and a repaired
-    /// read of the same file gives the same report).
-    #[serde(skip)]
+    /// What `repair` changed in the upload, in the file's numbering (`None` without
+    /// `repair`). Stored with the job, so every read reports it; records from before it was
+    /// stored read as `None`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub repairs: Option<willow::mesh::io::Repairs>,
+    /// What the result cannot keep of the upload as it was, for people
+    /// ([`willow::mesh::io::Asset::notes`]: e.g. a compressed glTF written back as plain
+    /// floats, morph targets dropped). Stored with the job; empty for older records.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
 }
 
 impl JobStatus {

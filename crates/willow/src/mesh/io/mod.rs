@@ -180,6 +180,28 @@ impl Asset {
         &self.repairs
     }
 
+    /// What a result written in the input's own format cannot keep of the input as it was,
+    /// one sentence each, for people: a meshopt- or Draco-compressed glTF written back as
+    /// plain data, quantized POSITION/NORMAL written as float32, morph targets dropped. Empty
+    /// when the input is kept as it was.
+    pub fn notes(&self) -> Vec<String> {
+        match &self.source {
+            Source::Gltf(src) => src.notes.clone(),
+            _ => Vec::new(),
+        }
+    }
+
+    /// A glTF's NORMAL per file vertex (see [`Asset::file_vertex_count`]) as the file stores
+    /// it, decoded (meshopt's octahedral filter, Draco) and dequantized, in the accessor's
+    /// local space; `None` for a vertex without one, and for files of other formats. What a
+    /// decoder test compares with the uncompressed file; results recompute normals instead.
+    pub fn file_normals(&self) -> Option<Vec<Option<[f64; 3]>>> {
+        match &self.source {
+            Source::Gltf(src) => src.normals.clone(),
+            _ => None,
+        }
+    }
+
     fn read_with(
         bytes: &[u8],
         format: Format,

@@ -318,6 +318,7 @@ pub(crate) fn write_document(
 ) -> Result<Vec<u8>, MeshError> {
     let mut doc = src.json.clone();
     drop_tangents(&mut doc);
+    super::clean::drop_morph_targets(&mut doc);
     // One buffer: every original buffer unchanged, each at an 8-aligned offset so the
     // alignment of every original view (at most 4 is required) is kept.
     let mut bin: Vec<u8> = Vec::new();
@@ -371,6 +372,7 @@ pub(crate) fn write_document(
         }
     }
 
+    let bin = super::clean::compact(&mut doc, &bin)?;
     finish(doc, bin, glb)
 }
 
