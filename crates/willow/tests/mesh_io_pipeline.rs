@@ -9,30 +9,10 @@
 mod mesh_support;
 
 use mesh_support::*;
-use std::path::Path;
 use willow::flow::{new_flow, FlowParams, Method};
 use willow::mesh::io::{Asset, Format, Limits};
 
-/// Runs `tests/tools/node_modules/.bin/<name>` and fails with its output if it fails.
-fn tool(name: &str, args: &[&str], dir: &Path) {
-    let bin = tools_dir().join("node_modules/.bin").join(name);
-    assert!(
-        bin.is_file(),
-        "{} is missing: run scripts/test.sh (it runs `npm ci --prefix tests/tools`)",
-        bin.display()
-    );
-    let out = std::process::Command::new(&bin)
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .unwrap_or_else(|e| panic!("{name} does not run (node must be installed): {e}"));
-    assert!(
-        out.status.success(),
-        "{name} {args:?} failed: {}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
+use mesh_support::gltf_tool as tool;
 
 fn read(bytes: &[u8]) -> Asset {
     Asset::read(bytes, Format::Glb, &Limits::default()).unwrap()
