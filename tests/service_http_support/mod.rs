@@ -594,7 +594,7 @@ pub fn morph_glb() -> Vec<u8> {
     json["meshes"][0]["weights"] = serde_json::json!([0.5]);
     json["buffers"][0]["byteLength"] = bin.len().into();
     let mut j = serde_json::to_vec(&json).expect("JSON");
-    while j.len() % 4 != 0 {
+    while !j.len().is_multiple_of(4) {
         j.push(b' ');
     }
     let mut out = Vec::new();

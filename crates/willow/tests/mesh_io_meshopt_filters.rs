@@ -71,7 +71,7 @@ fn accessor(json: &Value, bin: &[u8], index: usize) -> Vec<Vec<f64>> {
 
 /// Appends `values` (f32) to `bin` behind a new view and accessor; returns the accessor.
 fn push_f32(json: &mut Value, bin: &mut Vec<u8>, values: &[f32], extra: Value) -> usize {
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let views = json["bufferViews"].as_array_mut().unwrap();
@@ -91,10 +91,17 @@ fn unit(v: [f64; 3]) -> [f64; 3] {
     v.map(|x| x / l)
 }
 
+/// A plain GLB and the attribute values it holds, per file vertex (rotations per key).
+struct Plain {
+    glb: Vec<u8>,
+    normals: Vec<[f64; 3]>,
+    colours: Vec<[f64; 4]>,
+    rotations: Vec<[f64; 4]>,
+}
+
 /// spot as a plain GLB with area-weighted vertex normals, a colour per vertex made from its
-/// normal, and a node rotation animated over four keys; and the normals, colours and
-/// rotations it holds.
-fn spot_with_attributes() -> (Vec<u8>, Vec<[f64; 3]>, Vec<[f64; 4]>, Vec<[f64; 4]>) {
+/// normal, and a node rotation animated over four keys.
+fn spot_with_attributes() -> Plain {
     let obj = include_bytes!("data/spot_triangulated.obj");
     let spot = Asset::read(obj, Format::Obj, &Limits::default()).unwrap();
     let (mut json, mut bin) = chunks(&spot.write(&spot.surface().positions, Format::Glb).unwrap());
@@ -175,7 +182,12 @@ fn spot_with_attributes() -> (Vec<u8>, Vec<[f64; 3]>, Vec<[f64; 4]>, Vec<[f64; 4
         "channels": [{"sampler": 0, "target": {"node": 0, "path": "rotation"}}]
     }]);
     json["buffers"][0]["byteLength"] = bin.len().into();
-    (glb_bytes(&json, &bin), normals, colours, rotations)
+    Plain {
+        glb: glb_bytes(&json, &bin),
+        normals,
+        colours,
+        rotations,
+    }
 }
 
 /// The filters named in a GLB's compressed buffer views.
@@ -197,7 +209,12 @@ fn nearest(p: [f64; 3], of: &[[f64; 3]]) -> usize {
 
 #[test]
 fn octahedral_quaternion_and_color_filters_decode_within_their_step() {
-    let (input, normals, colours, rotations) = spot_with_attributes();
+    let Plain {
+        glb: input,
+        normals,
+        colours,
+        rotations,
+    } = spot_with_attributes();
     validate_with_khronos(&input, "glb");
     let plain = read(&input);
     let world = |a: &Asset| -> Vec<[f64; 3]> {

@@ -304,7 +304,7 @@ fn morph_targets_are_dropped_with_a_note() {
     let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
     let mut bin = glb[20 + n + 8..].to_vec();
     let mut add = |json: &mut serde_json::Value, bytes: Vec<u8>, acc: serde_json::Value| {
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         let views = json["bufferViews"].as_array_mut().unwrap();
