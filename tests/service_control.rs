@@ -361,53 +361,10 @@ async fn a_group_region_and_a_feature_size_reach_the_flow() {
     srv.stop().await;
 }
 
-/// Two spheres that share one vertex in the file (a bowtie at `v` line 1): the index says it
-/// is one vertex, so the welded surface is not a manifold.
-fn bowtie_obj() -> String {
-    let a = generate::icosphere(1);
-    let a0 = a.positions[0];
-    let antipode = a
-        .positions
-        .iter()
-        .position(|p| (0..3).all(|k| (p[k] + a0[k]).abs() < 1e-12))
-        .expect("an icosphere holds the antipode of each vertex");
-    let mut out = String::new();
-    for p in &a.positions {
-        out.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
-    }
-    // The second sphere, moved so its antipode of vertex 0 lands on vertex 0: that vertex is
-    // written once and both spheres' faces name it.
-    let n = a.positions.len();
-    let mut index = vec![0; n];
-    let mut next = n + 1;
-    for (j, p) in a.positions.iter().enumerate() {
-        if j == antipode {
-            index[j] = 1;
-            continue;
-        }
-        out.push_str(&format!(
-            "v {} {} {}\n",
-            p[0] + 2.0 * a0[0],
-            p[1] + 2.0 * a0[1],
-            p[2] + 2.0 * a0[2]
-        ));
-        index[j] = next;
-        next += 1;
-    }
-    for t in &a.triangles {
-        out.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
-    }
-    for t in &a.triangles {
-        out.push_str(&format!(
-            "f {} {} {}\n",
-            index[t[0]], index[t[1]], index[t[2]]
-        ));
-    }
-    out
-}
-
 /// A non-manifold upload is refused naming the file's own vertex; with `repair` it is split,
-/// the answer says what changed, and the job runs.
+/// the answer says what changed, and the job runs. What changed is stored with the job: a
+/// poll, and a poll after a restart, report it too; so are a glTF's notes (dropped morph
+/// targets).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn repair_splits_a_bowtie_and_says_so() {
     let srv = start(|_| {}).await;
@@ -427,6 +384,46 @@ async fn repair_splits_a_bowtie_and_says_so() {
     let id = job["id"].as_str().expect("id").to_string();
     let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
     assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["repairs"], *repairs, "{done}");
+    assert!(done.get("notes").is_none(), "{done}");
+    // A job without `repair` reports none.
+    let (_, _, plain) = srv.submit_obj(&small_obj(), "steps=1").await;
+    assert!(plain.get("repairs").is_none(), "{plain}");
+    let plain_id = plain["id"].as_str().expect("id").to_string();
+    // A glTF with morph targets: the job notes that its result drops them.
+    let res = reqwest::Client::new()
+        .post(srv.url("/v1/jobs?steps=1"))
+        .header("content-type", "model/gltf-binary")
+        .body(morph_glb())
+        .send()
+        .await
+        .expect("POST");
+    assert_eq!(res.status(), 202);
+    let morph: serde_json::Value = res.json().await.expect("job");
+    let morph_id = morph["id"].as_str().expect("id").to_string();
+    let noted = |v: &serde_json::Value| {
+        v["notes"].as_array().is_some_and(|n| {
+            n.iter().any(|n| {
+                n.as_str()
+                    .is_some_and(|n| n.starts_with("morph targets dropped"))
+            })
+        })
+    };
+    assert!(noted(&morph), "{morph}");
+    srv.poll_until(&morph_id, JOB_TIMEOUT, is_terminal).await;
+    srv.poll_until(&plain_id, JOB_TIMEOUT, is_terminal).await;
+
+    let srv = start_in(srv.stop().await, |_| {}).await;
+    let (st, after) = srv.get_json(&format!("/v1/jobs/{id}")).await;
+    assert_eq!(st, 200);
+    assert_eq!(after["repairs"], *repairs, "after a restart: {after}");
+    let (_, after) = srv.get_json(&format!("/v1/jobs/{morph_id}")).await;
+    assert!(noted(&after), "after a restart: {after}");
+    let (_, after) = srv.get_json(&format!("/v1/jobs/{plain_id}")).await;
+    assert!(
+        after.get("repairs").is_none() && after.get("notes").is_none(),
+        "{after}"
+    );
     srv.stop().await;
 }
 

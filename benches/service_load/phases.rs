@@ -101,6 +101,8 @@ pub(crate) async fn port_phases(
                 format: Format::Obj,
                 vertex_count,
                 face_count,
+                repairs: None,
+                notes: Vec::new(),
                 input_bytes: data.len() as u64,
                 received: true,
                 quotas: bench_quotas(),
@@ -161,7 +163,10 @@ pub(crate) async fn port_phases(
         let frame = willow_service::jobs::Frame {
             step: 0,
             metrics,
-            positions: Some(std::sync::Arc::new(file_order.clone())),
+            positions: Some(std::sync::Arc::new(willow_service::jobs::FramePositions {
+                origin: [0.0; 3],
+                relative: file_order.clone(),
+            })),
         };
         backend
             .events

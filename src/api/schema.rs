@@ -71,7 +71,7 @@ pub struct JobSpecSchema {
     /// border. Needs a region.
     pub falloff: Option<f64>,
     /// Repair the upload before the flow: drop degenerate faces and split non-manifold
-    /// vertices and edges; the submission's answer has `repairs`. Default false: such a file
+    /// vertices and edges; the job reports `repairs`. Default false: such a file
     /// is refused, naming its own vertex and face numbers.
     pub repair: bool,
     /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed as a

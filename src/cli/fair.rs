@@ -240,6 +240,9 @@ pub fn run(args: FairArgs) -> ExitCode {
         // On stderr, so --json's stdout stays one object per step.
         eprintln!("repaired {}: {}", args.input.display(), asset.repairs());
     }
+    for note in asset.notes() {
+        eprintln!("note: {}: {note}", args.input.display());
+    }
     // The CLI maps onto the same job spec as HTTP and gRPC, and is checked by the same rules.
     let boundary = match args.boundary {
         BoundaryArg::Free => BoundarySpec::Free,

@@ -87,7 +87,7 @@ impl Jobs {
         let parse_data = data.clone();
         let t = Instant::now();
         let parse_spec = spec.clone();
-        let (vertex_count, face_count, repairs) = tokio::task::spawn_blocking(move || {
+        let (vertex_count, face_count, repairs, notes) = tokio::task::spawn_blocking(move || {
             let asset = parse_spec
                 .read_asset(&parse_data, format, &limits.mesh_limits())
                 .map_err(mesh_error)?;
@@ -106,7 +106,12 @@ impl Jobs {
                 });
             }
             let repairs = parse_spec.repair.then(|| asset.repairs().clone());
-            Ok((asset.file_vertex_count(), surface.face_count(), repairs))
+            Ok((
+                asset.file_vertex_count(),
+                surface.face_count(),
+                repairs,
+                asset.notes(),
+            ))
         })
         .await
         .map_err(join_err)??;
@@ -136,6 +141,8 @@ impl Jobs {
             format,
             vertex_count,
             face_count,
+            repairs: repairs.clone(),
+            notes,
             input_bytes: data_len,
             received,
             // Set by `admit`.
@@ -159,7 +166,7 @@ impl Jobs {
                 if let Some(r) = repairs.as_ref().filter(|r| !r.is_empty()) {
                     tracing::info!(job_id = %status.id, repairs = %r, "upload repaired");
                 }
-                Ok(JobStatus { repairs, ..status })
+                Ok(status)
             }
             Ok(Inserted::Existing(status)) => {
                 let _ = backend.blobs.delete_job(&id).await;

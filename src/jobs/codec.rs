@@ -2,7 +2,7 @@
 //! position blobs and flow checkpoints. A record written by one node is read by another, and
 //! after an upgrade by a newer binary: each form says how it stays readable.
 
-use super::{format_name, JobError, JobSpec};
+use super::{format_name, FramePositions, JobError, JobSpec};
 use sha2::{Digest, Sha256};
 use willow::flow::FlowState;
 use willow::mesh::io::Format;
@@ -310,6 +310,46 @@ pub fn bytes_to_f32s(b: &[u8]) -> Result<Vec<[f32; 3]>, JobError> {
             [g(0), g(1), g(2)]
         })
         .collect())
+}
+
+/// First bytes of a stored frame whose origin is not zero ([`encode_frame_positions`]).
+const FRAME_ORIGIN_MAGIC: &[u8; 4] = b"WFO1";
+/// The magic and three f64: 28 bytes, so such a blob's length is 4 mod 12 while a plain f32
+/// blob's (every blob before origins, and every blob of a model around the origin) is 0 mod 12.
+const FRAME_ORIGIN_HEADER: usize = 4 + 24;
+
+/// A frame as stored: for a zero origin the plain f32 xyz it always was; otherwise
+/// [`FRAME_ORIGIN_MAGIC`], the origin as three little-endian f64, then the f32 offsets.
+pub fn encode_frame_positions(p: &FramePositions) -> Vec<u8> {
+    if p.at_zero() {
+        return f32s_to_bytes(&p.relative);
+    }
+    let mut out = Vec::with_capacity(FRAME_ORIGIN_HEADER + p.relative.len() * 12);
+    out.extend_from_slice(FRAME_ORIGIN_MAGIC);
+    for c in p.origin {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+    out.extend_from_slice(&f32s_to_bytes(&p.relative));
+    out
+}
+
+/// Reads [`encode_frame_positions`]' blobs and the plain f32 blobs stored before origins.
+pub fn decode_frame_positions(b: &[u8]) -> Result<FramePositions, JobError> {
+    if b.len() % 12 == FRAME_ORIGIN_HEADER % 12 && b.starts_with(FRAME_ORIGIN_MAGIC) {
+        let (head, rest) = b.split_at(FRAME_ORIGIN_HEADER);
+        let origin = bytes_to_f64s(&head[4..])?
+            .first()
+            .copied()
+            .ok_or_else(|| JobError::Internal("frame blob without its origin".into()))?;
+        return Ok(FramePositions {
+            origin,
+            relative: bytes_to_f32s(rest)?,
+        });
+    }
+    Ok(FramePositions {
+        origin: [0.0; 3],
+        relative: bytes_to_f32s(b)?,
+    })
 }
 
 /// First bytes of a checkpoint blob, with its version: a checkpoint some other version wrote

@@ -450,11 +450,16 @@ pub struct JobStatus {
     pub finished_at: Option<u64>,
     /// When a finished job's results are deleted (then every call answers [`JobError::Gone`]).
     pub expires_at: Option<u64>,
-    /// What `repair` changed in the upload, in the file's numbering; set on the submission's
-    /// answer only (not stored: the job's parameters say it was repaired, and a repaired
-    /// read of the same file gives the same report).
-    #[serde(skip)]
+    /// What `repair` changed in the upload, in the file's numbering (`None` without
+    /// `repair`). Stored with the job, so every read reports it; records from before it was
+    /// stored read as `None`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub repairs: Option<willow::mesh::io::Repairs>,
+    /// What the result cannot keep of the upload as it was, for people
+    /// ([`willow::mesh::io::Asset::notes`]: e.g. a compressed glTF written back as plain
+    /// floats, morph targets dropped). Stored with the job; empty for older records.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
 }
 
 impl JobStatus {
@@ -514,7 +519,33 @@ pub struct Frame {
     pub metrics: StepMetrics,
     /// Vertex positions after the step, in the uploaded file's vertex order, when this step
     /// keeps positions ([`JobSpec::keeps_positions`]). Shared, so fan-out copies no vertices.
-    pub positions: Option<Arc<Vec<[f32; 3]>>>,
+    pub positions: Option<Arc<FramePositions>>,
+}
+
+/// A frame's vertex positions: f32 offsets from an f64 origin, so a model far from the
+/// origin (map-grid coordinates) streams with ~1e-7 of its size instead of snapping to the
+/// f32 grid of its distance (issue 27, item 4). The origin is the job's
+/// [`willow::mesh::io::Asset::frame_origin`]: the same in every frame of a job, and exactly
+/// zero for a model around the origin, where `relative` are the coordinates themselves.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FramePositions {
+    pub origin: [f64; 3],
+    pub relative: Vec<[f32; 3]>,
+}
+
+impl FramePositions {
+    /// Is the origin zero (then clients that ignore it read the frame right)?
+    pub fn at_zero(&self) -> bool {
+        self.origin == [0.0; 3]
+    }
+
+    /// The positions in f64: origin + offset.
+    pub fn absolute(&self) -> Vec<[f64; 3]> {
+        self.relative
+            .iter()
+            .map(|p| [0, 1, 2].map(|k| self.origin[k] + f64::from(p[k])))
+            .collect()
+    }
 }
 
 /// What a watcher sees: state changes, one frame per step, then the final status.

@@ -37,6 +37,10 @@ pub struct NewJob {
     pub format: Format,
     pub vertex_count: usize,
     pub face_count: usize,
+    /// What `repair` changed ([`JobStatus::repairs`](super::JobStatus::repairs)).
+    pub repairs: Option<willow::mesh::io::Repairs>,
+    /// What the result cannot keep ([`JobStatus::notes`](super::JobStatus::notes)).
+    pub notes: Vec<String>,
     /// Size of the uploaded file (the tenant's storage quota counts it).
     pub input_bytes: u64,
     /// Whether the mesh came with this request. A job made from a stored upload receives no

@@ -15,9 +15,9 @@
 //! [`JobStore`]: super::ports::JobStore
 //! [`BlobStore`]: super::ports::BlobStore
 
-use super::codec::bytes_to_f32s;
+use super::codec::decode_frame_positions;
 use super::ports::{BlobKey, BusEvent};
-use super::{Frame, JobError, JobEvent, JobId, JobStatus, Jobs};
+use super::{Frame, FramePositions, JobError, JobEvent, JobId, JobStatus, Jobs};
 use futures::stream::BoxStream;
 use futures::{Stream, StreamExt};
 use std::sync::Arc;
@@ -92,14 +92,14 @@ async fn emit(tx: &Tx, ev: JobEvent) -> Result<(), WatchEnd> {
 
 /// A frame's positions in the file's vertex order, from the blob store. `None` if they are
 /// gone (the job expired, or a resumed job has not written that step again yet).
-async fn stored_positions(jobs: &Jobs, id: &JobId, step: usize) -> Option<Arc<Vec<[f32; 3]>>> {
+async fn stored_positions(jobs: &Jobs, id: &JobId, step: usize) -> Option<Arc<FramePositions>> {
     let key = BlobKey::Frame {
         id: id.clone(),
         step,
         welded: false,
     };
     let bytes = jobs.inner.backend.blobs.get(key).await.ok()??;
-    bytes_to_f32s(&bytes).ok().map(Arc::new)
+    decode_frame_positions(&bytes).ok().map(Arc::new)
 }
 
 /// Send stored frames with step >= `next` and return the step expected after them.

@@ -25,6 +25,7 @@ mod webhook_support;
 
 mod curves;
 mod errors;
+mod far;
 mod jobs;
 mod options;
 mod service;

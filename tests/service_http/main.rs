@@ -8,6 +8,7 @@ mod service_http_support;
 mod body;
 mod curves;
 mod errors;
+mod far;
 mod jobs;
 mod options;
 mod probes;

@@ -371,3 +371,29 @@ async fn cancel_through_api_b_a_job_running_from_api_a() {
         )
         .await;
 }
+
+/// What `repair` changed is stored in the NATS job record: submitted through API A, it is
+/// reported by API B's poll (which reads the record, not A's answer); a job without `repair`
+/// reports none.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn repairs_are_stored_in_the_nats_record() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let nats = Nats::start(d);
+    let url = nats.url();
+    let api_a = Node::spawn(d, "api-a", Some(&url), &NodeOpts::api());
+    let api_b = Node::spawn(d, "api-b", Some(&url), &NodeOpts::api());
+    let w = Node::spawn(d, "worker", Some(&url), &NodeOpts::worker());
+    all_ready(&[&api_a, &api_b, &w]).await;
+    let bowtie = service_http_support::bowtie_obj();
+    let (status, _, answer) = api_a.submit_obj(&bowtie, "steps=2&repair=true", None).await;
+    assert_eq!(status, 202, "{answer}");
+    let id = answer["id"].as_str().expect("id").to_string();
+    assert_eq!(answer["repairs"]["split_vertices"]["count"], 1, "{answer}");
+    let polled = api_b.poll_until(&id, is_terminal).await;
+    assert_eq!(polled["state"], "succeeded", "{polled}");
+    assert_eq!(polled["repairs"], answer["repairs"], "{polled}");
+    let plain = api_a.submit(&small_obj(), "steps=1").await;
+    let polled = api_b.poll_until(&plain, is_terminal).await;
+    assert!(polled.get("repairs").is_none(), "{polled}");
+}

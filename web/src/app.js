@@ -2,7 +2,7 @@
 // (3D view + metric plots), cancel, download, and a dashboard of all jobs. Everything talks to
 // the same server that served the page, through the public API only.
 import { ApiError, api, apiKey, bytes, json, onUnauthorized, setApiKey } from './api.js';
-import { MEDIA_TYPES, decodeBase64Into, formatOf, parseMesh } from './meshio.js';
+import { MEDIA_TYPES, decodeBase64Into, formatOf, parseMesh, withOrigin } from './meshio.js';
 import { Plots } from './plots.js';
 import { RegionControls } from './region.js';
 import { View } from './view.js';
@@ -478,7 +478,7 @@ function onFrame(w, f) {
   }
   if (f.positions_b64) {
     w.kept.add(f.step);
-    w.pending = { step: f.step, b64: f.positions_b64 };
+    w.pending = { step: f.step, b64: f.positions_b64, origin: f.origin };
     schedule(w);
   }
   updateCounter();
@@ -492,7 +492,7 @@ function schedule(w) {
   requestAnimationFrame(() => {
     w.scheduled = false;
     if (w.closed || !w.pending || !w.modelReady || !view.model) return;
-    const { step, b64 } = w.pending;
+    const { step, b64, origin } = w.pending;
     w.pending = null;
     const t0 = performance.now();
     const n = view.model.fileVertexCount * 12;
@@ -502,7 +502,7 @@ function schedule(w) {
       $('view-error').textContent = `frame ${step} has ${got} bytes of positions, expected ${n}`;
       return;
     }
-    const positions = new Float32Array(w.buffer.buffer, 0, n / 4);
+    const positions = withOrigin(new Float32Array(w.buffer.buffer, 0, n / 4), origin);
     stats.lastDecodeMs = performance.now() - t0;
     if (w.cacheBytes + n <= FRAME_CACHE_BYTES && !w.cache.has(step)) {
       w.cache.set(step, positions.slice());

@@ -436,7 +436,24 @@ function mul(a, b) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Frames: `positions_b64` is little-endian f32 xyz per file vertex.
+// Frames: `positions_b64` is little-endian f32 xyz per file vertex, relative to the frame's
+// `origin` when it has one (a model far from the origin: see `withOrigin`).
+
+/**
+ * A frame's positions as the viewer holds them (f32 xyz per file vertex, like the file it
+ * read): `relative` itself when the frame has no `origin` (a model around the origin), else
+ * origin + offset, added in double precision before the one rounding to f32. Writes into
+ * `relative` (the frame's own buffer) and returns it.
+ */
+export function withOrigin(relative, origin) {
+  if (!origin) return relative;
+  for (let i = 0; i < relative.length; i += 3) {
+    relative[i] = origin[0] + relative[i];
+    relative[i + 1] = origin[1] + relative[i + 1];
+    relative[i + 2] = origin[2] + relative[i + 2];
+  }
+  return relative;
+}
 
 const B64 = new Uint8Array(128);
 {

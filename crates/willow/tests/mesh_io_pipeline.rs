@@ -3,35 +3,16 @@
 //! (`EXT_meshopt_compression` and `KHR_meshopt_compression`) and Draco-compressed ones
 //! (`KHR_draco_mesh_compression`); each is read exactly like its
 //! uncompressed twin, faired for a few steps, and written as a validator-clean plain document
-//! whose UVs and indices are the input's.
+//! whose UVs and indices are the input's, with no byte the document does not describe, and the
+//! job told so in its notes. Morph targets are dropped with a note.
 
 mod mesh_support;
 
 use mesh_support::*;
-use std::path::Path;
 use willow::flow::{new_flow, FlowParams, Method};
 use willow::mesh::io::{Asset, Format, Limits};
 
-/// Runs `tests/tools/node_modules/.bin/<name>` and fails with its output if it fails.
-fn tool(name: &str, args: &[&str], dir: &Path) {
-    let bin = tools_dir().join("node_modules/.bin").join(name);
-    assert!(
-        bin.is_file(),
-        "{} is missing: run scripts/test.sh (it runs `npm ci --prefix tests/tools`)",
-        bin.display()
-    );
-    let out = std::process::Command::new(&bin)
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .unwrap_or_else(|e| panic!("{name} does not run (node must be installed): {e}"));
-    assert!(
-        out.status.success(),
-        "{name} {args:?} failed: {}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
+use mesh_support::gltf_tool as tool;
 
 fn read(bytes: &[u8]) -> Asset {
     Asset::read(bytes, Format::Glb, &Limits::default()).unwrap()
@@ -40,6 +21,23 @@ fn read(bytes: &[u8]) -> Asset {
 fn json_of(glb: &[u8]) -> serde_json::Value {
     let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
     serde_json::from_slice(&glb[20..20 + n]).unwrap()
+}
+
+/// Bytes of a GLB's BIN chunk that no buffer view covers, less up to 3 bytes of alignment
+/// padding before each view: the compressed data of a decoded input, if it were left behind.
+fn undescribed_bytes(glb: &[u8]) -> usize {
+    let json = json_of(glb);
+    let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
+    let bin_len = u32::from_le_bytes([glb[20 + n], glb[21 + n], glb[22 + n], glb[23 + n]]);
+    let mut covered = vec![false; bin_len as usize];
+    let views = json["bufferViews"].as_array().cloned().unwrap_or_default();
+    for v in &views {
+        let at = v["byteOffset"].as_u64().unwrap_or(0) as usize;
+        let len = v["byteLength"].as_u64().unwrap() as usize;
+        covered[at..at + len].iter_mut().for_each(|c| *c = true);
+    }
+    let bare = covered.iter().filter(|c| !**c).count();
+    bare.saturating_sub(3 * (views.len() + 1))
 }
 
 fn extensions(json: &serde_json::Value, key: &str) -> Vec<String> {
@@ -95,8 +93,14 @@ fn assert_same_geometry(a: &Asset, b: &Asset, what: &str) {
     assert!(diff.is_none(), "{what}: triangles differ at {diff:?}");
 }
 
-/// A few conformal steps, the written GLB validated, and its indices and UVs the input's.
-fn fair_and_check_output(a: &Asset, what: &str) {
+/// A few conformal steps, the written GLB validated, and its indices and UVs the input's;
+/// every byte of its buffer described by a view; `note` (an extension name) in the notes.
+fn fair_and_check_output(a: &Asset, what: &str, note: &str) {
+    assert!(
+        a.notes().iter().any(|n| n.starts_with(note)),
+        "{what}: no note on {note}: {:?}",
+        a.notes()
+    );
     let ext_left = |l: &[String]| {
         l.iter()
             .any(|e| e.contains("meshopt") || e.contains("draco"))
@@ -118,6 +122,11 @@ fn fair_and_check_output(a: &Asset, what: &str) {
     assert!(moved_by > 0.0, "{what}: the flow did not move the surface");
     let out = a.write(&moved, Format::Glb).unwrap();
     validate_with_khronos(&out, "glb");
+    assert_eq!(
+        undescribed_bytes(&out),
+        0,
+        "{what}: bytes no view describes"
+    );
     let json = json_of(&out);
     for key in ["extensionsUsed", "extensionsRequired"] {
         let listed = extensions(&json, key);
@@ -160,6 +169,7 @@ fn gltfpack_meshopt_variants_read_like_their_twin_and_fair() {
     // The twin: gltfpack's default (quantized, not compressed), the same data before the
     // meshopt codec; the compressed variants must decode to it exactly.
     let twin = read(&make("q.glb", &[]));
+    fair_and_check_output(&twin, "q.glb", "KHR_mesh_quantization");
     for (file, args, ext) in [
         ("ext.glb", &["-cc"][..], "EXT_meshopt_compression"),
         (
@@ -177,7 +187,7 @@ fn gltfpack_meshopt_variants_read_like_their_twin_and_fair() {
         );
         let a = read(&bytes);
         assert_same_geometry(&a, &twin, file);
-        fair_and_check_output(&a, file);
+        fair_and_check_output(&a, file, ext);
     }
 }
 
@@ -215,7 +225,7 @@ fn gltf_transform_meshopt_reads_like_its_twin_and_fairs() {
     let a = read(&bytes);
     let twin = read(&std::fs::read(dir.path().join("rq.glb")).unwrap());
     assert_same_geometry(&a, &twin, "gltf-transform meshopt");
-    fair_and_check_output(&a, "gltf-transform meshopt");
+    fair_and_check_output(&a, "gltf-transform meshopt", "EXT_meshopt_compression");
 }
 
 #[test]
@@ -258,7 +268,7 @@ fn gltf_transform_draco_decodes_like_googles_decoder_and_fairs() {
     // And it is spot: the same triangle count as the uncompressed file.
     let plain = read(&std::fs::read(dir.path().join("plain.glb")).unwrap());
     assert_eq!(a.file_triangles().len(), plain.file_triangles().len());
-    fair_and_check_output(&a, "gltf-transform draco");
+    fair_and_check_output(&a, "gltf-transform draco", "KHR_draco_mesh_compression");
 
     // The same file with its Draco stream cut to 16 bytes: an error naming the primitive and
     // the extension, not a panic or an empty mesh.
@@ -278,4 +288,109 @@ fn gltf_transform_draco_decodes_like_googles_decoder_and_fairs() {
         )),
         "{e}"
     );
+}
+
+/// A glTF with a morph target (on POSITION), mesh and node weights and an animation of the
+/// weights beside one of the node's translation: the written file has no targets, weights or
+/// weight channel (the translation animation stays), validates, and the asset notes the drop.
+#[test]
+fn morph_targets_are_dropped_with_a_note() {
+    let m = willow::mesh::generate::icosphere(1);
+    let plain = Asset::from_mesh(m.clone(), &Limits::default()).unwrap();
+    let glb = plain
+        .write(&plain.surface().positions, Format::Glb)
+        .unwrap();
+    let mut json = json_of(&glb);
+    let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
+    let mut bin = glb[20 + n + 8..].to_vec();
+    let mut add = |json: &mut serde_json::Value, bytes: Vec<u8>, acc: serde_json::Value| {
+        while !bin.len().is_multiple_of(4) {
+            bin.push(0);
+        }
+        let views = json["bufferViews"].as_array_mut().unwrap();
+        views.push(
+            serde_json::json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": bytes.len()}),
+        );
+        let mut acc = acc;
+        acc["bufferView"] = (views.len() - 1).into();
+        bin.extend_from_slice(&bytes);
+        let accs = json["accessors"].as_array_mut().unwrap();
+        accs.push(acc);
+        accs.len() - 1
+    };
+    let f32s = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    // Every vertex pushed out by 0.2 along its radius: a "bloat" target.
+    let offsets: Vec<f32> = m
+        .positions
+        .iter()
+        .flat_map(|p| p.map(|x| (0.2 * x) as f32))
+        .collect();
+    let target = add(
+        &mut json,
+        f32s(&offsets),
+        serde_json::json!({"componentType": 5126, "count": m.positions.len(), "type": "VEC3",
+            "min": [-0.2, -0.2, -0.2], "max": [0.2, 0.2, 0.2]}),
+    );
+    let times = add(
+        &mut json,
+        f32s(&[0.0, 1.0]),
+        serde_json::json!({"componentType": 5126, "count": 2, "type": "SCALAR", "min": [0.0], "max": [1.0]}),
+    );
+    let weights = add(
+        &mut json,
+        f32s(&[0.0, 1.0]),
+        serde_json::json!({"componentType": 5126, "count": 2, "type": "SCALAR"}),
+    );
+    let moves = add(
+        &mut json,
+        f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0]),
+        serde_json::json!({"componentType": 5126, "count": 2, "type": "VEC3"}),
+    );
+    json["meshes"][0]["primitives"][0]["targets"] = serde_json::json!([{"POSITION": target}]);
+    json["meshes"][0]["weights"] = serde_json::json!([0.5]);
+    json["meshes"][0]["extras"] = serde_json::json!({"targetNames": ["bloat"]});
+    json["nodes"][0]["weights"] = serde_json::json!([0.25]);
+    json["animations"] = serde_json::json!([{
+        "samplers": [{"input": times, "output": weights}, {"input": times, "output": moves}],
+        "channels": [
+            {"sampler": 0, "target": {"node": 0, "path": "weights"}},
+            {"sampler": 1, "target": {"node": 0, "path": "translation"}}
+        ]
+    }]);
+    json["buffers"][0]["byteLength"] = bin.len().into();
+    let input = glb_bytes(&json, &bin);
+    validate_with_khronos(&input, "glb");
+    let a = read(&input);
+    assert!(
+        a.notes()
+            .iter()
+            .any(|n| n.starts_with("morph targets dropped: 1 targets on 1 primitives")),
+        "{:?}",
+        a.notes()
+    );
+    let moved: Vec<[f64; 3]> = a
+        .surface()
+        .positions
+        .iter()
+        .map(|p| p.map(|x| 1.1 * x))
+        .collect();
+    let out = a.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let out_json = json_of(&out);
+    let prim = &out_json["meshes"][0]["primitives"][0];
+    assert!(prim.get("targets").is_none(), "{prim}");
+    assert!(out_json["meshes"][0].get("weights").is_none());
+    assert!(out_json["meshes"][0]["extras"].get("targetNames").is_none());
+    assert!(out_json["nodes"][0].get("weights").is_none());
+    let channels = out_json["animations"][0]["channels"].as_array().unwrap();
+    assert_eq!(channels.len(), 1);
+    assert_eq!(channels[0]["target"]["path"], "translation");
+    // The base shape is the faired one.
+    let b = read(&out);
+    let got = b.file_positions(&b.surface().positions);
+    for (g, e) in got.iter().zip(a.file_positions(&moved)) {
+        assert_eq!(*g, e);
+    }
+    // Without targets there is nothing to note.
+    assert!(read(&glb).notes().is_empty());
 }

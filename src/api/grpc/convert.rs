@@ -547,7 +547,18 @@ pub(super) fn frame_pb(frame: &Frame) -> v1::Frame {
     v1::Frame {
         step: count(frame.step),
         metrics: Some(metrics_pb(&frame.metrics)),
-        positions: frame.positions.as_deref().map(|p| positions_bytes(p)),
+        positions: frame
+            .positions
+            .as_deref()
+            .map(|p| positions_bytes(&p.relative)),
+        origin: frame
+            .positions
+            .as_deref()
+            .filter(|p| !p.at_zero())
+            .map(|p| {
+                let [x, y, z] = p.origin;
+                v1::Vector3 { x, y, z }
+            }),
     }
 }
 
@@ -621,6 +632,19 @@ pub(super) fn job_pb(status: &JobStatus) -> v1::Job {
         outcome: status.outcome().map(|o| o.0).unwrap_or_default(),
         outcome_reason: status.outcome().map(|o| o.1).unwrap_or_default(),
         percent_complete: status.percent_complete(),
+        repairs: status.repairs.as_ref().map(repairs_pb),
+        notes: status.notes.clone(),
+    }
+}
+
+fn repairs_pb(r: &willow::mesh::io::Repairs) -> v1::Repairs {
+    let list = |v: &[usize]| v.iter().map(|&i| i as u64).collect();
+    v1::Repairs {
+        dropped_face_count: r.dropped_faces.count as u64,
+        dropped_faces: list(&r.dropped_faces.first),
+        split_vertex_count: r.split_vertices.count as u64,
+        split_vertices: list(&r.split_vertices.first),
+        added_vertices: r.added_vertices as u64,
     }
 }
 

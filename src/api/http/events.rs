@@ -26,10 +26,18 @@ pub struct FrameEvent {
     pub step: usize,
     #[schema(value_type = Object)]
     pub metrics: willow::metrics::StepMetrics,
-    /// Little-endian f32 xyz per vertex in the uploaded file's vertex order, base64; present
-    /// at the frame interval when the job includes positions.
+    /// Little-endian f32 xyz per vertex in the uploaded file's vertex order, base64, relative
+    /// to `origin` when that is present; present at the frame interval when the job includes
+    /// positions.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub positions_b64: Option<String>,
+    /// With `positions_b64` when the model lies farther from the origin than its own size
+    /// (map-grid coordinates): each vertex is `origin` + its f32 offset, added in f64, so the
+    /// frame keeps ~1e-7 of the model's size where f32 coordinates would snap to the f32 grid
+    /// of their distance (0.5 at 5e6). The same in every frame of a job; absent for a model
+    /// around the origin, where `positions_b64` holds the coordinates themselves.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub origin: Option<[f64; 3]>,
 }
 
 /// Server-Sent Events: `state`, one `frame` per step (`id:` = step), then `done`.
@@ -101,9 +109,14 @@ fn sse_event(ev: JobEvent) -> Event {
             let data = FrameEvent {
                 step: f.step,
                 metrics: f.metrics,
+                origin: f
+                    .positions
+                    .as_deref()
+                    .filter(|p| !p.at_zero())
+                    .map(|p| p.origin),
                 positions_b64: f.positions.map(|p| {
                     base64::engine::general_purpose::STANDARD
-                        .encode(crate::jobs::codec::f32s_to_bytes(&p))
+                        .encode(crate::jobs::codec::f32s_to_bytes(&p.relative))
                 }),
             };
             return Event::default()

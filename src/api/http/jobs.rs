@@ -73,10 +73,14 @@ pub struct JobView {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub outcome_reason: Option<String>,
     /// What `repair` changed in the upload (file numbering): dropped degenerate faces, split
-    /// vertices, added surface vertices. On the submission's answer only.
+    /// vertices, added surface vertices. Absent without `repair`; stored with the job.
     #[serde(skip_serializing_if = "Option::is_none")]
     #[schema(value_type = Option<Object>)]
     pub repairs: Option<willow::mesh::io::Repairs>,
+    /// What the result cannot keep of the upload as it was, for people: e.g. a compressed
+    /// glTF written back as plain float attributes, morph targets dropped. Absent when none.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
     /// The parameters the job runs with, defaults filled in.
     #[schema(value_type = crate::api::schema::JobSpecSchema)]
     pub params: JobSpec,
@@ -100,6 +104,7 @@ impl From<JobStatus> for JobView {
         let (outcome, outcome_reason) = s.outcome().unzip();
         JobView {
             repairs: s.repairs.clone(),
+            notes: s.notes.clone(),
             outcome,
             outcome_reason,
             state: s.state.as_str().to_string(),

@@ -2,10 +2,13 @@
 //! ([`willow::flow::stopping::Run`]), frames and checkpoints as it goes, and how it ends
 //! (succeeded with an outcome, failed, cancelled, or back to the queue).
 
-use super::super::codec::{decode_checkpoint, encode_checkpoint, f32s_to_bytes, f64s_to_bytes};
+use super::super::codec::{
+    decode_checkpoint, encode_checkpoint, encode_frame_positions, f64s_to_bytes,
+};
 use super::super::ports::{BlobKey, Fence};
 use super::super::{
-    mesh_error, now_ms, FailureCode, Frame, Inner, JobError, JobEvent, JobId, JobState, JobStatus,
+    mesh_error, now_ms, FailureCode, Frame, FramePositions, Inner, JobError, JobEvent, JobId,
+    JobState, JobStatus,
 };
 use super::{finish, thread_budget, Outcome};
 use std::sync::atomic::Ordering;
@@ -126,16 +129,21 @@ pub(super) fn run_job(
         }
     };
 
+    // Frames are sent relative to this (zero around the origin), see `FramePositions`.
+    let frame_origin = asset.frame_origin();
     let emit = |step: usize, mut metrics: willow::metrics::StepMetrics, positions: &[[f64; 3]]| {
         metrics.step = step;
         still_held()?;
         let payload = if spec.keeps_positions(step) {
-            let file_order = asset.file_positions(positions);
+            let file_order = FramePositions {
+                origin: frame_origin,
+                relative: asset.file_positions_relative(positions, frame_origin),
+            };
             let (key, welded) = frame_keys(id, step);
             rt.block_on(async {
                 backend
                     .blobs
-                    .put(key, f32s_to_bytes(&file_order).into())
+                    .put(key, encode_frame_positions(&file_order).into())
                     .await?;
                 backend
                     .blobs

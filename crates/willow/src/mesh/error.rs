@@ -15,7 +15,7 @@ pub const MAX_REPORTED: usize = 8;
 ///
 /// Collect with [`Offenders::push`]; it keeps at most [`MAX_REPORTED`] items, so building one
 /// never allocates in proportion to the input.
-#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Offenders<T> {
     /// Total number of offending items.
     pub count: usize,

@@ -303,3 +303,24 @@ pub fn validate_with_khronos(bytes: &[u8], ext: &str) {
     );
     assert!(out.status.success());
 }
+
+/// Runs `tests/tools/node_modules/.bin/<name>` and fails with its output if it fails.
+pub fn gltf_tool(name: &str, args: &[&str], dir: &std::path::Path) {
+    let bin = tools_dir().join("node_modules/.bin").join(name);
+    assert!(
+        bin.is_file(),
+        "{} is missing: run scripts/test.sh (it runs `npm ci --prefix tests/tools`)",
+        bin.display()
+    );
+    let out = std::process::Command::new(&bin)
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap_or_else(|e| panic!("{name} does not run (node must be installed): {e}"));
+    assert!(
+        out.status.success(),
+        "{name} {args:?} failed: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

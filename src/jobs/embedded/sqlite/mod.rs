@@ -34,7 +34,17 @@ pub struct SqliteStore {
 const STATUS_COLUMNS: &str =
     "id, state, spec, input_format, vertex_count, face_count, step, latest, \
      error, error_code, created_at, started_at, finished_at, expires_at, expired, seq, \
-     tenant, input_bytes";
+     tenant, input_bytes, report";
+
+/// The `report` column: what reading the upload changed or could not keep, as JSON (NULL when
+/// there is nothing, and in rows from before the column).
+#[derive(serde::Serialize, serde::Deserialize, Default)]
+struct Report {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    repairs: Option<willow::mesh::io::Repairs>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    notes: Vec<String>,
+}
 
 /// A row as read, before the expiry check.
 struct Row {
@@ -80,6 +90,7 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
     let seq: i64 = r.get(15)?;
     let tenant: String = r.get(16)?;
     let input_bytes = get_u64(17)?.unwrap_or(0);
+    let report: Option<String> = r.get(18)?;
     Ok((|| {
         let state = JobState::parse(&state)
             .ok_or_else(|| JobError::Internal(format!("unknown stored state `{state}`")))?;
@@ -88,6 +99,11 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
         let input_format = parse_format(&format)
             .ok_or_else(|| JobError::Internal(format!("unknown stored format `{format}`")))?;
         let latest = latest.map(|b| decode_metrics(&b)).transpose()?;
+        let report: Report = report
+            .map(|r| serde_json::from_str(&r))
+            .transpose()
+            .map_err(|e| JobError::Internal(format!("stored report: {e}")))?
+            .unwrap_or_default();
         Ok(Row {
             status: JobStatus {
                 id,
@@ -107,7 +123,8 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
                 started_at,
                 finished_at,
                 expires_at,
-                repairs: None,
+                repairs: report.repairs,
+                notes: report.notes,
             },
             expired: expired != 0,
             seq,
@@ -198,6 +215,15 @@ impl SqliteStore {
     fn insert_now(&self, job: &NewJob) -> Result<Inserted, JobError> {
         let spec = serde_json::to_string(&job.spec)
             .map_err(|e| JobError::Internal(format!("spec: {e}")))?;
+        let report = (job.repairs.is_some() || !job.notes.is_empty())
+            .then(|| {
+                serde_json::to_string(&Report {
+                    repairs: job.repairs.clone(),
+                    notes: job.notes.clone(),
+                })
+            })
+            .transpose()
+            .map_err(|e| JobError::Internal(format!("report: {e}")))?;
         {
             let mut conn = self.conn()?;
             let tx = conn.transaction()?;
@@ -234,8 +260,8 @@ impl SqliteStore {
             }
             tx.prepare_cached(
                 "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at,
-                                   tenant, input_bytes, received, callback_pending)
-                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
+                                   tenant, input_bytes, received, callback_pending, report)
+                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
             )?
             .execute(params![
                     job.id,
@@ -247,7 +273,8 @@ impl SqliteStore {
                     job.tenant,
                     ms(job.input_bytes),
                     job.received,
-                    job.spec.callback_url.is_some()
+                    job.spec.callback_url.is_some(),
+                    report
                 ],
             )?;
             if let Some((key, hash)) = &job.idempotency {

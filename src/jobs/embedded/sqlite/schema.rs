@@ -33,7 +33,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     tenant          TEXT NOT NULL DEFAULT 'default',
     input_bytes     INTEGER NOT NULL DEFAULT 0,
     received        INTEGER NOT NULL DEFAULT 1,
-    callback_pending INTEGER NOT NULL DEFAULT 0
+    callback_pending INTEGER NOT NULL DEFAULT 0,
+    report          TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_expiry ON jobs(expires_at) WHERE expired = 0;
@@ -62,13 +63,14 @@ CREATE TABLE IF NOT EXISTS uploads (
 /// Columns added after the first release, with their definitions: databases from before them
 /// get them at open (SQLite has no `ADD COLUMN IF NOT EXISTS`). Rows from before tenants
 /// belong to the default tenant.
-const ADDED_COLUMNS: [(&str, &str, &str); 6] = [
+const ADDED_COLUMNS: [(&str, &str, &str); 7] = [
     ("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
     ("jobs", "input_bytes", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "received", "INTEGER NOT NULL DEFAULT 1"),
     ("uploads", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
     ("jobs", "callback_pending", "INTEGER NOT NULL DEFAULT 0"),
+    ("jobs", "report", "TEXT"),
 ];
 
 /// The statement a trigger runs for a mesh received (a job or an upload row `NEW`): what

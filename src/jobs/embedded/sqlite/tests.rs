@@ -14,6 +14,8 @@ fn job(tenant: &str, bytes: u64, at: u64) -> NewJob {
         format: Format::Obj,
         vertex_count: 3,
         face_count: 1,
+        repairs: None,
+        notes: Vec::new(),
         input_bytes: bytes,
         received: true,
         created_at: at,

@@ -202,7 +202,8 @@ impl KvStore {
             started_at: None,
             finished_at: None,
             expires_at: None,
-            repairs: None,
+            repairs: job.repairs.clone(),
+            notes: job.notes.clone(),
         };
         let rec = Record {
             status: status.clone(),

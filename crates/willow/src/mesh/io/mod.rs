@@ -180,6 +180,28 @@ impl Asset {
         &self.repairs
     }
 
+    /// What a result written in the input's own format cannot keep of the input as it was,
+    /// one sentence each, for people: a meshopt- or Draco-compressed glTF written back as
+    /// plain data, quantized POSITION/NORMAL written as float32, morph targets dropped. Empty
+    /// when the input is kept as it was.
+    pub fn notes(&self) -> Vec<String> {
+        match &self.source {
+            Source::Gltf(src) => src.notes.clone(),
+            _ => Vec::new(),
+        }
+    }
+
+    /// A glTF's NORMAL per file vertex (see [`Asset::file_vertex_count`]) as the file stores
+    /// it, decoded (meshopt's octahedral filter, Draco) and dequantized, in the accessor's
+    /// local space; `None` for a vertex without one, and for files of other formats. What a
+    /// decoder test compares with the uncompressed file; results recompute normals instead.
+    pub fn file_normals(&self) -> Option<Vec<Option<[f64; 3]>>> {
+        match &self.source {
+            Source::Gltf(src) => src.normals.clone(),
+            _ => None,
+        }
+    }
+
     fn read_with(
         bytes: &[u8],
         format: Format,
@@ -469,10 +491,31 @@ impl Asset {
     /// `surface().vertex_count()` entries; a vertex beyond a shorter slice keeps its stored
     /// position too (this cannot fail, so it degrades rather than panics).
     pub fn file_positions(&self, positions: &[[f64; 3]]) -> Vec<[f32; 3]> {
+        self.file_positions_relative(positions, [0.0; 3])
+    }
+
+    /// [`Asset::file_positions`] less `origin`, subtracted in f64 before the cast: with
+    /// `origin` from [`Asset::frame_origin`] the f32 offsets keep ~1e-7 of the model's size at
+    /// any distance from the origin (issue 27, item 4), where f32 coordinates themselves keep
+    /// only ~6e-8 of that distance (a 0.5 grid at 5e6).
+    pub fn file_positions_relative(
+        &self,
+        positions: &[[f64; 3]],
+        origin: [f64; 3],
+    ) -> Vec<[f32; 3]> {
         self.file_positions_f64(positions)
             .into_iter()
-            .map(|p| p.map(|x| x as f32))
+            .map(|p| [0, 1, 2].map(|k| (p[k] - origin[k]) as f32))
             .collect()
+    }
+
+    /// The origin streamed frames are sent relative to: the centre of the input's bounding
+    /// box (in the file's local space, as frames are) when the model lies farther from the
+    /// origin than its own size, else exactly zero, so frames of models around the origin
+    /// are the plain coordinates they always were. Fixed by the input alone, so a resumed job
+    /// streams against the same origin.
+    pub fn frame_origin(&self) -> [f64; 3] {
+        gltf::far_origin(&self.file_positions_f64(&self.surface().positions)).unwrap_or([0.0; 3])
     }
 
     /// Triangles over file vertices (see [`Asset::file_vertex_count`]), wound like the

@@ -17,7 +17,7 @@ use std::fmt;
 
 /// What [`Asset::read_repaired`](super::Asset::read_repaired) changed, in file numbering
 /// (see [`Asset::file_vertex_count`](super::Asset::file_vertex_count)).
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Repairs {
     /// Faces dropped as degenerate (two corners at one position, or exactly zero area).
     pub dropped_faces: Offenders<usize>,

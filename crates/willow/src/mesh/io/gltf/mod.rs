@@ -6,10 +6,13 @@
 //! it lives in, so a lying file is a [`MeshError::TruncatedBuffer`], never a panic.
 //!
 //! Writing keeps the input document as raw JSON, so extensions and extras this crate does not
-//! model survive: all original buffers are concatenated unchanged into one buffer, new
-//! POSITION (and NORMAL) data is appended, and those accessors are repointed in place. TANGENT
-//! is dropped from the primitives (see `drop_tangents`). Images, samplers, materials, UVs,
-//! indices and nodes are untouched.
+//! model survive: all original buffers are concatenated into one buffer, new POSITION (and
+//! NORMAL) data is appended, and those accessors are repointed in place. TANGENT is dropped
+//! from the primitives (see `drop_tangents`), and so are morph targets (`clean`). Compressed
+//! input (meshopt, Draco) is written decoded, as plain data without the extension; bytes no
+//! buffer view covers any more and views nothing refers to are left out (`clean::compact`).
+//! The job is told each of these (`clean::notes`). Images, samplers, materials, UVs, indices
+//! and nodes are untouched.
 
 use super::{format_name, Affine, FileGeometry, Format, Limits, MeshError};
 use base64::Engine as _;
@@ -18,6 +21,7 @@ use std::collections::HashMap;
 
 mod accessors;
 use accessors::*;
+mod clean;
 mod draco;
 mod meshopt;
 mod write;
@@ -51,6 +55,10 @@ pub(crate) struct GltfSource {
     normal_accessors: Vec<(usize, usize)>,
     /// The faces under each node name and each mesh name.
     pub(crate) groups: super::groups::Groups,
+    /// What a written document cannot keep of the input as it was (`clean::notes`).
+    pub(crate) notes: Vec<String>,
+    /// NORMAL of each file vertex as read (decoded, dequantized), if the file had normals.
+    pub(crate) normals: Option<Vec<Option<[f64; 3]>>>,
 }
 
 /// The JSON and BIN chunks of a GLB, or the whole input as JSON.
@@ -231,6 +239,7 @@ pub(crate) fn read(
     check_asset_version(&json)?;
     check_primitive_references(&json)?;
     check_images(&json)?;
+    let notes = clean::notes(&json);
     // Meshopt-compressed views and Draco primitives are decoded first, on the raw JSON, which
     // then describes plain data (see `meshopt`, `draco`); the gltf crate validates that.
     let meshopt_ext = meshopt::used(&json);
@@ -401,6 +410,7 @@ pub(crate) fn read(
         ..
     } = b;
     let uvs = uvs.iter().any(Option::is_some).then_some(uvs);
+    let read_normals = normals.iter().any(Option::is_some).then(|| normals.clone());
     let normal_keys = normals.iter().any(Option::is_some).then(|| {
         let mut ids: HashMap<[u64; 3], u64> = HashMap::new();
         normals
@@ -429,6 +439,8 @@ pub(crate) fn read(
         position_accessors,
         normal_accessors,
         groups,
+        notes,
+        normals: read_normals,
     };
     Ok((file, src))
 }

@@ -211,7 +211,7 @@ pub(super) fn bounds(values: &[[f32; 3]]) -> (Value, Value) {
 /// size, so that f32 offsets from it keep ~1e-7 of the model's size (f32 coordinates of the
 /// points themselves would keep only ~6e-8 of their distance from the origin); `None` for
 /// models around the origin, which are written as they are.
-pub(super) fn far_origin(points: &[[f64; 3]]) -> Option<[f64; 3]> {
+pub(crate) fn far_origin(points: &[[f64; 3]]) -> Option<[f64; 3]> {
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
     for p in points {
@@ -318,6 +318,7 @@ pub(crate) fn write_document(
 ) -> Result<Vec<u8>, MeshError> {
     let mut doc = src.json.clone();
     drop_tangents(&mut doc);
+    super::clean::drop_morph_targets(&mut doc);
     // One buffer: every original buffer unchanged, each at an 8-aligned offset so the
     // alignment of every original view (at most 4 is required) is kept.
     let mut bin: Vec<u8> = Vec::new();
@@ -371,6 +372,7 @@ pub(crate) fn write_document(
         }
     }
 
+    let bin = super::clean::compact(&mut doc, &bin)?;
     finish(doc, bin, glb)
 }
 
