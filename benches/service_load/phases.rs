@@ -162,6 +162,7 @@ pub(crate) async fn port_phases(
             step: 0,
             metrics,
             positions: Some(std::sync::Arc::new(file_order.clone())),
+            connectivity_changed: false,
         };
         backend
             .events

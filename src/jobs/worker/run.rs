@@ -160,6 +160,7 @@ pub(super) fn run_job(
                         step,
                         metrics,
                         positions: payload,
+                        connectivity_changed: false,
                     }),
                 )
                 .await

@@ -229,6 +229,28 @@ impl Asset {
     }
 }
 
+impl Asset {
+    /// For a refined asset, the vertices a format with shared vertices (OBJ, OFF) writes: the
+    /// file's, in its numbering then the new ones (module docs), in world space (unused ones
+    /// at their stored position), and each split vertex's index among them. `None` for any
+    /// other asset, which writes its welded vertices.
+    pub(crate) fn refined_vertices(
+        &self,
+        positions: &[[f64; 3]],
+    ) -> Option<(Vec<[f64; 3]>, &[usize])> {
+        let Source::Refined(src) = &self.source else {
+            return None;
+        };
+        let mut out = src.stored.clone();
+        for (&v, &w) in src.v_of_split.iter().zip(&self.to_welded) {
+            if let (Some(slot), Some(p)) = (out.get_mut(v), positions.get(w)) {
+                *slot = *p;
+            }
+        }
+        Some((out, &src.v_of_split))
+    }
+}
+
 #[cfg(test)]
 #[path = "refined_tests.rs"]
 mod tests;
