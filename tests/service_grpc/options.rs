@@ -405,7 +405,7 @@ async fn refine_reports_the_refined_mesh_and_frame_zero_says_so() {
     assert_eq!(state(&done), v1::job::State::Succeeded, "{done:?}");
     // 20 · 4^levels faces, V = F/2 + 2 vertices on a closed genus-0 surface.
     let faces = done.face_count as usize;
-    assert!(faces >= 20 * 16 && faces % 20 == 0, "{faces}");
+    assert!(faces >= 20 * 16 && faces.is_multiple_of(20), "{faces}");
     assert_eq!(done.vertex_count as usize, faces / 2 + 2);
 
     let frames: Vec<v1::Frame> = stream_all(&mut client, &name, 0)
