@@ -867,3 +867,71 @@ fn repair_flag_splits_a_bowtie_and_reports_it() {
     .expect("the repaired PLY reads without repair");
     assert_eq!(back.surface().vertex_count(), 8);
 }
+
+/// A CAD cylinder (radius 1, height 2, 32 vertices per rim, fan caps) as OBJ text: too
+/// coarse to fair (issue 26 item 5).
+fn cylinder_obj() -> String {
+    let n = 32;
+    let mut s = String::new();
+    for z in [-1.0, 1.0] {
+        for i in 0..n {
+            let a = 2.0 * std::f64::consts::PI * i as f64 / n as f64;
+            s += &format!("v {} {} {z}\n", a.cos(), a.sin());
+        }
+    }
+    s += "v 0 0 -1\nv 0 0 1\n";
+    let (bottom, top) = (2 * n + 1, 2 * n + 2);
+    for i in 0..n {
+        let (a, b) = (i + 1, (i + 1) % n + 1);
+        s += &format!("f {a} {b} {}\nf {a} {} {}\n", b + n, b + n, a + n);
+        s += &format!("f {bottom} {b} {a}\nf {top} {} {}\n", a + n, b + n);
+    }
+    s
+}
+
+#[test]
+fn refine_flag_subdivides_a_coarse_cylinder_that_is_otherwise_already_fair() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let input = dir.path().join("cylinder.obj");
+    std::fs::write(&input, cylinder_obj()).expect("write");
+    let out = dir.path().join("out.obj");
+    let run = |extra: &[&str]| {
+        willow()
+            .arg("fair")
+            .arg(&input)
+            .arg("-o")
+            .arg(&out)
+            .args(["--steps", "3"])
+            .args(extra)
+            .output()
+            .expect("run willow")
+    };
+    let plain = run(&[]);
+    let stderr = String::from_utf8_lossy(&plain.stderr);
+    assert_eq!(plain.status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("already_fair"), "{stderr}");
+
+    // With a target edge of 0.5 (the rims' edges are 0.2, the sides' 2): 128 · 4^levels
+    // faces, still one closed genus-0 surface.
+    let refined = run(&["--refine", "--refine-edge", "0.5"]);
+    let stderr = String::from_utf8_lossy(&refined.stderr);
+    assert_eq!(refined.status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("refined"), "{stderr}");
+    assert!(!stderr.contains("already_fair"), "{stderr}");
+    let text = std::fs::read_to_string(&out).expect("output");
+    let faces = text.lines().filter(|l| l.starts_with("f ")).count();
+    let verts = text.lines().filter(|l| l.starts_with("v ")).count();
+    assert_eq!(faces % 128, 0, "{faces} faces: 128 · 4^levels");
+    assert!(faces >= 4 * 128, "{faces}");
+    // Euler: a closed genus-0 surface has V − E + F = 2 with E = 3F/2.
+    assert_eq!(
+        verts + faces - 3 * faces / 2,
+        2,
+        "{verts} vertices, {faces} faces"
+    );
+
+    let bad = run(&["--refine", "--refine-edge", "0"]);
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert_eq!(bad.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("refine"), "{stderr}");
+}

@@ -695,3 +695,113 @@ mod grpc {
         }
     }
 }
+
+/// A CAD cylinder with fan caps and UVs (the side unrolled, with a seam at angle 0; each cap
+/// its own disc): too coarse to fair.
+fn uv_cylinder_obj(n: usize) -> String {
+    let mut s = String::new();
+    for z in [-1.0, 1.0] {
+        for i in 0..n {
+            let a = 2.0 * std::f64::consts::PI * i as f64 / n as f64;
+            s += &format!("v {} {} {z}\n", a.cos(), a.sin());
+        }
+    }
+    s += "v 0 0 -1\nv 0 0 1\n";
+    // vt 1..=2(n+1): the side (column n repeats column 0: the seam); then the cap rim, then
+    // the cap centre.
+    for v in [0.0, 1.0] {
+        for i in 0..=n {
+            s += &format!("vt {} {v}\n", i as f64 / n as f64);
+        }
+    }
+    for i in 0..n {
+        let a = 2.0 * std::f64::consts::PI * i as f64 / n as f64;
+        s += &format!("vt {} {}\n", 0.5 + 0.5 * a.cos(), 0.5 + 0.5 * a.sin());
+    }
+    s += "vt 0.5 0.5\n";
+    let side =
+        |ring: usize, i: usize| format!("{}/{}", ring * n + i % n + 1, ring * (n + 1) + i + 1);
+    let cap =
+        |ring: usize, i: usize| format!("{}/{}", ring * n + i % n + 1, 2 * (n + 1) + i % n + 1);
+    let centre = 2 * (n + 1) + n + 1;
+    for i in 0..n {
+        s += &format!("f {} {} {}\n", side(0, i), side(0, i + 1), side(1, i + 1));
+        s += &format!("f {} {} {}\n", side(0, i), side(1, i + 1), side(1, i));
+        s += &format!("f {}/{centre} {} {}\n", 2 * n + 1, cap(0, i + 1), cap(0, i));
+        s += &format!("f {}/{centre} {} {}\n", 2 * n + 2, cap(1, i), cap(1, i + 1));
+    }
+    s
+}
+
+/// `refine` (issue 26 item 5): the job runs on the Loop-subdivided mesh, frame 0 says the
+/// connectivity changed and carries the refined vertices (the file's own first), and the
+/// result has the refined faces with the UVs interpolated.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refine_subdivides_a_coarse_cylinder_and_frame_zero_says_so() {
+    let srv = start(|_| {}).await;
+    let n = 16;
+    let obj = uv_cylinder_obj(n);
+    let upload_faces = 4 * n;
+    let (st, _, job) = srv
+        .submit_obj(&obj, "steps=2&refine=true&until_converged=false")
+        .await;
+    assert_eq!(st, 202, "{job}");
+    assert_eq!(job["params"]["refine"], true);
+    let vertex_count = job["vertex_count"].as_u64().expect("vertex_count") as usize;
+    let face_count = job["face_count"].as_u64().expect("face_count") as usize;
+    assert!(face_count >= 16 * upload_faces, "{job}");
+    assert_eq!(
+        face_count % upload_faces,
+        0,
+        "4^levels children per face: {job}"
+    );
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    let frames: Vec<&Sse> = events.iter().filter(|e| e.event == "frame").collect();
+    assert_eq!(frames[0].data["step"], 0);
+    assert_eq!(
+        frames[0].data["connectivity_changed"], true,
+        "{:?}",
+        frames[0]
+    );
+    assert!(frames[1..]
+        .iter()
+        .all(|f| f.data.get("connectivity_changed").is_none()));
+    let b64 = frames[0].data["positions_b64"].as_str().expect("positions");
+    let bytes =
+        base64::Engine::decode(&base64::engine::general_purpose::STANDARD, b64).expect("base64");
+    let frame0 = f32_triples(&bytes);
+    assert_eq!(frame0.len(), vertex_count);
+
+    // Frame 0's mesh and the result: the refined connectivity, UVs kept; the file's own
+    // vertices first (the `v` lines hold frame 0's positions in order).
+    for path in [
+        format!("/v1/jobs/{id}/frames/0?format=obj"),
+        format!("/v1/jobs/{id}/result?format=obj"),
+    ] {
+        let res = srv.get(&path).await;
+        assert_eq!(res.status(), 200, "{path}");
+        let text = res.text().await.expect("body");
+        let faces: Vec<&str> = text.lines().filter(|l| l.starts_with("f ")).collect();
+        assert_eq!(faces.len(), face_count, "{path}");
+        assert!(faces
+            .iter()
+            .all(|f| f.split_whitespace().skip(1).all(|c| c.contains('/'))));
+        let vts = text.lines().filter(|l| l.starts_with("vt ")).count();
+        assert!(vts > 2 * (n + 1) + n + 1, "{path}: {vts} UVs");
+        if path.contains("frames/0") {
+            let v = obj_vertices(&text);
+            assert_eq!(v.len(), vertex_count);
+            for (a, b) in v.iter().zip(&frame0) {
+                for k in 0..3 {
+                    assert!((a[k] - b[k] as f64).abs() < 1e-5, "{a:?} vs {b:?}");
+                }
+            }
+        }
+    }
+    srv.stop().await;
+}

@@ -167,6 +167,7 @@ pub(crate) async fn port_phases(
                 origin: [0.0; 3],
                 relative: file_order.clone(),
             })),
+            connectivity_changed: false,
         };
         backend
             .events

@@ -74,6 +74,11 @@ pub struct JobSpecSchema {
     /// vertices and edges; the job reports `repairs`. Default false: such a file
     /// is refused, naming its own vertex and face numbers.
     pub repair: bool,
+    /// Loop-subdivide the upload toward ~16k triangles before the flow (UVs interpolated per
+    /// corner), for tessellations too coarse to fair (`already_fair`). Frames then carry the
+    /// refined mesh's vertices (the file's own first, then the new ones; `vertex_count` of
+    /// them) and frame 0 says `connectivity_changed`: fetch its mesh for the faces.
+    pub refine: bool,
     /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed as a
     /// Standard Webhooks event (`webhook-id`, `webhook-timestamp`, `webhook-signature:
     /// v1,<base64 HMAC-SHA256 of "{id}.{timestamp}.{body}">`, keyed by the tenant's webhook

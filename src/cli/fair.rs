@@ -59,6 +59,16 @@ pub struct FairArgs {
     /// edges (one vertex per fan); what changed is printed on stderr, in file numbering.
     #[arg(long)]
     pub repair: bool,
+    /// Loop-subdivide the input toward a target edge length before the flow (UVs
+    /// interpolated per corner): for coarse tessellations (a CAD part) that end
+    /// `already_fair`. The output has the refined connectivity: the file's vertices first,
+    /// then the new ones.
+    #[arg(long)]
+    pub refine: bool,
+    /// The target edge length for --refine (model units, > 0); default: the edge that gives
+    /// about 16k triangles.
+    #[arg(long, requires = "refine")]
+    pub refine_edge: Option<f64>,
     /// Write every intermediate mesh here (same format as the output).
     #[arg(long)]
     pub frames_dir: Option<PathBuf>,
@@ -243,6 +253,25 @@ pub fn run(args: FairArgs) -> ExitCode {
     for note in asset.notes() {
         eprintln!("note: {}: {note}", args.input.display());
     }
+    let asset = if args.refine {
+        match asset.refined(args.refine_edge, &Limits::default()) {
+            Ok((refined, how)) => {
+                eprintln!(
+                    "refined {}: {} levels, {} → {} faces, {} → {} vertices",
+                    args.input.display(),
+                    how.levels,
+                    how.faces_before,
+                    refined.surface().face_count(),
+                    how.vertices_before,
+                    refined.file_vertex_count()
+                );
+                refined
+            }
+            Err(e) => return fail(EXIT_BAD_INPUT, format!("--refine: {e}")),
+        }
+    } else {
+        asset
+    };
     // The CLI maps onto the same job spec as HTTP and gRPC, and is checked by the same rules.
     let boundary = match args.boundary {
         BoundaryArg::Free => BoundarySpec::Free,
@@ -292,6 +321,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         safeguard: !args.no_safeguard,
         region,
         seam: args.seam,
+        refine: args.refine,
         ..JobSpec::default()
     };
     if let Err(e) = spec

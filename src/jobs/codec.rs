@@ -62,6 +62,8 @@ struct HashedSpec<'a> {
     falloff: Option<f64>,
     #[serde(skip_serializing_if = "is_false")]
     repair: bool,
+    #[serde(skip_serializing_if = "is_false")]
+    refine: bool,
     #[serde(skip_serializing_if = "Option::is_none")]
     callback_url: Option<&'a str>,
 }
@@ -112,6 +114,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             feature_size,
             falloff,
             repair,
+            refine,
             callback_url,
         } = s;
         HashedSpec {
@@ -137,6 +140,7 @@ impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
             feature_size: *feature_size,
             falloff: *falloff,
             repair: *repair,
+            refine: *refine,
             callback_url: callback_url.as_deref(),
         }
     }

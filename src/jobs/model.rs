@@ -84,6 +84,12 @@ pub struct JobSpec {
     /// vertices and edges (`Asset::read_repaired`); the submission's answer says what changed.
     /// Off, such a file is refused naming its own vertex and face numbers.
     pub repair: bool,
+    /// Loop-subdivide the upload toward a target edge length before the flow
+    /// (`willow::mesh::io::Asset::refined`: ~16k triangles by default), UVs interpolated per
+    /// corner: for tessellations too coarse to fair (`already_fair`). Frames then carry the
+    /// refined mesh's vertices (the file's own first, then the new ones), and frame 0 says
+    /// `connectivity_changed`.
+    pub refine: bool,
     /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed, signed
     /// as Standard Webhooks ([`super::webhooks`]). `https` only, to a public address, unless
     /// the server allows otherwise ([`Config::allow_insecure_callbacks`]).
@@ -116,23 +122,30 @@ impl Default for JobSpec {
             feature_size: flow.feature_size,
             falloff: flow.falloff,
             repair: false,
+            refine: false,
             callback_url: None,
         }
     }
 }
 
 impl JobSpec {
-    /// The uploaded file as this job reads it: repaired when it asks for it.
+    /// The uploaded file as this job reads it: repaired, then refined, when it asks for it.
+    /// Deterministic, so the admission, the worker and every download see the same mesh.
     pub fn read_asset(
         &self,
         bytes: &[u8],
         format: Format,
         limits: &Limits,
     ) -> Result<Asset, MeshError> {
-        if self.repair {
-            Asset::read_repaired(bytes, format, limits)
+        let asset = if self.repair {
+            Asset::read_repaired(bytes, format, limits)?
         } else {
-            Asset::read(bytes, format, limits)
+            Asset::read(bytes, format, limits)?
+        };
+        if self.refine {
+            Ok(asset.refined(None, limits)?.0)
+        } else {
+            Ok(asset)
         }
     }
 
@@ -520,6 +533,10 @@ pub struct Frame {
     /// Vertex positions after the step, in the uploaded file's vertex order, when this step
     /// keeps positions ([`JobSpec::keeps_positions`]). Shared, so fan-out copies no vertices.
     pub positions: Option<Arc<FramePositions>>,
+    /// Step 0 of a job with `refine`: the mesh is the refined one, not the upload (its faces
+    /// from `GET /v1/jobs/{id}/frames/0`; its vertices the file's own, then the new ones). Set
+    /// by the watcher ([`Jobs::watch`](super::Jobs::watch)) from the job's spec.
+    pub connectivity_changed: bool,
 }
 
 /// A frame's vertex positions: f32 offsets from an f64 origin, so a model far from the

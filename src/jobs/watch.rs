@@ -67,12 +67,21 @@ pub(super) async fn watch(
         Some(live)
     };
     let (tx, rx) = tokio::sync::mpsc::channel(WATCHER_BUFFER);
+    // Frames travel without it (the bus carries metrics only): the spec says it, for live and
+    // replayed frames alike.
+    let refined = status.spec.refine;
     tokio::spawn(async move {
         if let Err(e) = run_watcher(jobs, id.clone(), from_step, status, live, tx).await {
             tracing::debug!(job_id = %id, error = %e, "watcher ended");
         }
     });
-    Ok(ReceiverStream::new(rx))
+    Ok(ReceiverStream::new(rx).map(move |ev| match ev {
+        JobEvent::Frame(mut f) => {
+            f.connectivity_changed = refined && f.step == 0;
+            JobEvent::Frame(f)
+        }
+        other => other,
+    }))
 }
 
 /// Why a watcher stopped early (its client went away, or the store failed).
@@ -126,6 +135,7 @@ async fn replay(jobs: &Jobs, id: &JobId, mut next: usize, tx: &Tx) -> Result<usi
                 step: metrics.step,
                 metrics,
                 positions,
+                connectivity_changed: false,
             };
             emit(tx, JobEvent::Frame(frame)).await?;
         }

@@ -372,3 +372,56 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
     );
     service_http_support::assert_obj_result_is_frame(&text, &frame, 162);
 }
+
+/// `refine` over gRPC (issue 26 item 5): the icosahedron (20 faces) is Loop-subdivided before
+/// the flow, the job's counts are the refined mesh's, frame 0 alone says the connectivity
+/// changed and carries the refined vertices, and the result has the refined faces.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refine_reports_the_refined_mesh_and_frame_zero_says_so() {
+    let server = Server::start(|_| {}).await;
+    let mut client = server.fairing().await;
+    let mesh = inline(
+        v1::MeshFormat::Obj,
+        obj_text(&generate::icosphere(0)).into_bytes(),
+    );
+    let op = create(
+        &mut client,
+        mesh,
+        v1::JobParams {
+            refine: Some(true),
+            ..long_running(2)
+        },
+        "",
+    )
+    .await
+    .expect("CreateJob with refine");
+    let job = job_from_any(op.metadata.as_ref().expect("metadata"));
+    assert_eq!(job.params.as_ref().and_then(|p| p.refine), Some(true));
+    let name = job.name.clone();
+    let done = poll_until(&mut client, &name, |j| {
+        state(j) == v1::job::State::Succeeded || state(j) == v1::job::State::Failed
+    })
+    .await;
+    assert_eq!(state(&done), v1::job::State::Succeeded, "{done:?}");
+    // 20 · 4^levels faces, V = F/2 + 2 vertices on a closed genus-0 surface.
+    let faces = done.face_count as usize;
+    assert!(faces >= 20 * 16 && faces.is_multiple_of(20), "{faces}");
+    assert_eq!(done.vertex_count as usize, faces / 2 + 2);
+
+    let frames: Vec<v1::Frame> = stream_all(&mut client, &name, 0)
+        .await
+        .into_iter()
+        .filter_map(|e| match e {
+            v1::stream_frames_response::Event::Frame(f) => Some(f),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(frames[0].step, 0);
+    assert!(frames[0].connectivity_changed);
+    assert!(frames[1..].iter().all(|f| !f.connectivity_changed));
+    let positions = frames[0].positions.as_ref().expect("frame 0 positions");
+    assert_eq!(positions.len(), 12 * done.vertex_count as usize);
+
+    let obj = download_obj(&mut client, &name).await;
+    assert_eq!(obj.lines().filter(|l| l.starts_with("f ")).count(), faces);
+}

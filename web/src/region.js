@@ -295,6 +295,7 @@ export class RegionControls {
     if (e.preserve.value) out.preserve = e.preserve.value;
     if (e.measure_deviation.checked) out.measure_deviation = true;
     if (e.all_steps.checked) out.until_converged = false;
+    if (e.refine.checked) out.refine = true;
     return out;
   }
 
@@ -331,6 +332,7 @@ export class RegionControls {
     e.preserve.value = typeof p.preserve === 'string' ? p.preserve : '';
     e.measure_deviation.checked = p.measure_deviation === true;
     e.all_steps.checked = p.until_converged === false;
+    e.refine.checked = p.refine === true;
     this.fromForm();
   }
 }

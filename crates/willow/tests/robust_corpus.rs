@@ -15,7 +15,8 @@ use std::f64::consts::PI;
 use willow::flow::stopping::{Event, Outcome, Run};
 use willow::flow::{new_flow, FlowParams, Method};
 use willow::mesh::generate::{bumpy_sphere, pretzel, torus};
-use willow::mesh::Mesh;
+use willow::mesh::refine::refine;
+use willow::mesh::{Limits, Mesh};
 use willow::metrics::StepMetrics;
 
 struct Result {
@@ -212,6 +213,35 @@ fn coarse_tessellations_are_already_fair() {
         Outcome::AlreadyFair
     );
     assert_ne!(run(&pretzel(2, 3), 1).outcome, Outcome::AlreadyFair);
+}
+
+/// Opt-in refinement (issue 26 item 5): Loop-subdivided, the fan-capped cylinder has room to
+/// become round, and the flow takes it to W/4π ≤ 1.15, W computed here from the positions
+/// (Σ |Δf|²/4A, this file's own Laplacian). The flat washer stays flat under Loop's rules,
+/// so even refined it is `already_fair`.
+#[test]
+fn refined_cylinder_becomes_round_and_the_washer_stays_flat() {
+    let cylinder = fan_capped_cylinder(64, 2);
+    let refined = refine(&cylinder, None, &Limits::default()).expect("refine");
+    let mesh = refined.mesh;
+    assert!(!refined.levels.is_empty());
+    assert!(mesh.face_count() > 4 * cylinder.face_count());
+    let w0 = willmore_laplacian(&mesh.positions, &mesh.triangles) / (4.0 * PI);
+    let r = run(&mesh, 40);
+    assert_sound("refined cylinder", &mesh, &r);
+    let w = willmore_laplacian(&r.positions, &mesh.triangles) / (4.0 * PI);
+    eprintln!(
+        "refined cylinder: {} faces, W/4π {w0:.3} → {w:.3} in {} steps, {}",
+        mesh.face_count(),
+        r.frames.len(),
+        r.outcome.name()
+    );
+    assert!(w <= 1.15, "W/4π {w} (from {w0})");
+
+    let washer = refine(&washer(64, 6), None, &Limits::default()).expect("refine");
+    assert!(washer.mesh.positions.iter().all(|p| p[2] == 0.0));
+    let r = run(&washer.mesh, 10);
+    assert_eq!(r.outcome, Outcome::AlreadyFair, "{}", r.reason);
 }
 
 /// The frames' scale distortion and both energies, against this test's own computation from

@@ -128,6 +128,7 @@ fn make_seeds() -> Result<(), Error> {
                 falloff: Some(0.05),
                 callback_url: Some("https://hooks.example/willow".into()),
                 repair: Some(true),
+                refine: Some(true),
             }),
             request_id: "3f2504e0-4f89-41d3-9a0c-0305e82c3301".into(),
         },

@@ -204,6 +204,9 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
     if let Some(v) = p.repair {
         spec.repair = v;
     }
+    if let Some(v) = p.refine {
+        spec.refine = v;
+    }
     spec.callback_url = p.callback_url.filter(|u| !u.is_empty());
     Ok(spec)
 }
@@ -459,6 +462,7 @@ fn params_pb(spec: &JobSpec) -> v1::JobParams {
         feature_size: spec.feature_size,
         falloff: spec.falloff,
         repair: Some(spec.repair),
+        refine: Some(spec.refine),
         callback_url: spec.callback_url.clone(),
     }
 }
@@ -559,6 +563,7 @@ pub(super) fn frame_pb(frame: &Frame) -> v1::Frame {
                 let [x, y, z] = p.origin;
                 v1::Vector3 { x, y, z }
             }),
+        connectivity_changed: frame.connectivity_changed,
     }
 }
 

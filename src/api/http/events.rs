@@ -38,6 +38,11 @@ pub struct FrameEvent {
     /// around the origin, where `positions_b64` holds the coordinates themselves.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub origin: Option<[f64; 3]>,
+    /// Present (true) on step 0 of a job with `refine`: the positions are the refined mesh's
+    /// (the file's vertices, then the new ones), not the upload's; fetch its faces and UVs
+    /// from `GET /v1/jobs/{id}/frames/0`.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub connectivity_changed: bool,
 }
 
 /// Server-Sent Events: `state`, one `frame` per step (`id:` = step), then `done`.
@@ -118,6 +123,7 @@ fn sse_event(ev: JobEvent) -> Event {
                     base64::engine::general_purpose::STANDARD
                         .encode(crate::jobs::codec::f32s_to_bytes(&p.relative))
                 }),
+                connectivity_changed: f.connectivity_changed,
             };
             return Event::default()
                 .event("frame")

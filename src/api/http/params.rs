@@ -157,6 +157,9 @@ pub struct JobQuery {
     /// Repair the upload first: drop degenerate faces, split non-manifold vertices and edges
     /// (default false); the answer's `repairs` says what changed.
     pub repair: Option<bool>,
+    /// Loop-subdivide the upload (~16k triangles) before the flow, for tessellations too
+    /// coarse to fair (default false); frame 0 then says `connectivity_changed`.
+    pub refine: Option<bool>,
 }
 
 impl JobQuery {
@@ -292,6 +295,7 @@ impl JobQuery {
             feature_size: self.feature_size,
             falloff: self.falloff,
             repair: self.repair.unwrap_or(defaults.repair),
+            refine: self.refine.unwrap_or(defaults.refine),
             callback_url: self.callback_url.clone(),
         })
     }

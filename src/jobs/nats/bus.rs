@@ -90,6 +90,7 @@ impl EventBus for NatsBus {
                     step: metrics.step,
                     metrics,
                     positions: None,
+                    connectivity_changed: false,
                 }),
                 has_positions: flag != 0,
             })

@@ -168,6 +168,7 @@ pub(super) fn run_job(
                         step,
                         metrics,
                         positions: payload,
+                        connectivity_changed: false,
                     }),
                 )
                 .await

@@ -14,6 +14,7 @@
 pub mod error;
 pub mod generate;
 pub mod io;
+pub mod refine;
 pub mod topology;
 mod validate;
 

@@ -261,3 +261,29 @@ pub fn folds(p: &[[f64; 3]], t: &[[usize; 3]]) -> usize {
     }
     count
 }
+
+/// Σ |(L f)_i|² / 4A_i (libigl's form of W) with this file's own cotan Laplacian and
+/// barycentric areas: 4π for a round sphere, independent of Willow's metrics.
+pub fn willmore_laplacian(p: &[[f64; 3]], t: &[[usize; 3]]) -> f64 {
+    let mut lf = vec![[0.0f64; 3]; p.len()];
+    let mut area = vec![0.0f64; p.len()];
+    for f in t {
+        let q = [p[f[0]], p[f[1]], p[f[2]]];
+        let double_area = norm(cross(sub(q[1], q[0]), sub(q[2], q[0])));
+        for k in 0..3 {
+            area[f[k]] += double_area / 6.0;
+            // Corner k's cotangent weighs the opposite edge (i, j).
+            let (i, j) = ((k + 1) % 3, (k + 2) % 3);
+            let cot = dot(sub(q[i], q[k]), sub(q[j], q[k])) / double_area;
+            for d in 0..3 {
+                let diff = q[i][d] - q[j][d];
+                lf[f[i]][d] += 0.5 * cot * diff;
+                lf[f[j]][d] -= 0.5 * cot * diff;
+            }
+        }
+    }
+    lf.iter()
+        .zip(&area)
+        .map(|(l, a)| dot(*l, *l) / (4.0 * a))
+        .sum()
+}

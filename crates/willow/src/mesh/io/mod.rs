@@ -27,6 +27,7 @@ mod locate;
 mod obj;
 mod off;
 mod ply;
+mod refined;
 mod repair;
 mod stl;
 mod text;
@@ -34,6 +35,7 @@ mod weld;
 
 pub(crate) use affine::Affine;
 pub use format::{foreign_content, Format, ALL_FORMATS};
+pub use refined::Refinement;
 pub use repair::Repairs;
 
 use super::{Mesh, MeshError};
@@ -101,14 +103,33 @@ enum Source {
     Off(off::OffSource),
     /// Made in code ([`Asset::from_mesh`]): no file to keep; file vertices are the welded ones.
     Code,
+    /// Subdivided ([`Asset::refined`]): the file's vertices, then the new ones.
+    Refined(refined::RefinedSource),
 }
 
 impl Source {
     /// The file vertex (see [`Asset::file_vertex_count`]) of split vertex `sv`.
     pub(crate) fn file_vertex_of_split(&self, sv: usize) -> usize {
+        self.v_of_split()
+            .and_then(|v| v.get(sv).copied())
+            .unwrap_or(sv)
+    }
+
+    /// Split vertex → file vertex where the two differ (OBJ `v` lines, a refined asset).
+    fn v_of_split(&self) -> Option<&[usize]> {
         match self {
-            Source::Obj(src) => src.v_of_split().get(sv).copied().unwrap_or(sv),
-            _ => sv,
+            Source::Obj(src) => Some(src.v_of_split()),
+            Source::Refined(src) => Some(&src.v_of_split),
+            _ => None,
+        }
+    }
+
+    /// Per file vertex, its stored position, where file vertices are not split vertices.
+    fn stored_positions(&self) -> Option<Vec<[f64; 3]>> {
+        match self {
+            Source::Obj(src) => Some(src.stored_positions()),
+            Source::Refined(src) => Some(src.stored.clone()),
+            _ => None,
         }
     }
 }
@@ -336,21 +357,10 @@ impl Asset {
             }
         };
 
-        let normal_groups = file.normal_keys.as_ref().map(|keys| {
-            let mut groups: HashMap<(usize, u64), usize> = HashMap::new();
-            let per_vertex: Vec<usize> = to_welded
-                .iter()
-                .zip(keys)
-                .map(|(&w, &k)| {
-                    if w == UNWELDED {
-                        return UNWELDED;
-                    }
-                    let n = groups.len();
-                    *groups.entry((w, k)).or_insert(n)
-                })
-                .collect();
-            (per_vertex, groups.len())
-        });
+        let normal_groups = file
+            .normal_keys
+            .as_ref()
+            .map(|keys| normal_groups_of(&to_welded, keys));
         Ok(Asset {
             format,
             surface,
@@ -446,6 +456,7 @@ impl Asset {
     pub fn file_vertex_count(&self) -> usize {
         match &self.source {
             Source::Obj(src) => src.v_count(),
+            Source::Refined(src) => src.stored.len(),
             _ => self.file.read_count(),
         }
     }
@@ -457,9 +468,9 @@ impl Asset {
     pub fn surface_vertices(&self, file_vertices: &[usize]) -> Result<Vec<usize>, usize> {
         let count = self.file_vertex_count();
         let mut welded_of_file = vec![UNWELDED; count];
-        match &self.source {
-            Source::Obj(src) => {
-                for (split, &v) in src.v_of_split().iter().enumerate() {
+        match self.source.v_of_split() {
+            Some(v_of_split) => {
+                for (split, &v) in v_of_split.iter().enumerate() {
                     if let (Some(slot), Some(&w)) =
                         (welded_of_file.get_mut(v), self.to_welded.get(split))
                     {
@@ -467,7 +478,7 @@ impl Asset {
                     }
                 }
             }
-            _ => {
+            None => {
                 for (slot, &w) in welded_of_file.iter_mut().zip(&self.to_welded) {
                     *slot = w;
                 }
@@ -523,15 +534,12 @@ impl Asset {
     /// fan-triangulated `f` line.
     pub fn file_triangles(&self) -> Vec<[usize; 3]> {
         let split = self.oriented_split_triangles();
-        match &self.source {
-            Source::Obj(src) => {
-                let v_of = src.v_of_split();
-                split
-                    .iter()
-                    .map(|t| t.map(|sv| v_of.get(self.file.original(sv)).copied().unwrap_or(0)))
-                    .collect()
-            }
-            _ => split
+        match self.source.v_of_split() {
+            Some(v_of) => split
+                .iter()
+                .map(|t| t.map(|sv| v_of.get(self.file.original(sv)).copied().unwrap_or(0)))
+                .collect(),
+            None => split
                 .iter()
                 .map(|t| t.map(|sv| self.file.original(sv)))
                 .collect(),
@@ -590,17 +598,17 @@ impl Asset {
     /// vertices no triangle uses).
     pub fn file_to_welded(&self) -> Vec<Option<usize>> {
         let split = self.to_welded.iter().map(|&w| (w != UNWELDED).then_some(w));
-        match &self.source {
-            Source::Obj(src) => {
-                let mut out = vec![None; src.v_count()];
-                for (&v, w) in src.v_of_split().iter().zip(split) {
+        match self.source.v_of_split() {
+            Some(v_of_split) => {
+                let mut out = vec![None; self.file_vertex_count()];
+                for (&v, w) in v_of_split.iter().zip(split) {
                     if let Some(slot) = out.get_mut(v) {
                         *slot = slot.or(w);
                     }
                 }
                 out
             }
-            _ => split.take(self.file.read_count()).collect(),
+            None => split.take(self.file.read_count()).collect(),
         }
     }
 
@@ -626,12 +634,12 @@ impl Asset {
     /// Per file vertex position (see [`Asset::file_positions`]), in f64.
     pub(crate) fn file_positions_f64(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
         let split = self.split_positions(positions);
-        match &self.source {
-            Source::Obj(src) => {
+        match (self.source.v_of_split(), self.source.stored_positions()) {
+            (Some(v_of_split), Some(stored)) => {
                 // Every copy of a `v` line has the same stored position, hence one welded
                 // vertex: writing each copy's new position gives the same value.
-                let mut out = src.stored_positions();
-                for ((&v, p), &w) in src.v_of_split().iter().zip(split).zip(&self.to_welded) {
+                let mut out = stored;
+                for ((&v, p), &w) in v_of_split.iter().zip(split).zip(&self.to_welded) {
                     if let (Some(slot), true) = (out.get_mut(v), w != UNWELDED) {
                         *slot = p;
                     }
@@ -731,6 +739,24 @@ impl Asset {
                 .collect(),
         )
     }
+}
+
+/// Per split vertex normal group (`UNWELDED` if unused) and the number of groups: a group is
+/// the copies of one welded vertex sharing a stored normal key.
+fn normal_groups_of(to_welded: &[usize], keys: &[u64]) -> (Vec<usize>, usize) {
+    let mut groups: HashMap<(usize, u64), usize> = HashMap::new();
+    let per_vertex: Vec<usize> = to_welded
+        .iter()
+        .zip(keys)
+        .map(|(&w, &k)| {
+            if w == UNWELDED {
+                return UNWELDED;
+            }
+            let n = groups.len();
+            *groups.entry((w, k)).or_insert(n)
+        })
+        .collect();
+    (per_vertex, groups.len())
 }
 
 pub(crate) fn format_name(format: Format) -> &'static str {

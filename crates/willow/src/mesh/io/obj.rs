@@ -535,9 +535,16 @@ pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Vec<u8> {
     let mut out = String::new();
     // `write!` into a String cannot fail; the results are ignored for that reason.
     let _ = writeln!(out, "# Written by Willow (conformal Willmore flow fairing)");
-    for p in positions {
+    // A refined asset writes the file's vertices then the new ones (refined.rs); any other
+    // its welded vertices.
+    let refined = asset.refined_vertices(positions);
+    for p in refined.as_ref().map_or(positions, |(v, _)| v.as_slice()) {
         let _ = writeln!(out, "v {}", triple(*p));
     }
+    let v_of = |sv: usize, welded: usize| match &refined {
+        Some((_, v_of_split)) => v_of_split.get(sv).copied().unwrap_or(welded),
+        None => welded,
+    };
     let mut next = 0;
     let vt_of: Vec<Option<usize>> = match &asset.file.uvs {
         Some(uvs) => uvs
@@ -573,7 +580,7 @@ pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Vec<u8> {
         let with_vn = normals.is_some() && vns.iter().all(Option::is_some);
         out.push('f');
         for k in 0..3 {
-            let _ = write!(out, " {}", st[k] + 1);
+            let _ = write!(out, " {}", v_of(ft[k], st[k]) + 1);
             let (vt, vn) = (vts[k].unwrap_or(0) + 1, vns[k].unwrap_or(0) + 1);
             let _ = match (with_vt, with_vn) {
                 (true, true) => write!(out, "/{vt}/{vn}"),

@@ -227,16 +227,17 @@ pub(crate) fn write_kept(asset: &Asset, src: &OffSource, positions: &[[f64; 3]])
 /// like the oriented surface.
 pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Vec<u8> {
     let mut out = String::from("OFF\n# Willow: faired by conformal Willmore flow\n");
-    let _ = writeln!(
-        out,
-        "{} {} 0",
-        positions.len(),
-        asset.surface.triangles.len()
-    );
-    for p in positions {
+    // A refined asset writes the file's vertices then the new ones (refined.rs); any other
+    // its welded vertices.
+    let (points, triangles) = match asset.refined_vertices(positions) {
+        Some((points, _)) => (points, asset.file_triangles()),
+        None => (positions.to_vec(), asset.surface.triangles.clone()),
+    };
+    let _ = writeln!(out, "{} {} 0", points.len(), triangles.len());
+    for p in &points {
         let _ = writeln!(out, "{}", triple(*p));
     }
-    for t in &asset.surface.triangles {
+    for t in &triangles {
         let _ = writeln!(out, "3 {} {} {}", t[0], t[1], t[2]);
     }
     out.into_bytes()

@@ -430,7 +430,9 @@ pub(crate) fn write_new(
 ) -> Result<Vec<u8>, MeshError> {
     // Far from the origin (map-grid coordinates), f32 positions would snap to a coarse grid
     // (0.5 at 5e6): store them relative to the node's translation, which JSON keeps in f64.
-    let split = asset.split_positions(positions);
+    // World space, like the normals: the one node written has no other transform (a refined
+    // glTF's blocks keep the file's node transforms, which this document does not carry).
+    let split = asset.split_world_positions(positions);
     let origin = far_origin(&split);
     let o = origin.unwrap_or([0.0; 3]);
     let local: Vec<[f32; 3]> = split
