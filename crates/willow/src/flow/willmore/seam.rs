@@ -23,6 +23,7 @@
 
 use super::*;
 use crate::flow::dirichlet;
+use crate::linalg::solver::add_diagonal;
 
 impl ConformalFlow {
     /// Makes the flow drive toward the harmonic extension of the pinned vertices' mean
@@ -43,13 +44,34 @@ impl ConformalFlow {
     /// [`Self::assemble_laplacian`] first; uses L's factor, which the Poisson solve
     /// refactors later in the step.
     pub(super) fn seam_target(&mut self) -> Result<(), FlowError> {
-        let (Some(pinned), Some(mut target)) =
-            (self.fixed.as_deref(), self.curvature_target.take())
-        else {
+        let Some(mut target) = self.curvature_target.take() else {
             return Ok(());
         };
+        let solved = self.harmonic_extension(&mut target);
+        // Kept whatever happened: a retried step must still flow toward a target.
+        self.curvature_target = Some(target);
+        solved
+    }
+
+    /// `L H̃ = 0` on the free vertices, `H̃ = H` on the pinned ones, into `target`.
+    fn harmonic_extension(&mut self, target: &mut [f64]) -> Result<(), FlowError> {
+        let Some(pinned) = self.fixed.as_deref() else {
+            return Ok(());
+        };
+        let g = &self.geometry;
+        let n = self.positions.len();
         self.laplace_values.copy_from_slice(&self.laplace_unshifted);
-        let held = &self.geometry.mean_curvature;
+        // The Poisson solve's shift (εM): a free component that touches no pinned vertex (a
+        // region holding a whole closed component) gets H̃ = 0 instead of a singular solve.
+        let mean_area = g.total_area() / n as f64;
+        let trace: f64 = g.cotangents.iter().map(|c| c[0] + c[1] + c[2]).sum();
+        let eps = POISSON_SHIFT * trace / n as f64;
+        add_diagonal(
+            &self.laplace_pattern,
+            g.vertex_areas.iter().map(|&a| eps * a / mean_area),
+            &mut self.laplace_values,
+        );
+        let held = &g.mean_curvature;
         target.fill(0.0);
         dirichlet::apply_real(
             &self.laplace_pattern,
@@ -71,14 +93,13 @@ impl ConformalFlow {
                 step: self.step + 1,
                 reason: format!("the seam's curvature extension: {e}"),
             })?;
-        self.laplace.solve_in_place(&mut target, 1);
+        self.laplace.solve_in_place(target, 1);
         if target.iter().any(|t| !t.is_finite()) {
             return Err(FlowError::Numerical {
                 step: self.step + 1,
                 reason: "the seam's curvature extension is not finite".into(),
             });
         }
-        self.curvature_target = Some(target);
         Ok(())
     }
 }
