@@ -6,6 +6,7 @@
 mod mesh_support;
 
 use willow::flow::region::{resolve_groups, select, Region, Seam};
+use willow::flow::stopping::{Event, Outcome as RunOutcome, Run};
 use willow::flow::{new_flow, FlowError, FlowParams, Method};
 use willow::mesh::generate::{bumpy_cap, pretzel, with_noise};
 use willow::mesh::io::{Asset, Format, Limits};
@@ -151,6 +152,19 @@ fn run(mesh: &Mesh, params: &FlowParams, steps: usize) -> Outcome {
 /// What every region run must show: the outside bit-identical, W down, no fold, Q near 1
 /// inside, and the seam's normal jump no worse than twice the input's.
 fn check(name: &str, mesh: &Mesh, regions: &[Region], out: &Outcome, max_jump_ratio: f64) {
+    check_with(name, mesh, regions, out, max_jump_ratio, 1.3);
+}
+
+/// [`check`] with a bound on the area-weighted mean Q of the region's faces; returns the
+/// border's normal jump before and after.
+fn check_with(
+    name: &str,
+    mesh: &Mesh,
+    regions: &[Region],
+    out: &Outcome,
+    max_jump_ratio: f64,
+    max_q_mean: f64,
+) -> (f64, f64) {
     let moving = select(&mesh.positions, regions).expect("valid region");
     let mut moved = 0;
     for (v, (p, q)) in out.positions.iter().zip(&mesh.positions).enumerate() {
@@ -198,11 +212,145 @@ fn check(name: &str, mesh: &Mesh, regions: &[Region], out: &Outcome, max_jump_ra
         jump.to_degrees()
     );
     assert_eq!(folds, 0, "{name}: faces folded");
-    assert!(q_mean <= 1.3, "{name}: Q mean {q_mean}");
+    assert!(q_mean <= max_q_mean, "{name}: Q mean {q_mean}");
     assert!(
         jump <= max_jump_ratio * jump0,
         "{name}: border normal jump {jump0} -> {jump}"
     );
+    (jump0, jump)
+}
+
+/// The run as a job runs it: at most `steps`, ending early once W has stopped falling
+/// (`until_converged`, the default). Returns the result and how the run ended.
+fn run_until_converged(mesh: &Mesh, params: &FlowParams, steps: usize) -> (Outcome, RunOutcome) {
+    let flow = new_flow(mesh, params).expect("region flow");
+    let w0 = flow.initial_metrics().willmore_energy;
+    let mut run = Run::new(flow, params, steps).expect("run");
+    let mut w = w0;
+    let outcome = loop {
+        match run.advance().expect("step") {
+            Event::Step(m) => w = m.willmore_energy,
+            Event::Stopped { outcome, .. } => break outcome,
+        }
+    };
+    let out = Outcome {
+        w0,
+        w,
+        positions: run.flow().positions().to_vec(),
+    };
+    (out, outcome)
+}
+
+/// The largest angle between the normals of two adjacent faces touching the region: above
+/// 90° the surface folds over itself there.
+fn largest_dihedral(mesh: &Mesh, moving: &[bool], p: &[[f64; 3]]) -> f64 {
+    use std::collections::HashMap;
+    let mut edges: HashMap<(usize, usize), Vec<usize>> = HashMap::new();
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        for c in 0..3 {
+            let (a, b) = (t[c], t[(c + 1) % 3]);
+            edges.entry((a.min(b), a.max(b))).or_default().push(f);
+        }
+    }
+    let touches = |f: usize| mesh.triangles[f].iter().any(|&v| moving[v]);
+    edges
+        .values()
+        .filter_map(|faces| match faces[..] {
+            [f, g] if touches(f) || touches(g) => Some(
+                dot(
+                    face_normal(p, mesh.triangles[f]),
+                    face_normal(p, mesh.triangles[g]),
+                )
+                .clamp(-1.0, 1.0)
+                .acos(),
+            ),
+            _ => None,
+        })
+        .fold(0.0, f64::max)
+}
+
+/// Issue 29 item 1 at convergence: a smooth seam keeps the border's normal jump within twice
+/// the input's when the flow runs on (20 steps with `until_converged`, then up to 150), on
+/// spot's ear, a genus-2 rim and an open cap, while the same regions with a fixed seam (C0)
+/// open a crease beyond that (the region flattens into the minimal surface spanning its
+/// border; 20 steps). Without the curvature target of `flow/willmore/seam.rs` the smooth seam
+/// measured 2.16× on the ear at 20 steps (18.9°). Measured with it, 20 steps: ear 8.71° →
+/// 11.61° (fixed 37.05°), genus-2 5.66° → 8.30° (fixed 12.45°), cap 4.45° → 5.41° (fixed
+/// 10.18°); converged (ear, 48 steps) 11.51°, genus-2 at 150 steps 7.03°, cap 5.28°.
+/// Q (area-weighted mean over the region's faces) at 20 steps: ear 1.43 (1.41 before the
+/// seam change, 1.55 with a fixed seam: the ear is pulled from a long lobe into a bump),
+/// genus-2 1.39, cap 1.05, bounded here by 1.5; it keeps creeping on a long run (ear 1.54 at
+/// 48 steps, genus-2 1.72 at 150), which is why the long run checks the seam and folds only.
+/// Folds on the long run are checked between neighbouring faces: two faces at the ear's tip
+/// turn by 95° from the input as the lobe becomes a bump, with Q 1.1–1.5 and no crease.
+#[test]
+fn a_smooth_seam_stays_tangent_to_its_surroundings_at_convergence() {
+    let spot = spot().surface().clone();
+    let pretzel = with_noise(pretzel(2, 24), 0.05, 7);
+    let far = (0..pretzel.vertex_count())
+        .max_by(|&a, &b| pretzel.positions[a][0].total_cmp(&pretzel.positions[b][0]))
+        .expect("vertices");
+    let rim = Region::Sphere {
+        center: pretzel.positions[far],
+        radius: 0.35,
+    };
+    let cap = with_noise(bumpy_cap(4, 0.06), 0.05, 11);
+    let centre = Region::Box {
+        min: [-0.4, -0.4, -2.0],
+        max: [0.4, 0.4, 2.0],
+    };
+    for (name, mesh, region) in [
+        ("spot ear", &spot, EAR),
+        ("genus-2 rim", &pretzel, rim),
+        ("bumpy cap centre", &cap, centre),
+    ] {
+        let regions = vec![region];
+        let moving = select(&mesh.positions, &regions).expect("valid");
+        let smooth = params(regions.clone(), Seam::Smooth);
+        // 20 steps with `until_converged`, as a job runs them: every check of a region.
+        let (out, _) = run_until_converged(mesh, &smooth, 20);
+        // W has fallen well, not just a little: the inside is still faired.
+        assert!(out.w < 0.8 * out.w0, "{name}: W {} -> {}", out.w0, out.w);
+        let (jump0, jump) = check_with(
+            &format!("{name}, smooth, 20 steps"),
+            mesh,
+            &regions,
+            &out,
+            2.0,
+            1.5,
+        );
+        // Far longer: on the ear until W has stopped falling by the run's own rule (48
+        // steps); the genus-2 rim and the cap still creep at 150 (W −7% and −11% from step
+        // 20), the seam held all the way.
+        let (done, outcome) = run_until_converged(mesh, &smooth, 150);
+        if name == "spot ear" {
+            assert_eq!(outcome, RunOutcome::Converged, "{name}");
+        }
+        let jump_done = border_normal_jump(mesh, &moving, &done.positions);
+        let fold = largest_dihedral(mesh, &moving, &done.positions);
+        eprintln!(
+            "{name}, smooth, long run ({outcome:?}): W {:.3} -> {:.3}, border normal jump \
+             {:.2}° -> {:.2}°, largest dihedral {:.1}°",
+            done.w0,
+            done.w,
+            jump0.to_degrees(),
+            jump_done.to_degrees(),
+            fold.to_degrees()
+        );
+        assert!(jump_done <= 2.0 * jump0, "{name}: {jump0} -> {jump_done}");
+        assert!(
+            fold < std::f64::consts::FRAC_PI_2,
+            "{name}: folds ({fold} rad)"
+        );
+        // The fixed seam's crease keeps opening past 20 steps (W still falling on the ear).
+        let fixed = run(mesh, &params(regions.clone(), Seam::Fixed), 20);
+        let crease = border_normal_jump(mesh, &moving, &fixed.positions);
+        assert!(
+            crease > 2.0 * jump0 && crease > jump,
+            "{name}: the fixed seam's jump {crease} should exceed twice the input's {jump0} \
+             and the smooth seam's {jump}"
+        );
+    }
 }
 
 #[test]

@@ -10,8 +10,12 @@
 //!   was (C0); the surface may meet it at an angle.
 //! - [`Seam::Smooth`]: two rings: the held ring next to the region and the one beyond it fix the
 //!   border's positions *and* its tangent planes, the discrete form of holding the boundary
-//!   vectors at the surrounding surface's frame (§6.3.1), so the faired surface leaves the
-//!   border tangent to the surface around it (G1 up to the mesh's resolution).
+//!   vectors at the surrounding surface's frame (§6.3.1); and the flow drives the region's
+//!   mean curvature toward the harmonic extension of the held rings' (`flow/willmore/seam.rs`),
+//!   whose fixed points (`ΔH = 0`, linearized Willmore) take both as boundary data, so the
+//!   faired surface leaves the border tangent to the surface around it (G1 up to the mesh's
+//!   resolution; without it the region converges to a minimal surface meeting the border at
+//!   an angle).
 //!
 //! With a `falloff` width (`FlowParams::falloff`) each step's motion is weighted by a
 //! smoothstep of the distance from the border along the mesh's edges ([`falloff_weights`]):
@@ -441,7 +445,11 @@ impl RegionFlow {
         let blend = params
             .falloff
             .map(|width| falloff_weights(&sub.mesh, &sub.held, width));
-        let flow = ConformalFlow::with_pinned(&sub.mesh, &inner_params, sub.held.clone(), blend)?;
+        let mut flow =
+            ConformalFlow::with_pinned(&sub.mesh, &inner_params, sub.held.clone(), blend)?;
+        if params.seam == Seam::Smooth {
+            flow.continue_pinned_curvature()?;
+        }
         let inner: Box<dyn Flow> = Box::new(Safeguarded::new(
             flow,
             &sub.mesh.triangles,

@@ -36,6 +36,7 @@ use std::time::Instant;
 
 mod factor;
 use factor::*;
+mod seam;
 mod step;
 
 /// From this many vertices on, X is factored in single precision ([`Mixed`]) by default.
@@ -123,6 +124,9 @@ pub struct ConformalFlow {
     feature: Option<FeatureScale>,
     /// Per-vertex weight of each step's motion (a region's falloff); `None`: full motion.
     blend: Option<Vec<f64>>,
+    /// The mean curvature the flow drives toward, `ρ = −2τ(H − H̃)` (a region's smooth seam,
+    /// [`Self::continue_pinned_curvature`]); `None`: toward 0.
+    curvature_target: Option<Vec<f64>>,
     /// The surface a step started from, kept when the step's motion is filtered or blended.
     step_start: Vec<[f64; 3]>,
     /// The filtered flow direction of the current surface, when the end of the last step
@@ -428,6 +432,7 @@ impl ConformalFlow {
             laplace_unshifted: vec![0.0; laplace_pattern.nnz()],
             filter,
             blend: None,
+            curvature_target: None,
             step_start: if params.feature_size.is_some() {
                 vec![[0.0; 3]; n]
             } else {

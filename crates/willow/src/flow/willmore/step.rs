@@ -126,6 +126,14 @@ impl ConformalFlow {
                 }
             }
         }
+        self.seam_target()?;
+        let g = &self.geometry;
+        if let Some(target) = &self.curvature_target {
+            // A smooth seam: toward the curvature that continues the surroundings (seam.rs).
+            for (r, &h) in self.rho.iter_mut().zip(target) {
+                *r += 2.0 * h;
+            }
+        }
         if let Some(filter) = &mut self.filter {
             // §4 / docs/algorithm.md §3: filter the direction before projecting it.
             filter
