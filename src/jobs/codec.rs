@@ -407,6 +407,176 @@ mod tests {
         assert_eq!(stored, spec);
     }
 
+    /// Specs with every later field in turn off its default, and a few together.
+    fn varied_specs() -> Vec<(&'static str, JobSpec)> {
+        use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
+        use willow::flow::region::{Region, Seam};
+        use willow::flow::{Method, Preserve};
+        let d = JobSpec::default;
+        vec![
+            ("default", d()),
+            (
+                "first-release fields",
+                JobSpec {
+                    method: Method::Mcf,
+                    steps: 7,
+                    tau: 0.125,
+                    iterations: 3,
+                    frame_interval: 2,
+                    include_positions: false,
+                    deadline_secs: Some(30.0),
+                    ..d()
+                },
+            ),
+            (
+                "flags",
+                JobSpec {
+                    exactness: false,
+                    mobius_balancing: true,
+                    safeguard: false,
+                    until_converged: false,
+                    measure_deviation: true,
+                    repair: true,
+                    ..d()
+                },
+            ),
+            (
+                "filter",
+                JobSpec {
+                    filter: Some(FilterSpec { sigma: 0.01, k: 2 }),
+                    ..d()
+                },
+            ),
+            (
+                "boundary cmc",
+                JobSpec {
+                    boundary: BoundarySpec::Cmc,
+                    ..d()
+                },
+            ),
+            (
+                "boundary prescribed",
+                JobSpec {
+                    boundary: BoundarySpec::Prescribed(PrescribedSpec {
+                        frame_angle: -0.3,
+                        axis: AxisSpec::Fixed([1.0, 0.0, 0.0]),
+                        angles: AnglesSpec::PerLoop(vec![0.2, -0.2]),
+                    }),
+                    ..d()
+                },
+            ),
+            (
+                "regions",
+                JobSpec {
+                    region: vec![
+                        Region::Sphere {
+                            center: [0.1, 0.2, 0.3],
+                            radius: 0.5,
+                        },
+                        Region::Box {
+                            min: [-1.0, -1.0, -1.0],
+                            max: [1.0, 0.0, 1.0],
+                        },
+                        Region::Vertices(vec![0, 5, 9]),
+                        Region::Group("ear".into()),
+                    ],
+                    seam: Seam::Fixed,
+                    falloff: Some(0.05),
+                    ..d()
+                },
+            ),
+            (
+                "stopping rules",
+                JobSpec {
+                    preserve: Preserve::Volume,
+                    until_willmore: Some(12.6),
+                    max_deviation: Some(0.02),
+                    feature_size: Some(0.13),
+                    ..d()
+                },
+            ),
+            (
+                "callback_url",
+                JobSpec {
+                    callback_url: Some("https://hooks.example/willow?x=\"1\"".into()),
+                    ..d()
+                },
+            ),
+            (
+                "conformal with everything",
+                JobSpec {
+                    steps: 3,
+                    mobius_balancing: true,
+                    filter: Some(FilterSpec { sigma: 1e-3, k: 1 }),
+                    boundary: BoundarySpec::Fixed,
+                    region: vec![Region::Vertices(vec![1, 2, 3])],
+                    preserve: Preserve::None,
+                    until_willmore: Some(0.0),
+                    callback_url: Some("https://a.example/".into()),
+                    ..d()
+                },
+            ),
+        ]
+    }
+
+    /// The compatibility contract of [`request_hash`]: idempotency keys are stored with the
+    /// hash of their request, so these exact hex strings (computed by the release that wrote
+    /// HashedSpec field by field) must come out of every later one, or a client's retry after
+    /// an upgrade is refused as a different request. Never update a string here to make a
+    /// change pass: the change is what is wrong.
+    #[test]
+    fn request_hashes_of_stored_keys_never_change() {
+        let pinned = [
+            (
+                "default",
+                "835e2ba51cd568d568798ce2a912fa9f203fc584229e4554cf05fdf32b8c02d1",
+            ),
+            (
+                "first-release fields",
+                "3f1b677369ee33667a2c90007bf7f3e455ff31bd553996cdb6871beb861a2549",
+            ),
+            (
+                "flags",
+                "351a136834624a12faf183f29670dd4a871779aee314232176fa12f09ee3e1ae",
+            ),
+            (
+                "filter",
+                "62d08df3ef07a74d9fb871820bcf05f8ff9f33c518bf77002701c1ff2657263e",
+            ),
+            (
+                "boundary cmc",
+                "367b6a126233fdb85a9e601082bc810ef158e44d014515e76101c3a3e33f430c",
+            ),
+            (
+                "boundary prescribed",
+                "de41c4c04a5a73143c21ae2d8c2ed8ee785abb563282b610db23f1610d92619b",
+            ),
+            (
+                "regions",
+                "5e2e3e83fe2efc39ad3db9ea033baae508da280f30c4fe0e828b81ba881c80fe",
+            ),
+            (
+                "stopping rules",
+                "79751c5ec590c6249816727ee745300ded1331b1858a16b89befcf93bf1529b6",
+            ),
+            (
+                "callback_url",
+                "41d01045b55f4aad4eec4c6fa9b3a273c503ff698021af7a66f73dae55912929",
+            ),
+            (
+                "conformal with everything",
+                "442096fab662859a81c19d0270459e923d742f026427d90ce5409894606bbbf8",
+            ),
+        ];
+        let specs = varied_specs();
+        assert_eq!(specs.len(), pinned.len());
+        for ((name, spec), (pinned_name, hex)) in specs.iter().zip(pinned) {
+            assert_eq!(*name, pinned_name);
+            let got = request_hash(b"v 0 0 0\n", Format::Obj, spec);
+            assert_eq!(got, hex, "{name}");
+        }
+    }
+
     #[test]
     fn metrics_round_trip_including_nan() {
         let m = StepMetrics {
