@@ -13,132 +13,84 @@ pub fn request_hash(data: &[u8], format: Format, spec: &JobSpec) -> String {
     let mut h = Sha256::new();
     h.update(format_name(format).as_bytes());
     h.update([0]);
-    h.update(serde_json::to_vec(&HashedSpec::from(spec)).unwrap_or_default());
+    h.update(hashed_spec(spec).unwrap_or_default());
     h.update([0]);
     h.update(data);
     h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// The spec as [`request_hash`] sees it: the fields of the first release in their order, then
-/// each later field only when it differs from its default. Keys are stored with their hash, so
-/// a request sent again after an upgrade must hash as before, or its retry would be refused
-/// as a different request. New [`JobSpec`] fields go at the end here too, skipped at default.
-#[derive(serde::Serialize)]
-struct HashedSpec<'a> {
-    method: willow::flow::Method,
-    steps: usize,
-    tau: f64,
-    iterations: usize,
-    frame_interval: usize,
-    include_positions: bool,
-    deadline_secs: Option<f64>,
-    #[serde(skip_serializing_if = "is_true")]
-    exactness: bool,
-    #[serde(skip_serializing_if = "is_false")]
-    mobius_balancing: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    filter: Option<super::spec::FilterSpec>,
-    #[serde(skip_serializing_if = "is_free")]
-    boundary: &'a super::spec::BoundarySpec,
-    #[serde(skip_serializing_if = "is_true")]
-    safeguard: bool,
-    #[serde(skip_serializing_if = "<[_]>::is_empty")]
-    region: &'a [willow::flow::region::Region],
-    #[serde(skip_serializing_if = "is_smooth")]
-    seam: willow::flow::region::Seam,
-    #[serde(skip_serializing_if = "is_area")]
-    preserve: willow::flow::Preserve,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    until_willmore: Option<f64>,
-    #[serde(skip_serializing_if = "is_true")]
-    until_converged: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    max_deviation: Option<f64>,
-    #[serde(skip_serializing_if = "is_false")]
-    measure_deviation: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    feature_size: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    falloff: Option<f64>,
-    #[serde(skip_serializing_if = "is_false")]
-    repair: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    callback_url: Option<&'a str>,
-}
+/// The fields of the first release's [`JobSpec`], in its order: always hashed.
+const FIRST_RELEASE_FIELDS: [&str; 7] = [
+    "method",
+    "steps",
+    "tau",
+    "iterations",
+    "frame_interval",
+    "include_positions",
+    "deadline_secs",
+];
 
-fn is_area(p: &willow::flow::Preserve) -> bool {
-    *p == willow::flow::Preserve::Area
-}
-
-fn is_smooth(s: &willow::flow::region::Seam) -> bool {
-    *s == willow::flow::region::Seam::Smooth
-}
-
-fn is_true(b: &bool) -> bool {
-    *b
-}
-
-fn is_false(b: &bool) -> bool {
-    !*b
-}
-
-fn is_free(b: &&super::spec::BoundarySpec) -> bool {
-    b.is_free()
-}
-
-impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
-    fn from(s: &'a JobSpec) -> Self {
-        // Destructured, so a field added to JobSpec fails to compile until it is hashed.
-        let JobSpec {
-            method,
-            steps,
-            tau,
-            iterations,
-            frame_interval,
-            include_positions,
-            deadline_secs,
-            exactness,
-            mobius_balancing,
-            filter,
-            boundary,
-            safeguard,
-            region,
-            seam,
-            preserve,
-            until_willmore,
-            until_converged,
-            max_deviation,
-            measure_deviation,
-            feature_size,
-            falloff,
-            repair,
-            callback_url,
-        } = s;
-        HashedSpec {
-            method: *method,
-            steps: *steps,
-            tau: *tau,
-            iterations: *iterations,
-            frame_interval: *frame_interval,
-            include_positions: *include_positions,
-            deadline_secs: *deadline_secs,
-            exactness: *exactness,
-            mobius_balancing: *mobius_balancing,
-            filter: *filter,
-            boundary,
-            safeguard: *safeguard,
-            region,
-            seam: *seam,
-            preserve: *preserve,
-            until_willmore: *until_willmore,
-            until_converged: *until_converged,
-            max_deviation: *max_deviation,
-            measure_deviation: *measure_deviation,
-            feature_size: *feature_size,
-            falloff: *falloff,
-            repair: *repair,
-            callback_url: callback_url.as_deref(),
+/// The spec as [`request_hash`] sees it: its compact JSON with the fields of the first
+/// release always, in their order, then each later field (in declaration order) only when its
+/// JSON differs from [`JobSpec::default`]'s. Keys are stored with their hash, so a request
+/// sent again after an upgrade must hash as before, or its retry would be refused as a
+/// different request: a field added to [`JobSpec`] (at the end, with a default) leaves every
+/// existing request's bytes alone, with no edit here. The pinned hashes in the tests are the
+/// contract.
+///
+/// Equal JSON stands for "at its default": exact for the later fields, which are flags,
+/// enums, lists and optional numbers; `Some(NaN)` would print as `null` like `None`, but
+/// [`JobSpec::validate`] refuses every non-finite number before a request is hashed.
+fn hashed_spec(spec: &JobSpec) -> serde_json::Result<Vec<u8>> {
+    let json = serde_json::to_string(spec)?;
+    let default_json = serde_json::to_string(&JobSpec::default())?;
+    let entries: Entries = serde_json::from_str(&json)?;
+    let defaults: Entries = serde_json::from_str(&default_json)?;
+    let mut out = Vec::with_capacity(json.len());
+    out.push(b'{');
+    for (key, value) in &entries.0 {
+        let at_default = defaults
+            .0
+            .iter()
+            .any(|(k, v)| k == key && v.get() == value.get());
+        if !FIRST_RELEASE_FIELDS.contains(&key.as_str()) && at_default {
+            continue;
         }
+        if out.len() > 1 {
+            out.push(b',');
+        }
+        serde_json::to_writer(&mut out, key)?;
+        out.push(b':');
+        out.extend_from_slice(value.get().as_bytes());
+    }
+    out.push(b'}');
+    Ok(out)
+}
+
+/// A JSON object's top-level entries in the order they were written, each value as its exact
+/// bytes (a `serde_json::Value` would sort the keys of nested objects).
+struct Entries<'a>(Vec<(String, &'a serde_json::value::RawValue)>);
+
+impl<'de> serde::Deserialize<'de> for Entries<'de> {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visit;
+        impl<'de> serde::de::Visitor<'de> for Visit {
+            type Value = Entries<'de>;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a JSON object")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut map: A,
+            ) -> Result<Self::Value, A::Error> {
+                let mut entries = Vec::new();
+                while let Some(entry) = map.next_entry()? {
+                    entries.push(entry);
+                }
+                Ok(Entries(entries))
+            }
+        }
+        d.deserialize_map(Visit)
     }
 }
 
