@@ -23,70 +23,95 @@ use willow::metrics::StepMetrics;
 /// Stored as JSON with the job: a field added later must have a default (`#[serde(default)]`
 /// fills it in for rows written before it existed) and is appended at the end (see
 /// `codec::request_hash`). Every field of [`FlowParams`] has one here.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+///
+/// Its OpenAPI schema is derived from this declaration: the field docs are the API's
+/// descriptions (so they speak JSON: `null`, not `None`), the library's types are described
+/// by the small mirrors in `api::schema`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
+#[schema(
+    description = "What to run on an uploaded mesh (a job's `params`, as reported and as accepted)."
+)]
 pub struct JobSpec {
     /// Which flow: `conformal` (the paper), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
     /// `taubin`.
+    #[schema(value_type = String, example = "conformal")]
     pub method: Method,
     /// Number of flow steps to take (step 0 is the input).
+    #[schema(minimum = 1)]
     pub steps: usize,
-    /// Time step τ (see [`FlowParams::tau`]).
+    // The library's `FlowParams::tau`.
+    /// Time step τ (conformal: the curvature update `u ← (1 − 2τ)u`, stable for τ < 1).
     pub tau: f64,
     /// Inverse power iterations per step (conformal flow).
     pub iterations: usize,
-    /// Every `frame_interval`-th step (and step 0 and the last step) keeps its vertex positions,
-    /// so `frames/{step}` can serve that mesh and watchers get `positions`.
+    // Kept frames are what `frames/{step}` serves and what watchers get `positions` for.
+    /// Every `frame_interval`-th step (and step 0 and the last step) keeps its positions.
     pub frame_interval: usize,
     /// Whether live and replayed frames carry positions at all (metrics are always sent).
     pub include_positions: bool,
-    /// Wall-clock budget from submission, in seconds; `None` takes the server default.
+    /// Wall-clock budget from submission, in seconds; null takes the server default.
     pub deadline_secs: Option<f64>,
     /// Exactness constraints on surfaces of genus > 0 (§6.2, App. C); conformal flow only.
     pub exactness: bool,
-    /// Möbius balancing toward the input's area distribution (App. E.1); conformal flow only.
+    /// Möbius balancing toward the input's area distribution (App. E.1); conformal only.
     pub mobius_balancing: bool,
-    /// Spectral filter of the flow direction (§4); `None` is the paper's plain flow. Conformal
-    /// flow only.
+    /// Spectral filter of the flow direction (§4); null is the paper's plain flow.
     pub filter: Option<spec::FilterSpec>,
     /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
     pub boundary: spec::BoundarySpec,
-    /// Safeguarded steps (see [`willow::flow::safeguard`]): a step that raises W or damages the
-    /// mesh is retried at a smaller τ. Every method; default on.
+    // See `willow::flow::safeguard`.
+    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ.
     pub safeguard: bool,
-    /// The part of the surface that moves (see [`willow::flow::region`]): empty, the whole
-    /// surface. Vertex lists are in the file's numbering (OBJ `v` lines from 0, glTF accessor
-    /// vertices: the numbering of frames' positions); spheres and boxes in its world space.
-    /// JSON takes one region or a list. Conformal flow only.
+    // See `willow::flow::region`. Vertex lists are in the file's numbering (OBJ `v` lines
+    // from 0, glTF accessor vertices); spheres and boxes in its world space.
+    /// The part of the surface that moves (their union); empty: the whole surface. Every
+    /// vertex outside stays bit-identical. Accepted as one region or a list; reported as a
+    /// list. Conformal flow only.
     #[serde(deserialize_with = "spec::one_or_many_regions::deserialize")]
+    #[schema(value_type = Vec<crate::api::schema::RegionSchema>)]
     pub region: Vec<Region>,
-    /// How a region meets the surface around it: `smooth` (default, G1) or `fixed` (C0).
+    /// How a region meets the surface around it: `smooth` (positions and tangent planes
+    /// held) or `fixed` (positions only).
+    #[schema(value_type = crate::api::schema::SeamSchema)]
     pub seam: Seam,
-    /// What each component keeps after every step: `area` (default), `volume` or `none`.
+    /// What each connected component keeps after every step: `area` (default), `volume`
+    /// (closed components keep their enclosed volume, by a uniform scale: Q is untouched) or
+    /// `none`. Taubin smoothing refuses `volume`.
+    #[schema(value_type = crate::api::schema::PreserveSchema)]
     pub preserve: Preserve,
-    /// Stop once the Willmore energy is at most this (outcome `target_reached`).
+    /// Stop once the Willmore energy is at most this (outcome `target_reached`); ≥ 0.
     pub until_willmore: Option<f64>,
-    /// Stop once W has stopped falling (outcome `converged`); default true. False runs every
-    /// step.
+    /// Stop once W has stopped falling: its relative change stayed below 1e-4 per step for 3
+    /// steps (outcome `converged`). Default true; false runs every step.
     pub until_converged: bool,
-    /// Stop before the first step that would move the surface further than this from the input
-    /// (model units; outcome `max_deviation`): the result is the last surface within it.
+    /// Stop before the first step that would move the surface further than this from the
+    /// input, in model units (outcome `max_deviation`): the result is the last surface within
+    /// it. ≥ 0; turns `measure_deviation` on.
     pub max_deviation: Option<f64>,
-    /// Report each frame's distance from the input (`deviation_max`, `deviation_mean`); on
-    /// with `max_deviation`. Off by default: it costs a share of every step.
+    /// Report each frame's two-sided distance from the input (`deviation_max`,
+    /// `deviation_mean`, model units). Off by default: it costs a share of every step.
     pub measure_deviation: bool,
-    /// Remove the detail smaller than this length (model units) and keep the shape above it
-    /// (`willow::flow::feature`); the job ends `feature_scale_reached` once it is gone.
+    // See `willow::flow::feature`.
+    /// Remove the detail smaller than this length (model units, > 0, at least two mean edge
+    /// lengths) and keep the shape above it: the spectral filter (§4) with its crossover at
+    /// this size; the job ends `feature_scale_reached` once the detail is gone. Conformal flow
+    /// only; `filter`, when given, replaces the derived σ and k.
     pub feature_size: Option<f64>,
-    /// Width (model units) over which a region's motion blends to zero toward its border.
+    /// Width (model units, > 0) over which a region's motion blends to zero toward its
+    /// border. Needs a region.
     pub falloff: Option<f64>,
+    // `Asset::read_repaired`.
     /// Repair the upload before the flow: drop degenerate faces and split non-manifold
-    /// vertices and edges (`Asset::read_repaired`); the submission's answer says what changed.
-    /// Off, such a file is refused naming its own vertex and face numbers.
+    /// vertices and edges; the submission's answer has `repairs`. Default false: such a file
+    /// is refused, naming its own vertex and face numbers.
     pub repair: bool,
-    /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed, signed
-    /// as Standard Webhooks ([`super::webhooks`]). `https` only, to a public address, unless
-    /// the server allows otherwise ([`Config::allow_insecure_callbacks`]).
+    // Signed by `super::webhooks`; the address policy is `Config::allow_insecure_callbacks`.
+    /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed as a
+    /// Standard Webhooks event (`webhook-id`, `webhook-timestamp`, `webhook-signature:
+    /// v1,<base64 HMAC-SHA256 of "{id}.{timestamp}.{body}">`, keyed by the tenant's webhook
+    /// secret), retried with backoff until answered 2xx. `https` to a public address only,
+    /// unless the server runs with `--allow-insecure-callbacks`.
     pub callback_url: Option<String>,
 }
 

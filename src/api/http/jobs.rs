@@ -78,7 +78,6 @@ pub struct JobView {
     #[schema(value_type = Option<Object>)]
     pub repairs: Option<willow::mesh::io::Repairs>,
     /// The parameters the job runs with, defaults filled in.
-    #[schema(value_type = crate::api::schema::JobSpecSchema)]
     pub params: JobSpec,
     /// `obj`, `glb` or `gltf`.
     pub input_format: String,
