@@ -29,6 +29,7 @@ mod events;
 mod jobs;
 mod params;
 mod probes;
+mod spec_query;
 
 pub use super::state::AppState;
 pub(super) use body::DRAIN_MAX_BYTES;
@@ -39,8 +40,9 @@ pub use jobs::{
     cancel_job, create_job, delete_job, frame_mesh, get_job, job_result, list_frames, list_jobs,
     FrameList, JobList, JobView, LatestMetrics, Links, Progress,
 };
-pub use params::{EventsQuery, FormatQuery, FramesQuery, JobQuery, ListQuery};
+pub use params::{EventsQuery, FormatQuery, FramesQuery, ListQuery};
 pub use probes::{healthz, metrics, readyz};
+pub use spec_query::JobQuery;
 
 use super::auth::SecurityAddon;
 use super::problem::Problem;
@@ -160,7 +162,7 @@ pub async fn no_route(req: Request<Body>) -> Response {
 /// at any time). They run the same code `create_job` runs, minus the network and the job core.
 #[doc(hidden)]
 pub mod fuzzing {
-    use super::{JobQuery, Problem};
+    use super::Problem;
 
     /// `POST /v1/jobs?{query}` with, when `params` is given, a multipart `params` part holding
     /// those bytes: the validated job spec, or the problem the client gets. A query that does
@@ -173,7 +175,7 @@ pub mod fuzzing {
         let Ok(uri) = format!("/v1/jobs?{query}").parse::<axum::http::Uri>() else {
             return Ok(None);
         };
-        let query_spec = super::params::query::<JobQuery>(&uri)?.into_spec()?;
+        let query_spec = super::spec_query::spec_from_query(&uri)?;
         let spec = match params {
             None => query_spec,
             Some(text) => {
