@@ -1,7 +1,8 @@
-//! The job parameters of `POST /v1/jobs`: the query string (`JobQuery` through
-//! serde_urlencoded and serde_path_to_error, then `into_params`) or, when the input starts
-//! with a NUL byte, the rest as a multipart `params` JSON part; then `into_spec` and the
-//! core's validation. Errors must be 4xx problems, never panics.
+//! The job parameters of `POST /v1/jobs`: the query string (`spec_from_query`: the dotted
+//! generic parameters through the spec's JSON, the compact `boundary.*` and `region.*` forms
+//! through serde_urlencoded) or, when the input starts with a NUL byte, the rest as a
+//! multipart `params` JSON part; then the core's validation. Errors must be 4xx problems,
+//! never panics.
 #![no_main]
 willow_fuzz::capped_allocator!();
 

@@ -13,136 +13,84 @@ pub fn request_hash(data: &[u8], format: Format, spec: &JobSpec) -> String {
     let mut h = Sha256::new();
     h.update(format_name(format).as_bytes());
     h.update([0]);
-    h.update(serde_json::to_vec(&HashedSpec::from(spec)).unwrap_or_default());
+    h.update(hashed_spec(spec).unwrap_or_default());
     h.update([0]);
     h.update(data);
     h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// The spec as [`request_hash`] sees it: the fields of the first release in their order, then
-/// each later field only when it differs from its default. Keys are stored with their hash, so
-/// a request sent again after an upgrade must hash as before, or its retry would be refused
-/// as a different request. New [`JobSpec`] fields go at the end here too, skipped at default.
-#[derive(serde::Serialize)]
-struct HashedSpec<'a> {
-    method: willow::flow::Method,
-    steps: usize,
-    tau: f64,
-    iterations: usize,
-    frame_interval: usize,
-    include_positions: bool,
-    deadline_secs: Option<f64>,
-    #[serde(skip_serializing_if = "is_true")]
-    exactness: bool,
-    #[serde(skip_serializing_if = "is_false")]
-    mobius_balancing: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    filter: Option<super::spec::FilterSpec>,
-    #[serde(skip_serializing_if = "is_free")]
-    boundary: &'a super::spec::BoundarySpec,
-    #[serde(skip_serializing_if = "is_true")]
-    safeguard: bool,
-    #[serde(skip_serializing_if = "<[_]>::is_empty")]
-    region: &'a [willow::flow::region::Region],
-    #[serde(skip_serializing_if = "is_smooth")]
-    seam: willow::flow::region::Seam,
-    #[serde(skip_serializing_if = "is_area")]
-    preserve: willow::flow::Preserve,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    until_willmore: Option<f64>,
-    #[serde(skip_serializing_if = "is_true")]
-    until_converged: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    max_deviation: Option<f64>,
-    #[serde(skip_serializing_if = "is_false")]
-    measure_deviation: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    feature_size: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    falloff: Option<f64>,
-    #[serde(skip_serializing_if = "is_false")]
-    repair: bool,
-    #[serde(skip_serializing_if = "is_false")]
-    refine: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    callback_url: Option<&'a str>,
-}
+/// The fields of the first release's [`JobSpec`], in its order: always hashed.
+const FIRST_RELEASE_FIELDS: [&str; 7] = [
+    "method",
+    "steps",
+    "tau",
+    "iterations",
+    "frame_interval",
+    "include_positions",
+    "deadline_secs",
+];
 
-fn is_area(p: &willow::flow::Preserve) -> bool {
-    *p == willow::flow::Preserve::Area
-}
-
-fn is_smooth(s: &willow::flow::region::Seam) -> bool {
-    *s == willow::flow::region::Seam::Smooth
-}
-
-fn is_true(b: &bool) -> bool {
-    *b
-}
-
-fn is_false(b: &bool) -> bool {
-    !*b
-}
-
-fn is_free(b: &&super::spec::BoundarySpec) -> bool {
-    b.is_free()
-}
-
-impl<'a> From<&'a JobSpec> for HashedSpec<'a> {
-    fn from(s: &'a JobSpec) -> Self {
-        // Destructured, so a field added to JobSpec fails to compile until it is hashed.
-        let JobSpec {
-            method,
-            steps,
-            tau,
-            iterations,
-            frame_interval,
-            include_positions,
-            deadline_secs,
-            exactness,
-            mobius_balancing,
-            filter,
-            boundary,
-            safeguard,
-            region,
-            seam,
-            preserve,
-            until_willmore,
-            until_converged,
-            max_deviation,
-            measure_deviation,
-            feature_size,
-            falloff,
-            repair,
-            refine,
-            callback_url,
-        } = s;
-        HashedSpec {
-            method: *method,
-            steps: *steps,
-            tau: *tau,
-            iterations: *iterations,
-            frame_interval: *frame_interval,
-            include_positions: *include_positions,
-            deadline_secs: *deadline_secs,
-            exactness: *exactness,
-            mobius_balancing: *mobius_balancing,
-            filter: *filter,
-            boundary,
-            safeguard: *safeguard,
-            region,
-            seam: *seam,
-            preserve: *preserve,
-            until_willmore: *until_willmore,
-            until_converged: *until_converged,
-            max_deviation: *max_deviation,
-            measure_deviation: *measure_deviation,
-            feature_size: *feature_size,
-            falloff: *falloff,
-            repair: *repair,
-            refine: *refine,
-            callback_url: callback_url.as_deref(),
+/// The spec as [`request_hash`] sees it: its compact JSON with the fields of the first
+/// release always, in their order, then each later field (in declaration order) only when its
+/// JSON differs from [`JobSpec::default`]'s. Keys are stored with their hash, so a request
+/// sent again after an upgrade must hash as before, or its retry would be refused as a
+/// different request: a field added to [`JobSpec`] (at the end, with a default) leaves every
+/// existing request's bytes alone, with no edit here. The pinned hashes in the tests are the
+/// contract.
+///
+/// Equal JSON stands for "at its default": exact for the later fields, which are flags,
+/// enums, lists and optional numbers; `Some(NaN)` would print as `null` like `None`, but
+/// [`JobSpec::validate`] refuses every non-finite number before a request is hashed.
+fn hashed_spec(spec: &JobSpec) -> serde_json::Result<Vec<u8>> {
+    let json = serde_json::to_string(spec)?;
+    let default_json = serde_json::to_string(&JobSpec::default())?;
+    let entries: Entries = serde_json::from_str(&json)?;
+    let defaults: Entries = serde_json::from_str(&default_json)?;
+    let mut out = Vec::with_capacity(json.len());
+    out.push(b'{');
+    for (key, value) in &entries.0 {
+        let at_default = defaults
+            .0
+            .iter()
+            .any(|(k, v)| k == key && v.get() == value.get());
+        if !FIRST_RELEASE_FIELDS.contains(&key.as_str()) && at_default {
+            continue;
         }
+        if out.len() > 1 {
+            out.push(b',');
+        }
+        serde_json::to_writer(&mut out, key)?;
+        out.push(b':');
+        out.extend_from_slice(value.get().as_bytes());
+    }
+    out.push(b'}');
+    Ok(out)
+}
+
+/// A JSON object's top-level entries in the order they were written, each value as its exact
+/// bytes (a `serde_json::Value` would sort the keys of nested objects).
+struct Entries<'a>(Vec<(String, &'a serde_json::value::RawValue)>);
+
+impl<'de> serde::Deserialize<'de> for Entries<'de> {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visit;
+        impl<'de> serde::de::Visitor<'de> for Visit {
+            type Value = Entries<'de>;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a JSON object")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut map: A,
+            ) -> Result<Self::Value, A::Error> {
+                let mut entries = Vec::new();
+                while let Some(entry) = map.next_entry()? {
+                    entries.push(entry);
+                }
+                Ok(Entries(entries))
+            }
+        }
+        d.deserialize_map(Visit)
     }
 }
 
@@ -449,6 +397,176 @@ mod tests {
         let stored: JobSpec =
             serde_json::from_slice(first_release).expect("a first-release spec loads");
         assert_eq!(stored, spec);
+    }
+
+    /// Specs with every later field in turn off its default, and a few together.
+    fn varied_specs() -> Vec<(&'static str, JobSpec)> {
+        use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
+        use willow::flow::region::{Region, Seam};
+        use willow::flow::{Method, Preserve};
+        let d = JobSpec::default;
+        vec![
+            ("default", d()),
+            (
+                "first-release fields",
+                JobSpec {
+                    method: Method::Mcf,
+                    steps: 7,
+                    tau: 0.125,
+                    iterations: 3,
+                    frame_interval: 2,
+                    include_positions: false,
+                    deadline_secs: Some(30.0),
+                    ..d()
+                },
+            ),
+            (
+                "flags",
+                JobSpec {
+                    exactness: false,
+                    mobius_balancing: true,
+                    safeguard: false,
+                    until_converged: false,
+                    measure_deviation: true,
+                    repair: true,
+                    ..d()
+                },
+            ),
+            (
+                "filter",
+                JobSpec {
+                    filter: Some(FilterSpec { sigma: 0.01, k: 2 }),
+                    ..d()
+                },
+            ),
+            (
+                "boundary cmc",
+                JobSpec {
+                    boundary: BoundarySpec::Cmc,
+                    ..d()
+                },
+            ),
+            (
+                "boundary prescribed",
+                JobSpec {
+                    boundary: BoundarySpec::Prescribed(PrescribedSpec {
+                        frame_angle: -0.3,
+                        axis: AxisSpec::Fixed([1.0, 0.0, 0.0]),
+                        angles: AnglesSpec::PerLoop(vec![0.2, -0.2]),
+                    }),
+                    ..d()
+                },
+            ),
+            (
+                "regions",
+                JobSpec {
+                    region: vec![
+                        Region::Sphere {
+                            center: [0.1, 0.2, 0.3],
+                            radius: 0.5,
+                        },
+                        Region::Box {
+                            min: [-1.0, -1.0, -1.0],
+                            max: [1.0, 0.0, 1.0],
+                        },
+                        Region::Vertices(vec![0, 5, 9]),
+                        Region::Group("ear".into()),
+                    ],
+                    seam: Seam::Fixed,
+                    falloff: Some(0.05),
+                    ..d()
+                },
+            ),
+            (
+                "stopping rules",
+                JobSpec {
+                    preserve: Preserve::Volume,
+                    until_willmore: Some(12.6),
+                    max_deviation: Some(0.02),
+                    feature_size: Some(0.13),
+                    ..d()
+                },
+            ),
+            (
+                "callback_url",
+                JobSpec {
+                    callback_url: Some("https://hooks.example/willow?x=\"1\"".into()),
+                    ..d()
+                },
+            ),
+            (
+                "conformal with everything",
+                JobSpec {
+                    steps: 3,
+                    mobius_balancing: true,
+                    filter: Some(FilterSpec { sigma: 1e-3, k: 1 }),
+                    boundary: BoundarySpec::Fixed,
+                    region: vec![Region::Vertices(vec![1, 2, 3])],
+                    preserve: Preserve::None,
+                    until_willmore: Some(0.0),
+                    callback_url: Some("https://a.example/".into()),
+                    ..d()
+                },
+            ),
+        ]
+    }
+
+    /// The compatibility contract of [`request_hash`]: idempotency keys are stored with the
+    /// hash of their request, so these exact hex strings (computed by the release that wrote
+    /// HashedSpec field by field) must come out of every later one, or a client's retry after
+    /// an upgrade is refused as a different request. Never update a string here to make a
+    /// change pass: the change is what is wrong.
+    #[test]
+    fn request_hashes_of_stored_keys_never_change() {
+        let pinned = [
+            (
+                "default",
+                "835e2ba51cd568d568798ce2a912fa9f203fc584229e4554cf05fdf32b8c02d1",
+            ),
+            (
+                "first-release fields",
+                "3f1b677369ee33667a2c90007bf7f3e455ff31bd553996cdb6871beb861a2549",
+            ),
+            (
+                "flags",
+                "351a136834624a12faf183f29670dd4a871779aee314232176fa12f09ee3e1ae",
+            ),
+            (
+                "filter",
+                "62d08df3ef07a74d9fb871820bcf05f8ff9f33c518bf77002701c1ff2657263e",
+            ),
+            (
+                "boundary cmc",
+                "367b6a126233fdb85a9e601082bc810ef158e44d014515e76101c3a3e33f430c",
+            ),
+            (
+                "boundary prescribed",
+                "de41c4c04a5a73143c21ae2d8c2ed8ee785abb563282b610db23f1610d92619b",
+            ),
+            (
+                "regions",
+                "5e2e3e83fe2efc39ad3db9ea033baae508da280f30c4fe0e828b81ba881c80fe",
+            ),
+            (
+                "stopping rules",
+                "79751c5ec590c6249816727ee745300ded1331b1858a16b89befcf93bf1529b6",
+            ),
+            (
+                "callback_url",
+                "41d01045b55f4aad4eec4c6fa9b3a273c503ff698021af7a66f73dae55912929",
+            ),
+            (
+                "conformal with everything",
+                "442096fab662859a81c19d0270459e923d742f026427d90ce5409894606bbbf8",
+            ),
+        ];
+        let specs = varied_specs();
+        assert_eq!(specs.len(), pinned.len());
+        for ((name, spec), (pinned_name, hex)) in specs.iter().zip(pinned) {
+            assert_eq!(*name, pinned_name);
+            let got = request_hash(b"v 0 0 0\n", Format::Obj, spec);
+            assert_eq!(got, hex, "{name}");
+        }
     }
 
     #[test]

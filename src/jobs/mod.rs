@@ -35,6 +35,7 @@ pub mod curve;
 pub mod embedded;
 mod error;
 mod ids;
+mod job_spec;
 mod model;
 pub mod nats;
 pub mod ports;

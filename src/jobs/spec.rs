@@ -20,11 +20,11 @@ use willow::flow::{
 pub const MAX_FILTER_K: u32 = willow::flow::filter::MAX_K;
 
 /// Spectral filter of the flow direction (§4): `v ← v − (id + σ(−Δ)^k)⁻¹ v`.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FilterSpec {
-    /// Strength σ, unitless and > 0: σ = (l(l+1))^−k puts the crossover at spherical degree
-    /// l whatever the mesh's size (see `willow::flow::filter`).
+    // Whatever the mesh's size: see `willow::flow::filter`.
+    /// Strength σ, unitless and > 0: σ = (l(l+1))^−k puts the crossover at spherical degree l.
     pub sigma: f64,
     /// Shape k ∈ 0..=3; k = 2 approximates position-based Willmore flow (Figure 19).
     pub k: u32,
@@ -41,7 +41,7 @@ impl FilterSpec {
 }
 
 /// Boundary condition for surfaces with boundary (§6.3); closed surfaces ignore it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum BoundarySpec {
     /// The boundary moves freely (§6.2).
@@ -72,13 +72,13 @@ impl BoundarySpec {
 }
 
 /// §6.3.1: at each boundary vertex `V = cos φ·B + sin φ·N` is mapped to a target, the input's
-/// `V` rotated by an angle about an axis. Every field may be left out (all defaults: the CMC
-/// condition).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+/// `V` rotated by an angle about an axis. Every field may be left out.
+// All defaults: the CMC condition.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct PrescribedSpec {
-    /// φ in radians, |φ| ≤ 1.5 (`flow::prescribed::MAX_FRAME_ANGLE`: at ±π/2, `V = ±N` and the
-    /// boundary problem is not elliptic).
+    // `flow::prescribed::MAX_FRAME_ANGLE`: at ±π/2, `V = ±N`.
+    /// φ in radians, |φ| ≤ 1.5 (at ±π/2 the boundary problem is not elliptic).
     pub frame_angle: f64,
     /// Axis of the rotation from `V` to its target (default: the boundary tangent).
     pub axis: AxisSpec,
@@ -103,25 +103,25 @@ impl PrescribedSpec {
 }
 
 /// Axis of the rotation that makes the target from the input's `V`.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum AxisSpec {
     /// The boundary tangent at each vertex (flares or tucks the boundary).
     #[default]
     Tangent,
-    /// One direction in space for every vertex, `[x, y, z]`, finite and non-zero (need not be
-    /// unit length): tilts a whole loop.
+    // It need not be unit length; it tilts a whole loop.
+    /// One direction in space for every vertex, `[x, y, z]`, finite and non-zero.
     Fixed([f64; 3]),
 }
 
 /// Rotation angles in radians.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum AnglesSpec {
     /// The same angle at every boundary vertex.
     Uniform(f64),
-    /// One angle per boundary loop, in the order of the mesh's boundary loops; the count must
-    /// match the uploaded mesh.
+    // The count must match the uploaded mesh (checked against it at submission).
+    /// One angle per boundary loop, in the order of the mesh's boundary loops.
     PerLoop(Vec<f64>),
 }
 

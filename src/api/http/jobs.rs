@@ -2,9 +2,8 @@
 //! result, and the job as HTTP clients see it ([`JobView`]).
 
 use super::body::{drain_refused, read_limited, MULTIPART_SLACK};
-use super::params::{
-    parse_out_format, query, spec_from_json, FormatQuery, FramesQuery, JobQuery, ListQuery,
-};
+use super::params::{parse_out_format, query, spec_from_json, FormatQuery, FramesQuery, ListQuery};
+use super::spec_query::JobQuery;
 use crate::api::download::{self, Download, DownloadBudget};
 use crate::api::problem::{clip, Problem};
 use crate::api::state::AppState;
@@ -82,7 +81,6 @@ pub struct JobView {
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub notes: Vec<String>,
     /// The parameters the job runs with, defaults filled in.
-    #[schema(value_type = crate::api::schema::JobSpecSchema)]
     pub params: JobSpec,
     /// `obj`, `glb` or `gltf`.
     pub input_format: String,
@@ -307,7 +305,7 @@ async fn create_job_inner(
         }
     }
     let query_given = req.uri().query().is_some_and(|q| !q.is_empty());
-    let query_spec = query::<JobQuery>(req.uri())?.into_spec()?;
+    let query_spec = super::spec_query::spec_from_query(req.uri())?;
 
     let (data, format, spec) = if let Some(format) = Format::from_mime(&content_type) {
         let data = read_limited(req.into_body(), limit)

@@ -29,6 +29,7 @@ mod events;
 mod jobs;
 mod params;
 mod probes;
+mod spec_query;
 
 pub use super::state::AppState;
 pub(super) use body::DRAIN_MAX_BYTES;
@@ -39,8 +40,9 @@ pub use jobs::{
     cancel_job, create_job, delete_job, frame_mesh, get_job, job_result, list_frames, list_jobs,
     FrameList, JobList, JobView, LatestMetrics, Links, Progress,
 };
-pub use params::{EventsQuery, FormatQuery, FramesQuery, JobQuery, ListQuery};
+pub use params::{EventsQuery, FormatQuery, FramesQuery, ListQuery};
 pub use probes::{healthz, metrics, readyz};
+pub use spec_query::JobQuery;
 
 use super::auth::SecurityAddon;
 use super::problem::Problem;
@@ -109,7 +111,7 @@ pub fn probe_routes(state: AppState) -> Router {
     info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
     paths(jobs::create_job, jobs::list_jobs, jobs::get_job, jobs::cancel_job, jobs::delete_job, events::job_events, jobs::list_frames, jobs::frame_mesh, jobs::job_result, curves::fair_curve, probes::healthz, probes::readyz, probes::metrics, super::auth::mint_stream_token),
     modifiers(&SecurityAddon),
-    components(schemas(super::auth::StreamToken, JobView, JobList, super::schema::JobSpecSchema, super::schema::FilterSpecSchema, super::schema::BoundarySpecSchema, super::schema::PrescribedSpecSchema, super::schema::AxisSpecSchema, super::schema::AnglesSpecSchema, super::schema::RegionSchema, super::schema::SeamSchema, super::schema::PreserveSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
+    components(schemas(super::auth::StreamToken, JobView, JobList, crate::jobs::JobSpec, crate::jobs::spec::FilterSpec, crate::jobs::spec::BoundarySpec, crate::jobs::spec::PrescribedSpec, crate::jobs::spec::AxisSpec, crate::jobs::spec::AnglesSpec, super::schema::RegionSchema, super::schema::SeamSchema, super::schema::PreserveSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
     tags((name = "jobs", description = "Fairing jobs"), (name = "curves", description = "Curve fairing (paper §5), synchronous"), (name = "ops", description = "Probes and metrics"))
 )]
 pub struct ApiDoc;
@@ -160,7 +162,7 @@ pub async fn no_route(req: Request<Body>) -> Response {
 /// at any time). They run the same code `create_job` runs, minus the network and the job core.
 #[doc(hidden)]
 pub mod fuzzing {
-    use super::{JobQuery, Problem};
+    use super::Problem;
 
     /// `POST /v1/jobs?{query}` with, when `params` is given, a multipart `params` part holding
     /// those bytes: the validated job spec, or the problem the client gets. A query that does
@@ -173,7 +175,7 @@ pub mod fuzzing {
         let Ok(uri) = format!("/v1/jobs?{query}").parse::<axum::http::Uri>() else {
             return Ok(None);
         };
-        let query_spec = super::params::query::<JobQuery>(&uri)?.into_spec()?;
+        let query_spec = super::spec_query::spec_from_query(&uri)?;
         let spec = match params {
             None => query_spec,
             Some(text) => {

@@ -1,0 +1,351 @@
+//! What a job asks for: [`JobSpec`], its defaults, its checks (against the server's limits
+//! and, once the file is read, against the mesh) and the flow parameters it makes.
+
+use super::error::JobError;
+use super::model::Config;
+use super::spec;
+use serde::{Deserialize, Serialize};
+use willow::flow::region::{Region, Seam};
+use willow::flow::{FlowParams, Method, Preserve};
+use willow::mesh::io::{Asset, Format};
+use willow::mesh::{Limits, MeshError};
+
+/// What to run on an uploaded mesh. Transports turn their wire parameters into this and call
+/// [`JobSpec::validate`] (which [`Jobs::submit`](super::Jobs::submit) calls again, so no transport can skip it).
+///
+/// Stored as JSON with the job: a field added later must have a default (`#[serde(default)]`
+/// fills it in for rows written before it existed) and is appended at the end (see
+/// `codec::request_hash`). Every field of [`FlowParams`] has one here.
+///
+/// Its OpenAPI schema is derived from this declaration: the field docs are the API's
+/// descriptions (so they speak JSON: `null`, not `None`), the library's types are described
+/// by the small mirrors in `api::schema`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(default, deny_unknown_fields)]
+#[schema(
+    description = "What to run on an uploaded mesh (a job's `params`, as reported and as accepted)."
+)]
+pub struct JobSpec {
+    /// Which flow: `conformal` (the paper), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
+    /// `taubin`.
+    #[schema(value_type = String, example = "conformal")]
+    pub method: Method,
+    /// Number of flow steps to take (step 0 is the input).
+    #[schema(minimum = 1)]
+    pub steps: usize,
+    // The library's `FlowParams::tau`.
+    /// Time step τ (conformal: the curvature update `u ← (1 − 2τ)u`, stable for τ < 1).
+    pub tau: f64,
+    /// Inverse power iterations per step (conformal flow).
+    pub iterations: usize,
+    // Kept frames are what `frames/{step}` serves and what watchers get `positions` for.
+    /// Every `frame_interval`-th step (and step 0 and the last step) keeps its positions.
+    pub frame_interval: usize,
+    /// Whether live and replayed frames carry positions at all (metrics are always sent).
+    pub include_positions: bool,
+    /// Wall-clock budget from submission, in seconds; null takes the server default.
+    pub deadline_secs: Option<f64>,
+    /// Exactness constraints on surfaces of genus > 0 (§6.2, App. C); conformal flow only.
+    pub exactness: bool,
+    /// Möbius balancing toward the input's area distribution (App. E.1); conformal only.
+    pub mobius_balancing: bool,
+    /// Spectral filter of the flow direction (§4); null is the paper's plain flow.
+    pub filter: Option<spec::FilterSpec>,
+    /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
+    pub boundary: spec::BoundarySpec,
+    // See `willow::flow::safeguard`.
+    /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ.
+    pub safeguard: bool,
+    // See `willow::flow::region`. Vertex lists are in the file's numbering (OBJ `v` lines
+    // from 0, glTF accessor vertices); spheres and boxes in its world space.
+    /// The part of the surface that moves (their union); empty: the whole surface. Every
+    /// vertex outside stays bit-identical. Accepted as one region or a list; reported as a
+    /// list. Conformal flow only.
+    #[serde(deserialize_with = "spec::one_or_many_regions::deserialize")]
+    #[schema(value_type = Vec<crate::api::schema::RegionSchema>)]
+    pub region: Vec<Region>,
+    /// How a region meets the surface around it: `smooth` (positions and tangent planes
+    /// held) or `fixed` (positions only).
+    #[schema(value_type = crate::api::schema::SeamSchema)]
+    pub seam: Seam,
+    /// What each connected component keeps after every step: `area` (default), `volume`
+    /// (closed components keep their enclosed volume, by a uniform scale: Q is untouched) or
+    /// `none`. Taubin smoothing refuses `volume`.
+    #[schema(value_type = crate::api::schema::PreserveSchema)]
+    pub preserve: Preserve,
+    /// Stop once the Willmore energy is at most this (outcome `target_reached`); ≥ 0.
+    pub until_willmore: Option<f64>,
+    /// Stop once W has stopped falling: its relative change stayed below 1e-4 per step for 3
+    /// steps (outcome `converged`). Default true; false runs every step.
+    pub until_converged: bool,
+    /// Stop before the first step that would move the surface further than this from the
+    /// input, in model units (outcome `max_deviation`): the result is the last surface within
+    /// it. ≥ 0; turns `measure_deviation` on.
+    pub max_deviation: Option<f64>,
+    /// Report each frame's two-sided distance from the input (`deviation_max`,
+    /// `deviation_mean`, model units). Off by default: it costs a share of every step.
+    pub measure_deviation: bool,
+    // See `willow::flow::feature`.
+    /// Remove the detail smaller than this length (model units, > 0, at least two mean edge
+    /// lengths) and keep the shape above it: the spectral filter (§4) with its crossover at
+    /// this size; the job ends `feature_scale_reached` once the detail is gone. Conformal flow
+    /// only; `filter`, when given, replaces the derived σ and k.
+    pub feature_size: Option<f64>,
+    /// Width (model units, > 0) over which a region's motion blends to zero toward its
+    /// border. Needs a region.
+    pub falloff: Option<f64>,
+    // `Asset::read_repaired`.
+    /// Repair the upload before the flow: drop degenerate faces and split non-manifold
+    /// vertices and edges; the submission's answer has `repairs`. Default false: such a file
+    /// is refused, naming its own vertex and face numbers.
+    pub repair: bool,
+    /// Loop-subdivide the upload toward ~16k triangles before the flow (UVs interpolated per
+    /// corner), for tessellations too coarse to fair (`already_fair`). Frames then carry the
+    /// refined mesh's vertices (the file's own first, then the new ones; `vertex_count` of
+    /// them) and frame 0 says `connectivity_changed`: fetch its mesh for the faces.
+    // `willow::mesh::io::Asset::refined`, at its default target edge.
+    pub refine: bool,
+    // Signed by `super::webhooks`; the address policy is `Config::allow_insecure_callbacks`.
+    /// Where the job's end (`job.succeeded`, `job.failed`, `job.cancelled`) is POSTed as a
+    /// Standard Webhooks event (`webhook-id`, `webhook-timestamp`, `webhook-signature:
+    /// v1,<base64 HMAC-SHA256 of "{id}.{timestamp}.{body}">`, keyed by the tenant's webhook
+    /// secret), retried with backoff until answered 2xx. `https` to a public address only,
+    /// unless the server runs with `--allow-insecure-callbacks`.
+    pub callback_url: Option<String>,
+}
+
+impl Default for JobSpec {
+    fn default() -> Self {
+        let flow = FlowParams::default();
+        JobSpec {
+            method: flow.method,
+            steps: 20,
+            tau: flow.tau,
+            iterations: flow.iterations,
+            frame_interval: 1,
+            include_positions: true,
+            deadline_secs: None,
+            exactness: flow.exactness,
+            mobius_balancing: flow.mobius_balancing,
+            filter: None,
+            boundary: spec::BoundarySpec::Free,
+            safeguard: flow.safeguard,
+            region: Vec::new(),
+            seam: flow.seam,
+            preserve: flow.preserve,
+            until_willmore: flow.until_willmore,
+            until_converged: flow.until_converged,
+            max_deviation: flow.max_deviation,
+            measure_deviation: flow.measure_deviation,
+            feature_size: flow.feature_size,
+            falloff: flow.falloff,
+            repair: false,
+            refine: false,
+            callback_url: None,
+        }
+    }
+}
+
+impl JobSpec {
+    /// The uploaded file as this job reads it: repaired, then refined, when it asks for it.
+    /// Deterministic, so the admission, the worker and every download see the same mesh.
+    pub fn read_asset(
+        &self,
+        bytes: &[u8],
+        format: Format,
+        limits: &Limits,
+    ) -> Result<Asset, MeshError> {
+        let asset = if self.repair {
+            Asset::read_repaired(bytes, format, limits)?
+        } else {
+            Asset::read(bytes, format, limits)?
+        };
+        if self.refine {
+            Ok(asset.refined(None, limits)?.0)
+        } else {
+            Ok(asset)
+        }
+    }
+
+    /// Check every field against the server's limits; the error names the field.
+    pub fn validate(&self, config: &Config) -> Result<(), JobError> {
+        self.validate_with(config.limits.max_steps, config.max_deadline.as_secs_f64())
+    }
+
+    /// [`JobSpec::validate`] with explicit limits (the CLI has none of a server's).
+    pub fn validate_with(&self, max_steps: usize, max_deadline_secs: f64) -> Result<(), JobError> {
+        let bad =
+            |field: &'static str, reason: String| Err(JobError::InvalidSpec { field, reason });
+        if self.steps == 0 {
+            return bad("steps", "must be at least 1".into());
+        }
+        if self.steps > max_steps {
+            return Err(JobError::TooLarge {
+                what: "steps",
+                limit: max_steps as u64,
+            });
+        }
+        if self.method == Method::Conformal && self.tau >= 1.0 {
+            // §4: the curvature update u ← (1 − 2τ)u is only stable for τ < 1. The library
+            // lets a caller take such a step to see it diverge; a job would only fail.
+            return bad(
+                "tau",
+                format!(
+                    "must be < 1 for the conformal flow (paper §4), got {}",
+                    self.tau
+                ),
+            );
+        }
+        if self.frame_interval == 0 {
+            return bad("frame_interval", "must be at least 1".into());
+        }
+        if let Some(d) = self.deadline_secs {
+            if !d.is_finite() || d <= 0.0 {
+                return bad(
+                    "deadline_secs",
+                    format!("must be a finite number > 0, got {d}"),
+                );
+            }
+            if d > max_deadline_secs {
+                return bad(
+                    "deadline_secs",
+                    format!("must be at most {max_deadline_secs} (the server's maximum), got {d}"),
+                );
+            }
+        }
+        if let Some(url) = &self.callback_url {
+            // The scheme and address policy needs the server's flag and a DNS lookup: it is
+            // `webhooks::check_callback`'s, at submission. Here only the form.
+            super::webhooks::parse_callback(url).map_err(|reason| JobError::InvalidSpec {
+                field: "callback_url",
+                reason,
+            })?;
+        }
+        // The boundary first: its checks name the field path inside it, where the library
+        // names `boundary` as a whole.
+        if let Err((field, reason)) = spec::check_boundary(&self.boundary) {
+            return bad(field, reason);
+        }
+        // Everything else about the flow is the library's to judge, by the same names.
+        self.flow_params().validate().map_err(|e| match e {
+            willow::flow::FlowError::InvalidParameter { name, reason } => JobError::InvalidSpec {
+                field: name,
+                reason,
+            },
+            other => JobError::InvalidSpec {
+                field: "params",
+                reason: other.to_string(),
+            },
+        })
+    }
+
+    /// Checks that need the uploaded file: vertex regions name vertices of its triangles, the
+    /// regions select some but not every vertex, one per-loop boundary angle per boundary loop.
+    pub fn validate_for_asset(&self, asset: &Asset) -> Result<(), JobError> {
+        let mesh = asset.surface();
+        if !self.region.is_empty() {
+            let regions = self.surface_regions(asset)?;
+            let selected =
+                willow::flow::region::select(&mesh.positions, &regions).map_err(|reason| {
+                    JobError::InvalidSpec {
+                        field: "region",
+                        reason,
+                    }
+                })?;
+            let count = selected.iter().filter(|&&s| s).count();
+            if count == 0 || count == selected.len() {
+                return Err(JobError::InvalidSpec {
+                    field: "region",
+                    reason: if count == 0 {
+                        "the region selects no vertex of the mesh".into()
+                    } else {
+                        "the region selects every vertex: leave it out to fair the whole \
+                         surface"
+                            .into()
+                    },
+                });
+            }
+        }
+        if let spec::BoundarySpec::Prescribed(p) = &self.boundary {
+            if matches!(p.angles, spec::AnglesSpec::PerLoop(_)) {
+                let loops = willow::mesh::topology::Topology::new(mesh)
+                    .boundary_loops
+                    .len();
+                spec::check_loop_count(&self.boundary, loops)
+                    .map_err(|(field, reason)| JobError::InvalidSpec { field, reason })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The regions on the welded surface: vertex lists renumbered from the file's numbering.
+    pub fn surface_regions(&self, asset: &Asset) -> Result<Vec<Region>, JobError> {
+        self.region
+            .iter()
+            .map(|r| match r {
+                Region::Vertices(list) => asset
+                    .surface_vertices(list)
+                    .map(Region::Vertices)
+                    .map_err(|v| JobError::InvalidSpec {
+                        field: "region",
+                        reason: format!(
+                            "vertex {v} is not a vertex of a triangle of the file ({} vertices)",
+                            asset.file_vertex_count()
+                        ),
+                    }),
+                // A group names faces of the file: its vertices on the welded surface.
+                Region::Group(_) => {
+                    willow::flow::region::resolve_groups(std::slice::from_ref(r), asset)
+                        .map(|mut resolved| resolved.remove(0))
+                        .map_err(|reason| JobError::InvalidSpec {
+                            field: "region",
+                            reason,
+                        })
+                }
+                other => Ok(other.clone()),
+            })
+            .collect()
+    }
+
+    /// The flow parameters this spec asks for on `asset`: [`JobSpec::flow_params`] with the
+    /// regions on its welded surface.
+    pub fn flow_params_for(&self, asset: &Asset) -> Result<FlowParams, JobError> {
+        Ok(FlowParams {
+            regions: self.surface_regions(asset)?,
+            ..self.flow_params()
+        })
+    }
+
+    /// The flow parameters this spec asks for: every field of [`FlowParams`] (regions as the
+    /// spec holds them, in file numbering: see [`JobSpec::flow_params_for`]).
+    pub fn flow_params(&self) -> FlowParams {
+        FlowParams {
+            method: self.method,
+            tau: self.tau,
+            iterations: self.iterations,
+            exactness: self.exactness,
+            mobius_balancing: self.mobius_balancing,
+            filter: self.filter.map(spec::FilterSpec::to_flow),
+            boundary: self.boundary.to_flow(),
+            safeguard: self.safeguard,
+            // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
+            threads: 1,
+            precision: willow::flow::Precision::Auto,
+            regions: self.region.clone(),
+            seam: self.seam,
+            preserve: self.preserve,
+            until_willmore: self.until_willmore,
+            until_converged: self.until_converged,
+            max_deviation: self.max_deviation,
+            measure_deviation: self.measure_deviation,
+            feature_size: self.feature_size,
+            falloff: self.falloff,
+        }
+    }
+
+    /// Whether `step` keeps positions (step 0, every `frame_interval`-th, and the last).
+    pub fn keeps_positions(&self, step: usize) -> bool {
+        self.include_positions
+            && (step.is_multiple_of(self.frame_interval.max(1)) || step == self.steps)
+    }
+}
