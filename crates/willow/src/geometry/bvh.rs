@@ -256,6 +256,20 @@ impl Bvh {
         hint: Option<usize>,
         slack: f64,
     ) -> Option<(usize, f64)> {
+        self.nearest_until(positions, triangles, p, hint, slack, -1.0)
+    }
+
+    /// [`Bvh::nearest_within`] that stops at the first triangle whose squared distance is
+    /// at most `enough` (a caller that only needs to know some face is that near).
+    pub(crate) fn nearest_until(
+        &self,
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+        p: [f64; 3],
+        hint: Option<usize>,
+        slack: f64,
+        enough: f64,
+    ) -> Option<(usize, f64)> {
         let root = self.nodes.first()?;
         let grow = (1.0 + slack) * (1.0 + slack);
         let pruned_d2 = |node: &Node, p: [f64; 3]| grow * box_d2(node, p);
@@ -276,7 +290,7 @@ impl Bvh {
             stack[0] = 0;
             top = 1;
         }
-        while top > 0 {
+        while top > 0 && best.1 > enough {
             top -= 1;
             let node = self.nodes[stack[top] as usize];
             if pruned_d2(&node, p) >= best.1 {
@@ -431,7 +445,8 @@ mod tests {
     }
 
     /// Within a slack, the face found is never nearer than the nearest (it is a real face)
-    /// and never further than `1 + slack` times it, from every hint, for probes near and far.
+    /// and never further than `1 + slack` times it, from every hint, for probes near and far;
+    /// asked to stop at a distance, the face found is within it.
     #[test]
     fn nearest_within_a_slack_stays_within_it() {
         let mesh = bumpy_sphere(3, 0.2);
@@ -466,6 +481,16 @@ mod tests {
                     );
                     assert!(d >= want * (1.0 - 1e-12), "{p:?}: {d} below {want}");
                     assert!(d <= want * (1.0 + slack) + 1e-12, "{p:?}: {d} vs {want}");
+                    // Asked only for some face within 1.5 times the nearest distance: one
+                    // that is, named with its own distance.
+                    let enough = (1.5 * want).powi(2);
+                    let (f, d2) = bvh
+                        .nearest_until(&mesh.positions, &mesh.triangles, p, hint, slack, enough)
+                        .expect("non-empty");
+                    let [a, b, c] = mesh.triangles[f].map(|v| mesh.positions[v]);
+                    let e2 = dist2(p, closest_point_on_triangle(p, a, b, c));
+                    assert!((e2 - d2).abs() <= 1e-12 * d2.max(1e-12), "{p:?}: face {f}");
+                    assert!(d2 <= enough, "{p:?}: {d2} above {enough}");
                 }
             }
         }

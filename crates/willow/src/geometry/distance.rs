@@ -247,7 +247,8 @@ impl Side<'_> {
     /// `max` (the max only grows); only the samples whose bounds exceed it get an exact
     /// query, which may raise it. Top-down through this surface's tree, with bounds from the
     /// faces that queries within [`BOUND_SLACK`] find (any face's distance bounds the
-    /// surface's from above):
+    /// surface's from above), each query stopping at the first face near enough to skip what
+    /// it bounds (most of them, below the max):
     /// - a node: the distance to a surface is 1-Lipschitz and every sample of a node lies in
     ///   its box, so none is further than `d(centre, F) + half diagonal`;
     /// - a leaf: the samples of its triangles lie in the convex hull of their vertices and
@@ -280,7 +281,7 @@ impl Side<'_> {
             let centre = scale(add(node.min, node.max), 0.5);
             let remembered = memory.node_face[index as usize] as usize;
             let hint = self.nearer(centre, parent_face as usize, remembered);
-            let (face, d) = self.bound(centre, hint);
+            let (face, d) = self.bound(centre, hint, max - radius);
             memory.node_face[index as usize] = face as u32;
             if d + radius <= max {
                 continue;
@@ -314,7 +315,7 @@ impl Side<'_> {
                     memory.settled[i] = self.frame;
                     let p = self.samples[i];
                     let hint = self.nearer(p, face, memory.nearest[i] as usize);
-                    let (near, u) = self.bound(p, hint);
+                    let (near, u) = self.bound(p, hint, max);
                     memory.nearest[i] = near as u32;
                     if u <= max {
                         continue;
@@ -343,16 +344,19 @@ impl Side<'_> {
         }
     }
 
-    /// A face of the other surface within [`BOUND_SLACK`] of the nearest to `p`, and its
-    /// distance: an upper bound of `p`'s.
-    fn bound(&self, p: [f64; 3], hint: usize) -> (usize, f64) {
+    /// A face of the other surface and its distance, an upper bound of `p`'s: the first
+    /// found within `enough` (all the caller needs to skip what it bounds), else one within
+    /// [`BOUND_SLACK`] of the nearest.
+    fn bound(&self, p: [f64; 3], hint: usize, enough: f64) -> (usize, f64) {
+        let enough = if enough > 0.0 { enough * enough } else { -1.0 };
         self.other
-            .nearest_within(
+            .nearest_until(
                 self.other_positions,
                 self.triangles,
                 p,
                 Some(hint),
                 BOUND_SLACK,
+                enough,
             )
             .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
     }
