@@ -15,6 +15,7 @@ use std::process::ExitCode;
 use willow::curve::{Curve, CurveFlow, CurveParams};
 use willow::flow::region::Region;
 use willow::flow::{new_flow, FlowParams, Method, Precision};
+use willow::geometry::operators::face_areas_into;
 use willow::mesh::generate::bumpy_sphere;
 use willow::mesh::io::{Asset, Format, Limits};
 use willow::mesh::Mesh;
@@ -124,11 +125,19 @@ struct Figures {
     region_setup_ms: f64,
     region_median_try_ms: f64,
     region_try_ratio: f64,
-    /// One measurement of the distance from the input (`deviation_max`, `deviation_mean`) on
-    /// the conformal flow's last surface, median of a few, and that over the median try
-    /// (issue 29: at most 10% at 100k triangles).
-    deviation_ms: f64,
-    deviation_ratio: f64,
+    /// The distance from the input (`deviation_max`, `deviation_mean`) measured on every frame
+    /// of the conformal flow, as a job measures it (one `Deviation`, frame after frame), in ms
+    /// and over the median try (issue 29: at most 10% at 100k triangles, in every phase): after
+    /// the first step (the surface near the input), after the last (moved far from it), and
+    /// the slowest frame.
+    deviation_near_ms: f64,
+    deviation_near_ratio: f64,
+    deviation_far_ms: f64,
+    deviation_far_ratio: f64,
+    deviation_worst_ms: f64,
+    deviation_worst_ratio: f64,
+    /// The last frame's `deviation_max` (model units): how far "far" was.
+    deviation_far_max: f64,
 }
 
 /// The share of a mesh's vertices the region benchmark fairs.
@@ -211,10 +220,17 @@ pub fn run(args: BenchArgs) -> ExitCode {
                         f.region_try_ratio * 100.0
                     );
                     println!(
-                        "    distance from the input (deviation_*): {:.2} ms a frame, {:.1}% of a \
-                         try",
-                        f.deviation_ms,
-                        f.deviation_ratio * 100.0
+                        "    distance from the input (deviation_*) a frame: near (step 1) {:.2} ms, \
+                         {:.1}% of a try; far (step {}, max {:.3e}) {:.2} ms, {:.1}%; slowest \
+                         frame {:.2} ms, {:.1}%",
+                        f.deviation_near_ms,
+                        f.deviation_near_ratio * 100.0,
+                        args.steps,
+                        f.deviation_far_max,
+                        f.deviation_far_ms,
+                        f.deviation_far_ratio * 100.0,
+                        f.deviation_worst_ms,
+                        f.deviation_worst_ratio * 100.0
                     );
                 }
             }
@@ -379,6 +395,11 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         try_times.push(last.step_ms / f64::from(1 + last.rejected));
     }
     let peak = peak_rss_mb();
+    // Built after the peak is read, so the flow's own memory stays comparable with earlier runs.
+    let mut deviation = FrameDeviation::new(mesh);
+    if args.steps > 0 {
+        deviation.time(flow.positions());
+    }
 
     // A small MCF step: its cost does not depend on τ, and mean curvature flow pinches thin
     // features (cheburashka's ears) within a few larger steps, after which M + hL stops being
@@ -435,6 +456,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
             if last.rejected == 0 {
                 clean_times.push(last.step_ms);
             }
+            deviation.time(flow.positions());
         }
         if let (true, Some(unguarded_flow)) = (unguarded_running, unguarded_flow.as_mut()) {
             // Timed from outside, like the guarded step's step_ms (which spans its tries).
@@ -462,13 +484,13 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
                 .collect()
         })
         .unwrap_or_default();
-    let deviation_ms = measure_deviation(mesh, flow.positions());
     drop((flow, mcf_flow, unguarded_flow));
     let region = measure_region(mesh, &conformal, args.steps)?;
     let u = median(&mut unguarded_times);
     let clean = median(&mut clean_times);
     let (c, m) = (median(&mut times), median(&mut mcf_times));
     let t = median(&mut try_times);
+    let share = |ms: f64| if t > 0.0 { ms / t } else { f64::NAN };
     Ok(Figures {
         mesh: name.to_string(),
         vertices: mesh.vertex_count(),
@@ -498,29 +520,71 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         } else {
             f64::NAN
         },
-        deviation_ms,
-        deviation_ratio: if t > 0.0 { deviation_ms / t } else { f64::NAN },
+        deviation_near_ms: deviation.near_ms(),
+        deviation_near_ratio: share(deviation.near_ms()),
+        deviation_far_ms: deviation.far_ms(),
+        deviation_far_ratio: share(deviation.far_ms()),
+        deviation_worst_ms: deviation.worst_ms(),
+        deviation_worst_ratio: share(deviation.worst_ms()),
+        deviation_far_max: deviation.far_max,
     })
 }
 
-/// Median time of the flow's per-frame distance measurement (`geometry::distance::Deviation`,
-/// built once from the input as the flow builds it) on the surface at `positions`.
-fn measure_deviation(mesh: &Mesh, positions: &[[f64; 3]]) -> f64 {
-    use willow::geometry::distance::Deviation;
-    use willow::geometry::operators::face_areas_into;
-    let topology = willow::mesh::topology::Topology::new(mesh);
-    let mut areas = vec![0.0; mesh.face_count()];
-    face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
-    let mut deviation = Deviation::new(&mesh.positions, &mesh.triangles, &topology, &areas);
-    face_areas_into(positions, &mesh.triangles, &mut areas);
-    let mut times: Vec<f64> = (0..5)
-        .map(|_| {
-            let t = std::time::Instant::now();
-            std::hint::black_box(deviation.measure(positions, &mesh.triangles, &areas));
-            t.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    median(&mut times)
+/// The flow's per-frame distance measurement (`geometry::distance::Deviation`, built once
+/// from the input as the flow builds it), timed on each frame in turn: a job measures every
+/// frame with one `Deviation`, which keeps what it learnt from the previous frame.
+struct FrameDeviation {
+    triangles: Vec<[usize; 3]>,
+    areas: Vec<f64>,
+    deviation: willow::geometry::distance::Deviation,
+    frame_ms: Vec<f64>,
+    far_max: f64,
+}
+
+impl FrameDeviation {
+    fn new(mesh: &Mesh) -> Self {
+        let topology = willow::mesh::topology::Topology::new(mesh);
+        let mut areas = vec![0.0; mesh.face_count()];
+        face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
+        let deviation = willow::geometry::distance::Deviation::new(
+            &mesh.positions,
+            &mesh.triangles,
+            &topology,
+            &areas,
+        );
+        FrameDeviation {
+            triangles: mesh.triangles.clone(),
+            areas,
+            deviation,
+            frame_ms: Vec::new(),
+            far_max: f64::NAN,
+        }
+    }
+
+    fn time(&mut self, positions: &[[f64; 3]]) {
+        // The face areas come with the frame (the flow has them already): not timed.
+        face_areas_into(positions, &self.triangles, &mut self.areas);
+        let t = std::time::Instant::now();
+        let (max, _) = std::hint::black_box(self.deviation.measure(
+            positions,
+            &self.triangles,
+            &self.areas,
+        ));
+        self.frame_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        self.far_max = max;
+    }
+
+    fn near_ms(&self) -> f64 {
+        self.frame_ms.first().copied().unwrap_or(f64::NAN)
+    }
+
+    fn far_ms(&self) -> f64 {
+        self.frame_ms.last().copied().unwrap_or(f64::NAN)
+    }
+
+    fn worst_ms(&self) -> f64 {
+        self.frame_ms.iter().copied().fold(f64::NAN, f64::max)
+    }
 }
 
 struct RegionFigures {

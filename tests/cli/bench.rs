@@ -30,6 +30,23 @@ fn bench_prints_figures_and_ratio() {
         .as_f64()
         .is_some_and(f64::is_finite));
     assert!(line["rejected_tries"].as_u64().is_some());
+    // The distance from the input, timed on the first frame and the last (issue 29).
+    for key in [
+        "deviation_near_ms",
+        "deviation_far_ms",
+        "deviation_worst_ms",
+    ] {
+        assert!(
+            line[key].as_f64().is_some_and(|ms| ms > 0.0),
+            "{key}: {line}"
+        );
+    }
+    let (far, worst) = (
+        line["deviation_far_ms"].as_f64().unwrap_or(0.0),
+        line["deviation_worst_ms"].as_f64().unwrap_or(0.0),
+    );
+    assert!(far <= worst, "{line}");
+    assert!(line["deviation_far_max"].as_f64().is_some_and(|d| d > 0.0));
 }
 
 /// Meshes are measured in the order given, files before generated ones, each loaded only at

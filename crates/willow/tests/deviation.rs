@@ -293,3 +293,71 @@ fn flows_report_the_distance_of_the_returned_surface() {
     let json = serde_json::to_value(m).expect("serializes");
     assert!(json.get("deviation_max").is_none(), "{json}");
 }
+
+/// A surface moved far from the input (a translation of several edge lengths, a scale and a
+/// bend, so every sample is far and no two are equally far): the regime where last frame's
+/// faces and the bounds matter. The max never falls below the brute force's by more than 1%
+/// (it is exact), and the mean is within 1%.
+#[test]
+fn a_far_moved_surface_matches_brute_force_within_one_percent() {
+    let mesh = bumpy_sphere(3, 0.15);
+    let edge = {
+        let t = mesh.triangles[0];
+        let d = sub(mesh.positions[t[0]], mesh.positions[t[1]]);
+        dot(d, d).sqrt()
+    };
+    let current: Vec<P> = mesh
+        .positions
+        .iter()
+        .map(|p| {
+            let g = 1.2 + 0.1 * (1.7 * p[0]).sin();
+            [g * p[0] + 0.8, g * p[1] - 0.4, g * p[2] + 0.1 * p[0] * p[0]]
+        })
+        .collect();
+    let (max, mean) = willow_two_sided(&mesh, &current);
+    let (bmax, bmean) = brute_two_sided(&mesh.positions, &current, &mesh.triangles);
+    assert!(bmean > 3.0 * edge, "moved far: mean {bmean}, edge {edge}");
+    assert!(max >= 0.99 * bmax, "max {max} vs {bmax}");
+    assert!(max <= 1.01 * bmax, "max {max} vs {bmax}");
+    assert!((mean / bmean - 1.0).abs() < 0.01, "mean {mean} vs {bmean}");
+}
+
+/// One `Deviation` measuring frame after frame (as a flow does, keeping last frame's nearest
+/// faces) gives what a fresh one gives on each frame: the remembered faces only change where
+/// the searches start. The frames move away from the input, then jump back near it (every
+/// remembered face stale), on a mesh above `MEAN_SAMPLES` samples per side.
+#[test]
+fn hints_from_previous_frames_give_the_cold_answer() {
+    let mesh = torus(2.0, 0.7, 48, 32);
+    let moved = |p: P, s: f64| -> P {
+        let (sn, c) = (0.4 * s * p[2] + 0.3 * s * p[0]).sin_cos();
+        [
+            c * p[0] - sn * p[1] + 0.2 * s,
+            sn * p[0] + c * p[1],
+            p[2] * (1.0 + 0.4 * s * p[0].cos()),
+        ]
+    };
+    let topology = Topology::new(&mesh);
+    let mut areas = vec![0.0; mesh.face_count()];
+    face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
+    let mut warm = Deviation::new(&mesh.positions, &mesh.triangles, &topology, &areas);
+    let mut previous = 0.0;
+    for (k, s) in [0.1, 0.3, 0.6, 1.0, 1.5, 0.05].into_iter().enumerate() {
+        let current: Vec<P> = mesh.positions.iter().map(|&p| moved(p, s)).collect();
+        face_areas_into(&current, &mesh.triangles, &mut areas);
+        let (max, mean) = warm.measure(&current, &mesh.triangles, &areas);
+        let (cold_max, cold_mean) = willow_two_sided(&mesh, &current);
+        assert!(
+            (max - cold_max).abs() <= 1e-12 * cold_max,
+            "frame {k}: max {max} vs cold {cold_max}"
+        );
+        assert!(
+            (mean - cold_mean).abs() <= 1e-12 * cold_mean,
+            "frame {k}: mean {mean} vs cold {cold_mean}"
+        );
+        if k < 5 {
+            assert!(max > previous, "frame {k}: the frames move away ({max})");
+            previous = max;
+        }
+    }
+}

@@ -2,12 +2,8 @@
 //! volume hierarchy, and the two-sided sampled distance the flows report
 //! (`StepMetrics::deviation_max`, `deviation_mean`).
 //!
-//! - [`closest_point_on_triangle`]: the exact nearest point of one triangle (Ericson,
-//!   *Real-Time Collision Detection*, §5.1.5: Voronoi regions of the vertices, edges, face).
-//! - [`Bvh`]: a binary tree of axis-aligned boxes over a mesh's triangles, built once
-//!   (median split on the longest axis of the centroids) and *refitted* when the vertices
-//!   move: connectivity never changes during a flow, so only the boxes need refilling. A tree
-//!   whose refitted boxes have grown much looser than a fresh build's is rebuilt.
+//! - [`closest_point_on_triangle`] and [`Bvh`] (in [`super::bvh`]): the exact nearest point of
+//!   one triangle, and a tree of boxes over a mesh's triangles, refitted as the surface moves.
 //! - [`Deviation`]: samples on each surface (every vertex, edge midpoint and face centroid)
 //!   and their distance to the other surface's triangles.
 //!
@@ -15,327 +11,14 @@
 //! the nearest point of B's triangles, `deviation_max = max(max_{x∈S_cur} d(x, input),
 //! max_{x∈S_in} d(x, current))` (a sampled symmetric Hausdorff distance, exact over every
 //! sample), and `deviation_mean` the mean of the two one-sided area-weighted means (over
-//! every sample up to [`MEAN_SAMPLES`] per side, a strided subset above: see [`Deviation`]). The weights are the 7-point triangle
-//! rule (vertices 1/20, edge midpoints 2/15, centroid 9/20 of each incident face's area;
+//! every sample up to [`MEAN_SAMPLES`] per side, a strided subset above: see [`Deviation`]).
+//! The weights are the 7-point triangle rule (vertices 1/20, edge midpoints 2/15, centroid 9/20 of each incident face's area;
 //! exact for cubic integrands), so a one-sided mean approximates `∫ d(x, B) dA / A`.
 
-use super::vec3::{add, dot, scale, sub};
+use super::bvh::dist2;
+pub use super::bvh::{closest_point_on_triangle, Bvh};
+use super::vec3::{add, scale};
 use crate::mesh::topology::Topology;
-
-/// Closest point to `p` on the triangle `(a, b, c)` (Ericson §5.1.5). Exact in exact
-/// arithmetic for any triangle; a degenerate one (a segment or a point) gives the nearest
-/// point of what it degenerates to, or a vertex: never NaN for finite input.
-pub fn closest_point_on_triangle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> [f64; 3] {
-    let ab = sub(b, a);
-    let ac = sub(c, a);
-    let ap = sub(p, a);
-    let d1 = dot(ab, ap);
-    let d2 = dot(ac, ap);
-    if d1 <= 0.0 && d2 <= 0.0 {
-        return a;
-    }
-    let bp = sub(p, b);
-    let d3 = dot(ab, bp);
-    let d4 = dot(ac, bp);
-    if d3 >= 0.0 && d4 <= d3 {
-        return b;
-    }
-    let vc = d1 * d4 - d3 * d2;
-    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        let v = d1 / (d1 - d3);
-        return add(a, scale(ab, v));
-    }
-    let cp = sub(p, c);
-    let d5 = dot(ab, cp);
-    let d6 = dot(ac, cp);
-    if d6 >= 0.0 && d5 <= d6 {
-        return c;
-    }
-    let vb = d5 * d2 - d1 * d6;
-    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        let w = d2 / (d2 - d6);
-        return add(a, scale(ac, w));
-    }
-    let va = d3 * d6 - d5 * d4;
-    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        return add(b, scale(sub(c, b), w));
-    }
-    let sum = va + vb + vc;
-    if sum.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-        // Degenerate (zero-area) triangle whose regions above all missed: the nearest
-        // vertex is within rounding of the answer.
-        return [a, b, c]
-            .into_iter()
-            .min_by(|x, y| dist2(p, *x).total_cmp(&dist2(p, *y)))
-            .unwrap_or(a);
-    }
-    let denom = 1.0 / sum;
-    let v = vb * denom;
-    let w = vc * denom;
-    add(a, add(scale(ab, v), scale(ac, w)))
-}
-
-#[inline]
-fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
-    let d = sub(a, b);
-    dot(d, d)
-}
-
-/// Triangles per leaf: a leaf test costs ~4 box tests, so small leaves keep the tree shallow
-/// without making the box tests dominate.
-const LEAF_SIZE: usize = 4;
-/// Deepest possible traversal stack: a median split halves the triangles at every level,
-/// so depth ≤ log2(triangles) + 1, and 64 covers any mesh that fits in memory.
-const STACK: usize = 64;
-/// A refitted tree is rebuilt when the summed surface area of its boxes exceeds this multiple
-/// of a fresh build's: refitting keeps the build's grouping, which gets loose when the surface
-/// deforms a lot (spot → sphere), and a loose tree visits more boxes per query.
-const REBUILD_GROWTH: f64 = 2.0;
-
-#[derive(Clone, Copy, Debug)]
-struct Node {
-    min: [f64; 3],
-    max: [f64; 3],
-    /// Leaf: first index into `Bvh::order`; inner: index of the right child (the left
-    /// child is the next node: the nodes are stored in depth-first pre-order).
-    start: u32,
-    /// Triangles in a leaf; 0 for an inner node.
-    count: u32,
-}
-
-/// A bounding volume hierarchy over the triangles of one mesh (module docs).
-#[derive(Clone, Debug)]
-pub struct Bvh {
-    nodes: Vec<Node>,
-    /// Triangle indices, grouped by leaf.
-    order: Vec<u32>,
-    /// Summed surface area of the boxes right after the last build.
-    built_box_area: f64,
-}
-
-impl Bvh {
-    /// Build the tree of `triangles` at `positions` (indices must be in range: a validated
-    /// [`crate::mesh::Mesh`]). An empty mesh gives an empty tree whose queries find nothing.
-    pub fn new(positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> Self {
-        let mut bvh = Bvh {
-            nodes: Vec::with_capacity(2 * triangles.len().div_ceil(LEAF_SIZE)),
-            order: (0..triangles.len() as u32).collect(),
-            built_box_area: 0.0,
-        };
-        bvh.build(positions, triangles);
-        bvh
-    }
-
-    fn build(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]]) {
-        self.nodes.clear();
-        for (k, o) in self.order.iter_mut().enumerate() {
-            *o = k as u32;
-        }
-        if triangles.is_empty() {
-            self.built_box_area = 0.0;
-            return;
-        }
-        let centroids: Vec<[f64; 3]> = triangles
-            .iter()
-            .map(|t| {
-                scale(
-                    add(add(positions[t[0]], positions[t[1]]), positions[t[2]]),
-                    1.0 / 3.0,
-                )
-            })
-            .collect();
-        // Depth-first pre-order with an explicit stack (deep trees cannot overflow the
-        // thread's stack): a node is numbered when popped, so a left child, pushed last, is
-        // always its parent + 1; a right child patches its index into its parent.
-        let mut pending: Vec<(usize, usize, Option<usize>)> = vec![(0, triangles.len(), None)];
-        while let Some((start, end, parent)) = pending.pop() {
-            let index = self.nodes.len();
-            if let Some(parent) = parent {
-                self.nodes[parent].start = index as u32;
-            }
-            let (min, max) = bounds(positions, triangles, &self.order[start..end]);
-            if end - start <= LEAF_SIZE {
-                self.nodes.push(Node {
-                    min,
-                    max,
-                    start: start as u32,
-                    count: (end - start) as u32,
-                });
-                continue;
-            }
-            self.nodes.push(Node {
-                min,
-                max,
-                start: 0,
-                count: 0,
-            });
-            let (mut cmin, mut cmax) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-            for &f in &self.order[start..end] {
-                let c = centroids[f as usize];
-                for k in 0..3 {
-                    cmin[k] = cmin[k].min(c[k]);
-                    cmax[k] = cmax[k].max(c[k]);
-                }
-            }
-            let extent = sub(cmax, cmin);
-            let axis = if extent[0] >= extent[1] && extent[0] >= extent[2] {
-                0
-            } else if extent[1] >= extent[2] {
-                1
-            } else {
-                2
-            };
-            let mid = start + (end - start) / 2;
-            self.order[start..end].select_nth_unstable_by(mid - start, |&x, &y| {
-                centroids[x as usize][axis].total_cmp(&centroids[y as usize][axis])
-            });
-            pending.push((mid, end, Some(index)));
-            pending.push((start, mid, None));
-        }
-        self.built_box_area = self.box_area();
-    }
-
-    /// Refill every box after the vertices moved (children before parents: reverse
-    /// pre-order), and rebuild when the refitted boxes got much looser than a fresh build's
-    /// (twice as loose, by their summed surface area).
-    pub fn refit(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]]) {
-        for i in (0..self.nodes.len()).rev() {
-            let node = self.nodes[i];
-            let (min, max) = if node.count > 0 {
-                let s = node.start as usize;
-                bounds(
-                    positions,
-                    triangles,
-                    &self.order[s..s + node.count as usize],
-                )
-            } else {
-                let (l, r) = (self.nodes[i + 1], self.nodes[node.start as usize]);
-                (
-                    [
-                        l.min[0].min(r.min[0]),
-                        l.min[1].min(r.min[1]),
-                        l.min[2].min(r.min[2]),
-                    ],
-                    [
-                        l.max[0].max(r.max[0]),
-                        l.max[1].max(r.max[1]),
-                        l.max[2].max(r.max[2]),
-                    ],
-                )
-            };
-            self.nodes[i].min = min;
-            self.nodes[i].max = max;
-        }
-        if self.box_area() > REBUILD_GROWTH * self.built_box_area {
-            self.build(positions, triangles);
-        }
-    }
-
-    fn box_area(&self) -> f64 {
-        self.nodes
-            .iter()
-            .map(|n| {
-                let e = sub(n.max, n.min);
-                e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
-            })
-            .sum()
-    }
-
-    /// The triangle nearest to `p` and the squared distance to it, or `None` for an empty
-    /// tree. `hint`, a triangle likely to be near (the same face on the other surface of a
-    /// flow), starts the search with a tight bound so most boxes are never opened; the
-    /// answer does not depend on it, except which of two equally near triangles is named.
-    pub fn nearest(
-        &self,
-        positions: &[[f64; 3]],
-        triangles: &[[usize; 3]],
-        p: [f64; 3],
-        hint: Option<usize>,
-    ) -> Option<(usize, f64)> {
-        let root = self.nodes.first()?;
-        let triangle_d2 = |f: usize| {
-            let t = triangles[f];
-            dist2(
-                p,
-                closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
-            )
-        };
-        let mut best = match hint {
-            Some(f) if f < triangles.len() => (f, triangle_d2(f)),
-            _ => (usize::MAX, f64::INFINITY),
-        };
-        let mut stack = [0u32; STACK];
-        let mut top = 0usize;
-        if box_d2(root, p) < best.1 {
-            stack[0] = 0;
-            top = 1;
-        }
-        while top > 0 {
-            top -= 1;
-            let node = self.nodes[stack[top] as usize];
-            if box_d2(&node, p) >= best.1 {
-                continue;
-            }
-            if node.count > 0 {
-                let s = node.start as usize;
-                for &f in &self.order[s..s + node.count as usize] {
-                    let d2 = triangle_d2(f as usize);
-                    if d2 < best.1 {
-                        best = (f as usize, d2);
-                    }
-                }
-                continue;
-            }
-            let (l, r) = (stack[top] + 1, node.start);
-            let (dl, dr) = (
-                box_d2(&self.nodes[l as usize], p),
-                box_d2(&self.nodes[r as usize], p),
-            );
-            // Nearer child on top, so it is opened first and tightens the bound.
-            let (near, dn, far, df) = if dl <= dr {
-                (l, dl, r, dr)
-            } else {
-                (r, dr, l, dl)
-            };
-            if df < best.1 && top < STACK {
-                stack[top] = far;
-                top += 1;
-            }
-            if dn < best.1 && top < STACK {
-                stack[top] = near;
-                top += 1;
-            }
-        }
-        (best.0 != usize::MAX).then_some(best)
-    }
-}
-
-/// Box of the listed triangles' vertices.
-fn bounds(positions: &[[f64; 3]], triangles: &[[usize; 3]], faces: &[u32]) -> ([f64; 3], [f64; 3]) {
-    let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    for &f in faces {
-        for &v in &triangles[f as usize] {
-            let p = positions[v];
-            for k in 0..3 {
-                min[k] = min[k].min(p[k]);
-                max[k] = max[k].max(p[k]);
-            }
-        }
-    }
-    (min, max)
-}
-
-/// Squared distance from `p` to the node's box (0 inside).
-#[inline]
-fn box_d2(node: &Node, p: [f64; 3]) -> f64 {
-    let mut d2 = 0.0;
-    for k in 0..3 {
-        let d = (node.min[k] - p[k]).max(p[k] - node.max[k]).max(0.0);
-        d2 += d * d;
-    }
-    d2
-}
 
 /// 7-point rule weights (module docs), as fractions of a face's area: each of its corners,
 /// each of its edge midpoints, its centroid. 3/20 + 6/15 + 9/20 = 1.
@@ -410,40 +93,44 @@ impl SamplePlan {
     }
 }
 
-/// Samples per side whose exact distance enters the mean: all of them up to this many,
-/// else an evenly strided subset of about this many (see [`Deviation`]). An exact query
-/// costs about the number of triangles within the distance's slack of the sample (tens of
-/// them once the surface moved a few edge lengths: measured 5 µs per query on nefertiti
-/// after one step at τ 0.5), so every sample of a 100k-triangle mesh (600k queries) would
-/// cost several conformal steps; 2048 per side keep the mean's sampling error near 1%.
+/// Samples per side whose distance enters the mean: all of them up to this many, else an
+/// evenly strided subset of about this many (see [`Deviation`]). A query costs about the
+/// number of boxes within the distance of the sample (hundreds once the surface moved tens
+/// of edge lengths, as nefertiti does in one step at τ 0.5), so every sample of a
+/// 100k-triangle mesh (600k queries) would cost several conformal steps; 2048 per side keep
+/// the mean's sampling error near 1%.
 pub const MEAN_SAMPLES: usize = 2048;
+/// Samples per side above which the mean's distances are taken within [`MEAN_SLACK`]
+/// rather than exactly (see [`Deviation`]).
+pub const EXACT_MEAN_SAMPLES: usize = 16 * MEAN_SAMPLES;
+/// Relative slack of the mean's nearest-point queries on large meshes: each distance is
+/// between the exact one and `1 + MEAN_SLACK` times it, so the mean is too.
+pub const MEAN_SLACK: f64 = 0.005;
+/// Relative slack of the queries that only bound a distance from above for the max (the
+/// max itself is exact): the bound a face gives is its own distance, so a face within 1%
+/// of the nearest costs at most 1% of tightness, and the query skips the boxes in the thin
+/// shell just inside the nearest distance, most of what it opens far from the surface.
+const BOUND_SLACK: f64 = 0.01;
 /// Steps of the greedy walk over face neighbours that improves a query's starting face.
 const WALK_STEPS: usize = 8;
 
-/// A face near `p`: walk from `face` to the edge neighbour nearest to `p` while that gets
-/// nearer (at most [`WALK_STEPS`] steps). Only a starting point for an exact query, which
-/// then opens fewer boxes: the surface may have slid along itself since the input, so the
-/// same face on the other surface can be far.
+/// A face near `p` and its squared distance: walk from `face` to the edge neighbour nearest
+/// to `p` while that gets nearer (at most [`WALK_STEPS`] steps). The face's distance is an
+/// upper bound of `p`'s distance to the surface; a starting point for an exact query, which
+/// then opens fewer boxes.
 fn walk_down(
     p: [f64; 3],
     face: usize,
     neighbours: &[[u32; 3]],
     positions: &[[f64; 3]],
     triangles: &[[usize; 3]],
-) -> usize {
-    let d2_of = |f: usize| {
-        let t = triangles[f];
-        dist2(
-            p,
-            closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
-        )
-    };
-    let mut best = (face, d2_of(face));
+) -> (usize, f64) {
+    let mut best = (face, triangle_d2(p, face, positions, triangles));
     for _ in 0..WALK_STEPS {
         let here = best.0;
         for &g in &neighbours[here] {
             if g != u32::MAX {
-                let d2 = d2_of(g as usize);
+                let d2 = triangle_d2(p, g as usize, positions, triangles);
                 if d2 < best.1 {
                     best = (g as usize, d2);
                 }
@@ -453,7 +140,40 @@ fn walk_down(
             break;
         }
     }
-    best.0
+    best
+}
+
+#[inline]
+fn triangle_d2(p: [f64; 3], f: usize, positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> f64 {
+    let t = triangles[f];
+    dist2(
+        p,
+        closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
+    )
+}
+
+/// What one side keeps from frame to frame (a flow moves the surface a little per step, so
+/// last frame's answers are this frame's best starting points; only the speed depends on
+/// them, never the result).
+#[derive(Clone)]
+struct Memory {
+    /// Per sample, the face of the other surface found nearest to it last.
+    nearest: Vec<u32>,
+    /// Per node of this side's tree, a face of the other surface near the node's centre
+    /// (`u32::MAX`: none yet, start from the parent's).
+    node_face: Vec<u32>,
+    /// Per sample, the frame in which its distance was shown to be at most the max.
+    settled: Vec<u32>,
+}
+
+impl Memory {
+    fn new(hints: &[u32], nodes: usize) -> Self {
+        Memory {
+            nearest: hints.to_vec(),
+            node_face: vec![u32::MAX; nodes],
+            settled: vec![0; hints.len()],
+        }
+    }
 }
 
 /// One surface's side of the measure: its samples, their weights, its tree, and the other
@@ -461,7 +181,6 @@ fn walk_down(
 struct Side<'a> {
     samples: &'a [[f64; 3]],
     weights: &'a [f64],
-    hints: &'a [u32],
     /// This surface (its samples lie in its tree's boxes).
     own: &'a Bvh,
     own_positions: &'a [[f64; 3]],
@@ -469,7 +188,10 @@ struct Side<'a> {
     other: &'a Bvh,
     other_positions: &'a [[f64; 3]],
     triangles: &'a [[usize; 3]],
+    face_edges: &'a [[usize; 3]],
     neighbours: &'a [[u32; 3]],
+    /// This frame's number, for [`Memory::settled`].
+    frame: u32,
 }
 
 impl Side<'_> {
@@ -479,23 +201,41 @@ impl Side<'_> {
             .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
     }
 
+    fn walk(&self, p: [f64; 3], face: usize) -> (usize, f64) {
+        walk_down(
+            p,
+            face,
+            self.neighbours,
+            self.other_positions,
+            self.triangles,
+        )
+    }
+
     /// The exact largest and weighted mean distance over the strided subset of the
     /// [`Deviation`] docs.
-    fn subset(&self) -> (f64, f64) {
+    fn subset(&self, memory: &mut Memory) -> (f64, f64) {
         let n = self.samples.len();
         let stride = n.div_ceil(MEAN_SAMPLES).max(1);
+        let slack = if n > EXACT_MEAN_SAMPLES {
+            MEAN_SLACK
+        } else {
+            0.0
+        };
         let (mut max, mut sum, mut total) = (0.0f64, 0.0, 0.0);
         for i in (0..n).step_by(stride) {
             let p = self.samples[i];
-            let start = walk_down(
-                p,
-                self.hints[i] as usize,
-                self.neighbours,
-                self.other_positions,
-                self.triangles,
-            );
-            let d = self.exact(p, start).1;
-            max = max.max(d);
+            let (start, _) = self.walk(p, memory.nearest[i] as usize);
+            let (face, d) = self
+                .other
+                .nearest_within(self.other_positions, self.triangles, p, Some(start), slack)
+                .map_or((start, 0.0), |(f, d2)| (f, d2.sqrt()));
+            memory.nearest[i] = face as u32;
+            if slack == 0.0 {
+                memory.settled[i] = self.frame;
+            }
+            // Within the slack, `d` is at most 1 + slack times the distance: the max (exact,
+            // settled later) starts from what is surely reached.
+            max = max.max(d / (1.0 + slack));
             sum += self.weights[i] * d;
             total += self.weights[i];
         }
@@ -503,30 +243,46 @@ impl Side<'_> {
     }
 
     /// The largest distance over every sample of this side, exactly, given `max`, one
-    /// already reached. Top-down through this surface's tree: every sample of a node lies
-    /// in its box (vertices of its triangles, and midpoints and centroids between them), and
-    /// the distance to a surface is 1-Lipschitz, so no sample of a node is further than
-    /// `d(centre) + half diagonal`; a node whose bound is not above `max` is skipped whole.
-    /// Only the leaves near the largest distance have their samples measured.
-    fn settle_max(&self, mut max: f64, stack: &mut Vec<(u32, u32)>) -> f64 {
+    /// already reached. A sample is skipped once an upper bound of its distance is at most
+    /// `max` (the max only grows); only the samples whose bounds exceed it get an exact
+    /// query, which may raise it. Top-down through this surface's tree, with bounds from the
+    /// faces that queries within [`BOUND_SLACK`] find (any face's distance bounds the
+    /// surface's from above), each query stopping at the first face near enough to skip what
+    /// it bounds (most of them, below the max):
+    /// - a node: the distance to a surface is 1-Lipschitz and every sample of a node lies in
+    ///   its box, so none is further than `d(centre, F) + half diagonal`;
+    /// - a leaf: the samples of its triangles lie in the convex hull of their vertices and
+    ///   the distance to one triangle F is convex, so none is further than `max_v d(v, F)`
+    ///   over the leaf's vertices (far from the other surface, this is within a fraction of an
+    ///   edge length of the samples' own distances, where the Lipschitz bound is a whole
+    ///   leaf's size above them);
+    /// - a sample: its distance to the face a query within the slack finds.
+    fn settle_max(&self, mut max: f64, memory: &mut Memory, stack: &mut Vec<(u32, u32)>) -> f64 {
         if self.own.nodes.is_empty() {
             return max;
         }
+        let (nv, ne) = (
+            self.own_positions.len(),
+            self.samples.len() - self.own_positions.len() - self.triangles.len(),
+        );
         stack.clear();
-        stack.push((0, self.own.order[0]));
-        while let Some((index, hint)) = stack.pop() {
+        stack.push((0, memory.nearest[nv + ne]));
+        while let Some((index, parent_face)) = stack.pop() {
             let node = self.own.nodes[index as usize];
-            let centre = scale(add(node.min, node.max), 0.5);
             let radius = 0.5 * dist2(node.max, node.min).sqrt();
             if radius > max && node.count == 0 {
                 // No distance can cull a box this big: open it without a query (from the
                 // centre of a big box deep inside a closed surface, a query would open
                 // most of the other tree).
-                stack.push((node.start, hint));
-                stack.push((index + 1, hint));
+                stack.push((node.start, parent_face));
+                stack.push((index + 1, parent_face));
                 continue;
             }
-            let (face, d) = self.exact(centre, hint as usize);
+            let centre = scale(add(node.min, node.max), 0.5);
+            let remembered = memory.node_face[index as usize] as usize;
+            let hint = self.nearer(centre, parent_face as usize, remembered);
+            let (face, d) = self.bound(centre, hint, max - radius);
+            memory.node_face[index as usize] = face as u32;
             if d + radius <= max {
                 continue;
             }
@@ -536,39 +292,105 @@ impl Side<'_> {
                 continue;
             }
             let s = node.start as usize;
-            for &f in &self.own.order[s..s + node.count as usize] {
-                let t = self.triangles[f as usize];
-                let [a, b, c] = t.map(|v| self.own_positions[v]);
-                // The same arithmetic as `SamplePlan::points_into`, so the same points.
-                let points = [
-                    a,
-                    b,
-                    c,
-                    scale(add(a, b), 0.5),
-                    scale(add(b, c), 0.5),
-                    scale(add(c, a), 0.5),
-                    scale(add(add(a, b), c), 1.0 / 3.0),
-                ];
-                for p in points {
-                    if dist2(p, centre).sqrt() + d <= max {
+            let leaf = &self.own.order[s..s + node.count as usize];
+            if self.hull_bound(leaf, face) <= max {
+                continue;
+            }
+            for &f in leaf {
+                let f = f as usize;
+                let t = self.triangles[f];
+                let es = self.face_edges[f];
+                for i in [
+                    t[0],
+                    t[1],
+                    t[2],
+                    nv + es[0],
+                    nv + es[1],
+                    nv + es[2],
+                    nv + ne + f,
+                ] {
+                    if memory.settled[i] == self.frame {
                         continue;
                     }
-                    max = max.max(self.exact(p, face).1);
+                    memory.settled[i] = self.frame;
+                    let p = self.samples[i];
+                    let hint = self.nearer(p, face, memory.nearest[i] as usize);
+                    let (near, u) = self.bound(p, hint, max);
+                    memory.nearest[i] = near as u32;
+                    if u <= max {
+                        continue;
+                    }
+                    let (nearest, d) = self.exact(p, near);
+                    memory.nearest[i] = nearest as u32;
+                    max = max.max(d);
                 }
             }
         }
         max
     }
+
+    /// Of two faces of the other surface, the one nearer to `p` (`b` may be out of range:
+    /// none).
+    fn nearer(&self, p: [f64; 3], a: usize, b: usize) -> usize {
+        if b >= self.triangles.len() || b == a {
+            return a;
+        }
+        let da = triangle_d2(p, a, self.other_positions, self.triangles);
+        let db = triangle_d2(p, b, self.other_positions, self.triangles);
+        if db < da {
+            b
+        } else {
+            a
+        }
+    }
+
+    /// A face of the other surface and its distance, an upper bound of `p`'s: the first
+    /// found within `enough` (all the caller needs to skip what it bounds), else one within
+    /// [`BOUND_SLACK`] of the nearest.
+    fn bound(&self, p: [f64; 3], hint: usize, enough: f64) -> (usize, f64) {
+        let enough = if enough > 0.0 { enough * enough } else { -1.0 };
+        self.other
+            .nearest_until(
+                self.other_positions,
+                self.triangles,
+                p,
+                Some(hint),
+                BOUND_SLACK,
+                enough,
+            )
+            .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
+    }
+
+    /// The largest distance from a vertex of `faces` (of this surface) to the face `face` of
+    /// the other: a bound for every sample of `faces` (convexity, [`Side::settle_max`]).
+    fn hull_bound(&self, faces: &[u32], face: usize) -> f64 {
+        let mut d2 = 0.0f64;
+        for &f in faces {
+            for v in self.triangles[f as usize] {
+                d2 = d2.max(triangle_d2(
+                    self.own_positions[v],
+                    face,
+                    self.other_positions,
+                    self.triangles,
+                ));
+            }
+        }
+        d2.sqrt()
+    }
 }
 
 /// The two-sided sampled distance between the input surface and a moving one with the same
 /// connectivity (module docs). The input's tree and samples are built once; the current
-/// surface's tree is refitted every call.
+/// surface's tree is refitted every call, and each side keeps its last frame's nearest faces
+/// ([`Memory`]).
 ///
 /// The maximum is exact over every sample. The mean is exact over every sample up to
 /// [`MEAN_SAMPLES`] per side, and over every k-th sample (k = ⌈samples / MEAN_SAMPLES⌉,
 /// weights as for all) above that: the cost of exact nearest points grows with how far the
-/// surface moved, and the mean, unlike the max, does not need every sample.
+/// surface moved, and the mean, unlike the max, does not need every sample. Above
+/// [`EXACT_MEAN_SAMPLES`] per side, each of those distances is within [`MEAN_SLACK`] above
+/// the exact one (so is the mean). What a side remembers from the last frame changes how
+/// fast, never what, it measures (up to that slack).
 pub struct Deviation {
     plan: SamplePlan,
     /// Per face, the faces across its edges (`u32::MAX` across a boundary edge).
@@ -580,6 +402,10 @@ pub struct Deviation {
     current_bvh: Bvh,
     samples: Vec<[f64; 3]>,
     weights: Vec<f64>,
+    /// The current surface's samples against the input, and the input's against it.
+    out_memory: Memory,
+    back_memory: Memory,
+    frame: u32,
     stack: Vec<(u32, u32)>,
 }
 
@@ -618,6 +444,7 @@ impl Deviation {
                 })
             })
             .collect();
+        let memory = Memory::new(&plan.hints, input_bvh.nodes.len());
         Deviation {
             current_bvh: input_bvh.clone(),
             samples: input_samples.clone(),
@@ -626,6 +453,9 @@ impl Deviation {
             input_bvh,
             input_samples,
             input_weights,
+            out_memory: memory.clone(),
+            back_memory: memory,
+            frame: 0,
             plan,
             neighbours,
             stack: Vec::new(),
@@ -640,128 +470,54 @@ impl Deviation {
         triangles: &[[usize; 3]],
         face_areas: &[f64],
     ) -> (f64, f64) {
+        if triangles.is_empty() {
+            return (0.0, 0.0);
+        }
         self.plan
             .points_into(positions, triangles, &mut self.samples);
         self.plan
             .weights_into(triangles, face_areas, &mut self.weights);
         self.current_bvh.refit(positions, triangles);
+        self.frame = self.frame.wrapping_add(1);
+        if self.frame == 0 {
+            self.out_memory.settled.fill(0);
+            self.back_memory.settled.fill(0);
+            self.frame = 1;
+        }
+        // A rebuilt tree may have another number of nodes: its nodes' faces start afresh.
+        self.out_memory
+            .node_face
+            .resize(self.current_bvh.nodes.len(), u32::MAX);
         let out = Side {
             samples: &self.samples,
             weights: &self.weights,
-            hints: &self.plan.hints,
             own: &self.current_bvh,
             own_positions: positions,
             other: &self.input_bvh,
             other_positions: &self.input_positions,
             triangles,
+            face_edges: &self.plan.face_edges,
             neighbours: &self.neighbours,
+            frame: self.frame,
         };
         let back = Side {
             samples: &self.input_samples,
             weights: &self.input_weights,
-            hints: &self.plan.hints,
             own: &self.input_bvh,
             own_positions: &self.input_positions,
             other: &self.current_bvh,
             other_positions: positions,
             triangles,
+            face_edges: &self.plan.face_edges,
             neighbours: &self.neighbours,
+            frame: self.frame,
         };
-        let (max_out, mean_out) = out.subset();
-        let (max_in, mean_in) = back.subset();
-        // Both sides' exact distances so far bound the max below before either settles it,
-        // so the side with the smaller distances mostly has nothing left to check.
-        let max = back.settle_max(max_out.max(max_in), &mut self.stack);
-        let max = out.settle_max(max, &mut self.stack);
+        let (max_out, mean_out) = out.subset(&mut self.out_memory);
+        let (max_in, mean_in) = back.subset(&mut self.back_memory);
+        // Both sides' distances so far bound the max below before either settles it, so the
+        // side with the smaller distances mostly has nothing left to check.
+        let max = back.settle_max(max_out.max(max_in), &mut self.back_memory, &mut self.stack);
+        let max = out.settle_max(max, &mut self.out_memory, &mut self.stack);
         (max, 0.5 * (mean_out + mean_in))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::mesh::generate::bumpy_sphere;
-
-    /// The three Voronoi regions of each kind give the expected nearest point.
-    #[test]
-    fn closest_points_on_a_right_triangle() {
-        let (a, b, c) = ([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]);
-        let cases = [
-            ([0.25, 0.25, 2.0], [0.25, 0.25, 0.0]), // face
-            ([-1.0, -1.0, 0.5], a),                 // vertex a
-            ([2.0, -0.5, 0.0], b),                  // vertex b
-            ([-0.5, 3.0, 1.0], c),                  // vertex c
-            ([0.5, -1.0, 0.0], [0.5, 0.0, 0.0]),    // edge ab
-            ([-1.0, 0.5, 0.0], [0.0, 0.5, 0.0]),    // edge ac
-            ([1.0, 1.0, -1.0], [0.5, 0.5, 0.0]),    // edge bc
-        ];
-        for (p, expected) in cases {
-            let q = closest_point_on_triangle(p, a, b, c);
-            assert!(dist2(q, expected) < 1e-24, "{p:?}: {q:?} vs {expected:?}");
-        }
-        // Degenerate: all three corners on a line still give a point of the segment.
-        let q = closest_point_on_triangle([0.5, 1.0, 0.0], a, b, [2.0, 0.0, 0.0]);
-        assert!(dist2(q, [0.5, 0.0, 0.0]) < 1e-24, "{q:?}");
-    }
-
-    /// The tree's nearest triangle is the brute-force nearest, with and without a hint, and
-    /// after a refit of a deformed surface (and a rebuild for a large one).
-    #[test]
-    fn nearest_matches_a_linear_scan() {
-        let mesh = bumpy_sphere(3, 0.2);
-        let mut bvh = Bvh::new(&mesh.positions, &mesh.triangles);
-        let scan = |positions: &[[f64; 3]], p: [f64; 3]| {
-            mesh.triangles
-                .iter()
-                .map(|t| {
-                    dist2(
-                        p,
-                        closest_point_on_triangle(
-                            p,
-                            positions[t[0]],
-                            positions[t[1]],
-                            positions[t[2]],
-                        ),
-                    )
-                })
-                .fold(f64::INFINITY, f64::min)
-        };
-        let probes: Vec<[f64; 3]> = (0..200)
-            .map(|i| {
-                let t = i as f64 * 0.37;
-                let r = 0.3 + 1.5 * ((i * 7919) % 100) as f64 / 100.0;
-                [
-                    r * t.cos() * (0.5 * t).sin(),
-                    r * t.sin() * (0.5 * t).sin(),
-                    r * (0.5 * t).cos(),
-                ]
-            })
-            .collect();
-        let check = |bvh: &Bvh, positions: &[[f64; 3]]| {
-            for (i, &p) in probes.iter().enumerate() {
-                let want = scan(positions, p);
-                for hint in [None, Some(i % mesh.triangles.len())] {
-                    let (_, got) = bvh
-                        .nearest(positions, &mesh.triangles, p, hint)
-                        .expect("non-empty");
-                    assert!(
-                        (got - want).abs() <= 1e-12 * want.max(1e-12),
-                        "{p:?}: {got} vs {want}"
-                    );
-                }
-            }
-        };
-        check(&bvh, &mesh.positions);
-        // A twist about z grows with height: a smooth deformation, refitted.
-        let twisted: Vec<[f64; 3]> = mesh
-            .positions
-            .iter()
-            .map(|p| {
-                let (s, c) = (0.8 * p[2]).sin_cos();
-                [c * p[0] - s * p[1], s * p[0] + c * p[1], 1.3 * p[2]]
-            })
-            .collect();
-        bvh.refit(&twisted, &mesh.triangles);
-        check(&bvh, &twisted);
     }
 }

@@ -5,6 +5,7 @@
 //! positive semidefinite (`(L f)_i = Σ_j w_ij (f_i − f_j)`), so `L f ≈ 2 H N A` with `H > 0` on
 //! an outward sphere.
 
+pub mod bvh;
 pub mod cache;
 pub mod distance;
 pub mod hodge;
