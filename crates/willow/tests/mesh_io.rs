@@ -903,6 +903,38 @@ fn quantized_glb_is_read_faired_written_and_validates() {
             );
         }
     }
+    // The same node with its transform as a matrix: the new matrix dequantizes the new grid.
+    let json_in = {
+        let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
+        let mut j: serde_json::Value = serde_json::from_slice(&glb[20..20 + n]).unwrap();
+        let (t, s) = (
+            j["nodes"][0]["translation"].clone(),
+            j["nodes"][0]["scale"][0].clone(),
+        );
+        let (t, s) = (
+            [0, 1, 2].map(|k| t[k].as_f64().unwrap()),
+            s.as_f64().unwrap(),
+        );
+        j["nodes"][0] = serde_json::json!({"mesh": 0, "matrix": [
+            s, 0, 0, 0, 0, s, 0, 0, 0, 0, s, 0, t[0], t[1], t[2], 1]});
+        (j, glb[20 + n + 8..].to_vec())
+    };
+    let m = read(&glb_bytes(&json_in.0, &json_in.1), Format::Glb);
+    let out = m.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let n = u32::from_le_bytes([out[12], out[13], out[14], out[15]]) as usize;
+    let j: serde_json::Value = serde_json::from_slice(&out[20..20 + n]).unwrap();
+    assert_eq!(j["accessors"][0]["componentType"], 5123);
+    assert_eq!(j["nodes"][0]["matrix"][0], new_step, "{}", j["nodes"][0]);
+    let b = read(&out, Format::Glb);
+    for (x, y) in b.surface().positions.iter().zip(&moved) {
+        for k in 0..3 {
+            assert!(
+                (x[k] - y[k]).abs() <= 0.5 * new_step * (1.0 + 1e-9),
+                "{x:?} vs {y:?}"
+            );
+        }
+    }
     // Without the extension declared, integer positions are refused by name.
     let (plain, _, _) = quantized_sphere_glb(false);
     let e = Asset::read(&plain, Format::Glb, &Limits::default()).unwrap_err();

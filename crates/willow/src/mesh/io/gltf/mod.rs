@@ -8,7 +8,10 @@
 //! Writing keeps the input document as raw JSON, so extensions and extras this crate does not
 //! model survive: all original buffers are concatenated into one buffer, new POSITION (and
 //! NORMAL) data is appended, and those accessors are repointed in place. TANGENT is dropped
-//! from the primitives (see `drop_tangents`), and so are morph targets (`clean`). Compressed
+//! from the primitives (see `drop_tangents`), and so are morph targets (`clean`). Quantized
+//! POSITION and NORMAL (`KHR_mesh_quantization`) are re-quantized to their own types, with the
+//! node's dequantization transform updated, where that moves nothing else (`quantize`), and
+//! written as float32 elsewhere. Compressed
 //! input (meshopt, Draco) is written decoded, as plain data without the extension; bytes no
 //! buffer view covers any more and views nothing refers to are left out (`clean::compact`).
 //! The job is told each of these (`clean::notes`). Images, samplers, materials, UVs, indices

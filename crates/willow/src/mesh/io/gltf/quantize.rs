@@ -113,9 +113,11 @@ fn unsound(json: &Value, node: usize, mesh: usize) -> Option<String> {
         ("skin", "a skin"),
         ("extensions", "extensions"),
     ] {
-        let present = n
-            .get(key)
-            .is_some_and(|v| !v.as_array().is_some_and(Vec::is_empty));
+        let present = n.get(key).is_some_and(|v| match v {
+            Value::Array(a) => !a.is_empty(),
+            Value::Object(o) => !o.is_empty(),
+            _ => true,
+        });
         if present {
             return Some(format!("node {node} has {what}"));
         }
