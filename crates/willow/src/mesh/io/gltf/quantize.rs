@@ -206,7 +206,7 @@ pub(super) fn plan(
             .iter()
             .any(|&(m, a)| m == mesh && !accs.iter().any(|&x| x as u64 == a))
         {
-            Some("some of its primitives are not triangles")
+            Some("some of its primitives are points, lines or float POSITION")
         } else if types.iter().any(|t| *t != types[0]) {
             Some("its primitives' POSITION types differ")
         } else {
