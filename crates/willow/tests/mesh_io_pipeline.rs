@@ -139,18 +139,67 @@ fn fair_and_check_output(a: &Asset, what: &str, note: &str) {
         b.corner_uvs().is_some() && b.corner_uvs() == a.corner_uvs(),
         "{what}: UVs"
     );
-    // Positions are the faired ones (f32 in the file).
-    let expect = a.file_positions(&moved);
-    let got = b.file_positions(&b.surface().positions);
-    assert_eq!(expect.len(), got.len());
-    for (i, (e, g)) in expect.iter().zip(&got).enumerate() {
-        for k in 0..3 {
-            assert!(
-                (e[k] - g[k]).abs() <= 1e-5 * (1.0 + e[k].abs()),
-                "{what}: vertex {i}"
-            );
+    // Positions are the faired ones: float32 in the file, or re-quantized (KHR_mesh_quantization
+    // inputs) within half a step of the output's own grid.
+    let tol = |e: f64| match quantization_step(&json) {
+        Some(step) => 0.5 * step * (1.0 + 1e-6),
+        None => 1e-5 * (1.0 + e.abs()),
+    };
+    let err = max_world_error(a, &moved, &b, tol);
+    assert!(err.is_none(), "{what}: {err:?}");
+}
+
+/// The world-space distance between each file vertex of `b` (as willow reads it) and the same
+/// file vertex of `a` at `moved`, checked per axis against `tol(expected)`; the first failure.
+fn max_world_error(
+    a: &Asset,
+    moved: &[[f64; 3]],
+    b: &Asset,
+    tol: impl Fn(f64) -> f64,
+) -> Option<String> {
+    let (wa, wb) = (a.file_to_welded(), b.file_to_welded());
+    assert_eq!(wa.len(), wb.len());
+    for (i, (x, y)) in wa.iter().zip(&wb).enumerate() {
+        let (Some(x), Some(y)) = (x, y) else {
+            continue;
+        };
+        let (e, g) = (moved[*x], b.surface().positions[*y]);
+        if let Some(k) = (0..3).find(|&k| (e[k] - g[k]).abs() > tol(e[k])) {
+            return Some(format!("file vertex {i} axis {k}: {} vs {}", g[k], e[k]));
         }
     }
+    None
+}
+
+/// One step of the output's integer POSITION grid in world units (the glTF has one mesh
+/// node, at the root, with a uniform scale): the node's scale over the normalized type's
+/// divisor; `None` for float POSITION.
+fn quantization_step(json: &serde_json::Value) -> Option<f64> {
+    let acc = json["meshes"][0]["primitives"][0]["attributes"]["POSITION"].as_u64()? as usize;
+    let acc = &json["accessors"][acc];
+    let divisor = match (acc["componentType"].as_u64()?, acc["normalized"] == true) {
+        (5126, _) => return None,
+        (_, false) => 1.0,
+        (5120, true) => 127.0,
+        (5121, true) => 255.0,
+        (5122, true) => 32767.0,
+        (5123, true) => 65535.0,
+        (c, _) => panic!("componentType {c}"),
+    };
+    let node = json["nodes"]
+        .as_array()?
+        .iter()
+        .find(|n| n.get("mesh").is_some())?;
+    let s: Vec<f64> = node["scale"]
+        .as_array()?
+        .iter()
+        .filter_map(|x| x.as_f64())
+        .collect();
+    assert!(
+        s.iter().all(|x| (x - s[0]).abs() <= 1e-12 * s[0].abs()),
+        "scale {s:?}"
+    );
+    Some(s[0].abs() / divisor)
 }
 
 #[test]
@@ -393,4 +442,188 @@ fn morph_targets_are_dropped_with_a_note() {
     }
     // Without targets there is nothing to note.
     assert!(read(&glb).notes().is_empty());
+}
+
+/// Positions of mesh 0's first primitive in world space, read with the `gltf` crate (not
+/// willow's reader): POSITION's integers dequantized as glTF says, then the node's T·R·S
+/// applied here. `KHR_mesh_quantization` is taken out of `extensionsRequired` first, since
+/// the gltf crate refuses extensions it does not implement.
+fn world_positions_by_gltf_crate(glb: &[u8]) -> Vec<[f64; 3]> {
+    let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
+    let mut root = gltf::json::Root::from_slice(&glb[20..20 + n]).unwrap();
+    root.extensions_required.clear();
+    let doc = gltf::Document::from_json(root).unwrap();
+    let bin = &glb[20 + n + 8..];
+    let node = doc.nodes().find(|n| n.mesh().is_some()).unwrap();
+    let prim = node.mesh().unwrap().primitives().next().unwrap();
+    let acc = prim.get(&gltf::Semantic::Positions).unwrap();
+    let view = acc.view().unwrap();
+    let size = acc.data_type().size();
+    let stride = view.stride().unwrap_or(3 * size);
+    let divisor = match (acc.data_type(), acc.normalized()) {
+        (_, false) => 1.0,
+        (gltf::accessor::DataType::U16, true) => 65535.0,
+        (gltf::accessor::DataType::I16, true) => 32767.0,
+        (gltf::accessor::DataType::U8, true) => 255.0,
+        (gltf::accessor::DataType::I8, true) => 127.0,
+        (t, _) => panic!("{t:?}"),
+    };
+    let (t, r, s) = node.transform().decomposed();
+    let rotate = |v: [f64; 3]| -> [f64; 3] {
+        // v + 2w(q×v) + 2q×(q×v), q = (x, y, z), w = r[3]
+        let q = [r[0] as f64, r[1] as f64, r[2] as f64];
+        let w = r[3] as f64;
+        let cross = |a: [f64; 3], b: [f64; 3]| {
+            [
+                a[1] * b[2] - a[2] * b[1],
+                a[2] * b[0] - a[0] * b[2],
+                a[0] * b[1] - a[1] * b[0],
+            ]
+        };
+        let c1 = cross(q, v);
+        let c2 = cross(q, c1);
+        [0, 1, 2].map(|k| v[k] + 2.0 * w * c1[k] + 2.0 * c2[k])
+    };
+    (0..acc.count())
+        .map(|i| {
+            let at = view.offset() + acc.offset() + i * stride;
+            let c: [f64; 3] = std::array::from_fn(|k| {
+                let b = &bin[at + k * size..at + (k + 1) * size];
+                let raw = match acc.data_type() {
+                    gltf::accessor::DataType::U16 => u16::from_le_bytes([b[0], b[1]]) as f64,
+                    gltf::accessor::DataType::I16 => i16::from_le_bytes([b[0], b[1]]) as f64,
+                    gltf::accessor::DataType::U8 => b[0] as f64,
+                    gltf::accessor::DataType::I8 => b[0] as i8 as f64,
+                    gltf::accessor::DataType::F32 => {
+                        f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64
+                    }
+                    t => panic!("{t:?}"),
+                };
+                if acc.normalized() {
+                    (raw / divisor).max(-1.0)
+                } else {
+                    raw
+                }
+            });
+            let scaled = [0, 1, 2].map(|k| c[k] * s[k] as f64);
+            let p = rotate(scaled);
+            [0, 1, 2].map(|k| p[k] + t[k] as f64)
+        })
+        .collect()
+}
+
+/// gltfpack's default output (unsigned short POSITION over 14 bits, a node scale and
+/// translation to dequantize it), faired and then grown by 1.3 past the input's box: written
+/// back with POSITION still unsigned short on 14 bits over the new box, the node's transform
+/// updated, validator-clean, and every vertex within half a step of the new grid of the f64
+/// result, read with willow's reader and with the gltf crate. A node that also has a child
+/// (whose transform the node's would move) gets float32 POSITION and says so in the note.
+#[test]
+fn gltfpack_quantized_output_is_requantized_over_the_new_box() {
+    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let obj = obj.to_str().unwrap();
+    tool("gltfpack", &["-i", obj, "-o", "q.glb", "-kv"], dir.path());
+    let input = std::fs::read(dir.path().join("q.glb")).unwrap();
+    let in_json = json_of(&input);
+    assert_eq!(in_json["accessors"][0]["componentType"], 5123);
+    let a = read(&input);
+    let note = a.notes().join("\n");
+    assert!(
+        note.starts_with(
+            "KHR_mesh_quantization input: glTF/GLB results keep it; POSITION re-quantized to \
+             its own type (unsigned short over 14 bits (node 0))"
+        ),
+        "{note}"
+    );
+    let mut flow = new_flow(a.surface(), &FlowParams::default()).expect("flow");
+    for _ in 0..2 {
+        flow.step().unwrap();
+    }
+    let faired = flow.positions().to_vec();
+    let n = faired.len() as f64;
+    let c: [f64; 3] = [0, 1, 2].map(|k| faired.iter().map(|p| p[k]).sum::<f64>() / n);
+    let moved: Vec<[f64; 3]> = faired
+        .iter()
+        .map(|p| [0, 1, 2].map(|k| c[k] + 1.3 * (p[k] - c[k])))
+        .collect();
+    let out = a.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let json = json_of(&out);
+    let pos = &json["accessors"][json["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+        .as_u64()
+        .unwrap() as usize];
+    assert_eq!(pos["componentType"], 5123, "{pos}");
+    assert!(pos.get("normalized").is_none(), "{pos}");
+    let (lo, hi) = (&pos["min"], &pos["max"]);
+    assert_eq!(lo, &serde_json::json!([0, 0, 0]), "the box starts at 0");
+    let top = (0..3).map(|k| hi[k].as_u64().unwrap()).max();
+    assert_eq!(
+        top,
+        Some(16383),
+        "the largest side spans 14 bits, as the input's did"
+    );
+    assert!(extensions(&json, "extensionsRequired").contains(&"KHR_mesh_quantization".into()));
+    // The grown shape leaves the input's box (which its grid could not hold), and the step
+    // grew with it.
+    let old_scale = in_json["nodes"][0]["scale"][0].as_f64().unwrap();
+    let outside = (0..3).any(|k| {
+        let t = in_json["nodes"][0]["translation"][k].as_f64().unwrap();
+        let top = t + old_scale * in_json["accessors"][0]["max"][k].as_f64().unwrap();
+        moved.iter().any(|p| p[k] < t || p[k] > top)
+    });
+    assert!(outside, "the test shape should leave the input's box");
+    let step = quantization_step(&json).unwrap();
+    assert!(step > old_scale, "step {step} vs the input's {old_scale}");
+
+    let b = read(&out);
+    let err = max_world_error(&a, &moved, &b, |_| 0.5 * step * (1.0 + 1e-9));
+    assert!(err.is_none(), "willow's reader: {err:?}");
+    // The gltf crate's f32 node transform adds ~1e-7 of the model's size (spot is ~1.7).
+    let by_crate = world_positions_by_gltf_crate(&out);
+    let expected: Vec<[f64; 3]> = a
+        .file_to_welded()
+        .iter()
+        .map(|w| moved[w.expect("gltfpack keeps only used vertices")])
+        .collect();
+    assert_eq!(by_crate.len(), expected.len());
+    for (i, (g, e)) in by_crate.iter().zip(&expected).enumerate() {
+        for k in 0..3 {
+            assert!(
+                (g[k] - e[k]).abs() <= 0.5 * step + 1e-6,
+                "gltf crate: vertex {i} axis {k}: {} vs {} (step {step})",
+                g[k],
+                e[k]
+            );
+        }
+    }
+
+    // The same file with a child under the mesh node: re-quantizing would move the child.
+    let mut json = in_json.clone();
+    json["nodes"][0]["children"] = serde_json::json!([1]);
+    json["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"name": "lamp"}));
+    let bin = &input
+        [20 + u32::from_le_bytes([input[12], input[13], input[14], input[15]]) as usize + 8..];
+    let child = read(&glb_bytes(&json, bin));
+    let note = child.notes().join("\n");
+    assert!(
+        note.contains(
+            "POSITION stored as float32 in the node's unchanged space where a new node \
+             transform would move something else: mesh 0 (node 0 has children)"
+        ),
+        "{note}"
+    );
+    let out = child.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let json = json_of(&out);
+    assert_eq!(json["accessors"][0]["componentType"], 5126);
+    assert_eq!(json["nodes"][0]["scale"], in_json["nodes"][0]["scale"]);
+    let b = read(&out);
+    let err = max_world_error(&child, &moved, &b, |e| 1e-5 * (1.0 + e.abs()));
+    assert!(err.is_none(), "float32 fallback: {err:?}");
 }

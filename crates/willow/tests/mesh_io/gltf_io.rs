@@ -335,6 +335,110 @@ fn quantized_glb_is_read_faired_written_and_validates() {
             assert!((x[k] - y[k]).abs() < step, "{x:?} vs {y:?}");
         }
     }
+    // The input's encoding is kept: POSITION unnormalized u16 over the whole range of the
+    // new box (0.9 of the old one, so the step shrinks by 0.9), NORMAL normalized i8, each
+    // re-read normal within i8 rounding (√3·0.5/127) of the sphere's radial direction.
+    assert!(
+        a.notes()[0]
+            .ends_with("; NORMAL re-quantized to its own type; other attributes kept as they were"),
+        "{:?}",
+        a.notes()
+    );
+    let json = {
+        let n = u32::from_le_bytes([out[12], out[13], out[14], out[15]]) as usize;
+        serde_json::from_slice::<serde_json::Value>(&out[20..20 + n]).unwrap()
+    };
+    let acc = |attr: &str| {
+        let i = json["meshes"][0]["primitives"][0]["attributes"][attr]
+            .as_u64()
+            .unwrap();
+        json["accessors"][i as usize].clone()
+    };
+    assert_eq!(acc("POSITION")["componentType"], 5123);
+    assert_eq!(
+        acc("POSITION")["max"],
+        serde_json::json!([65535, 65535, 65535])
+    );
+    assert_eq!(acc("NORMAL")["componentType"], 5120);
+    assert_eq!(acc("NORMAL")["normalized"], true);
+    let new_step = json["nodes"][0]["scale"][0].as_f64().unwrap();
+    let span = |ps: &[[f64; 3]]| {
+        let xs = ps.iter().map(|p| p[0]);
+        xs.clone().fold(f64::MIN, f64::max) - xs.fold(f64::MAX, f64::min)
+    };
+    assert!(
+        (new_step - span(&moved) / 65535.0).abs() < 1e-15,
+        "{new_step}"
+    );
+    for (x, y) in b.surface().positions.iter().zip(&moved) {
+        for k in 0..3 {
+            assert!(
+                (x[k] - y[k]).abs() <= 0.5 * new_step * (1.0 + 1e-9),
+                "{x:?} vs {y:?}"
+            );
+        }
+    }
+    // The expected normals, computed here: the unit area-weighted sum of the face normals
+    // at each vertex of the moved surface.
+    let mut sums = vec![[0.0f64; 3]; moved.len()];
+    for t in &a.surface().triangles {
+        let [p, q, r] = t.map(|v| moved[v]);
+        let (u, w) = (
+            [0, 1, 2].map(|k| q[k] - p[k]),
+            [0, 1, 2].map(|k| r[k] - p[k]),
+        );
+        let c = [
+            u[1] * w[2] - u[2] * w[1],
+            u[2] * w[0] - u[0] * w[2],
+            u[0] * w[1] - u[1] * w[0],
+        ];
+        for v in t {
+            (0..3).for_each(|k| sums[*v][k] += c[k]);
+        }
+    }
+    let normals = b.file_normals().unwrap();
+    for (i, (n, w)) in normals.iter().zip(a.file_to_welded()).enumerate() {
+        let (n, s) = (n.unwrap(), sums[w.unwrap()]);
+        let l = (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
+        for k in 0..3 {
+            assert!(
+                (n[k] - s[k] / l).abs() <= 0.5 / 127.0 + 1e-9,
+                "vertex {i}: {n:?} vs {s:?}"
+            );
+        }
+    }
+    // The same node with its transform as a matrix: the new matrix dequantizes the new grid.
+    let json_in = {
+        let n = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
+        let mut j: serde_json::Value = serde_json::from_slice(&glb[20..20 + n]).unwrap();
+        let (t, s) = (
+            j["nodes"][0]["translation"].clone(),
+            j["nodes"][0]["scale"][0].clone(),
+        );
+        let (t, s) = (
+            [0, 1, 2].map(|k| t[k].as_f64().unwrap()),
+            s.as_f64().unwrap(),
+        );
+        j["nodes"][0] = serde_json::json!({"mesh": 0, "matrix": [
+            s, 0, 0, 0, 0, s, 0, 0, 0, 0, s, 0, t[0], t[1], t[2], 1]});
+        (j, glb[20 + n + 8..].to_vec())
+    };
+    let m = read(&glb_bytes(&json_in.0, &json_in.1), Format::Glb);
+    let out = m.write(&moved, Format::Glb).unwrap();
+    validate_with_khronos(&out, "glb");
+    let n = u32::from_le_bytes([out[12], out[13], out[14], out[15]]) as usize;
+    let j: serde_json::Value = serde_json::from_slice(&out[20..20 + n]).unwrap();
+    assert_eq!(j["accessors"][0]["componentType"], 5123);
+    assert_eq!(j["nodes"][0]["matrix"][0], new_step, "{}", j["nodes"][0]);
+    let b = read(&out, Format::Glb);
+    for (x, y) in b.surface().positions.iter().zip(&moved) {
+        for k in 0..3 {
+            assert!(
+                (x[k] - y[k]).abs() <= 0.5 * new_step * (1.0 + 1e-9),
+                "{x:?} vs {y:?}"
+            );
+        }
+    }
     // Without the extension declared, integer positions are refused by name.
     let (plain, _, _) = quantized_sphere_glb(false);
     let e = Asset::read(&plain, Format::Glb, &Limits::default()).unwrap_err();

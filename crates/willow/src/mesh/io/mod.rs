@@ -203,8 +203,9 @@ impl Asset {
 
     /// What a result written in the input's own format cannot keep of the input as it was,
     /// one sentence each, for people: a meshopt- or Draco-compressed glTF written back as
-    /// plain data, quantized POSITION/NORMAL written as float32, morph targets dropped. Empty
-    /// when the input is kept as it was.
+    /// plain data, quantized POSITION/NORMAL re-quantized over the faired box (or, where a new
+    /// node transform would move something else, written as float32), morph targets dropped.
+    /// Empty when the input is kept as it was.
     pub fn notes(&self) -> Vec<String> {
         match &self.source {
             Source::Gltf(src) => src.notes.clone(),

@@ -228,7 +228,12 @@ pub(super) fn read_indices(
 /// a 0.5 grid. `matrix` (column-major) if given, else T·R·S from `translation`, `rotation`
 /// (unit quaternion x, y, z, w) and `scale`, as the glTF spec defines them.
 pub(super) fn affine_of(node: &gltf::Node<'_>, json: &serde_json::Value) -> Affine {
-    let raw = &json["nodes"][node.index()];
+    node_affine(json, node.index())
+}
+
+/// [`affine_of`] for node number `node` of the raw JSON (identity if there is no such node).
+pub(super) fn node_affine(json: &serde_json::Value, node: usize) -> Affine {
+    let raw = &json["nodes"][node];
     let numbers = |key: &str, n: usize| -> Option<Vec<f64>> {
         let v: Vec<f64> = raw
             .get(key)?

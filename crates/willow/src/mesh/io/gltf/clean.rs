@@ -19,7 +19,8 @@ const VIEW_SAFE: [&str; 3] = [
     "EXT_mesh_gpu_instancing",
 ];
 
-/// What the written document cannot keep of the input as it was, for the job to report.
+/// What the written document cannot keep of the input as it was, for the job to report
+/// (the note on `KHR_mesh_quantization` is `quantize::plan`'s).
 pub(super) fn notes(input: &Value) -> Vec<String> {
     let used: Vec<&str> = input
         .get("extensionsUsed")
@@ -39,12 +40,6 @@ pub(super) fn notes(input: &Value) -> Vec<String> {
         out.push(format!(
             "{DRACO} input: glTF/GLB results store its primitives as plain float32 attributes \
              and uint32 indices (the extension removed), not re-compressed"
-        ));
-    }
-    if used.contains(&MESH_QUANTIZATION) {
-        out.push(format!(
-            "{MESH_QUANTIZATION} input: glTF/GLB results store POSITION and NORMAL as float32 \
-             (in the same node space); other attributes keep their quantized types"
         ));
     }
     let (targets, primitives) = morph_target_count(input);

@@ -8,7 +8,10 @@
 //! Writing keeps the input document as raw JSON, so extensions and extras this crate does not
 //! model survive: all original buffers are concatenated into one buffer, new POSITION (and
 //! NORMAL) data is appended, and those accessors are repointed in place. TANGENT is dropped
-//! from the primitives (see `drop_tangents`), and so are morph targets (`clean`). Compressed
+//! from the primitives (see `drop_tangents`), and so are morph targets (`clean`). Quantized
+//! POSITION and NORMAL (`KHR_mesh_quantization`) are re-quantized to their own types, with the
+//! node's dequantization transform updated, where that moves nothing else (`quantize`), and
+//! written as float32 elsewhere. Compressed
 //! input (meshopt, Draco) is written decoded, as plain data without the extension; bytes no
 //! buffer view covers any more and views nothing refers to are left out (`clean::compact`).
 //! The job is told each of these (`clean::notes`). Images, samplers, materials, UVs, indices
@@ -24,6 +27,7 @@ use accessors::*;
 mod clean;
 mod draco;
 mod meshopt;
+mod quantize;
 mod write;
 pub(crate) use write::*;
 #[cfg(test)]
@@ -53,6 +57,8 @@ pub(crate) struct GltfSource {
     position_accessors: Vec<usize>,
     /// NORMAL accessors to recompute, with the block whose vertices they describe.
     normal_accessors: Vec<(usize, usize)>,
+    /// Nodes whose POSITION is written re-quantized (`quantize::plan`).
+    requantize: Vec<quantize::Requantize>,
     /// The faces under each node name and each mesh name.
     pub(crate) groups: super::groups::Groups,
     /// What a written document cannot keep of the input as it was (`clean::notes`).
@@ -337,6 +343,7 @@ pub(crate) fn read(
         blocks: Vec::new(),
         block_of_accessor: HashMap::new(),
         position_accessors: Vec::new(),
+        position_nodes: Vec::new(),
         normal_accessors: Vec::new(),
         uvs: Vec::new(),
         normals: Vec::new(),
@@ -403,12 +410,22 @@ pub(crate) fn read(
         local,
         blocks,
         position_accessors,
+        position_nodes,
         normal_accessors,
         uvs,
         normals,
         triangles,
         ..
     } = b;
+    let block_values: Vec<(usize, usize, &[[f64; 3]])> = position_accessors
+        .iter()
+        .zip(&position_nodes)
+        .zip(&blocks)
+        .map(|((&a, &n), b)| (a, n, local.get(b.start..b.start + b.len).unwrap_or(&[])))
+        .collect();
+    let (requantize, quantization_note) = quantize::plan(&json, &block_values, &normal_accessors);
+    let mut notes = notes;
+    notes.extend(quantization_note);
     let uvs = uvs.iter().any(Option::is_some).then_some(uvs);
     let read_normals = normals.iter().any(Option::is_some).then(|| normals.clone());
     let normal_keys = normals.iter().any(Option::is_some).then(|| {
@@ -438,6 +455,7 @@ pub(crate) fn read(
         buffers,
         position_accessors,
         normal_accessors,
+        requantize,
         groups,
         notes,
         normals: read_normals,

@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::mesh::io::{normalize_or_z, Affine, Asset, Block, Limits, MeshError};
+use gltf::accessor::DataType;
 use gltf::mesh::Mode;
 use serde_json::{json, Value};
 use std::collections::HashMap;
@@ -16,6 +17,8 @@ pub(super) struct Builder<'a> {
     pub(super) blocks: Vec<Block>,
     pub(super) block_of_accessor: HashMap<usize, usize>,
     pub(super) position_accessors: Vec<usize>,
+    /// The node that drew each POSITION accessor first (same order).
+    pub(super) position_nodes: Vec<usize>,
     pub(super) normal_accessors: Vec<(usize, usize)>,
     pub(super) uvs: Vec<Option<[f64; 2]>>,
     pub(super) normals: Vec<Option<[f64; 3]>>,
@@ -75,6 +78,7 @@ impl Builder<'_> {
                     to_local,
                 });
                 self.position_accessors.push(pos.index());
+                self.position_nodes.push(node);
                 self.block_of_accessor
                     .insert(pos.index(), self.blocks.len() - 1);
                 self.blocks.len() - 1
@@ -231,12 +235,37 @@ pub(super) fn malformed(what: &str) -> MeshError {
     MeshError::parse("glTF", format!("cannot rewrite the document: {what}"))
 }
 
-/// Repoints accessor `index` at a new tightly packed float VEC3 buffer view.
+/// Component-wise min and max of integer values, as JSON arrays.
+fn int_bounds(values: &[[i64; 3]]) -> (Value, Value) {
+    let mut lo = [i64::MAX; 3];
+    let mut hi = [i64::MIN; 3];
+    for v in values {
+        for k in 0..3 {
+            lo[k] = lo[k].min(v[k]);
+            hi[k] = hi[k].max(v[k]);
+        }
+    }
+    (json!(lo), json!(hi))
+}
+
+/// Sets a buffer view's `byteStride` (padded VEC3 integer elements).
+fn set_stride(doc: &mut Value, view: usize, stride: usize) -> Result<(), MeshError> {
+    let v = doc
+        .get_mut("bufferViews")
+        .and_then(|v| v.get_mut(view))
+        .and_then(Value::as_object_mut)
+        .ok_or_else(|| malformed("missing buffer view"))?;
+    v.insert("byteStride".into(), json!(stride));
+    Ok(())
+}
+
+/// Repoints accessor `index` at a new VEC3 buffer view of `(componentType, normalized)`.
 pub(super) fn repoint_accessor(
     doc: &mut Value,
     index: usize,
     view: usize,
     count: usize,
+    (component, normalized): (u32, bool),
     min_max: Option<(Value, Value)>,
 ) -> Result<(), MeshError> {
     let acc = doc
@@ -248,7 +277,10 @@ pub(super) fn repoint_accessor(
         acc.remove(key);
     }
     acc.insert("bufferView".into(), json!(view));
-    acc.insert("componentType".into(), json!(FLOAT));
+    acc.insert("componentType".into(), json!(component));
+    if normalized {
+        acc.insert("normalized".into(), json!(true));
+    }
     acc.insert("type".into(), json!("VEC3"));
     acc.insert("count".into(), json!(count));
     if let Some((lo, hi)) = min_max {
@@ -274,15 +306,6 @@ pub(super) fn push_view(
         .ok_or_else(|| malformed("bufferViews is not an array"))?;
     views.push(json!({"buffer": 0, "byteOffset": offset, "byteLength": length, "target": target}));
     Ok(views.len() - 1)
-}
-
-/// Per split vertex position in its block's local space, as f32 (glTF stores f32).
-pub(super) fn split_f32(asset: &Asset, positions: &[[f64; 3]]) -> Vec<[f32; 3]> {
-    asset
-        .split_positions(positions)
-        .into_iter()
-        .map(|p| p.map(|x| x as f32))
-        .collect()
 }
 
 /// Removes TANGENT from every primitive and morph target: tangents follow positions, so the
@@ -343,14 +366,61 @@ pub(crate) fn write_document(
         }
     }
 
-    let local = split_f32(asset, positions);
-    for (&acc, block) in src.position_accessors.iter().zip(&asset.file.blocks) {
+    // KHR_mesh_quantization: positions re-quantized where sound (see `quantize`), the rest
+    // as float32 in the node's unchanged space.
+    let split = asset.split_positions(positions);
+    let mut requantized = vec![false; src.position_accessors.len()];
+    for plan in &src.requantize {
+        let mut values = Vec::new();
+        for &bi in &plan.blocks {
+            let b = asset
+                .file
+                .blocks
+                .get(bi)
+                .ok_or_else(|| malformed("block"))?;
+            values.extend_from_slice(
+                split
+                    .get(b.start..b.start + b.len)
+                    .ok_or_else(|| malformed("block out of range"))?,
+            );
+        }
+        let (q, map) = quantize::quantize(plan.grid, &values);
+        let mut at = 0;
+        for &bi in &plan.blocks {
+            let (Some(b), Some(&acc)) = (asset.file.blocks.get(bi), src.position_accessors.get(bi))
+            else {
+                return Err(malformed("block"));
+            };
+            let block_q = q.get(at..at + b.len).ok_or_else(|| malformed("block"))?;
+            at += b.len;
+            let (bytes, stride) = quantize::element_bytes(plan.grid.component, block_q);
+            let offset = append_aligned(&mut bin, &bytes);
+            let view = push_view(&mut doc, offset, bytes.len(), ARRAY_BUFFER)?;
+            set_stride(&mut doc, view, stride)?;
+            let ty = (quantize::code(plan.grid.component), plan.grid.normalized);
+            repoint_accessor(&mut doc, acc, view, b.len, ty, Some(int_bounds(block_q)))?;
+            requantized[bi] = true;
+        }
+        let local = node_affine(&src.json, plan.node);
+        quantize::update_node(&mut doc, plan.node, &local, &map)?;
+    }
+    let local: Vec<[f32; 3]> = split.iter().map(|p| p.map(|x| x as f32)).collect();
+    for ((&acc, block), done) in src
+        .position_accessors
+        .iter()
+        .zip(&asset.file.blocks)
+        .zip(requantized)
+    {
+        if done {
+            continue;
+        }
         let values = local
             .get(block.start..block.start + block.len)
             .ok_or_else(|| malformed("block out of range"))?;
         let at = append_aligned(&mut bin, &vec3_bytes(values));
         let view = push_view(&mut doc, at, values.len() * 12, ARRAY_BUFFER)?;
-        repoint_accessor(&mut doc, acc, view, values.len(), Some(bounds(values)))?;
+        let ty = (FLOAT, false);
+        repoint_accessor(&mut doc, acc, view, values.len(), ty, Some(bounds(values)))?;
     }
 
     if let Some(world_normals) = asset.split_normals_world(positions) {
@@ -360,15 +430,41 @@ pub(crate) fn write_document(
                 .blocks
                 .get(bi)
                 .ok_or_else(|| malformed("normal block"))?;
-            let values: Vec<[f32; 3]> = world_normals
+            let local: Vec<[f64; 3]> = world_normals
                 .get(block.start..block.start + block.len)
                 .ok_or_else(|| malformed("normal block out of range"))?
                 .iter()
-                .map(|&n| normalize_or_z(block.to_world.transpose_apply(n)).map(|x| x as f32))
+                .map(|&n| normalize_or_z(block.to_world.transpose_apply(n)))
                 .collect();
-            let at = append_aligned(&mut bin, &vec3_bytes(&values));
-            let view = push_view(&mut doc, at, values.len() * 12, ARRAY_BUFFER)?;
-            repoint_accessor(&mut doc, acc, view, values.len(), None)?;
+            // A quantized NORMAL keeps its type (KHR_mesh_quantization allows normalized
+            // byte and short): the node's new transform is a uniform scale, so local
+            // directions mean what they meant.
+            match quantize::accessor_type(&src.json, acc) {
+                Some((c @ (DataType::I8 | DataType::I16), true)) => {
+                    let q: Vec<[i64; 3]> = local
+                        .iter()
+                        .map(|&n| quantize::quantize_normal(c, n))
+                        .collect();
+                    let (bytes, stride) = quantize::element_bytes(c, &q);
+                    let at = append_aligned(&mut bin, &bytes);
+                    let view = push_view(&mut doc, at, bytes.len(), ARRAY_BUFFER)?;
+                    set_stride(&mut doc, view, stride)?;
+                    repoint_accessor(
+                        &mut doc,
+                        acc,
+                        view,
+                        q.len(),
+                        (quantize::code(c), true),
+                        None,
+                    )?;
+                }
+                _ => {
+                    let values: Vec<[f32; 3]> = local.iter().map(|n| n.map(|x| x as f32)).collect();
+                    let at = append_aligned(&mut bin, &vec3_bytes(&values));
+                    let view = push_view(&mut doc, at, values.len() * 12, ARRAY_BUFFER)?;
+                    repoint_accessor(&mut doc, acc, view, values.len(), (FLOAT, false), None)?;
+                }
+            }
         }
     }
 
