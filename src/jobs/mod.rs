@@ -249,11 +249,52 @@ impl Jobs {
     /// The caller's job's current status; `Gone` once it expired. Another tenant's job is
     /// `NotFound`, exactly like an unknown id (so is every call below).
     pub async fn get(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
-        self.inner
-            .backend
-            .store
-            .status(id, Some(&caller.tenant))
+        self.read(self.inner.backend.store.status(id, Some(&caller.tenant)))
             .await
+    }
+
+    /// A client request's backend calls `f`: on a backend across the network
+    /// ([`Backend::request_timeout`]), refused at once while it is disconnected, and its
+    /// retries end at the request's time budget ([`ports::request_deadline`]), so that a
+    /// request answers `unavailable` (503 + `Retry-After`, gRPC `UNAVAILABLE`) within a few
+    /// seconds of an outage instead of hanging through it (issue 25). Writes are not cut
+    /// mid-way (a half-made submission or cancel is worse than a slow one): each of their
+    /// calls is bounded by the backend's own call timeout.
+    pub(crate) async fn on_request<T>(
+        &self,
+        f: impl std::future::Future<Output = Result<T, JobError>>,
+    ) -> Result<T, JobError> {
+        let backend = &self.inner.backend;
+        let Some(budget) = backend.request_timeout else {
+            return f.await;
+        };
+        if !backend.queue.connected() {
+            return Err(JobError::Unavailable(format!(
+                "not connected to {}; retry shortly",
+                backend.name
+            )));
+        }
+        ports::with_request_deadline(std::time::Instant::now() + budget, f).await
+    }
+
+    /// [`Self::on_request`] for a read of records or metrics, which is also cut at the time
+    /// budget: a read may be abandoned at any point.
+    pub(crate) async fn read<T>(
+        &self,
+        f: impl std::future::Future<Output = Result<T, JobError>>,
+    ) -> Result<T, JobError> {
+        let Some(budget) = self.inner.backend.request_timeout else {
+            return f.await;
+        };
+        tokio::time::timeout(budget, self.on_request(f))
+            .await
+            .unwrap_or_else(|_| {
+                Err(JobError::Unavailable(format!(
+                    "{} did not answer within {} s",
+                    self.inner.backend.name,
+                    budget.as_secs_f64()
+                )))
+            })
     }
 
     /// The caller's jobs newest first, optionally of one state. `page_token` is the opaque
@@ -280,10 +321,12 @@ impl Jobs {
             })?),
         };
         let (jobs, next) = self
-            .inner
-            .backend
-            .store
-            .list(&caller.tenant, state, size, inner)
+            .read(
+                self.inner
+                    .backend
+                    .store
+                    .list(&caller.tenant, state, size, inner),
+            )
             .await?;
         Ok((jobs, next.map(|t| seal_page_token(&t))))
     }
@@ -292,6 +335,10 @@ impl Jobs {
     /// it stops at the next step boundary (the returned status may still say `running`; watch
     /// or poll for `cancelled`). Terminal: [`JobError::Conflict`].
     pub async fn cancel(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
+        self.on_request(self.cancel_now(caller, id)).await
+    }
+
+    async fn cancel_now(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
         let status = self.get(caller, id).await?;
         if status.state.is_terminal() {
             return Err(JobError::Conflict(format!(
@@ -326,6 +373,10 @@ impl Jobs {
     /// Remove the caller's terminal job, its frames and its files. Queued or running:
     /// `Conflict`.
     pub async fn delete(&self, caller: &Caller, id: &str) -> Result<(), JobError> {
+        self.on_request(self.delete_now(caller, id)).await
+    }
+
+    async fn delete_now(&self, caller: &Caller, id: &str) -> Result<(), JobError> {
         let backend = &self.inner.backend;
         // Files first: on a full disk they free the room SQLite's delete needs for its WAL
         // frames (the reserve covers a disk with nothing else to free). A delete the store
@@ -357,7 +408,13 @@ impl Jobs {
         id: &str,
         from_step: usize,
     ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
-        watch::watch(self.clone(), &caller.tenant, id.to_string(), from_step).await
+        self.read(watch::watch(
+            self.clone(),
+            &caller.tenant,
+            id.to_string(),
+            from_step,
+        ))
+        .await
     }
 
     /// Metrics of steps `from_step..` (at most `page_size`, 0 = 100, max 10 000) and the step
@@ -374,8 +431,12 @@ impl Jobs {
             n => n.min(10_000),
         };
         let store = &self.inner.backend.store;
-        store.status(id, Some(&caller.tenant)).await?;
-        let rows = store.frame_rows(id, from_step, size + 1).await?;
+        let rows = self
+            .read(async {
+                store.status(id, Some(&caller.tenant)).await?;
+                store.frame_rows(id, from_step, size + 1).await
+            })
+            .await?;
         let mut metrics: Vec<StepMetrics> = rows.into_iter().map(|(m, _)| m).collect();
         let next = if metrics.len() > size {
             metrics.truncate(size);
@@ -396,7 +457,9 @@ impl Jobs {
     ) -> Result<Vec<u8>, JobError> {
         let status = self.get(caller, id).await?;
         let kept = if step <= status.step {
-            let rows = self.inner.backend.store.frame_rows(id, step, 1).await?;
+            let rows = self
+                .read(self.inner.backend.store.frame_rows(id, step, 1))
+                .await?;
             rows.first().is_some_and(|(m, p)| m.step == step && *p)
         } else {
             false
@@ -407,7 +470,7 @@ impl Jobs {
             welded: true,
         };
         let bytes = if kept {
-            self.inner.backend.blobs.get(key).await?
+            self.on_request(self.inner.backend.blobs.get(key)).await?
         } else {
             None
         };
@@ -455,10 +518,10 @@ impl Jobs {
         let key = BlobKey::Result {
             id: status.id.clone(),
         };
-        let bytes =
-            self.inner.backend.blobs.get(key).await?.ok_or_else(|| {
-                JobError::Internal(format!("the result of job `{id}` is missing"))
-            })?;
+        let bytes = self
+            .on_request(self.inner.backend.blobs.get(key))
+            .await?
+            .ok_or_else(|| JobError::Internal(format!("the result of job `{id}` is missing")))?;
         self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
             .await
     }
@@ -474,9 +537,12 @@ impl Jobs {
             id: status.id.clone(),
             format: status.input_format,
         };
-        let input = self.inner.backend.blobs.get(key).await?.ok_or_else(|| {
-            JobError::Internal(format!("the input of job `{}` is missing", status.id))
-        })?;
+        let input = self
+            .on_request(self.inner.backend.blobs.get(key))
+            .await?
+            .ok_or_else(|| {
+                JobError::Internal(format!("the input of job `{}` is missing", status.id))
+            })?;
         let (input_format, limits) = (status.input_format, self.inner.config.limits.mesh_limits());
         let spec = status.spec.clone();
         tokio::task::spawn_blocking(move || {
