@@ -243,8 +243,10 @@ async fn a_job_whose_workers_die_after_progress_is_not_failed_redelivered() {
         let step = v["progress"]["step"].as_u64().unwrap_or(0);
         worker.kill();
         killed_at.push(step);
-        // The next run resumes from the last checkpoint: at most 5 steps back.
-        resumed_at = step.saturating_sub(5);
+        // Checkpoints fall on multiples of 5 (every 5 steps from 0, and from a resume
+        // point): the next run resumes at or below this one, and once it shows 8 steps past
+        // it, the checkpoint 5 past it is written.
+        resumed_at = step / 5 * 5;
         worker = Node::spawn(
             d,
             &format!("worker-{kill}"),
