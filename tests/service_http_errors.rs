@@ -200,9 +200,9 @@ async fn garbage_last_event_id_and_forged_page_token_are_refused() {
     assert_eq!(st, 200, "{next}");
     assert_eq!(next["jobs"].as_array().map(Vec::len), Some(1), "{next}");
 
-    // Well-formed for the backend but never handed out: `seq:0` would list nothing.
+    // Well-formed for the backend but never handed out: `at:0:…` would list nothing.
     use base64::Engine as _;
-    let forged = base64::engine::general_purpose::URL_SAFE_NO_PAD.encode("seq:0");
+    let forged = base64::engine::general_purpose::URL_SAFE_NO_PAD.encode("at:0:x");
     let edited = format!("{}x", &token[..token.len() - 1]);
     for t in [forged.as_str(), edited.as_str(), "!!!", "a.b"] {
         let res = srv

@@ -27,9 +27,13 @@ fn spawn_server_with(data_dir: &std::path::Path, extra: &[&str]) -> (Child, Stri
             "1",
             "--queue-capacity",
             "8",
-            "--checkpoint-steps",
-            "3",
         ])
+        // Every 3 steps unless the test says otherwise (a flag may be given once).
+        .args(if extra.contains(&"--checkpoint-steps") {
+            &[][..]
+        } else {
+            &["--checkpoint-steps", "3"][..]
+        })
         .args(extra)
         .arg("--data-dir")
         .arg(data_dir)
@@ -186,14 +190,15 @@ async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
     }
 }
 
-/// A job that dies with its server more often than `--max-deliveries` allows fails with code
-/// `redelivered` on the next start, instead of taking the server down in a loop (a mesh that
+/// A job that dies with its server, before any new checkpoint, more often than
+/// `--max-deliveries` allows fails with code `redelivered` on the next start, instead of taking the server down in a loop (a mesh that
 /// runs a worker out of memory, say).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_that_keeps_killing_the_server_fails_as_redelivered() {
     let dir = tempfile::tempdir().expect("dir");
     let client = reqwest::Client::new();
-    let flags = ["--max-deliveries", "1"];
+    // No checkpoint in the job's life: the run the kill ends made no progress that lasts.
+    let flags = ["--max-deliveries", "1", "--checkpoint-steps", "100000"];
     let (mut server, base) = spawn_server_with(dir.path(), &flags);
     let id = submit(
         &client,
@@ -214,4 +219,56 @@ async fn a_job_that_keeps_killing_the_server_fails_as_redelivered() {
     let _ = server.wait();
     assert_eq!(v["state"], "failed", "{v}");
     assert_eq!(v["error_code"], "redelivered", "{v}");
+}
+
+/// `--max-deliveries` counts only deliveries that made no progress (issue 25 item 4), on the
+/// embedded backend too: with `--max-deliveries 1`, the server is killed three times while
+/// the job runs, each time past a checkpoint newer than where its run resumed, and the job
+/// still succeeds after the third restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_killed_with_its_server_after_progress_is_not_failed_redelivered() {
+    const N: u64 = 300;
+    let dir = tempfile::tempdir().expect("dir");
+    let client = reqwest::Client::new();
+    let flags = ["--max-deliveries", "1", "--checkpoint-steps", "5"];
+    let (mut server, mut base) = spawn_server_with(dir.path(), &flags);
+    let id = submit(
+        &client,
+        &base,
+        &slow_obj(),
+        &format!("steps={N}&frame_interval=50&until_converged=false"),
+    )
+    .await;
+    let mut resumed_at = 0;
+    let mut killed_at = Vec::new();
+    for kill in 1..=3 {
+        let v = poll_until(&client, &base, &id, JOB_TIMEOUT, |v| {
+            is_terminal(v)
+                || (v["state"] == "running"
+                    && v["progress"]["step"].as_u64().unwrap_or(0) >= resumed_at + 8)
+        })
+        .await;
+        if v["state"] != "running" {
+            let _ = server.kill();
+            let _ = server.wait();
+            panic!("still running at kill {kill}: {v}");
+        }
+        let step = v["progress"]["step"].as_u64().unwrap_or(0);
+        server.kill().expect("SIGKILL");
+        let _ = server.wait();
+        killed_at.push(step);
+        // Checkpoints fall on multiples of 5 (every 5 steps from 0, and from a resume
+        // point): the next run resumes at or below this one, and once it shows 8 steps past
+        // it, the checkpoint 5 past it is written.
+        resumed_at = step / 5 * 5;
+        (server, base) = spawn_server_with(dir.path(), &flags);
+    }
+    let v = poll_until(&client, &base, &id, JOB_TIMEOUT, is_terminal).await;
+    let _ = server.kill();
+    let _ = server.wait();
+    assert_eq!(
+        v["state"], "succeeded",
+        "killed at steps {killed_at:?}, each past a new checkpoint: {v}"
+    );
+    assert_eq!(v["progress"]["step"], N, "{v}");
 }

@@ -245,6 +245,100 @@ async fn http_tenants_cannot_reach_each_others_jobs() {
     server.stop().await;
 }
 
+/// HTTP: list page tokens are the tenant's own (issue 25 item 7). Alpha's token is refused
+/// for beta (400, field `page_token`), and so is an edited one; it carries no global
+/// sequence (beta's jobs submitted between alpha's pages change nothing in alpha's tokens'
+/// positions); and alpha's pages, one job each, list all its jobs once, newest first, while
+/// beta submits in between.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn http_page_tokens_are_the_tenants_own() {
+    let (server, keys) = start(TenantQuotas::default()).await;
+    let mut alpha_jobs = Vec::new();
+    for _ in 0..4 {
+        let v = server
+            .submit(&keys.alpha, small_obj(), "steps=1", None)
+            .await;
+        alpha_jobs.push(v["id"].as_str().expect("id").to_string());
+        server
+            .submit(&keys.beta, small_obj(), "steps=1", None)
+            .await;
+        // Distinct creation times, so that "newest first" is the reverse of submission.
+        tokio::time::sleep(Duration::from_millis(3)).await;
+    }
+    let list = |key: String, token: Option<String>| {
+        let server = &server;
+        async move {
+            let path = match token {
+                Some(t) => format!("/v1/jobs?page_size=1&page_token={t}"),
+                None => "/v1/jobs?page_size=1".to_string(),
+            };
+            server.call(reqwest::Method::GET, &path, &key, None).await
+        }
+    };
+    let (status, first) = list(keys.alpha.clone(), None).await;
+    assert_eq!(status, 200, "{first}");
+    let token = first["next_page_token"]
+        .as_str()
+        .expect("a next page")
+        .to_string();
+    // What it holds is alpha's own: the creation time and id of the page's last job.
+    let last = &first["jobs"][0];
+    let body = token.rsplit_once('.').map(|(b, _)| b).expect("sealed");
+    use base64::Engine as _;
+    let held = base64::engine::general_purpose::URL_SAFE_NO_PAD
+        .decode(body)
+        .map(|b| String::from_utf8_lossy(&b).into_owned())
+        .expect("base64url");
+    let (at, id) = held
+        .strip_prefix("at:")
+        .and_then(|r| r.split_once(':'))
+        .unwrap_or_else(|| panic!("`at:T:ID`: {held}"));
+    let at: u64 = at.parse().expect("unix ms");
+    assert_eq!(
+        (willow_service::jobs::rfc3339(at).as_str(), id),
+        (
+            last["created_time"].as_str().expect("created_time"),
+            last["id"].as_str().expect("id")
+        ),
+        "the token holds the last job's creation time and id, nothing global"
+    );
+
+    // Beta cannot use alpha's token, nor an edited one.
+    let edited = format!(
+        "{}{}",
+        &token[..token.len() - 2],
+        if token.ends_with("AA") { "BB" } else { "AA" }
+    );
+    for (key, t) in [(&keys.beta, &token), (&keys.alpha, &edited)] {
+        let (status, p) = list(key.clone(), Some(t.clone())).await;
+        assert_eq!(status, 400, "{t}: {p}");
+        assert_eq!(p["code"], "invalid_parameter", "{p}");
+        assert_eq!(p["field"], "page_token", "{p}");
+    }
+
+    // Alpha pages through its jobs while beta keeps submitting: each of alpha's jobs once,
+    // newest first (the reverse of submission), and nothing of beta's.
+    let mut seen = Vec::new();
+    let mut page = first;
+    loop {
+        for j in page["jobs"].as_array().expect("jobs") {
+            seen.push(j["id"].as_str().expect("id").to_string());
+        }
+        let Some(t) = page["next_page_token"].as_str().map(str::to_string) else {
+            break;
+        };
+        server
+            .submit(&keys.beta, small_obj(), "steps=1", None)
+            .await;
+        let (status, next) = list(keys.alpha.clone(), Some(t)).await;
+        assert_eq!(status, 200, "{next}");
+        page = next;
+    }
+    let newest_first: Vec<String> = alpha_jobs.iter().rev().cloned().collect();
+    assert_eq!(seen, newest_first, "alpha's jobs, each once, newest first");
+    server.stop().await;
+}
+
 /// HTTP: the quota is named and counts one tenant only.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_quota_is_named_and_per_tenant() {

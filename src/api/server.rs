@@ -75,8 +75,10 @@ pub struct ServeArgs {
     /// `all`. The embedded backend needs `all`: its queue lives in the process.
     #[arg(long, default_value = "all")]
     pub role: String,
-    /// A job delivered more often than this (its workers kept dying on it: killed, out of
-    /// memory) fails with code `redelivered` instead of taking down one more worker.
+    /// A job delivered this many times in a row without reaching a new checkpoint (its
+    /// workers kept dying on it before any progress that lasts: killed, out of memory) fails
+    /// with code `redelivered` instead of taking down one more worker. Runs that died after a
+    /// new checkpoint do not count.
     #[arg(long, default_value_t = 3)]
     pub max_deliveries: u32,
     /// NATS: seconds without a heartbeat after which a job goes to another worker.

@@ -29,6 +29,17 @@ impl Jobs {
         spec: JobSpec,
         idempotency_key: Option<String>,
     ) -> Result<JobStatus, JobError> {
+        self.on_request(self.submit_now(caller, upload, spec, idempotency_key))
+            .await
+    }
+
+    async fn submit_now(
+        &self,
+        caller: &Caller,
+        upload: UploadRef,
+        spec: JobSpec,
+        idempotency_key: Option<String>,
+    ) -> Result<JobStatus, JobError> {
         if self.inner.draining.load(Ordering::SeqCst) {
             return Err(JobError::ShuttingDown);
         }
@@ -293,6 +304,16 @@ impl Jobs {
     /// Store an upload for later use by [`UploadRef::Stored`]. The mesh is validated now, so a
     /// bad upload fails here and not at job creation.
     pub async fn store_upload(
+        &self,
+        caller: &Caller,
+        data: bytes::Bytes,
+        format: Format,
+    ) -> Result<String, JobError> {
+        self.on_request(self.store_upload_now(caller, data, format))
+            .await
+    }
+
+    async fn store_upload_now(
         &self,
         caller: &Caller,
         data: bytes::Bytes,

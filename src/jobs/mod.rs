@@ -100,6 +100,8 @@ pub(crate) struct Inner {
     pub callbacks_due: Arc<tokio::sync::Notify>,
     /// Whether the data dir is full ([`storage`]).
     pub storage: storage::StorageHealth,
+    /// The key of list page tokens' HMAC ([`page_token_key`]).
+    pub page_token_key: ring::hmac::Key,
 }
 
 /// The cheap, cloneable handle every transport holds.
@@ -198,6 +200,7 @@ impl Jobs {
             curve_slots: Arc::new(tokio::sync::Semaphore::new(config.curve_slots)),
             callbacks_due: Arc::new(tokio::sync::Notify::new()),
             storage,
+            page_token_key: page_token_key(config.webhook_secret.as_deref()),
         });
         let jobs = Jobs { inner };
         jobs.inner
@@ -250,11 +253,52 @@ impl Jobs {
     /// The caller's job's current status; `Gone` once it expired. Another tenant's job is
     /// `NotFound`, exactly like an unknown id (so is every call below).
     pub async fn get(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
-        self.inner
-            .backend
-            .store
-            .status(id, Some(&caller.tenant))
+        self.read(self.inner.backend.store.status(id, Some(&caller.tenant)))
             .await
+    }
+
+    /// A client request's backend calls `f`: on a backend across the network
+    /// ([`Backend::request_timeout`]), refused at once while it is disconnected, and its
+    /// retries end at the request's time budget ([`ports::request_deadline`]), so that a
+    /// request answers `unavailable` (503 + `Retry-After`, gRPC `UNAVAILABLE`) within a few
+    /// seconds of an outage instead of hanging through it (issue 25). Writes are not cut
+    /// mid-way (a half-made submission or cancel is worse than a slow one): each of their
+    /// calls is bounded by the backend's own call timeout.
+    pub(crate) async fn on_request<T>(
+        &self,
+        f: impl std::future::Future<Output = Result<T, JobError>>,
+    ) -> Result<T, JobError> {
+        let backend = &self.inner.backend;
+        let Some(budget) = backend.request_timeout else {
+            return f.await;
+        };
+        if !backend.queue.connected() {
+            return Err(JobError::Unavailable(format!(
+                "not connected to {}; retry shortly",
+                backend.name
+            )));
+        }
+        ports::with_request_deadline(std::time::Instant::now() + budget, f).await
+    }
+
+    /// [`Self::on_request`] for a read of records or metrics, which is also cut at the time
+    /// budget: a read may be abandoned at any point.
+    pub(crate) async fn read<T>(
+        &self,
+        f: impl std::future::Future<Output = Result<T, JobError>>,
+    ) -> Result<T, JobError> {
+        let Some(budget) = self.inner.backend.request_timeout else {
+            return f.await;
+        };
+        tokio::time::timeout(budget, self.on_request(f))
+            .await
+            .unwrap_or_else(|_| {
+                Err(JobError::Unavailable(format!(
+                    "{} did not answer within {} s",
+                    self.inner.backend.name,
+                    budget.as_secs_f64()
+                )))
+            })
     }
 
     /// The caller's jobs newest first, optionally of one state. `page_token` is the opaque
@@ -270,29 +314,41 @@ impl Jobs {
             0 => 50,
             n => n.min(1000),
         };
-        // Backends' tokens are positions (`seq:N`, `at:T:ID`): a hand-edited one still decodes
-        // and silently lists the wrong page (or nothing). The core seals them with a checksum
-        // so any token it did not hand out is refused, on every backend, with `page_token` named.
+        // Backends' tokens are positions in the tenant's own listing (the last job's creation
+        // time and id: never a global sequence, which would let a tenant count the others'
+        // jobs). A hand-edited one would still decode and silently list the wrong page, and
+        // one tenant's would position another's listing: the core seals each with an HMAC
+        // over the tenant and the token, so any token it did not hand out to this tenant is
+        // refused, on every backend, with `page_token` named.
+        let key = &self.inner.page_token_key;
         let inner = match page_token.as_deref() {
             None | Some("") => None,
-            Some(t) => Some(unseal_page_token(t).ok_or_else(|| JobError::InvalidSpec {
-                field: "page_token",
-                reason: "not a token this server returned".into(),
+            Some(t) => Some(unseal_page_token(key, &caller.tenant, t).ok_or_else(|| {
+                JobError::InvalidSpec {
+                    field: "page_token",
+                    reason: "not a token this server returned to this tenant".into(),
+                }
             })?),
         };
         let (jobs, next) = self
-            .inner
-            .backend
-            .store
-            .list(&caller.tenant, state, size, inner)
+            .read(
+                self.inner
+                    .backend
+                    .store
+                    .list(&caller.tenant, state, size, inner),
+            )
             .await?;
-        Ok((jobs, next.map(|t| seal_page_token(&t))))
+        Ok((jobs, next.map(|t| seal_page_token(key, &caller.tenant, &t))))
     }
 
     /// Cancel a job. Queued: removed from the queue and cancelled now. Running (on any node):
     /// it stops at the next step boundary (the returned status may still say `running`; watch
     /// or poll for `cancelled`). Terminal: [`JobError::Conflict`].
     pub async fn cancel(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
+        self.on_request(self.cancel_now(caller, id)).await
+    }
+
+    async fn cancel_now(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
         let status = self.get(caller, id).await?;
         if status.state.is_terminal() {
             return Err(JobError::Conflict(format!(
@@ -327,6 +383,10 @@ impl Jobs {
     /// Remove the caller's terminal job, its frames and its files. Queued or running:
     /// `Conflict`.
     pub async fn delete(&self, caller: &Caller, id: &str) -> Result<(), JobError> {
+        self.on_request(self.delete_now(caller, id)).await
+    }
+
+    async fn delete_now(&self, caller: &Caller, id: &str) -> Result<(), JobError> {
         let backend = &self.inner.backend;
         // Files first: on a full disk they free the room SQLite's delete needs for its WAL
         // frames (the reserve covers a disk with nothing else to free). A delete the store
@@ -358,7 +418,13 @@ impl Jobs {
         id: &str,
         from_step: usize,
     ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
-        watch::watch(self.clone(), &caller.tenant, id.to_string(), from_step).await
+        self.read(watch::watch(
+            self.clone(),
+            &caller.tenant,
+            id.to_string(),
+            from_step,
+        ))
+        .await
     }
 
     /// Metrics of steps `from_step..` (at most `page_size`, 0 = 100, max 10 000) and the step
@@ -375,8 +441,12 @@ impl Jobs {
             n => n.min(10_000),
         };
         let store = &self.inner.backend.store;
-        store.status(id, Some(&caller.tenant)).await?;
-        let rows = store.frame_rows(id, from_step, size + 1).await?;
+        let rows = self
+            .read(async {
+                store.status(id, Some(&caller.tenant)).await?;
+                store.frame_rows(id, from_step, size + 1).await
+            })
+            .await?;
         let mut metrics: Vec<StepMetrics> = rows.into_iter().map(|(m, _)| m).collect();
         let next = if metrics.len() > size {
             metrics.truncate(size);
@@ -397,7 +467,9 @@ impl Jobs {
     ) -> Result<Vec<u8>, JobError> {
         let status = self.get(caller, id).await?;
         let kept = if step <= status.step {
-            let rows = self.inner.backend.store.frame_rows(id, step, 1).await?;
+            let rows = self
+                .read(self.inner.backend.store.frame_rows(id, step, 1))
+                .await?;
             rows.first().is_some_and(|(m, p)| m.step == step && *p)
         } else {
             false
@@ -408,7 +480,7 @@ impl Jobs {
             welded: true,
         };
         let bytes = if kept {
-            self.inner.backend.blobs.get(key).await?
+            self.on_request(self.inner.backend.blobs.get(key)).await?
         } else {
             None
         };
@@ -456,10 +528,10 @@ impl Jobs {
         let key = BlobKey::Result {
             id: status.id.clone(),
         };
-        let bytes =
-            self.inner.backend.blobs.get(key).await?.ok_or_else(|| {
-                JobError::Internal(format!("the result of job `{id}` is missing"))
-            })?;
+        let bytes = self
+            .on_request(self.inner.backend.blobs.get(key))
+            .await?
+            .ok_or_else(|| JobError::Internal(format!("the result of job `{id}` is missing")))?;
         self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
             .await
     }
@@ -475,9 +547,12 @@ impl Jobs {
             id: status.id.clone(),
             format: status.input_format,
         };
-        let input = self.inner.backend.blobs.get(key).await?.ok_or_else(|| {
-            JobError::Internal(format!("the input of job `{}` is missing", status.id))
-        })?;
+        let input = self
+            .on_request(self.inner.backend.blobs.get(key))
+            .await?
+            .ok_or_else(|| {
+                JobError::Internal(format!("the input of job `{}` is missing", status.id))
+            })?;
         let (input_format, limits) = (status.input_format, self.inner.config.limits.mesh_limits());
         let spec = status.spec.clone();
         tokio::task::spawn_blocking(move || {
@@ -722,21 +797,98 @@ pub(crate) fn poisoned<T>(_: std::sync::PoisonError<T>) -> JobError {
     JobError::Internal("a lock was poisoned by a panicking thread".into())
 }
 
-/// `{token}.{check}`: the backend's page token and 16 hex digits of SHA-256 over it. Not a
-/// secret (nodes share no key): it catches edited and made-up tokens, which is what matters for
-/// a position cursor; a token is no capability.
-fn seal_page_token(token: &str) -> String {
-    format!("{token}.{}", page_token_check(token))
+/// The key of page tokens' HMAC: derived from the server secret (`--webhook-secret-file`)
+/// when there is one, so that nodes sharing it accept each other's tokens and nobody else can
+/// make one. Without it the key is fixed and public: tokens are then still bound to their
+/// tenant and checked against edits, but a tenant who knows this source can forge one for
+/// itself, which positions only its own listing (a token holds nothing else).
+pub(crate) fn page_token_key(server_secret: Option<&[u8]>) -> ring::hmac::Key {
+    const LABEL: &[u8] = b"willow page tokens v2";
+    let material = match server_secret {
+        Some(secret) => {
+            let k = ring::hmac::Key::new(ring::hmac::HMAC_SHA256, secret);
+            ring::hmac::sign(&k, LABEL).as_ref().to_vec()
+        }
+        None => LABEL.to_vec(),
+    };
+    ring::hmac::Key::new(ring::hmac::HMAC_SHA256, &material)
 }
 
-/// The backend's token inside a sealed one, if the check matches.
-fn unseal_page_token(sealed: &str) -> Option<String> {
-    let (token, check) = sealed.rsplit_once('.')?;
-    (!token.is_empty() && check == page_token_check(token)).then(|| token.to_string())
+/// What a page token's HMAC covers: the tenant and the backend's token, length-prefixed so
+/// that no two (tenant, token) pairs give the same bytes.
+fn page_token_message(tenant: &str, token: &str) -> Vec<u8> {
+    let mut m = Vec::with_capacity(16 + tenant.len() + token.len());
+    m.extend_from_slice(&(tenant.len() as u64).to_be_bytes());
+    m.extend_from_slice(tenant.as_bytes());
+    m.extend_from_slice(token.as_bytes());
+    m
 }
 
-fn page_token_check(token: &str) -> String {
-    use sha2::{Digest, Sha256};
-    let digest = Sha256::digest(format!("willow page token v1:{token}").as_bytes());
-    digest[..8].iter().map(|b| format!("{b:02x}")).collect()
+/// `{token}.{mac}`: the backend's page token (base64url, no `.`) and the base64url
+/// HMAC-SHA256 of it and `tenant` under `key`.
+fn seal_page_token(key: &ring::hmac::Key, tenant: &str, token: &str) -> String {
+    use base64::Engine as _;
+    let mac = ring::hmac::sign(key, &page_token_message(tenant, token));
+    format!(
+        "{token}.{}",
+        base64::engine::general_purpose::URL_SAFE_NO_PAD.encode(mac.as_ref())
+    )
+}
+
+/// The backend's token inside a sealed one, if `tenant` was given it by a server with `key`.
+fn unseal_page_token(key: &ring::hmac::Key, tenant: &str, sealed: &str) -> Option<String> {
+    use base64::Engine as _;
+    let (token, mac) = sealed.rsplit_once('.')?;
+    let mac = base64::engine::general_purpose::URL_SAFE_NO_PAD
+        .decode(mac)
+        .ok()?;
+    // `verify` compares in constant time.
+    ring::hmac::verify(key, &page_token_message(tenant, token), &mac).ok()?;
+    (!token.is_empty()).then(|| token.to_string())
+}
+
+#[cfg(test)]
+mod page_token_tests {
+    use super::*;
+
+    /// A sealed token opens for the tenant it was given to, under the key that sealed it, and
+    /// for nobody else; any edit is refused.
+    #[test]
+    fn page_tokens_are_bound_to_their_tenant_key_and_text() {
+        let key = page_token_key(None);
+        let token = "YXQ6MTc5NTc0MzkxMDAwMDpqXzE"; // base64url of a backend's `at:T:ID`
+        let sealed = seal_page_token(&key, "alpha", token);
+        assert_eq!(
+            unseal_page_token(&key, "alpha", &sealed).as_deref(),
+            Some(token)
+        );
+        // Another tenant's listing: refused.
+        assert_eq!(unseal_page_token(&key, "beta", &sealed), None);
+        // Tenants whose ids run into the token's text do not collide (length prefix).
+        let shifted = seal_page_token(&key, "alph", &format!("a{token}"));
+        assert_ne!(
+            shifted.rsplit_once('.').map(|(_, m)| m),
+            sealed.rsplit_once('.').map(|(_, m)| m)
+        );
+        // Every single-character edit of the token or its MAC: refused.
+        for i in 0..sealed.len() {
+            let mut edited: Vec<u8> = sealed.clone().into_bytes();
+            edited[i] = if edited[i] == b'A' { b'B' } else { b'A' };
+            let edited = String::from_utf8(edited).expect("ascii");
+            assert_eq!(unseal_page_token(&key, "alpha", &edited), None, "{edited}");
+        }
+        for bad in ["", ".", "abc", "a.b", &format!("{token}.")] {
+            assert_eq!(unseal_page_token(&key, "alpha", bad), None, "{bad}");
+        }
+        // A server with a secret makes tokens only it (and nodes sharing the secret) opens.
+        let secret = page_token_key(Some(b"a server secret of 32 bytes, say"));
+        let other = page_token_key(Some(b"another server's secret, 32 byte"));
+        let sealed = seal_page_token(&secret, "alpha", token);
+        assert_eq!(
+            unseal_page_token(&secret, "alpha", &sealed).as_deref(),
+            Some(token)
+        );
+        assert_eq!(unseal_page_token(&other, "alpha", &sealed), None);
+        assert_eq!(unseal_page_token(&key, "alpha", &sealed), None);
+    }
 }

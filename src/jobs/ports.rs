@@ -286,8 +286,20 @@ pub trait JobStore: Send + Sync + 'static {
         fence: Option<&Fence>,
     ) -> Result<Option<JobStatus>, JobError>;
     /// A running job goes back to queued (shutdown) and its fence lets go; its frames and
-    /// checkpoint stay. Nothing happens if `fence` no longer holds it.
+    /// checkpoint stay. Nothing happens if `fence` no longer holds it. A hand-back in order
+    /// starts the job's count of deliveries without progress afresh ([`JobStore::delivered`]).
     async fn requeue(&self, id: &str, fence: &Fence) -> Result<(), JobError>;
+    /// The job's checkpoint now holds `step` (the worker under `fence` wrote it): progress
+    /// that survives the worker, for [`JobStore::delivered`]. Fenced as `record_frame`.
+    async fn checkpointed(&self, id: &str, step: usize, fence: &Fence) -> Result<(), JobError>;
+    /// A delivery of the job to the worker under `fence` (just started): how many
+    /// deliveries in a row, this one included, found no checkpoint newer than the delivery
+    /// before them saw. 1 when the job is new, was handed back in order, or its last run got
+    /// past a checkpoint; `n + 1` after `n` runs that each died (killed, out of memory, node
+    /// lost) before writing a new checkpoint. `Config::max_deliveries` bounds it, so a job
+    /// that keeps killing its workers fails `redelivered`, while one whose workers die after
+    /// progress goes on (issue 25 item 4).
+    async fn delivered(&self, id: &str, fence: &Fence) -> Result<u32, JobError>;
     /// Remove `tenant`'s terminal (or expired) job's record and frames; `Conflict` if it is
     /// live. Its blobs are the caller's to delete.
     async fn delete(&self, tenant: &str, id: &str) -> Result<(), JobError>;
@@ -528,6 +540,32 @@ pub struct Backend {
     pub cancels: std::sync::Arc<dyn CancelBus>,
     /// For logs and `/readyz`: `embedded` or `nats://…`.
     pub name: String,
+    /// How long a client's request may wait on this backend before it answers `unavailable`
+    /// (503 + `Retry-After`, gRPC `UNAVAILABLE`): a server across the network may be away,
+    /// and a request must not hang for the length of its outage. `None` for the embedded
+    /// backend: its store is the local disk, and a slow disk is no outage.
+    pub request_timeout: Option<std::time::Duration>,
+}
+
+tokio::task_local! {
+    /// The deadline of the client request being served, set by the core around the
+    /// request's backend calls ([`with_request_deadline`]): a backend that retries
+    /// (NATS) stops retrying there instead of riding out an outage, as a worker does.
+    static REQUEST_DEADLINE: std::time::Instant;
+}
+
+/// Run `f` with `deadline` as the request deadline its backend calls see.
+pub async fn with_request_deadline<F: std::future::Future>(
+    deadline: std::time::Instant,
+    f: F,
+) -> F::Output {
+    REQUEST_DEADLINE.scope(deadline, f).await
+}
+
+/// The deadline of the client request this call serves; `None` off the request path
+/// (workers, sweeps, webhooks), which may wait out an outage.
+pub fn request_deadline() -> Option<std::time::Instant> {
+    REQUEST_DEADLINE.try_with(|d| *d).ok()
 }
 
 #[cfg(test)]

@@ -100,25 +100,36 @@ async fn emit(tx: &Tx, ev: JobEvent) -> Result<(), WatchEnd> {
 }
 
 /// A frame's positions in the file's vertex order, from the blob store. `None` if they are
-/// gone (the job expired, or a resumed job has not written that step again yet).
-async fn stored_positions(jobs: &Jobs, id: &JobId, step: usize) -> Option<Arc<FramePositions>> {
+/// gone (the job expired, or a resumed job has not written that step again yet). A store
+/// that cannot answer (NATS away) ends the watch, a close the client reconnects from with
+/// `Last-Event-ID`, rather than sending the frame without the positions it kept.
+async fn stored_positions(
+    jobs: &Jobs,
+    id: &JobId,
+    step: usize,
+) -> Result<Option<Arc<FramePositions>>, JobError> {
     let key = BlobKey::Frame {
         id: id.clone(),
         step,
         welded: false,
     };
-    let bytes = jobs.inner.backend.blobs.get(key).await.ok()??;
-    decode_frame_positions(&bytes).ok().map(Arc::new)
+    let Some(bytes) = jobs.on_request(jobs.inner.backend.blobs.get(key)).await? else {
+        return Ok(None);
+    };
+    Ok(decode_frame_positions(&bytes).ok().map(Arc::new))
+}
+
+/// The job's status, bounded like a client's read ([`Jobs::read`]): a watcher whose store is
+/// away ends (a reconnectable close) instead of going silent for the outage.
+async fn status_now(jobs: &Jobs, id: &JobId) -> Result<JobStatus, JobError> {
+    jobs.read(jobs.inner.backend.store.status(id, None)).await
 }
 
 /// Send stored frames with step >= `next` and return the step expected after them.
 async fn replay(jobs: &Jobs, id: &JobId, mut next: usize, tx: &Tx) -> Result<usize, WatchEnd> {
     loop {
         let rows = jobs
-            .inner
-            .backend
-            .store
-            .frame_rows(id, next, REPLAY_BATCH)
+            .read(jobs.inner.backend.store.frame_rows(id, next, REPLAY_BATCH))
             .await?;
         let n = rows.len();
         for (metrics, has_positions) in rows {
@@ -126,7 +137,7 @@ async fn replay(jobs: &Jobs, id: &JobId, mut next: usize, tx: &Tx) -> Result<usi
                 continue; // a store may repeat a step a resumed job took again
             }
             let positions = if has_positions {
-                stored_positions(jobs, id, metrics.step).await
+                stored_positions(jobs, id, metrics.step).await?
             } else {
                 None
             };
@@ -146,7 +157,7 @@ async fn replay(jobs: &Jobs, id: &JobId, mut next: usize, tx: &Tx) -> Result<usi
 }
 
 async fn finish_from_store(jobs: &Jobs, id: &JobId, next: usize, tx: &Tx) -> Result<(), WatchEnd> {
-    let status = jobs.inner.backend.store.status(id, None).await?;
+    let status = status_now(jobs, id).await?;
     if next != usize::MAX {
         replay(jobs, id, next, tx).await?;
     }
@@ -184,7 +195,7 @@ async fn run_watcher(
             // A bus that lost messages (NATS while reconnecting) may have lost the `Done`:
             // a quiet channel is checked against the store now and then.
             _ = quiet.tick() => {
-                let status = jobs.inner.backend.store.status(&id, None).await?;
+                let status = status_now(&jobs, &id).await?;
                 if status.state.is_terminal() {
                     return finish_from_store(&jobs, &id, next, &tx).await;
                 }
@@ -211,7 +222,7 @@ async fn run_watcher(
                     }
                 }
                 if has_positions && f.positions.is_none() {
-                    f.positions = stored_positions(&jobs, &id, f.step).await;
+                    f.positions = stored_positions(&jobs, &id, f.step).await?;
                 }
                 next = f.step + 1;
                 emit(&tx, JobEvent::Frame(f)).await?;
@@ -239,12 +250,12 @@ async fn run_watcher(
                 // The channel closed: after `Done` (embedded), or the bus connection dropped
                 // (NATS). Only a terminal job ends the watch; otherwise subscribe again and
                 // catch up on what went by meanwhile.
-                let status = jobs.inner.backend.store.status(&id, None).await?;
+                let status = status_now(&jobs, &id).await?;
                 if status.state.is_terminal() {
                     return finish_from_store(&jobs, &id, next, &tx).await;
                 }
                 tokio::time::sleep(RESUBSCRIBE_PAUSE).await;
-                live = jobs.inner.backend.events.subscribe(&id).await?;
+                live = jobs.read(jobs.inner.backend.events.subscribe(&id)).await?;
                 if !skip_frames {
                     next = replay(&jobs, &id, next, &tx).await?;
                 }

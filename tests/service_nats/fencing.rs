@@ -3,13 +3,13 @@
 use super::*;
 
 /// Steps a worker took (its step-duration histogram's count; 0 when absent).
-async fn steps_taken(node: &Node) -> f64 {
+pub(crate) async fn steps_taken(node: &Node) -> f64 {
     metric(&node.metrics().await, "willow_step_seconds_count", &[]).unwrap_or(0.0)
 }
 
 /// Every (state, step) a client polling job `id` every 100 ms sees, until it is terminal and
 /// 8 s more (a second run would show as running again, or as progress going back).
-fn poll_states(api: &Node, id: &str) -> tokio::task::JoinHandle<Vec<(String, u64)>> {
+pub(crate) fn poll_states(api: &Node, id: &str) -> tokio::task::JoinHandle<Vec<(String, u64)>> {
     let (client, base, id) = (api.client.clone(), api.base.clone(), id.to_string());
     tokio::spawn(async move {
         let mut seen: Vec<(String, u64)> = Vec::new();
@@ -41,8 +41,56 @@ fn poll_states(api: &Node, id: &str) -> tokio::task::JoinHandle<Vec<(String, u64
     })
 }
 
+/// Longer than any quiet time of a watched running job (a frame per step; a watcher checks
+/// the store after 5 s without news, and ends its stream when the store cannot answer) and
+/// than the 15 s keep-alive.
+const SILENCE: Duration = Duration::from_secs(30);
+
+/// A client watching job `id`'s events that reconnects with `Last-Event-ID` whenever its
+/// stream ends without `done` (the API node ends it while NATS is away) or the node answers
+/// anything but 200; every event it saw, up to and with `done`. A stream silent for
+/// [`SILENCE`] fails the test: a stream must end with `done` or a close, never go quiet.
+pub(crate) fn reconnecting_watcher(api: &Node, id: &str) -> tokio::task::JoinHandle<Vec<Sse>> {
+    let (client, base, id) = (api.client.clone(), api.base.clone(), id.to_string());
+    tokio::spawn(async move {
+        let mut events: Vec<Sse> = Vec::new();
+        let start = Instant::now();
+        while start.elapsed() < PATIENCE * 2 {
+            let mut req = client.get(format!("{base}/v1/jobs/{id}/events"));
+            if let Some(&last) = frame_steps(&events).last() {
+                req = req.header("Last-Event-ID", last.to_string());
+            }
+            let res = match req.send().await {
+                Ok(r) if r.status() == 200 => r,
+                _ => {
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                    continue;
+                }
+            };
+            let mut sse = SseStream::new(res);
+            loop {
+                match sse.next(SILENCE).await {
+                    SseNext::Event(e) => {
+                        let done = e.event == "done";
+                        events.push(e);
+                        if done {
+                            return events;
+                        }
+                    }
+                    SseNext::TimedOut => panic!(
+                        "an SSE stream went silent for {SILENCE:?} without `done` or a close: {:?}",
+                        frame_steps(&events)
+                    ),
+                    _ => break,
+                }
+            }
+        }
+        panic!("no `done` in time: {:?}", frame_steps(&events));
+    })
+}
+
 /// The states after the first terminal one are all `succeeded` at step `n`.
-fn assert_succeeded_once_at(seen: &[(String, u64)], n: u64) {
+pub(crate) fn assert_succeeded_once_at(seen: &[(String, u64)], n: u64) {
     let first_terminal = seen
         .iter()
         .position(|(s, _)| s != "queued" && s != "running")
@@ -83,35 +131,7 @@ async fn nats_restart_mid_job_the_job_runs_once_on_one_worker() {
         .await;
     // A watcher that reconnects with `Last-Event-ID` when its stream ends (the API node ends
     // it while NATS is away), as a client does.
-    let watcher = {
-        let (client, base, id) = (api.client.clone(), api.base.clone(), id.clone());
-        tokio::spawn(async move {
-            let mut events: Vec<Sse> = Vec::new();
-            let start = Instant::now();
-            while start.elapsed() < PATIENCE * 2 {
-                let mut req = client.get(format!("{base}/v1/jobs/{id}/events"));
-                if let Some(&last) = frame_steps(&events).last() {
-                    req = req.header("Last-Event-ID", last.to_string());
-                }
-                let res = match req.send().await {
-                    Ok(r) if r.status() == 200 => r,
-                    _ => {
-                        tokio::time::sleep(Duration::from_millis(200)).await;
-                        continue;
-                    }
-                };
-                let mut sse = SseStream::new(res);
-                while let SseNext::Event(e) = sse.next(PATIENCE).await {
-                    let done = e.event == "done";
-                    events.push(e);
-                    if done {
-                        return events;
-                    }
-                }
-            }
-            panic!("no `done` in time: {:?}", frame_steps(&events));
-        })
-    };
+    let watcher = reconnecting_watcher(&api, &id);
     let poller = poll_states(&api, &id);
     api.poll_until(&id, |v| {
         v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 10

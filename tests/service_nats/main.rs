@@ -9,7 +9,7 @@
 //! installs under target/ on first use. Every child process is killed when its guard drops, and
 //! a failing test prints the end of each process's log (nodes run with `RUST_LOG=info`).
 //!
-//! One file a theme: `nodes`, `queue`, `consumers`, `fencing`; this one holds the helpers
+//! One file a theme: `nodes`, `queue`, `consumers`, `fencing`, `outages`; this one holds the helpers
 //! they share.
 
 #[path = "../nats_support/mod.rs"]
@@ -22,6 +22,7 @@ mod webhook_support;
 mod consumers;
 mod fencing;
 mod nodes;
+mod outages;
 mod queue;
 mod webhooks;
 

@@ -165,16 +165,21 @@ async fn idempotency_key_across_api_nodes() {
         .await;
 }
 
-/// `max_deliver`: a job whose worker dies once too often fails with a reason instead of being
-/// handed to one more worker. With `--max-deliveries 1`, the delivery after a crash is the
-/// one too many.
+/// `--max-deliveries`: a job whose workers die before they reach a new checkpoint fails with
+/// a reason instead of being handed to one more worker. With `--max-deliveries 1` and no
+/// checkpoint before the kill, the delivery after the crash is the one too many.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_delivered_too_often_fails_with_code_redelivered() {
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();
     let nats = Nats::start(d);
     let url = nats.url();
-    let opts = |o: NodeOpts| o.ack_wait_secs(2).max_deliveries(1);
+    // No checkpoint in this job's life: every run makes no progress that survives it.
+    let opts = |o: NodeOpts| {
+        o.ack_wait_secs(2)
+            .max_deliveries(1)
+            .checkpoint_steps(100_000)
+    };
     let api = Node::spawn(d, "api", Some(&url), &opts(NodeOpts::api()));
     let mut first = Node::spawn(d, "worker-1", Some(&url), &opts(NodeOpts::worker()));
     all_ready(&[&api, &first]).await;
@@ -195,11 +200,72 @@ async fn a_job_delivered_too_often_fails_with_code_redelivered() {
     assert_eq!(done["state"], "failed", "{done}");
     assert_eq!(done["error_code"], "redelivered", "{done}");
     assert!(
-        done["error"]
-            .as_str()
-            .is_some_and(|m| m.contains("delivered 1 times")),
-        "the reason says how often: {done}"
+        done["error"].as_str().is_some_and(
+            |m| m.contains("delivered 2 times in a row without reaching a new checkpoint")
+        ),
+        "the reason says how often and why: {done}"
     );
+}
+
+/// `--max-deliveries` counts deliveries without progress, not crashes after progress (issue
+/// 25 item 4: a 1000-step job killed at steps 43, 144 and 243, each past a checkpoint, failed
+/// `redelivered`). With `--max-deliveries 1`, the worker running the job is killed three
+/// times, each time 8 steps past where its run resumed (so past a new checkpoint, one every 5
+/// steps); a new worker takes over each time. The job succeeds, resumed three times.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_whose_workers_die_after_progress_is_not_failed_redelivered() {
+    const N: u64 = 300;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let nats = Nats::start(d);
+    let url = nats.url();
+    let opts = |o: NodeOpts| o.ack_wait_secs(2).max_deliveries(1).checkpoint_steps(5);
+    let api = Node::spawn(d, "api", Some(&url), &opts(NodeOpts::api()));
+    let mut worker = Node::spawn(d, "worker-0", Some(&url), &opts(NodeOpts::worker()));
+    all_ready(&[&api, &worker]).await;
+    let id = api
+        .submit(
+            &slow_obj(),
+            &format!("steps={N}&frame_interval=50&until_converged=false"),
+        )
+        .await;
+    let mut resumed_at = 0;
+    let mut killed_at = Vec::new();
+    for kill in 1..=3 {
+        let v = api
+            .poll_until(&id, |v| {
+                is_terminal(v)
+                    || (v["state"] == "running"
+                        && v["progress"]["step"].as_u64().unwrap_or(0) >= resumed_at + 8)
+            })
+            .await;
+        assert_eq!(v["state"], "running", "still running at kill {kill}: {v}");
+        let step = v["progress"]["step"].as_u64().unwrap_or(0);
+        worker.kill();
+        killed_at.push(step);
+        // Checkpoints fall on multiples of 5 (every 5 steps from 0, and from a resume
+        // point): the next run resumes at or below this one, and once it shows 8 steps past
+        // it, the checkpoint 5 past it is written.
+        resumed_at = step / 5 * 5;
+        worker = Node::spawn(
+            d,
+            &format!("worker-{kill}"),
+            Some(&url),
+            &opts(NodeOpts::worker()),
+        );
+        all_ready(&[&worker]).await;
+        worker
+            .wait_metric("willow_jobs_resumed_total", &[], 1.0, PATIENCE)
+            .await;
+    }
+    let done = api.poll_until(&id, is_terminal).await;
+    assert_eq!(
+        done["state"], "succeeded",
+        "killed at steps {killed_at:?}, each past a new checkpoint: {done}"
+    );
+    assert_eq!(done["progress"]["step"], N, "{done}");
+    assert_eq!(api.frame_list(&id).await, steps(0..=N));
+    eprintln!("workers killed at steps {killed_at:?}; the job succeeded");
 }
 
 /// A worker that shuts down cleanly hands its job back without using up a delivery: with

@@ -29,5 +29,6 @@ pub fn open(dir: &Path, capacity: usize) -> Result<Backend, JobError> {
         events: Arc::new(broadcast::Broadcast::default()),
         cancels: Arc::new(broadcast::LocalCancels::default()),
         name: "embedded".into(),
+        request_timeout: None,
     })
 }

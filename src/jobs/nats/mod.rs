@@ -12,13 +12,15 @@
 //! `ack_wait` takes effect). Durable state lives in NATS only: a node's data dir is scratch.
 
 mod bus;
+mod errors;
 mod kv;
 mod objects;
 mod queue;
 
-use super::ports::Backend;
+use super::ports::{request_deadline, Backend};
 use super::{Config, JobError};
 use async_nats::jetstream::{self, consumer, stream};
+pub(crate) use errors::nats_err;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -33,6 +35,15 @@ pub const FRAMES_STREAM: &str = "WILLOW_FRAMES";
 pub const KV_BUCKET: &str = "willow-jobs";
 pub const OBJECT_BUCKET: &str = "willow-blobs";
 
+/// The default of [`NatsOptions::request_timeout`]: a healthy NATS answers in milliseconds,
+/// and a client told 503 with `Retry-After: 2` within ~3 s can retry or fail over; long
+/// enough for a KV update's compare-and-set retries on a loaded server.
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// The default of [`NatsOptions::call_timeout`]: the client's defaults (5 s for JetStream,
+/// 10 s for a request) made a request that met an outage wait 10-25 s before its first retry.
+pub const CALL_TIMEOUT: Duration = Duration::from_millis(2500);
+
 /// How the NATS backend runs, beyond the core's [`Config`].
 #[derive(Clone, Debug)]
 pub struct NatsOptions {
@@ -43,6 +54,11 @@ pub struct NatsOptions {
     pub ack_wait: Duration,
     /// How long start-up waits for NATS before it gives up.
     pub connect_timeout: Duration,
+    /// How long a client's request waits on NATS before it answers `unavailable` (503 +
+    /// `Retry-After`): [`Backend::request_timeout`].
+    pub request_timeout: Duration,
+    /// How long one NATS call (a request, a publish's ack) waits for its answer.
+    pub call_timeout: Duration,
 }
 
 impl NatsOptions {
@@ -51,6 +67,8 @@ impl NatsOptions {
             url: url.into(),
             ack_wait: Duration::from_secs(30),
             connect_timeout: Duration::from_secs(30),
+            request_timeout: REQUEST_TIMEOUT,
+            call_timeout: CALL_TIMEOUT,
         }
     }
 }
@@ -62,45 +80,29 @@ pub(crate) struct Nats {
     pub kv: jetstream::kv::Store,
 }
 
-/// A NATS error as the core sees it: the server not answering (timeouts, a dropped
-/// connection) is [`JobError::Unavailable`], worth retrying; anything else is internal.
-fn nats_err(what: &str, e: impl std::fmt::Display) -> JobError {
-    let text = format!("nats: {what}: {e}");
-    let lower = text.to_ascii_lowercase();
-    let transient = [
-        "timed out",
-        "timeout",
-        "broken pipe",
-        "disconnected",
-        "connection",
-        "no responders",
-        "not connected",
-        // A server shutting down (SIGTERM) stops JetStream before it closes connections:
-        // publishes to the streams made at connect meet these for a moment.
-        "no stream found",
-        "jetstream not enabled",
-        "temporarily unavailable",
-    ];
-    if transient.iter().any(|t| lower.contains(t)) {
-        JobError::Unavailable(text)
-    } else {
-        JobError::Internal(text)
-    }
-}
-
 /// Run `op` again, with a short backoff, while it fails with [`JobError::Unavailable`]: an
 /// operation in flight when the connection dropped times out after the client has already
 /// reconnected, and a second try then succeeds. Only for operations that may be repeated.
+///
+/// On a client's request ([`request_deadline`] set) no try starts after the deadline: the
+/// request answers `unavailable` within its budget instead of waiting out the outage (issue
+/// 25: `GET /v1/jobs/{id}` blocked for a 20 s outage). Each NATS call is bounded by
+/// [`NatsOptions::call_timeout`]. Off the request path (workers) the tries ride out a short
+/// restart.
 async fn retry<T, F, Fut>(mut op: F) -> Result<T, JobError>
 where
     F: FnMut() -> Fut,
     Fut: std::future::Future<Output = Result<T, JobError>>,
 {
+    let deadline = request_deadline();
     let mut pause = Duration::from_millis(250);
     for _ in 0..RETRIES {
         match op().await {
             Err(JobError::Unavailable(e)) => {
-                tracing::debug!(error = %e, "NATS operation retried");
+                if deadline.is_some_and(|d| std::time::Instant::now() + pause >= d) {
+                    return Err(JobError::Unavailable(e));
+                }
+                tracing::info!(error = %e, "NATS operation retried");
                 tokio::time::sleep(pause).await;
                 pause *= 2;
             }
@@ -137,6 +139,7 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
                 .name("willow")
                 .max_reconnects(None)
                 .connection_timeout(Duration::from_secs(5))
+                .request_timeout(Some(options.call_timeout))
                 .connect(options.url.as_str())
                 .await;
             match attempt {
@@ -149,7 +152,8 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
             }
         }
     };
-    let js = jetstream::new(client.clone());
+    let mut js = jetstream::new(client.clone());
+    js.set_timeout(options.call_timeout);
     js.create_or_update_stream(stream::Config {
         name: JOBS_STREAM.into(),
         subjects: vec![JOBS_SUBJECT.into(), format!("{JOBS_SUBJECT}.>")],
@@ -171,9 +175,11 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
     let template = consumer::pull::Config {
         ack_policy: consumer::AckPolicy::Explicit,
         ack_wait: options.ack_wait,
-        // One more than the core's limit: the worker that gets the last delivery fails the
-        // job with a reason instead of the server dropping it in silence.
-        max_deliver: i64::from(config.max_deliveries) + 1,
+        // No limit here: the core counts the deliveries that made no progress
+        // (`JobStore::delivered`) and fails the job with a reason past
+        // `Config::max_deliveries`. A server-side count would also count the runs that died
+        // after a new checkpoint, and drop a long job that made progress in silence.
+        max_deliver: -1,
         ..Default::default()
     };
     // Only `willow.jobs` itself: a work-queue stream refuses consumers whose filters overlap,
@@ -280,5 +286,6 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         events: Arc::new(bus::NatsBus::new(nats)),
         cancels: Arc::new(cancels),
         name: options.url.clone(),
+        request_timeout: Some(options.request_timeout),
     })
 }

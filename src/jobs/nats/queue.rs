@@ -422,6 +422,10 @@ impl WorkQueue for NatsQueue {
     }
 
     fn connected(&self) -> bool {
+        // The client's own state, not the refresher's copy: a request checks it before it
+        // waits on NATS, and the copy lags by up to a refresh (longer if a refresh's call
+        // was caught by the outage).
         self.connected.load(Ordering::Relaxed)
+            && self.nats.client.connection_state() == async_nats::connection::State::Connected
     }
 }

@@ -156,28 +156,46 @@ async fn run_leased(inner: &Arc<Inner>, n: usize, lease: Lease) {
     held.cancel();
     let outcome = match running {
         None => Ok(Outcome::Done), // cancelled, deleted or expired while waiting, or done
-        Some(_) if lease.attempt > inner.config.max_deliveries => {
-            let reason = format!(
-                "the job was delivered {} times and no worker finished it (each stopped \
-                 without a word: killed, out of memory, or its node lost); it is not tried again",
-                lease.attempt - 1
-            );
-            tracing::error!(job_id = %id, attempt = lease.attempt, "giving up on a job");
-            finish(
-                inner,
-                &id,
-                JobState::Failed,
-                Some((FailureCode::Redelivered, reason)),
-                Some(&fence),
-            )
-            .await
-            .map(|_| Outcome::Done)
-        }
-        Some(running) => run_held(inner, n, &lease, &fence, *running).await,
+        Some(running) => match backend.store.delivered(&id, &fence).await {
+            Ok(stalled) if stalled > inner.config.max_deliveries => {
+                give_up(inner, &id, &fence, stalled, lease.attempt).await
+            }
+            Ok(_) => run_held(inner, n, &lease, &fence, *running).await,
+            Err(e) => Err(e),
+        },
     };
     beat.cancel();
     let _ = heartbeat.await;
     settle(inner, &id, &lease, &fence, outcome).await;
+}
+
+/// Fail a job whose last `stalled` deliveries each ended without a word and without a new
+/// checkpoint (`Config::max_deliveries`): it kills its workers, and one more would die too.
+/// Deliveries after progress do not count (`JobStore::delivered`), so a long job on
+/// workers that get killed now and then still finishes.
+async fn give_up(
+    inner: &Inner,
+    id: &str,
+    fence: &Fence,
+    stalled: u32,
+    attempt: u32,
+) -> Result<Outcome, JobError> {
+    let reason = format!(
+        "the job was delivered {stalled} times in a row without reaching a new checkpoint \
+         ({} runs stopped without a word: killed, out of memory, or their node lost); it is \
+         not tried again",
+        stalled - 1
+    );
+    tracing::error!(job_id = %id, stalled, attempt, "giving up on a job");
+    finish(
+        inner,
+        id,
+        JobState::Failed,
+        Some((FailureCode::Redelivered, reason)),
+        Some(fence),
+    )
+    .await
+    .map(|_| Outcome::Done)
 }
 
 /// Run a job this worker's fence holds, on a blocking thread.

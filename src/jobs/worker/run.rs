@@ -175,7 +175,7 @@ pub(super) fn run_job(
         })
     };
 
-    let resumed_at = resume(inner, rt, id, flow.as_mut());
+    let resumed_at = resume(inner, rt, id, flow.as_mut())?;
     let first = match &resumed_at {
         Some(at) => {
             rt.block_on(backend.store.rewind(id, at.step, fence))?;
@@ -257,7 +257,10 @@ pub(super) fn run_job(
             || last_checkpoint.1.elapsed() >= inner.config.checkpoint_interval;
         if due && step < spec.steps {
             still_held()?;
-            checkpoint(inner, rt, id, run.flow())?;
+            if checkpoint(inner, rt, id, run.flow())? {
+                // Progress that outlives this worker: a delivery after it is not a repeat.
+                rt.block_on(backend.store.checkpointed(id, step, fence))?;
+            }
             last_checkpoint = (step, Instant::now());
         }
         step += 1;
@@ -342,36 +345,44 @@ fn read_asset(inner: &Inner, rt: &Handle, status: &JobStatus) -> Result<Asset, J
 }
 
 /// Put `flow` on the job's checkpoint, if it has a usable one; the metrics of the step it is at.
-fn resume(inner: &Inner, rt: &Handle, id: &JobId, flow: &mut dyn Flow) -> Option<StepMetrics> {
+/// A store that cannot answer now (NATS away: `Unavailable`, or full) is an error, so that
+/// the job is handed back and resumed later instead of starting over from step 0.
+fn resume(
+    inner: &Inner,
+    rt: &Handle,
+    id: &JobId,
+    flow: &mut dyn Flow,
+) -> Result<Option<StepMetrics>, JobError> {
     let key = BlobKey::Checkpoint { id: id.clone() };
     let bytes = match rt.block_on(inner.backend.blobs.get(key)) {
         Ok(Some(b)) => b,
-        Ok(None) => return None,
+        Ok(None) => return Ok(None),
+        Err(e @ (JobError::Unavailable(_) | JobError::StorageFull { .. })) => return Err(e),
         Err(e) => {
             tracing::warn!(error = %e, "checkpoint unreadable: the job starts from step 0");
-            return None;
+            return Ok(None);
         }
     };
     let state = match decode_checkpoint(&bytes) {
         Ok(s) => s,
         Err(e) => {
             tracing::warn!(error = %e, "checkpoint refused: the job starts from step 0");
-            return None;
+            return Ok(None);
         }
     };
     match flow.resume(&state) {
-        Ok(()) => Some(state.metrics),
+        Ok(()) => Ok(Some(state.metrics)),
         Err(e) => {
             tracing::warn!(error = %e, "checkpoint does not fit the flow: the job starts from step 0");
-            None
+            Ok(None)
         }
     }
 }
 
-/// Write the flow's state as the job's checkpoint.
-fn checkpoint(inner: &Inner, rt: &Handle, id: &JobId, flow: &dyn Flow) -> Result<(), JobError> {
+/// Write the flow's state as the job's checkpoint; whether the flow has one to write.
+fn checkpoint(inner: &Inner, rt: &Handle, id: &JobId, flow: &dyn Flow) -> Result<bool, JobError> {
     let Some(state) = flow.checkpoint() else {
-        return Ok(());
+        return Ok(false);
     };
     let t = Instant::now();
     let key = BlobKey::Checkpoint { id: id.clone() };
@@ -385,7 +396,7 @@ fn checkpoint(inner: &Inner, rt: &Handle, id: &JobId, flow: &dyn Flow) -> Result
         .telemetry
         .checkpoint_seconds
         .observe(t.elapsed().as_secs_f64());
-    Ok(())
+    Ok(true)
 }
 
 /// The first vertex with a non-finite coordinate, if any.

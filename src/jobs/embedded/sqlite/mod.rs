@@ -50,7 +50,6 @@ struct Report {
 struct Row {
     status: JobStatus,
     expired: bool,
-    seq: i64,
 }
 
 /// A job id is stored as its text…
@@ -87,7 +86,6 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
     let error: Option<String> = r.get(8)?;
     let error_code: Option<String> = r.get(9)?;
     let expired: i64 = r.get(14)?;
-    let seq: i64 = r.get(15)?;
     let tenant: String = r.get(16)?;
     let input_bytes = get_u64(17)?.unwrap_or(0);
     let report: Option<String> = r.get(18)?;
@@ -127,7 +125,6 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
                 notes: report.notes,
             },
             expired: expired != 0,
-            seq,
         })
     })())
 }
@@ -295,34 +292,45 @@ impl SqliteStore {
         size: usize,
         token: Option<&str>,
     ) -> Result<(Vec<JobStatus>, Option<String>), JobError> {
-        let before = match token {
-            None | Some("") => i64::MAX,
-            Some(t) => base64::engine::general_purpose::URL_SAFE_NO_PAD
-                .decode(t)
-                .ok()
-                .and_then(|b| String::from_utf8(b).ok())
-                .and_then(|s| s.strip_prefix("seq:").and_then(|n| n.parse::<i64>().ok()))
-                .ok_or_else(|| JobError::InvalidSpec {
-                    field: "page_token",
-                    reason: "not a token this server returned".into(),
-                })?,
+        // Newest first by (created_at, id); the token is the last job of the previous page,
+        // the tenant's own: a global sequence here would let a tenant count other tenants'
+        // jobs between two of its pages.
+        let before: Option<(i64, String)> = match token {
+            None | Some("") => None,
+            Some(t) => Some(
+                base64::engine::general_purpose::URL_SAFE_NO_PAD
+                    .decode(t)
+                    .ok()
+                    .and_then(|b| String::from_utf8(b).ok())
+                    .and_then(|s| {
+                        let (at, id) = s.strip_prefix("at:")?.split_once(':')?;
+                        Some((at.parse().ok()?, id.to_string()))
+                    })
+                    .ok_or_else(|| JobError::InvalidSpec {
+                        field: "page_token",
+                        reason: "not a token this server returned".into(),
+                    })?,
+            ),
         };
+        let (before_at, before_id) = before.map_or((None, None), |(t, id)| (Some(t), Some(id)));
         let now = ms(now_ms());
         let conn = self.conn()?;
         let sql = format!(
             "SELECT {STATUS_COLUMNS} FROM jobs
-             WHERE tenant = ?5 AND seq < ?1 AND expired = 0
+             WHERE tenant = ?5 AND expired = 0
+               AND (?1 IS NULL OR created_at < ?1 OR (created_at = ?1 AND id < ?6))
                AND (expires_at IS NULL OR expires_at > ?2) AND (?3 IS NULL OR state = ?3)
-             ORDER BY seq DESC LIMIT ?4"
+             ORDER BY created_at DESC, id DESC LIMIT ?4"
         );
         let mut st = conn.prepare(&sql)?;
         let rows = st.query_map(
             params![
-                before,
+                before_at,
                 now,
                 state.map(|s| s.as_str()),
                 (size + 1) as i64,
-                tenant
+                tenant,
+                before_id
             ],
             row_to_status,
         )?;
@@ -333,7 +341,8 @@ impl SqliteStore {
         let next = if out.len() > size {
             out.truncate(size);
             out.last().map(|r| {
-                base64::engine::general_purpose::URL_SAFE_NO_PAD.encode(format!("seq:{}", r.seq))
+                base64::engine::general_purpose::URL_SAFE_NO_PAD
+                    .encode(format!("at:{}:{}", r.status.created_at, r.status.id))
             })
         } else {
             None

@@ -34,7 +34,10 @@ CREATE TABLE IF NOT EXISTS jobs (
     input_bytes     INTEGER NOT NULL DEFAULT 0,
     received        INTEGER NOT NULL DEFAULT 1,
     callback_pending INTEGER NOT NULL DEFAULT 0,
-    report          TEXT
+    report          TEXT,
+    checkpoint_step INTEGER,
+    delivery_checkpoint INTEGER,
+    stalled_deliveries INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_expiry ON jobs(expires_at) WHERE expired = 0;
@@ -63,7 +66,7 @@ CREATE TABLE IF NOT EXISTS uploads (
 /// Columns added after the first release, with their definitions: databases from before them
 /// get them at open (SQLite has no `ADD COLUMN IF NOT EXISTS`). Rows from before tenants
 /// belong to the default tenant.
-const ADDED_COLUMNS: [(&str, &str, &str); 7] = [
+const ADDED_COLUMNS: [(&str, &str, &str); 10] = [
     ("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
     ("jobs", "input_bytes", "INTEGER NOT NULL DEFAULT 0"),
@@ -71,6 +74,11 @@ const ADDED_COLUMNS: [(&str, &str, &str); 7] = [
     ("uploads", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
     ("jobs", "callback_pending", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "report", "TEXT"),
+    // The delivery ledger (`JobStore::delivered`): the step of the job's checkpoint, the
+    // one its last delivery saw, and deliveries in a row that found no newer one.
+    ("jobs", "checkpoint_step", "INTEGER"),
+    ("jobs", "delivery_checkpoint", "INTEGER"),
+    ("jobs", "stalled_deliveries", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 /// The statement a trigger runs for a mesh received (a job or an upload row `NEW`): what

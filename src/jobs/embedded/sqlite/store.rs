@@ -166,10 +166,45 @@ impl JobStore for SqliteStore {
         let id = id.to_string();
         self.blocking(move |s| {
             s.conn()?.execute(
-                "UPDATE jobs SET state = 'queued' WHERE id = ?1 AND state = 'running'",
+                "UPDATE jobs SET state = 'queued', stalled_deliveries = 0
+                 WHERE id = ?1 AND state = 'running'",
                 params![id],
             )?;
             Ok(())
+        })
+        .await
+    }
+
+    async fn checkpointed(&self, id: &str, step: usize, _fence: &Fence) -> Result<(), JobError> {
+        let id = id.to_string();
+        self.blocking(move |s| {
+            s.conn()?.execute(
+                "UPDATE jobs SET checkpoint_step = ?2 WHERE id = ?1 AND state = 'running'",
+                params![id, i64::try_from(step).unwrap_or(i64::MAX)],
+            )?;
+            Ok(())
+        })
+        .await
+    }
+
+    async fn delivered(&self, id: &str, _fence: &Fence) -> Result<u32, JobError> {
+        let id = id.to_string();
+        self.blocking(move |s| {
+            // `IS` compares NULLs too: no checkpoint then and none now is no progress.
+            let stalled: Option<i64> = s
+                .conn()?
+                .query_row(
+                    "UPDATE jobs SET
+                       stalled_deliveries = CASE WHEN checkpoint_step IS delivery_checkpoint
+                                            THEN stalled_deliveries + 1 ELSE 1 END,
+                       delivery_checkpoint = checkpoint_step
+                     WHERE id = ?1 RETURNING stalled_deliveries",
+                    params![id],
+                    |r| r.get(0),
+                )
+                .optional()?;
+            let stalled = stalled.ok_or_else(|| JobError::NotFound(id.clone()))?;
+            Ok(u32::try_from(stalled).unwrap_or(u32::MAX))
         })
         .await
     }

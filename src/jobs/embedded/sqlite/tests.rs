@@ -1,6 +1,6 @@
 use super::schema::RECOUNT_USAGE;
 use super::*;
-use crate::jobs::ports::{Fence, JobStore, MINUTE_MS};
+use crate::jobs::ports::{Fence, JobStore, Started, MINUTE_MS};
 use crate::jobs::{JobSpec, JobState, TenantQuotas};
 use willow::mesh::io::Format;
 
@@ -239,4 +239,47 @@ async fn a_full_database_refuses_inserts_as_storage_full_and_still_deletes() {
     );
     let read = store.status(kept.id.as_str(), None).await.expect("read");
     assert_eq!(read.state, JobState::Succeeded);
+}
+
+/// The delivery ledger counts the deliveries in a row that found no newer checkpoint: a run
+/// that died after a checkpoint starts the count again, one that died before does not, and
+/// a hand-back in order (requeue) starts it afresh. Cases worked by hand: deliveries d1..d6
+/// with checkpoints written between some of them.
+#[tokio::test]
+async fn deliveries_count_only_runs_that_made_no_progress() {
+    let dir = tempfile::tempdir().expect("dir");
+    let store = SqliteStore::open(dir.path()).expect("open");
+    let id = match store.insert(job("a", 10, now_ms())).await.expect("insert") {
+        Inserted::New(s) => s.id,
+        other => panic!("not inserted: {other:?}"),
+    };
+    let fence = Fence::new(std::time::Duration::from_secs(30));
+    let started = store.start(&id, &fence, now_ms()).await.expect("start");
+    assert!(matches!(started, Started::Run(_)));
+    // d1: a new job, no checkpoint: the first of its run.
+    assert_eq!(store.delivered(&id, &fence).await.expect("d1"), 1);
+    // Died before any checkpoint: d2 is the second in a row.
+    assert_eq!(store.delivered(&id, &fence).await.expect("d2"), 2);
+    // d2's run reached the checkpoint at step 40 and died: d3 starts over.
+    store
+        .checkpointed(&id, 40, &fence)
+        .await
+        .expect("checkpoint");
+    assert_eq!(store.delivered(&id, &fence).await.expect("d3"), 1);
+    // d3 died without a newer checkpoint (the same step written again is no progress).
+    store
+        .checkpointed(&id, 40, &fence)
+        .await
+        .expect("checkpoint");
+    assert_eq!(store.delivered(&id, &fence).await.expect("d4"), 2);
+    assert_eq!(store.delivered(&id, &fence).await.expect("d5"), 3);
+    // Handed back in order (shutdown): the next delivery is the first of a fresh count.
+    store.requeue(&id, &fence).await.expect("requeue");
+    let started = store.start(&id, &fence, now_ms()).await.expect("start");
+    assert!(matches!(started, Started::Run(_)));
+    assert_eq!(store.delivered(&id, &fence).await.expect("d6"), 1);
+    assert!(matches!(
+        store.delivered("j_unknown", &fence).await,
+        Err(JobError::NotFound(_))
+    ));
 }

@@ -61,6 +61,42 @@ struct Record {
     /// before webhooks: they have none).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     callback_pending: bool,
+    /// Progress across deliveries ([`JobStore::delivered`]); absent in records from before
+    /// it, which read as a job with no checkpoint and no delivery yet.
+    ///
+    /// [`JobStore::delivered`]: crate::jobs::ports::JobStore::delivered
+    #[serde(default, skip_serializing_if = "Ledger::is_empty")]
+    ledger: Ledger,
+}
+
+/// A job's delivery ledger: the step of its checkpoint, the one its last delivery saw, and
+/// the deliveries in a row that found no newer one.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+struct Ledger {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    checkpoint: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    at_delivery: Option<usize>,
+    #[serde(default)]
+    stalled: u32,
+}
+
+impl Ledger {
+    fn is_empty(&self) -> bool {
+        *self == Ledger::default()
+    }
+
+    /// Count a delivery: the deliveries in a row without a newer checkpoint, this one
+    /// included.
+    fn deliver(&mut self) -> u32 {
+        self.stalled = if self.checkpoint == self.at_delivery {
+            self.stalled.saturating_add(1)
+        } else {
+            1
+        };
+        self.at_delivery = self.checkpoint;
+        self.stalled
+    }
 }
 
 /// A worker's hold on a running job: its [`Fence`]'s token, and until when (unix ms, the
@@ -408,5 +444,27 @@ impl KvStore {
             }
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Ledger;
+
+    /// The same cases as the embedded store's ledger test, on the NATS record's ledger.
+    #[test]
+    fn deliveries_count_only_runs_that_made_no_progress() {
+        let mut l = Ledger::default();
+        assert_eq!(l.deliver(), 1, "a new job");
+        assert_eq!(l.deliver(), 2, "died before any checkpoint");
+        l.checkpoint = Some(40);
+        assert_eq!(l.deliver(), 1, "died after a new checkpoint");
+        assert_eq!(l.deliver(), 2, "died before the next one");
+        assert_eq!(l.deliver(), 3);
+        l.stalled = 0; // handed back in order (`requeue`)
+        assert_eq!(l.deliver(), 1);
+        // A record from before the ledger reads as a job never delivered.
+        let old: Ledger = serde_json::from_str("{}").expect("empty ledger");
+        assert!(old.is_empty());
     }
 }

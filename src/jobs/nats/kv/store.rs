@@ -327,10 +327,34 @@ impl JobStore for KvStore {
             }
             r.hold = None;
             r.status.state = JobState::Queued;
+            r.ledger.stalled = 0;
             Ok(true)
         })
         .await?;
         Ok(())
+    }
+
+    async fn checkpointed(&self, id: &str, step: usize, fence: &Fence) -> Result<(), JobError> {
+        let at = now_ms();
+        self.update(id, |r| {
+            fenced(id, r, fence)?;
+            r.ledger.checkpoint = Some(step);
+            Ok(true)
+        })
+        .await?;
+        fence.renewed(at);
+        Ok(())
+    }
+
+    async fn delivered(&self, id: &str, fence: &Fence) -> Result<u32, JobError> {
+        let mut stalled = 0;
+        self.update(id, |r| {
+            fenced(id, r, fence)?;
+            stalled = r.ledger.deliver();
+            Ok(true)
+        })
+        .await?;
+        Ok(stalled)
     }
 
     async fn delete(&self, tenant: &str, id: &str) -> Result<(), JobError> {

@@ -212,6 +212,7 @@ impl KvStore {
             expired: false,
             hold: None,
             callback_pending: job.spec.callback_url.is_some(),
+            ledger: Ledger::default(),
         };
         kv.create(job_key(&job.id), to_json(&rec)?)
             .await
