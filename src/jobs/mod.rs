@@ -32,12 +32,14 @@
 mod admission;
 pub mod codec;
 pub mod curve;
+mod downloads;
 pub mod embedded;
 mod error;
 mod ids;
 mod job_spec;
 mod model;
 pub mod nats;
+mod page_token;
 pub mod ports;
 pub mod spec;
 pub mod storage;
@@ -49,6 +51,8 @@ pub mod worker;
 pub use error::{is_storage_full, FailureCode, JobError, STORAGE_FULL_RETRY_SECS};
 pub use ids::JobId;
 pub use model::*;
+pub(crate) use page_token::page_token_key;
+use page_token::{seal_page_token, unseal_page_token};
 
 use futures::Stream;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
@@ -408,193 +412,6 @@ impl Jobs {
         self.inner.storage.note(backend.blobs.delete_job(id).await)
     }
 
-    /// Events of a job from `from_step` on: its current state, the stored frames (replay),
-    /// then live frames, ending with `Done`. A watcher that falls behind the live channel
-    /// resumes from the store, so it sees every step once and in order, and never slows the
-    /// worker down.
-    pub async fn watch(
-        &self,
-        caller: &Caller,
-        id: &str,
-        from_step: usize,
-    ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
-        self.read(watch::watch(
-            self.clone(),
-            &caller.tenant,
-            id.to_string(),
-            from_step,
-        ))
-        .await
-    }
-
-    /// Metrics of steps `from_step..` (at most `page_size`, 0 = 100, max 10 000) and the step
-    /// to ask for next, if any.
-    pub async fn frames(
-        &self,
-        caller: &Caller,
-        id: &str,
-        from_step: usize,
-        page_size: usize,
-    ) -> Result<(Vec<StepMetrics>, Option<usize>), JobError> {
-        let size = match page_size {
-            0 => 100,
-            n => n.min(10_000),
-        };
-        let store = &self.inner.backend.store;
-        let rows = self
-            .read(async {
-                store.status(id, Some(&caller.tenant)).await?;
-                store.frame_rows(id, from_step, size + 1).await
-            })
-            .await?;
-        let mut metrics: Vec<StepMetrics> = rows.into_iter().map(|(m, _)| m).collect();
-        let next = if metrics.len() > size {
-            metrics.truncate(size);
-            metrics.last().map(|m| m.step + 1)
-        } else {
-            None
-        };
-        Ok((metrics, next))
-    }
-
-    /// The mesh after `step` in `format`, for steps that kept positions.
-    pub async fn frame_mesh(
-        &self,
-        caller: &Caller,
-        id: &str,
-        step: usize,
-        format: Format,
-    ) -> Result<Vec<u8>, JobError> {
-        let status = self.get(caller, id).await?;
-        let kept = if step <= status.step {
-            let rows = self
-                .read(self.inner.backend.store.frame_rows(id, step, 1))
-                .await?;
-            rows.first().is_some_and(|(m, p)| m.step == step && *p)
-        } else {
-            false
-        };
-        let key = BlobKey::Frame {
-            id: status.id.clone(),
-            step,
-            welded: true,
-        };
-        let bytes = if kept {
-            self.on_request(self.inner.backend.blobs.get(key)).await?
-        } else {
-            None
-        };
-        let Some(bytes) = bytes else {
-            let detail = if step > status.step
-                || (step == status.step && !status.state.is_terminal() && status.latest.is_none())
-            {
-                format!(
-                    "the job has completed {} of {} steps",
-                    status.step, status.total_steps
-                )
-            } else if !status.spec.include_positions {
-                "the job was submitted with include_positions=false".to_string()
-            } else {
-                format!(
-                    "positions are kept at step 0, every {} steps and the last step",
-                    status.spec.frame_interval
-                )
-            };
-            return Err(JobError::FrameNotFound {
-                id: id.to_string(),
-                step,
-                detail,
-            });
-        };
-        self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
-            .await
-    }
-
-    /// The faired mesh in `format` (input UVs, materials and textures kept). `Conflict` until
-    /// the job succeeded.
-    pub async fn result(
-        &self,
-        caller: &Caller,
-        id: &str,
-        format: Format,
-    ) -> Result<Vec<u8>, JobError> {
-        let status = self.get(caller, id).await?;
-        if status.state != JobState::Succeeded {
-            return Err(JobError::Conflict(format!(
-                "job `{id}` is {}: only a succeeded job has a result",
-                status.state.as_str()
-            )));
-        }
-        let key = BlobKey::Result {
-            id: status.id.clone(),
-        };
-        let bytes = self
-            .on_request(self.inner.backend.blobs.get(key))
-            .await?
-            .ok_or_else(|| JobError::Internal(format!("the result of job `{id}` is missing")))?;
-        self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
-            .await
-    }
-
-    /// Write `positions` (welded, f64) over the job's input asset in `format`.
-    async fn render(
-        &self,
-        status: &JobStatus,
-        positions: Vec<[f64; 3]>,
-        format: Format,
-    ) -> Result<Vec<u8>, JobError> {
-        let key = BlobKey::Input {
-            id: status.id.clone(),
-            format: status.input_format,
-        };
-        let input = self
-            .on_request(self.inner.backend.blobs.get(key))
-            .await?
-            .ok_or_else(|| {
-                JobError::Internal(format!("the input of job `{}` is missing", status.id))
-            })?;
-        let (input_format, limits) = (status.input_format, self.inner.config.limits.mesh_limits());
-        let spec = status.spec.clone();
-        tokio::task::spawn_blocking(move || {
-            let asset = spec
-                .read_asset(&input, input_format, &limits)
-                .map_err(JobError::InvalidMesh)?;
-            asset
-                .write(&positions, format)
-                .map_err(|e| JobError::Internal(format!("writing {}: {e}", format_name(format))))
-        })
-        .await
-        .map_err(join_err)?
-    }
-
-    /// Wait until the job is terminal or `timeout` passed; returns the status either way.
-    pub async fn wait(
-        &self,
-        caller: &Caller,
-        id: &str,
-        timeout: std::time::Duration,
-    ) -> Result<JobStatus, JobError> {
-        use futures::StreamExt;
-        let status = self.get(caller, id).await?;
-        if status.state.is_terminal() {
-            return Ok(status);
-        }
-        let mut events = Box::pin(self.watch(caller, id, usize::MAX).await?);
-        let waited = tokio::time::timeout(timeout, async {
-            while let Some(ev) = events.next().await {
-                if let JobEvent::Done(s) = ev {
-                    return Some(s);
-                }
-            }
-            None
-        })
-        .await;
-        match waited {
-            Ok(Some(s)) => Ok(s),
-            _ => self.get(caller, id).await,
-        }
-    }
-
     /// Stop admitting jobs: `submit` answers `ShuttingDown` and readiness turns false. Running
     /// and queued jobs go on until [`Shutdown::shutdown`].
     pub fn begin_drain(&self) {
@@ -795,100 +612,4 @@ pub(crate) fn join_err(e: tokio::task::JoinError) -> JobError {
 
 pub(crate) fn poisoned<T>(_: std::sync::PoisonError<T>) -> JobError {
     JobError::Internal("a lock was poisoned by a panicking thread".into())
-}
-
-/// The key of page tokens' HMAC: derived from the server secret (`--webhook-secret-file`)
-/// when there is one, so that nodes sharing it accept each other's tokens and nobody else can
-/// make one. Without it the key is fixed and public: tokens are then still bound to their
-/// tenant and checked against edits, but a tenant who knows this source can forge one for
-/// itself, which positions only its own listing (a token holds nothing else).
-pub(crate) fn page_token_key(server_secret: Option<&[u8]>) -> ring::hmac::Key {
-    const LABEL: &[u8] = b"willow page tokens v2";
-    let material = match server_secret {
-        Some(secret) => {
-            let k = ring::hmac::Key::new(ring::hmac::HMAC_SHA256, secret);
-            ring::hmac::sign(&k, LABEL).as_ref().to_vec()
-        }
-        None => LABEL.to_vec(),
-    };
-    ring::hmac::Key::new(ring::hmac::HMAC_SHA256, &material)
-}
-
-/// What a page token's HMAC covers: the tenant and the backend's token, length-prefixed so
-/// that no two (tenant, token) pairs give the same bytes.
-fn page_token_message(tenant: &str, token: &str) -> Vec<u8> {
-    let mut m = Vec::with_capacity(16 + tenant.len() + token.len());
-    m.extend_from_slice(&(tenant.len() as u64).to_be_bytes());
-    m.extend_from_slice(tenant.as_bytes());
-    m.extend_from_slice(token.as_bytes());
-    m
-}
-
-/// `{token}.{mac}`: the backend's page token (base64url, no `.`) and the base64url
-/// HMAC-SHA256 of it and `tenant` under `key`.
-fn seal_page_token(key: &ring::hmac::Key, tenant: &str, token: &str) -> String {
-    use base64::Engine as _;
-    let mac = ring::hmac::sign(key, &page_token_message(tenant, token));
-    format!(
-        "{token}.{}",
-        base64::engine::general_purpose::URL_SAFE_NO_PAD.encode(mac.as_ref())
-    )
-}
-
-/// The backend's token inside a sealed one, if `tenant` was given it by a server with `key`.
-fn unseal_page_token(key: &ring::hmac::Key, tenant: &str, sealed: &str) -> Option<String> {
-    use base64::Engine as _;
-    let (token, mac) = sealed.rsplit_once('.')?;
-    let mac = base64::engine::general_purpose::URL_SAFE_NO_PAD
-        .decode(mac)
-        .ok()?;
-    // `verify` compares in constant time.
-    ring::hmac::verify(key, &page_token_message(tenant, token), &mac).ok()?;
-    (!token.is_empty()).then(|| token.to_string())
-}
-
-#[cfg(test)]
-mod page_token_tests {
-    use super::*;
-
-    /// A sealed token opens for the tenant it was given to, under the key that sealed it, and
-    /// for nobody else; any edit is refused.
-    #[test]
-    fn page_tokens_are_bound_to_their_tenant_key_and_text() {
-        let key = page_token_key(None);
-        let token = "YXQ6MTc5NTc0MzkxMDAwMDpqXzE"; // base64url of a backend's `at:T:ID`
-        let sealed = seal_page_token(&key, "alpha", token);
-        assert_eq!(
-            unseal_page_token(&key, "alpha", &sealed).as_deref(),
-            Some(token)
-        );
-        // Another tenant's listing: refused.
-        assert_eq!(unseal_page_token(&key, "beta", &sealed), None);
-        // Tenants whose ids run into the token's text do not collide (length prefix).
-        let shifted = seal_page_token(&key, "alph", &format!("a{token}"));
-        assert_ne!(
-            shifted.rsplit_once('.').map(|(_, m)| m),
-            sealed.rsplit_once('.').map(|(_, m)| m)
-        );
-        // Every single-character edit of the token or its MAC: refused.
-        for i in 0..sealed.len() {
-            let mut edited: Vec<u8> = sealed.clone().into_bytes();
-            edited[i] = if edited[i] == b'A' { b'B' } else { b'A' };
-            let edited = String::from_utf8(edited).expect("ascii");
-            assert_eq!(unseal_page_token(&key, "alpha", &edited), None, "{edited}");
-        }
-        for bad in ["", ".", "abc", "a.b", &format!("{token}.")] {
-            assert_eq!(unseal_page_token(&key, "alpha", bad), None, "{bad}");
-        }
-        // A server with a secret makes tokens only it (and nodes sharing the secret) opens.
-        let secret = page_token_key(Some(b"a server secret of 32 bytes, say"));
-        let other = page_token_key(Some(b"another server's secret, 32 byte"));
-        let sealed = seal_page_token(&secret, "alpha", token);
-        assert_eq!(
-            unseal_page_token(&secret, "alpha", &sealed).as_deref(),
-            Some(token)
-        );
-        assert_eq!(unseal_page_token(&other, "alpha", &sealed), None);
-        assert_eq!(unseal_page_token(&key, "alpha", &sealed), None);
-    }
 }
