@@ -275,6 +275,25 @@ fn octahedral_quaternion_and_color_filters_decode_within_their_step() {
         let out = a.write(&a.surface().positions, Format::Glb).unwrap();
         validate_with_khronos(&out, "glb");
         let (oj, ob) = chunks(&out);
+        // NORMAL, rewritten by the flow, stays compressed: its OCTAHEDRAL view (12 bits, in
+        // shorts) comes back as plain normalized shorts through the codec with filter NONE.
+        let n_acc = &oj["accessors"][oj["meshes"][0]["primitives"][0]["attributes"]["NORMAL"]
+            .as_u64()
+            .expect("NORMAL kept") as usize];
+        assert_eq!(
+            (n_acc["componentType"].as_u64(), &n_acc["normalized"]),
+            (Some(5122), &serde_json::json!(true)),
+            "{ext}: {n_acc}"
+        );
+        let n_view = &oj["bufferViews"][n_acc["bufferView"].as_u64().unwrap() as usize];
+        assert_eq!(
+            n_view["extensions"][ext]["mode"], "ATTRIBUTES",
+            "{ext}: {n_view}"
+        );
+        assert!(
+            n_view["extensions"][ext].get("filter").is_none(),
+            "{n_view}"
+        );
         let c_acc = oj["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"]
             .as_u64()
             .expect("COLOR_0 kept") as usize;

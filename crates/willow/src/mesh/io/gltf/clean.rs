@@ -1,5 +1,6 @@
 //! What a written glTF must not carry over from its input (issue 27, item 1): bytes no buffer
-//! view describes (meshopt-compressed data once decoded), buffer views nothing refers to (a
+//! view describes (the input's meshopt-compressed data once decoded; what is written
+//! compressed is encoded anew, see `reencode`), buffer views nothing refers to (a
 //! decoded Draco stream, POSITION and NORMAL data that were replaced), and morph targets that
 //! no longer fit the faired base shape. Also the notes that tell the job so.
 
@@ -32,8 +33,10 @@ pub(super) fn notes(input: &Value) -> Vec<String> {
     let mut out = Vec::new();
     for ext in MESHOPT.into_iter().filter(|e| used.contains(e)) {
         out.push(format!(
-            "{ext} input: glTF/GLB results store its buffer views decoded (plain data, the \
-             extension removed), not re-compressed"
+            "{ext} input: glTF/GLB results keep it for the rewritten POSITION and NORMAL \
+             views (re-encoded, mode ATTRIBUTES, filter NONE: a NORMAL stored with the \
+             OCTAHEDRAL filter comes back as its plain normalized type); the views the flow \
+             does not rewrite (UVs, colours, animation data, indices) are stored decoded"
         ));
     }
     if used.contains(&DRACO) {

@@ -6,9 +6,9 @@
 //! that view's range of its own buffer. That buffer is usually a *fallback* buffer with no data
 //! (`"fallback": true`, no `uri`), which is allocated here. Afterwards the document is an
 //! ordinary one: the extension is taken out of the views, the buffers and `extensionsUsed` /
-//! `extensionsRequired`, so the result is written as plain (possibly still quantized) data —
-//! re-encoding meshopt is not done (the job keeps the data plain and valid rather than
-//! re-running an encoder whose choices, e.g. filters and bit counts, the file does not record).
+//! `extensionsRequired`, so the document is read as plain (possibly still quantized) data.
+//! Which views were compressed is kept ([`Compression`]) so that writing can re-encode them
+//! (`reencode`).
 
 use super::{decode_data_uri, Limits, MeshError};
 use serde_json::Value;
@@ -62,13 +62,22 @@ pub(super) fn used(json: &Value) -> Option<&'static str> {
         .find(|m| used.iter().any(|e| e.as_str() == Some(m)))
 }
 
+/// What the input compressed: the extension's name and its `ATTRIBUTES` views (the ones
+/// `reencode` may store compressed again).
+#[derive(Clone, Debug)]
+pub(crate) struct Compression {
+    pub(super) ext: &'static str,
+    /// (view, byteStride, filtered) of each `ATTRIBUTES` view, by the input's view numbers.
+    pub(super) attributes: Vec<(usize, usize, bool)>,
+}
+
 /// Decodes every compressed view into place in `buffers` (from [`resolve_buffers`]) and
 /// strips the extension from `json`.
 pub(super) fn decompress(
     json: &mut Value,
     buffers: &mut [Vec<u8>],
-    ext: &str,
-) -> Result<(), MeshError> {
+    ext: &'static str,
+) -> Result<Compression, MeshError> {
     let views = json.get("bufferViews").and_then(Value::as_array);
     let mut jobs = Vec::new();
     for (i, v) in views.into_iter().flatten().enumerate() {
@@ -83,7 +92,12 @@ pub(super) fn decompress(
             .copy_from_slice(&decoded);
     }
     strip(json, ext);
-    Ok(())
+    let attributes = jobs
+        .iter()
+        .filter(|j| j.mode == Mode::Attributes)
+        .map(|j| (j.view, j.stride, j.filter != Filter::None))
+        .collect();
+    Ok(Compression { ext, attributes })
 }
 
 /// Resolves every buffer on the raw JSON: the GLB BIN chunk for buffer 0 without `uri`, base64

@@ -11,9 +11,10 @@
 //! from the primitives (see `drop_tangents`), and so are morph targets (`clean`). Quantized
 //! POSITION and NORMAL (`KHR_mesh_quantization`) are re-quantized to their own types, with the
 //! node's dequantization transform updated, where that moves nothing else (`quantize`), and
-//! written as float32 elsewhere. Compressed
-//! input (meshopt, Draco) is written decoded, as plain data without the extension; bytes no
-//! buffer view covers any more and views nothing refers to are left out (`clean::compact`).
+//! written as float32 elsewhere. Meshopt input keeps its compression for the rewritten
+//! POSITION and NORMAL views (`reencode`); its other views, and Draco input, are written
+//! decoded, as plain data (Draco's extension removed); bytes no buffer view covers any more
+//! and views nothing refers to are left out (`clean::compact`).
 //! The job is told each of these (`clean::notes`). Images, samplers, materials, UVs, indices
 //! and nodes are untouched.
 
@@ -28,6 +29,7 @@ mod clean;
 mod draco;
 mod meshopt;
 mod quantize;
+mod reencode;
 mod write;
 pub(crate) use write::*;
 #[cfg(test)]
@@ -59,6 +61,8 @@ pub(crate) struct GltfSource {
     normal_accessors: Vec<(usize, usize)>,
     /// Nodes whose POSITION is written re-quantized (`quantize::plan`).
     requantize: Vec<quantize::Requantize>,
+    /// The input's meshopt-compressed views, re-encoded on writing (`reencode`).
+    compression: Option<meshopt::Compression>,
     /// The faces under each node name and each mesh name.
     pub(crate) groups: super::groups::Groups,
     /// What a written document cannot keep of the input as it was (`clean::notes`).
@@ -250,10 +254,11 @@ pub(crate) fn read(
     // then describes plain data (see `meshopt`, `draco`); the gltf crate validates that.
     let meshopt_ext = meshopt::used(&json);
     let draco = draco::used(&json);
+    let mut compression = None;
     let decoded = if meshopt_ext.is_some() || draco {
         let mut buffers = meshopt::resolve_buffers(&json, bin, meshopt_ext, limits)?;
         if let Some(ext) = meshopt_ext {
-            meshopt::decompress(&mut json, &mut buffers, ext)?;
+            compression = Some(meshopt::decompress(&mut json, &mut buffers, ext)?);
         }
         if draco {
             draco::decompress(&mut json, &mut buffers, limits)?;
@@ -456,6 +461,7 @@ pub(crate) fn read(
         position_accessors,
         normal_accessors,
         requantize,
+        compression,
         groups,
         notes,
         normals: read_normals,

@@ -145,15 +145,33 @@ fn meshopt_exponential_positions_and_triangles_decode_into_the_fallback_buffer()
             .collect();
         tris.sort();
         assert_eq!(tris, [[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]], "{ext}");
-        // Written back: no meshopt left, the validator's concern in tests/mesh_io_pipeline.rs.
+        // Written back: POSITION (EXPONENTIAL in the input) re-encoded as plain float32 with
+        // filter NONE, the other views decoded; read back to the same positions and faces.
         let out = a
             .write(&a.surface().positions, Format::Glb)
             .expect("writes");
-        let text = String::from_utf8_lossy(&out);
-        assert!(
-            !text.contains("meshopt"),
-            "{ext}: the output still names the extension"
+        let n = u32::from_le_bytes([out[12], out[13], out[14], out[15]]) as usize;
+        let json: serde_json::Value = serde_json::from_slice(&out[20..20 + n]).expect("json");
+        let pos = json["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+            .as_u64()
+            .expect("POSITION") as usize;
+        let view = &json["bufferViews"]
+            [json["accessors"][pos]["bufferView"].as_u64().expect("view") as usize];
+        let e = &view["extensions"][ext];
+        assert_eq!(e["mode"], "ATTRIBUTES", "{ext}: {view}");
+        assert!(e.get("filter").is_none(), "{ext}: {view}");
+        assert_eq!(
+            (e["byteStride"].as_u64(), e["count"].as_u64()),
+            (Some(12), Some(4))
         );
+        assert_eq!(json["buffers"][1]["extensions"][ext]["fallback"], true);
+        assert!(json["extensionsRequired"]
+            .as_array()
+            .is_some_and(|l| l.iter().any(|x| x == ext)));
+        let b = read_asset(&out).unwrap_or_else(|e| panic!("{ext}: re-read: {e}"));
+        let want: Vec<[f32; 3]> = truth.to_vec();
+        assert_eq!(b.file_positions(&b.surface().positions), want, "{ext}");
+        assert_eq!(b.file_triangles(), a.file_triangles(), "{ext}");
     }
 }
 

@@ -368,6 +368,18 @@ pub(crate) fn write_document(
 
     // KHR_mesh_quantization: positions re-quantized where sound (see `quantize`), the rest
     // as float32 in the node's unchanged space.
+    // Meshopt input: the views to store compressed again (see `reencode`), the rewritten
+    // POSITION and NORMAL views whose input views were compressed.
+    let compressed_views: Vec<usize> = src
+        .compression
+        .iter()
+        .flat_map(|c| c.attributes.iter().map(|a| a.0))
+        .collect();
+    let was_compressed = |acc: usize| {
+        let view = src.json["accessors"][acc]["bufferView"].as_u64();
+        view.is_some_and(|v| compressed_views.iter().any(|&c| c as u64 == v))
+    };
+    let mut recompress: Vec<(usize, usize)> = Vec::new();
     let split = asset.split_positions(positions);
     let mut requantized = vec![false; src.position_accessors.len()];
     for plan in &src.requantize {
@@ -397,6 +409,9 @@ pub(crate) fn write_document(
             let offset = append_aligned(&mut bin, &bytes);
             let view = push_view(&mut doc, offset, bytes.len(), ARRAY_BUFFER)?;
             set_stride(&mut doc, view, stride)?;
+            if was_compressed(acc) {
+                recompress.push((view, stride));
+            }
             let ty = (quantize::code(plan.grid.component), plan.grid.normalized);
             repoint_accessor(&mut doc, acc, view, b.len, ty, Some(int_bounds(block_q)))?;
             requantized[bi] = true;
@@ -419,6 +434,10 @@ pub(crate) fn write_document(
             .ok_or_else(|| malformed("block out of range"))?;
         let at = append_aligned(&mut bin, &vec3_bytes(values));
         let view = push_view(&mut doc, at, values.len() * 12, ARRAY_BUFFER)?;
+        if was_compressed(acc) {
+            set_stride(&mut doc, view, 12)?;
+            recompress.push((view, 12));
+        }
         let ty = (FLOAT, false);
         repoint_accessor(&mut doc, acc, view, values.len(), ty, Some(bounds(values)))?;
     }
@@ -449,6 +468,9 @@ pub(crate) fn write_document(
                     let at = append_aligned(&mut bin, &bytes);
                     let view = push_view(&mut doc, at, bytes.len(), ARRAY_BUFFER)?;
                     set_stride(&mut doc, view, stride)?;
+                    if was_compressed(acc) {
+                        recompress.push((view, stride));
+                    }
                     repoint_accessor(
                         &mut doc,
                         acc,
@@ -462,18 +484,36 @@ pub(crate) fn write_document(
                     let values: Vec<[f32; 3]> = local.iter().map(|n| n.map(|x| x as f32)).collect();
                     let at = append_aligned(&mut bin, &vec3_bytes(&values));
                     let view = push_view(&mut doc, at, values.len() * 12, ARRAY_BUFFER)?;
+                    if was_compressed(acc) {
+                        set_stride(&mut doc, view, 12)?;
+                        recompress.push((view, 12));
+                    }
                     repoint_accessor(&mut doc, acc, view, values.len(), (FLOAT, false), None)?;
                 }
             }
         }
     }
 
-    let bin = super::clean::compact(&mut doc, &bin)?;
-    finish(doc, bin, glb)
+    let mut fallback = None;
+    let blobs = match &src.compression {
+        Some(c) => super::reencode::mark(&mut doc, &bin, &recompress, c)?,
+        None => Vec::new(),
+    };
+    let mut bin = super::clean::compact(&mut doc, &bin)?;
+    if let Some(c) = &src.compression {
+        fallback = super::reencode::place(&mut doc, &mut bin, &blobs, c)?;
+    }
+    finish(doc, bin, glb, fallback)
 }
 
-/// Sets the single buffer and serializes as GLB (BIN chunk) or glTF (base64 data: URI).
-pub(super) fn finish(mut doc: Value, mut bin: Vec<u8>, glb: bool) -> Result<Vec<u8>, MeshError> {
+/// Sets buffer 0 (and a meshopt fallback buffer 1, with no data, when given) and serializes
+/// as GLB (BIN chunk) or glTF (base64 data: URI).
+pub(super) fn finish(
+    mut doc: Value,
+    mut bin: Vec<u8>,
+    glb: bool,
+    fallback: Option<Value>,
+) -> Result<Vec<u8>, MeshError> {
     while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
@@ -485,7 +525,10 @@ pub(super) fn finish(mut doc: Value, mut bin: Vec<u8>, glb: bool) -> Result<Vec<
     };
     doc.as_object_mut()
         .ok_or_else(|| malformed("not an object"))?
-        .insert("buffers".into(), json!([buffer]));
+        .insert(
+            "buffers".into(),
+            Value::Array(std::iter::once(buffer).chain(fallback).collect()),
+        );
     let mut json_bytes =
         serde_json::to_vec(&doc).map_err(|e| malformed(&format!("serialization: {e}")))?;
     if !glb {
@@ -619,5 +662,5 @@ pub(crate) fn write_new(
         "accessors": accessors,
         "bufferViews": views,
     });
-    finish(doc, bin, glb)
+    finish(doc, bin, glb, None)
 }
