@@ -118,14 +118,7 @@ pub(super) fn run_job(
     let mut flow = match new_flow(asset.surface(), &params) {
         Ok(f) => f,
         Err(e) => {
-            return fail(
-                inner,
-                rt,
-                id,
-                fence,
-                FailureCode::of_flow(&e),
-                e.to_string(),
-            );
+            return fail_flow(inner, rt, id, fence, &e);
         }
     };
 
@@ -199,14 +192,7 @@ pub(super) fn run_job(
     let mut run = match run {
         Ok(r) => r,
         Err(e) => {
-            return fail(
-                inner,
-                rt,
-                id,
-                fence,
-                FailureCode::of_flow(&e),
-                e.to_string(),
-            );
+            return fail_flow(inner, rt, id, fence, &e);
         }
     };
     let mut last_checkpoint = (first - 1, Instant::now());
@@ -226,14 +212,7 @@ pub(super) fn run_job(
             Ok(Event::Stopped { outcome, reason }) => break (outcome, reason),
             Err(e) => {
                 tracing::warn!(step, error = %e, "flow failed");
-                return fail(
-                    inner,
-                    rt,
-                    id,
-                    fence,
-                    FailureCode::of_flow(&e),
-                    e.to_string(),
-                );
+                return fail_flow(inner, rt, id, fence, &e);
             }
         };
         inner
@@ -297,6 +276,17 @@ pub(super) fn run_job(
 }
 
 /// Ends the job failed with `code` and `reason` (the flow is over: nothing more to run).
+/// [`fail`] with a flow error: its code ([`FailureCode::of_flow`]) and its message.
+fn fail_flow(
+    inner: &Arc<Inner>,
+    rt: &Handle,
+    id: &JobId,
+    fence: &Fence,
+    e: &willow::flow::FlowError,
+) -> Result<Outcome, JobError> {
+    fail(inner, rt, id, fence, FailureCode::of_flow(e), e.to_string())
+}
+
 fn fail(
     inner: &Arc<Inner>,
     rt: &Handle,
