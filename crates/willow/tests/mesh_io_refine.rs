@@ -65,3 +65,202 @@ fn a_refined_gltf_keeps_its_local_space_and_its_uvs() {
         }
     }
 }
+
+// ---------------------------------------------------------------------------------------
+// What a refined file keeps (issue 26 item 5): a glTF its document, an OBJ its statements.
+
+use serde_json::Value;
+use willow::flow::{new_flow, FlowParams, Method};
+
+/// A GLB's JSON and BIN chunks.
+fn glb_parts(glb: &[u8]) -> (Value, Vec<u8>) {
+    let u32_at = |at: usize| u32::from_le_bytes([glb[at], glb[at + 1], glb[at + 2], glb[at + 3]]);
+    let n = u32_at(12) as usize;
+    let json: Value = serde_json::from_slice(&glb[20..20 + n]).expect("json chunk");
+    let m = u32_at(20 + n) as usize;
+    (json, glb[28 + n..28 + n + m].to_vec())
+}
+
+/// The bytes of buffer view `view` (buffer 0 is the BIN chunk).
+fn view_bytes<'a>(json: &Value, bin: &'a [u8], view: usize) -> &'a [u8] {
+    let v = &json["bufferViews"][view];
+    let at = v["byteOffset"].as_u64().unwrap_or(0) as usize;
+    &bin[at..at + v["byteLength"].as_u64().expect("byteLength") as usize]
+}
+
+/// Accessor `acc` as f64 numbers, `width` per element: float32, or (indices) u16/u32, tightly
+/// packed (what the tests' inputs and Willow's outputs use).
+fn accessor_numbers(json: &Value, bin: &[u8], acc: usize) -> (Vec<f64>, usize) {
+    let a = &json["accessors"][acc];
+    let width = match a["type"].as_str().expect("type") {
+        "SCALAR" => 1,
+        "VEC2" => 2,
+        "VEC3" => 3,
+        "VEC4" => 4,
+        t => panic!("accessor {acc}: type {t}"),
+    };
+    let count = a["count"].as_u64().expect("count") as usize;
+    let data = view_bytes(json, bin, a["bufferView"].as_u64().expect("view") as usize);
+    let at = a["byteOffset"].as_u64().unwrap_or(0) as usize;
+    let numbers = match a["componentType"].as_u64().expect("componentType") {
+        5126 => data[at..at + 4 * width * count]
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64)
+            .collect(),
+        5125 => data[at..at + 4 * width * count]
+            .chunks_exact(4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64)
+            .collect(),
+        5123 => data[at..at + 2 * width * count]
+            .chunks_exact(2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]) as f64)
+            .collect(),
+        5121 => data[at..at + width * count]
+            .iter()
+            .map(|&b| b as f64 / 255.0)
+            .collect(),
+        c => panic!("accessor {acc}: componentType {c}"),
+    };
+    (numbers, width)
+}
+
+/// Per triangle of primitive 0 of mesh 0, the attribute `name` at its three corners.
+fn corner_values(json: &Value, bin: &[u8], name: &str) -> Vec<[Vec<f64>; 3]> {
+    let prim = &json["meshes"][0]["primitives"][0];
+    let acc = prim["attributes"][name].as_u64().expect("attribute") as usize;
+    let (values, w) = accessor_numbers(json, bin, acc);
+    let (idx, _) = accessor_numbers(
+        json,
+        bin,
+        prim["indices"].as_u64().expect("indices") as usize,
+    );
+    idx.chunks_exact(3)
+        .map(|t| [0, 1, 2].map(|k| values[t[k] as usize * w..(t[k] as usize + 1) * w].to_vec()))
+        .collect()
+}
+
+/// `levels` 1-to-4 midpoint splits of triangles given by their corners' attribute values:
+/// the linear interpolation a refined file must carry, computed here on its own.
+fn midpoint_split(tris: Vec<[Vec<f64>; 3]>, levels: usize) -> Vec<[Vec<f64>; 3]> {
+    let mid = |p: &[f64], q: &[f64]| -> Vec<f64> {
+        p.iter().zip(q).map(|(a, b)| 0.5 * (a + b)).collect()
+    };
+    let mut tris = tris;
+    for _ in 0..levels {
+        tris = tris
+            .iter()
+            .flat_map(|[a, b, c]| {
+                let (ab, bc, ca) = (mid(a, b), mid(b, c), mid(c, a));
+                [
+                    [a.clone(), ab.clone(), ca.clone()],
+                    [ab.clone(), b.clone(), bc.clone()],
+                    [ca.clone(), bc.clone(), c.clone()],
+                    [ab, bc, ca],
+                ]
+            })
+            .collect();
+    }
+    tris
+}
+
+/// Triangles of attribute values as a sorted list of keys on a 1e-6 grid, corners rotated to
+/// start at the smallest (the winding kept), so two lists compare whatever their order.
+fn triangle_keys(tris: &[[Vec<f64>; 3]]) -> Vec<Vec<i64>> {
+    let mut keys: Vec<Vec<i64>> = tris
+        .iter()
+        .map(|t| {
+            let k: Vec<Vec<i64>> = t
+                .iter()
+                .map(|c| c.iter().map(|x| (x * 1e6).round() as i64).collect())
+                .collect();
+            let first = (0..3).min_by_key(|&i| k[i].clone()).unwrap_or(0);
+            (0..3).flat_map(|i| k[(first + i) % 3].clone()).collect()
+        })
+        .collect();
+    keys.sort();
+    keys
+}
+
+/// Two conformal steps on `asset`'s surface: a faired shape to write.
+fn faired(asset: &Asset) -> Vec<[f64; 3]> {
+    let params = FlowParams {
+        method: Method::Conformal,
+        ..FlowParams::default()
+    };
+    let mut flow = new_flow(asset.surface(), &params).expect("flow");
+    for _ in 0..2 {
+        flow.step().expect("step");
+    }
+    let moved = flow.positions().to_vec();
+    assert!(moved != asset.surface().positions, "the flow moved nothing");
+    moved
+}
+
+/// A refined, faired textured glTF keeps the input's document: materials, textures, samplers,
+/// images (their bytes), nodes (hierarchy, transforms, names) and the primitive's material; it
+/// validates; its first 24 UVs are the input's, and every child triangle's UVs are the linear
+/// subdivision of its parent's, computed here.
+#[test]
+fn a_refined_gltf_keeps_materials_textures_and_nodes() {
+    let (json, bin, _, png) = mesh_support::textured_cube_gltf();
+    let glb = mesh_support::glb_bytes(&json, &bin);
+    let limits = Limits::default();
+    let asset = Asset::read(&glb, Format::Glb, &limits).expect("cube");
+    let target = 0.3 * willow::mesh::generate::mean_edge_length(asset.surface());
+    let (r, how) = asset.refined(Some(target), &limits).expect("refine");
+    assert_eq!(how.levels, 2, "{how:?}");
+    let moved = faired(&r);
+    let out = r.write(&moved, Format::Glb).expect("write");
+    mesh_support::validate_with_khronos(&out, "glb");
+    let (out_json, out_bin) = glb_parts(&out);
+
+    for key in [
+        "materials",
+        "textures",
+        "samplers",
+        "nodes",
+        "scenes",
+        "scene",
+    ] {
+        assert_eq!(out_json[key], json[key], "{key}");
+    }
+    assert_eq!(out_json["meshes"][0]["primitives"][0]["material"], 0);
+    assert_eq!(out_json["images"].as_array().map(Vec::len), Some(1));
+    let image = &out_json["images"][0];
+    assert_eq!(image["mimeType"], "image/png");
+    let view = image["bufferView"].as_u64().expect("image view") as usize;
+    assert_eq!(
+        view_bytes(&out_json, &out_bin, view),
+        &png[..],
+        "image bytes"
+    );
+
+    // UVs: the input's 24 first, unchanged; every child triangle's corner UVs the midpoint
+    // subdivision of its parent's (as a set: the order of children is the writer's).
+    let prim = &out_json["meshes"][0]["primitives"][0];
+    let uv_acc = prim["attributes"]["TEXCOORD_0"].as_u64().expect("uv") as usize;
+    let (uv_out, _) = accessor_numbers(&out_json, &out_bin, uv_acc);
+    let (uv_in, _) = accessor_numbers(&json, &bin, 2);
+    assert_eq!(
+        uv_out[..48],
+        uv_in[..],
+        "the input's vertices keep their UVs"
+    );
+    assert!(uv_out.len() > 48);
+    let expected = midpoint_split(corner_values(&json, &bin, "TEXCOORD_0"), 2);
+    let written = corner_values(&out_json, &out_bin, "TEXCOORD_0");
+    assert_eq!(written.len(), 12 * 16);
+    assert_eq!(triangle_keys(&written), triangle_keys(&expected));
+
+    // The written positions are the faired ones: read back, the surface is `moved`.
+    let back = Asset::read(&out, Format::Glb, &limits).expect("read back");
+    assert_eq!(back.surface().face_count(), r.surface().face_count());
+    let mut a = back.surface().positions.clone();
+    let mut b = moved.clone();
+    for v in [&mut a, &mut b] {
+        v.sort_by(|p, q| p.partial_cmp(q).unwrap_or(std::cmp::Ordering::Equal));
+    }
+    for (p, q) in a.iter().zip(&b) {
+        assert!((0..3).all(|k| (p[k] - q[k]).abs() < 1e-4), "{p:?} vs {q:?}");
+    }
+}

@@ -209,6 +209,7 @@ impl Asset {
     pub fn notes(&self) -> Vec<String> {
         match &self.source {
             Source::Gltf(src) => src.notes.clone(),
+            Source::Refined(src) => src.notes.clone(),
             _ => Vec::new(),
         }
     }
@@ -437,6 +438,16 @@ impl Asset {
             (Source::Stl(src), Format::Stl) => Ok(stl::write_kept(self, src, positions)),
             (Source::Ply(src), Format::Ply) => ply::write_kept(self, src, positions),
             (Source::Off(src), Format::Off) => Ok(off::write_kept(self, src, positions)),
+            (Source::Refined(r), Format::Gltf | Format::Glb) => match r.original.as_ref() {
+                Source::Gltf(src) => {
+                    gltf::refined::write(self, src, r, positions, format == Format::Glb)
+                }
+                _ => gltf::write_new(self, positions, format == Format::Glb),
+            },
+            (Source::Refined(r), Format::Obj) => match r.original.as_ref() {
+                Source::Obj(src) => Ok(obj::write_refined(self, src, r, positions)),
+                _ => Ok(obj::write_new(self, positions)),
+            },
             (_, Format::Obj) => Ok(obj::write_new(self, positions)),
             (_, Format::Gltf | Format::Glb) => {
                 gltf::write_new(self, positions, format == Format::Glb)
@@ -570,22 +581,35 @@ impl Asset {
     /// The names of the file's face groups: OBJ `g` and `o` names, glTF node and mesh names
     /// (each with at least one face), in file order.
     pub fn group_names(&self) -> Vec<&str> {
-        match &self.source {
-            Source::Obj(src) => src.groups.names(),
-            Source::Gltf(src) => src.groups.names(),
+        match self.groups() {
+            Some((groups, _)) => groups.names(),
             // Made in code, or a format without names: no groups.
-            _ => Vec::new(),
+            None => Vec::new(),
+        }
+    }
+
+    /// The file's face groups, and the number of faces of this asset per face of the
+    /// groups' (4^levels for a refined asset: the children follow their parent).
+    fn groups(&self) -> Option<(&groups::Groups, usize)> {
+        let (source, per_face) = match &self.source {
+            Source::Refined(r) => (r.original.as_ref(), 1usize << (2 * r.levels)),
+            other => (other, 1),
+        };
+        match source {
+            Source::Obj(src) => Some((&src.groups, per_face)),
+            Source::Gltf(src) => Some((&src.groups, per_face)),
+            _ => None,
         }
     }
 
     /// The surface vertices ([`Asset::surface`]) of the faces in the group `name` (see
     /// [`Asset::group_names`]), ascending; `None` when no face of the file carries the name.
     pub fn group_vertices(&self, name: &str) -> Option<Vec<usize>> {
-        let faces: Vec<usize> = match &self.source {
-            Source::Obj(src) => src.groups.faces(name)?.collect(),
-            Source::Gltf(src) => src.groups.faces(name)?.collect(),
-            _ => return None,
-        };
+        let (groups, per_face) = self.groups()?;
+        let faces: Vec<usize> = groups
+            .faces(name)?
+            .flat_map(|f| f * per_face..(f + 1) * per_face)
+            .collect();
         let mut in_group = vec![false; self.surface.vertex_count()];
         for f in faces {
             for &v in self.surface.triangles.get(f).into_iter().flatten() {

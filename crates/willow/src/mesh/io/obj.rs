@@ -35,6 +35,10 @@ pub(crate) struct ObjSource {
     v_of_split: Vec<usize>,
     /// Split vertex → index of its `vn` line, if its corner named one.
     vn_of_split: Vec<Option<usize>>,
+    /// Split vertex → index of its `vt` line, if its corner named one.
+    vt_of_split: Vec<Option<usize>>,
+    /// The number of `vt` lines.
+    vt_count: usize,
     /// The faces under each `g` and `o` name.
     pub(crate) groups: super::groups::Groups,
     /// The 0-based line of every face (`f` statement), in file order.
@@ -473,6 +477,8 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
         vn_spans,
         v_of_split: corners.iter().map(|c| c.0).collect(),
         vn_of_split: corners.iter().map(|c| c.2).collect(),
+        vt_of_split: corners.iter().map(|c| c.1).collect(),
+        vt_count: total.vt,
         groups,
         face_lines,
     };
@@ -593,6 +599,9 @@ pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Vec<u8> {
     }
     out.into_bytes()
 }
+
+mod refined;
+pub(crate) use refined::write_refined;
 
 #[cfg(test)]
 mod tests {

@@ -15,9 +15,14 @@
 //!   `k` still means the `k`-th `v` line / accessor vertex), and the new vertices are appended
 //!   after them, one per edge between two file vertices (for OBJ one per `v` pair, shared
 //!   across a UV seam as a `v` line is; for glTF one per accessor-vertex pair).
-//! - **Writing**: the refined asset has no file text to keep, so every format is written new
-//!   (positions, UVs, recomputed normals, faces): glTF materials and textures, OBJ groups and
-//!   comments are not carried. Face groups are not kept either.
+//! - **Other attributes** (glTF TEXCOORD_n, COLOR_n) are interpolated the same way; what
+//!   cannot be (JOINTS/WEIGHTS and skins, custom attributes) is dropped with a note, and
+//!   TANGENT is dropped as on every written glTF (viewers recompute it).
+//! - **Writing** the input's own format keeps the input's file: a glTF its whole document
+//!   (materials, textures, images, samplers, nodes and names), with each primitive's
+//!   accessors rewritten (`gltf::refined`); an OBJ its statements (`g`, `o`, `usemtl`,
+//!   `mtllib`, `s`, comments), each face replaced by its children (`obj::write_refined`).
+//!   Other formats are written new.
 
 use super::{Asset, Block, FileGeometry, Source, UNWELDED};
 use crate::mesh::refine::{check_level, check_target, check_vertices, loop_positions};
@@ -25,11 +30,45 @@ use crate::mesh::refine::{default_target_edge, midpoint_split};
 use crate::mesh::{generate::mean_edge_length, Limits, Mesh, MeshError};
 
 /// The file side of a refined asset: split vertex → file vertex, and each file vertex's
-/// stored position (local space), for those no triangle uses.
-#[derive(Clone, Debug)]
+/// stored position (local space), for those no triangle uses; and what writing the input's
+/// own format needs: the input's source, and how its triangles and blocks were split.
+#[derive(Clone)]
 pub(crate) struct RefinedSource {
     pub(crate) v_of_split: Vec<usize>,
     pub(crate) stored: Vec<[f64; 3]>,
+    /// The input's source (its document or text), kept so a refined glTF keeps its
+    /// materials, textures and nodes, and a refined OBJ its groups and materials.
+    pub(crate) original: Box<Source>,
+    /// 1-to-4 levels: triangle `c` descends from the input's triangle `c >> 2·levels`.
+    pub(crate) levels: usize,
+    /// Blocks of the input: block `i`'s new split vertices are block `old_blocks + i`.
+    pub(crate) old_blocks: usize,
+    /// Split vertices of the input (they keep their numbers; the new ones follow).
+    pub(crate) old_split: usize,
+    /// Per triangle of the input: the oriented surface reversed the file's winding (children
+    /// are written back in the file's winding, as an unrefined file keeps its faces).
+    pub(crate) flipped: Vec<bool>,
+    /// Per-vertex attributes interpolated like the UVs (glTF TEXCOORD_n, COLOR_n).
+    pub(crate) varyings: Vec<Varying>,
+    /// The input's notes and what refining could not carry (`gltf::refined::dropped`).
+    pub(crate) notes: Vec<String>,
+}
+
+/// A per-vertex attribute interpolated linearly like the UVs: `width` numbers per split
+/// vertex (zeros outside `block`, the input block whose accessor it is).
+#[derive(Clone, Debug)]
+pub(crate) struct Varying {
+    pub(crate) accessor: usize,
+    pub(crate) block: usize,
+    pub(crate) width: usize,
+    pub(crate) values: Vec<f64>,
+}
+
+impl RefinedSource {
+    /// The input triangle `c` (a refined triangle) descends from.
+    pub(crate) fn root(&self, c: usize) -> usize {
+        c >> (2 * self.levels)
+    }
 }
 
 /// What [`Asset::refined`] did: the number of 1-to-4 levels (0: the mesh was already fine).
@@ -76,6 +115,7 @@ impl Asset {
                 *slot = i;
             }
         }
+        let mut varyings = self.varyings();
         let mut levels = 0;
         while mean_edge_length(&welded) > target {
             check_level(welded.face_count(), limits)?;
@@ -98,6 +138,14 @@ impl Asset {
                     if st[k] >= n_split {
                         to_welded[st[k]] = wt[k];
                         v_of_split[st[k]] = ft[k];
+                    }
+                }
+            }
+            for v in &mut varyings {
+                for &[a, b] in &s.edges {
+                    for k in 0..v.width {
+                        let mid = 0.5 * (v.values[a * v.width + k] + v.values[b * v.width + k]);
+                        v.values.push(mid);
                     }
                 }
             }
@@ -170,6 +218,15 @@ impl Asset {
             }
             out
         });
+        for v in &mut varyings {
+            let w = v.width;
+            let mut out = v.values.clone();
+            for (i, &sv) in order.iter().enumerate() {
+                out[(n_old + i) * w..(n_old + i + 1) * w]
+                    .copy_from_slice(&v.values[sv * w..(sv + 1) * w]);
+            }
+            v.values = out;
+        }
         let triangles: Vec<[usize; 3]> = split_tris
             .iter()
             .map(|t| t.map(|sv| renumber[sv]))
@@ -222,7 +279,23 @@ impl Asset {
             file,
             to_welded,
             normal_groups,
-            source: Source::Refined(RefinedSource { v_of_split, stored }),
+            source: Source::Refined(RefinedSource {
+                v_of_split,
+                stored,
+                original: Box::new(self.source.clone()),
+                levels,
+                old_blocks: self.file.blocks.len(),
+                old_split: n_old,
+                flipped: self
+                    .file
+                    .triangles
+                    .iter()
+                    .zip(self.oriented_split_triangles())
+                    .map(|(f, o)| *f != o)
+                    .collect(),
+                varyings,
+                notes: self.refined_notes(),
+            }),
             repairs: self.repairs.clone(),
         };
         Ok((asset, Refinement { levels, ..before }))
@@ -230,6 +303,44 @@ impl Asset {
 }
 
 impl Asset {
+    /// The glTF attributes interpolated like the UVs (TEXCOORD_n, COLOR_n), per split vertex.
+    fn varyings(&self) -> Vec<Varying> {
+        let Source::Gltf(src) = &self.source else {
+            return Vec::new();
+        };
+        let n = self.to_welded.len();
+        src.varyings
+            .iter()
+            .filter_map(|v| {
+                let b = self.file.blocks.get(v.block)?;
+                let mut values = vec![0.0; n * v.width];
+                for sv in 0..n {
+                    let k = self.file.original(sv);
+                    if (b.start..b.start + b.len).contains(&k) {
+                        let from = (k - b.start) * v.width;
+                        let slot = &mut values[sv * v.width..(sv + 1) * v.width];
+                        slot.copy_from_slice(v.values.get(from..from + v.width)?);
+                    }
+                }
+                Some(Varying {
+                    accessor: v.accessor,
+                    block: v.block,
+                    width: v.width,
+                    values,
+                })
+            })
+            .collect()
+    }
+
+    /// The notes of a refined asset: the input's, and what refining drops.
+    fn refined_notes(&self) -> Vec<String> {
+        let mut notes = self.notes();
+        if let Source::Gltf(src) = &self.source {
+            notes.extend(super::gltf::refined::dropped(src));
+        }
+        notes
+    }
+
     /// For a refined asset, the vertices a format with shared vertices (OBJ, OFF) writes: the
     /// file's, in its numbering then the new ones (module docs), in world space (unused ones
     /// at their stored position), and each split vertex's index among them. `None` for any

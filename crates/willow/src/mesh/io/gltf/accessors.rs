@@ -100,7 +100,7 @@ pub(super) fn layout<'a>(
 
 impl Layout<'_> {
     /// Component `k` of element `i` as f64 (normalized integers mapped to [0, 1] / [-1, 1]).
-    fn get(&self, i: usize, k: usize) -> f64 {
+    pub(super) fn get(&self, i: usize, k: usize) -> f64 {
         let size = component_size(self.component);
         let at = i * self.stride + k * size;
         // In bounds: `layout` checked (count − 1)·stride + elem ≤ data.len(), k < dims.

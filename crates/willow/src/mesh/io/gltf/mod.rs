@@ -30,6 +30,7 @@ mod draco;
 mod meshopt;
 mod quantize;
 mod reencode;
+pub(crate) mod refined;
 mod write;
 pub(crate) use write::*;
 #[cfg(test)]
@@ -69,6 +70,10 @@ pub(crate) struct GltfSource {
     pub(crate) notes: Vec<String>,
     /// NORMAL of each file vertex as read (decoded, dequantized), if the file had normals.
     pub(crate) normals: Option<Vec<Option<[f64; 3]>>>,
+    /// The triangles each primitive drew, in reading order (`refined`).
+    pub(crate) runs: Vec<refined::Run>,
+    /// TEXCOORD_n (n ≥ 1) and COLOR_n, per vertex of their block (`refined`).
+    pub(crate) varyings: Vec<refined::BlockVarying>,
 }
 
 /// The JSON and BIN chunks of a GLB, or the whole input as JSON.
@@ -355,6 +360,8 @@ pub(crate) fn read(
         triangles: Vec::new(),
         non_triangle_primitives: (0, 0),
         bad_faces: Default::default(),
+        runs: Vec::new(),
+        varyings: Vec::new(),
     };
     let mut groups = super::groups::Groups::default();
     let mut visited = vec![false; doc.nodes().len()];
@@ -381,7 +388,7 @@ pub(crate) fn read(
         if let Some(mesh) = node.mesh() {
             let first = b.triangles.len();
             for prim in mesh.primitives() {
-                b.primitive(&prim, &world, node.index())?;
+                b.primitive(&prim, &world, node.index(), mesh.index())?;
             }
             for name in [node.name(), mesh.name()].into_iter().flatten() {
                 let slot = groups.slot(name);
@@ -420,6 +427,8 @@ pub(crate) fn read(
         uvs,
         normals,
         triangles,
+        runs,
+        varyings,
         ..
     } = b;
     let block_values: Vec<(usize, usize, &[[f64; 3]])> = position_accessors
@@ -465,6 +474,8 @@ pub(crate) fn read(
         groups,
         notes,
         normals: read_normals,
+        runs,
+        varyings,
     };
     Ok((file, src))
 }

@@ -25,6 +25,10 @@ pub(super) struct Builder<'a> {
     pub(super) triangles: Vec<[usize; 3]>,
     pub(super) non_triangle_primitives: (usize, usize),
     pub(super) bad_faces: crate::mesh::error::Offenders<usize>,
+    /// The triangles each primitive drew (what a refined document rewrites, `refined`).
+    pub(super) runs: Vec<super::refined::Run>,
+    /// TEXCOORD_n (n ≥ 1) and COLOR_n per vertex of their block (`refined`).
+    pub(super) varyings: Vec<super::refined::BlockVarying>,
 }
 
 impl Builder<'_> {
@@ -33,6 +37,7 @@ impl Builder<'_> {
         prim: &gltf::Primitive<'_>,
         world: &Affine,
         node: usize,
+        mesh: usize,
     ) -> Result<(), MeshError> {
         match prim.mode() {
             Mode::Points => {
@@ -85,6 +90,15 @@ impl Builder<'_> {
             }
         };
         let start = self.blocks.get(block).map_or(0, |b| b.start);
+        for (semantic, acc) in prim.attributes() {
+            let kept = matches!(semantic, gltf::Semantic::TexCoords(n) if n > 0)
+                || matches!(semantic, gltf::Semantic::Colors(_));
+            if kept && !self.varyings.iter().any(|v| v.accessor == acc.index()) {
+                let v = super::refined::read_varying(&acc, self.buffers, block, count)?;
+                self.varyings.push(v);
+            }
+        }
+        let first_triangle = self.triangles.len();
         if let Some(uv) = prim.get(&gltf::Semantic::TexCoords(0)) {
             if uv.count() != count {
                 return Err(MeshError::parse(
@@ -176,6 +190,12 @@ impl Builder<'_> {
                 }
             }
         }
+        self.runs.push(super::refined::Run {
+            mesh,
+            primitive: prim.index(),
+            block,
+            triangles: first_triangle..self.triangles.len(),
+        });
         Ok(())
     }
 }
@@ -249,7 +269,7 @@ fn int_bounds(values: &[[i64; 3]]) -> (Value, Value) {
 }
 
 /// Sets a buffer view's `byteStride` (padded VEC3 integer elements).
-fn set_stride(doc: &mut Value, view: usize, stride: usize) -> Result<(), MeshError> {
+pub(super) fn set_stride(doc: &mut Value, view: usize, stride: usize) -> Result<(), MeshError> {
     let v = doc
         .get_mut("bufferViews")
         .and_then(|v| v.get_mut(view))
@@ -332,13 +352,10 @@ pub(super) fn drop_tangents(doc: &mut Value) {
     }
 }
 
-/// Rewrites the input document with new positions (see the module docs).
-pub(crate) fn write_document(
-    asset: &Asset,
-    src: &GltfSource,
-    positions: &[[f64; 3]],
-    glb: bool,
-) -> Result<Vec<u8>, MeshError> {
+/// The input document with TANGENT and morph targets dropped (see the module docs), and its
+/// buffers merged into one: every original buffer unchanged, each at an 8-aligned offset so
+/// the alignment of every original view (at most 4 is required) is kept.
+pub(super) fn merged_document(src: &GltfSource) -> Result<(Value, Vec<u8>), MeshError> {
     let mut doc = src.json.clone();
     drop_tangents(&mut doc);
     super::clean::drop_morph_targets(&mut doc);
@@ -365,20 +382,53 @@ pub(crate) fn write_document(
             v.insert("byteOffset".into(), json!(offset + b));
         }
     }
+    Ok((doc, bin))
+}
+
+/// Whether accessor `acc` of the input was stored through meshopt compression (`reencode`).
+pub(super) fn was_compressed(src: &GltfSource, acc: usize) -> bool {
+    let Some(c) = &src.compression else {
+        return false;
+    };
+    let view = src.json["accessors"][acc]["bufferView"].as_u64();
+    view.is_some_and(|v| c.attributes.iter().any(|a| a.0 as u64 == v))
+}
+
+/// Re-encodes the `recompress` views (meshopt input), drops bytes and views nothing uses any
+/// more, and serializes (the end of [`write_document`], shared with `refined`).
+pub(super) fn finish_document(
+    mut doc: Value,
+    bin: Vec<u8>,
+    src: &GltfSource,
+    recompress: &[(usize, usize)],
+    glb: bool,
+) -> Result<Vec<u8>, MeshError> {
+    let mut fallback = None;
+    let blobs = match &src.compression {
+        Some(c) => super::reencode::mark(&mut doc, &bin, recompress, c)?,
+        None => Vec::new(),
+    };
+    let mut bin = super::clean::compact(&mut doc, &bin)?;
+    if let Some(c) = &src.compression {
+        fallback = super::reencode::place(&mut doc, &mut bin, &blobs, c)?;
+    }
+    finish(doc, bin, glb, fallback)
+}
+
+/// Rewrites the input document with new positions (see the module docs).
+pub(crate) fn write_document(
+    asset: &Asset,
+    src: &GltfSource,
+    positions: &[[f64; 3]],
+    glb: bool,
+) -> Result<Vec<u8>, MeshError> {
+    let (mut doc, mut bin) = merged_document(src)?;
 
     // KHR_mesh_quantization: positions re-quantized where sound (see `quantize`), the rest
     // as float32 in the node's unchanged space.
     // Meshopt input: the views to store compressed again (see `reencode`), the rewritten
     // POSITION and NORMAL views whose input views were compressed.
-    let compressed_views: Vec<usize> = src
-        .compression
-        .iter()
-        .flat_map(|c| c.attributes.iter().map(|a| a.0))
-        .collect();
-    let was_compressed = |acc: usize| {
-        let view = src.json["accessors"][acc]["bufferView"].as_u64();
-        view.is_some_and(|v| compressed_views.iter().any(|&c| c as u64 == v))
-    };
+    let was_compressed = |acc: usize| was_compressed(src, acc);
     let mut recompress: Vec<(usize, usize)> = Vec::new();
     let split = asset.split_positions(positions);
     let mut requantized = vec![false; src.position_accessors.len()];
@@ -494,16 +544,7 @@ pub(crate) fn write_document(
         }
     }
 
-    let mut fallback = None;
-    let blobs = match &src.compression {
-        Some(c) => super::reencode::mark(&mut doc, &bin, &recompress, c)?,
-        None => Vec::new(),
-    };
-    let mut bin = super::clean::compact(&mut doc, &bin)?;
-    if let Some(c) = &src.compression {
-        fallback = super::reencode::place(&mut doc, &mut bin, &blobs, c)?;
-    }
-    finish(doc, bin, glb, fallback)
+    finish_document(doc, bin, src, &recompress, glb)
 }
 
 /// Sets buffer 0 (and a meshopt fallback buffer 1, with no data, when given) and serializes
