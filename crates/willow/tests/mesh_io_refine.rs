@@ -264,3 +264,156 @@ fn a_refined_gltf_keeps_materials_textures_and_nodes() {
         assert!((0..3).all(|k| (p[k] - q[k]).abs() < 1e-4), "{p:?} vs {q:?}");
     }
 }
+
+/// A unit cube as OBJ text in two groups with two materials and smoothing groups: the top
+/// three quads (`g top`, `usemtl red`, `s 1`) and the bottom three (`g bottom`, `usemtl
+/// blue`, `s off`), each corner with its face's own `vt` (every cube edge a UV seam).
+fn two_group_cube_obj() -> String {
+    let mut s = String::from("# two groups\nmtllib cube.mtl\no box\n");
+    for i in 0..8 {
+        let (x, y, z) = (i & 1, (i >> 1) & 1, (i >> 2) & 1);
+        s += &format!("v {x} {y} {z}\n");
+    }
+    let quads = [
+        [1, 3, 4, 2],
+        [5, 6, 8, 7],
+        [1, 2, 6, 5],
+        [3, 7, 8, 4],
+        [1, 5, 7, 3],
+        [2, 4, 8, 6],
+    ];
+    for f in 0..6 {
+        for (du, dv) in [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)] {
+            s += &format!("vt {} {}\n", (f as f64 + du) / 6.0, dv);
+        }
+    }
+    for (f, q) in quads.iter().enumerate() {
+        if f == 0 {
+            s += "g top\nusemtl red\ns 1\n";
+        }
+        if f == 3 {
+            s += "# the other half\ng bottom\nusemtl blue\ns off\n";
+        }
+        let c = |k: usize| format!("{}/{}", q[k], 4 * f + k + 1);
+        s += &format!("f {} {} {} {}\n", c(0), c(1), c(2), c(3));
+    }
+    s
+}
+
+/// A refined, faired OBJ keeps every statement that is not vertex data or a face, in order;
+/// each parent quad's `f` line becomes its 2·4 children under the same `g`, `usemtl` and `s`;
+/// the children of a group use exactly the group's own corners of the input; the `v` lines
+/// are the streamed file vertices in order; and the file reads back as the refined surface
+/// with the same groups.
+#[test]
+fn a_refined_obj_keeps_groups_materials_and_smoothing() {
+    let text = two_group_cube_obj();
+    let limits = Limits::default();
+    let asset = Asset::read(text.as_bytes(), Format::Obj, &limits).expect("cube");
+    let target = 0.5 * willow::mesh::generate::mean_edge_length(asset.surface());
+    let (r, how) = asset.refined(Some(target), &limits).expect("refine");
+    assert_eq!(how.levels, 1);
+    let moved = faired(&r);
+    let out = String::from_utf8(r.write(&moved, Format::Obj).expect("write")).expect("utf8");
+
+    let kept = |t: &str| -> Vec<String> {
+        t.lines()
+            .filter(|l| !matches!(l.split_whitespace().next(), Some("v" | "vt" | "vn" | "f")))
+            .map(str::to_owned)
+            .collect()
+    };
+    assert_eq!(
+        kept(&out),
+        kept(&text),
+        "statements other than data and faces"
+    );
+
+    // Faces under each (g, usemtl, s), as the `vt` of their corners. Input face f has the UV
+    // square u in [f/6, (f+1)/6], so a child's UVs tell its parent on their own.
+    let vts: Vec<f64> = out
+        .lines()
+        .filter(|l| l.starts_with("vt "))
+        .map(|l| {
+            l[3..]
+                .split_whitespace()
+                .next()
+                .and_then(|u| u.parse().ok())
+                .expect("u")
+        })
+        .collect();
+    let mut state = (String::new(), String::new(), String::new());
+    let mut faces: std::collections::BTreeMap<(String, String, String), Vec<usize>> =
+        Default::default();
+    for l in out.lines() {
+        let mut w = l.split_whitespace();
+        match w.next() {
+            Some("g") => state.0 = w.collect::<Vec<_>>().join(" "),
+            Some("usemtl") => state.1 = w.collect::<Vec<_>>().join(" "),
+            Some("s") => state.2 = w.collect::<Vec<_>>().join(" "),
+            Some("f") => {
+                let us: Vec<f64> = w
+                    .map(|c| {
+                        let vt: usize = c
+                            .split('/')
+                            .nth(1)
+                            .and_then(|t| t.parse().ok())
+                            .expect("vt");
+                        vts[vt - 1]
+                    })
+                    .collect();
+                assert_eq!(us.len(), 3, "{l}");
+                let parent = (us.iter().sum::<f64>() / 3.0 * 6.0).floor() as usize;
+                for u in &us {
+                    let lo = parent as f64 / 6.0;
+                    assert!(
+                        (lo - 1e-9..=lo + 1.0 / 6.0 + 1e-9).contains(u),
+                        "{l}: {us:?}"
+                    );
+                }
+                faces.entry(state.clone()).or_default().push(parent);
+            }
+            _ => {}
+        }
+    }
+    let key = |g: &str, m: &str, s: &str| (g.to_owned(), m.to_owned(), s.to_owned());
+    assert_eq!(faces.len(), 2, "{:?}", faces.keys());
+    let mut top = faces[&key("top", "red", "1")].clone();
+    let mut bottom = faces[&key("bottom", "blue", "off")].clone();
+    top.sort_unstable();
+    bottom.sort_unstable();
+    // Each input quad (2 triangles) has 2·4 children, under its own group.
+    let children = |fs: std::ops::Range<usize>| -> Vec<usize> {
+        fs.flat_map(|f| std::iter::repeat_n(f, 8)).collect()
+    };
+    assert_eq!(top, children(0..3));
+    assert_eq!(bottom, children(3..6));
+
+    // `v` line k is file vertex k of the frames.
+    let v_lines: Vec<[f64; 3]> = out
+        .lines()
+        .filter(|l| l.starts_with("v "))
+        .map(|l| {
+            let n: Vec<f64> = l[2..]
+                .split_whitespace()
+                .map(|x| x.parse().expect("number"))
+                .collect();
+            [n[0], n[1], n[2]]
+        })
+        .collect();
+    let frame = r.file_positions(&moved);
+    assert_eq!(v_lines.len(), frame.len());
+    for (p, q) in v_lines.iter().zip(&frame) {
+        assert!(
+            (0..3).all(|k| (p[k] - q[k] as f64).abs() < 1e-6),
+            "{p:?} vs {q:?}"
+        );
+    }
+
+    let back = Asset::read(out.as_bytes(), Format::Obj, &limits).expect("read back");
+    assert_eq!(back.surface().face_count(), r.surface().face_count());
+    assert_eq!(back.surface().vertex_count(), r.surface().vertex_count());
+    assert_eq!(back.group_names(), vec!["box", "top", "bottom"]);
+    assert_eq!(r.group_names(), back.group_names());
+    assert_eq!(back.group_vertices("top"), r.group_vertices("top"));
+    assert!(back.corner_uvs().is_some());
+}
