@@ -181,6 +181,16 @@ fn triangle_keys(tris: &[[Vec<f64>; 3]]) -> Vec<Vec<i64>> {
     keys
 }
 
+/// The same triangles of attribute values, in any order, to a grid unit (1e-6: f32 storage).
+fn assert_same_triangles(written: &[[Vec<f64>; 3]], expected: &[[Vec<f64>; 3]]) {
+    let (a, b) = (triangle_keys(written), triangle_keys(expected));
+    assert_eq!(a.len(), b.len());
+    for (i, (p, q)) in a.iter().zip(&b).enumerate() {
+        let close = p.len() == q.len() && p.iter().zip(q).all(|(x, y)| (x - y).abs() <= 1);
+        assert!(close, "triangle {i} of {}: {p:?} vs {q:?}", a.len());
+    }
+}
+
 /// Two conformal steps on `asset`'s surface: a faired shape to write.
 fn faired(asset: &Asset) -> Vec<[f64; 3]> {
     let params = FlowParams {
@@ -250,7 +260,7 @@ fn a_refined_gltf_keeps_materials_textures_and_nodes() {
     let expected = midpoint_split(corner_values(&json, &bin, "TEXCOORD_0"), 2);
     let written = corner_values(&out_json, &out_bin, "TEXCOORD_0");
     assert_eq!(written.len(), 12 * 16);
-    assert_eq!(triangle_keys(&written), triangle_keys(&expected));
+    assert_same_triangles(&written, &expected);
 
     // The written positions are the faired ones: read back, the surface is `moved`.
     let back = Asset::read(&out, Format::Glb, &limits).expect("read back");
@@ -416,4 +426,117 @@ fn a_refined_obj_keeps_groups_materials_and_smoothing() {
     assert_eq!(r.group_names(), back.group_names());
     assert_eq!(back.group_vertices("top"), r.group_vertices("top"));
     assert!(back.corner_uvs().is_some());
+}
+
+/// Appends `data` to `bin` as a new vertex buffer view of `json`; returns the view.
+fn push_view(json: &mut Value, bin: &mut Vec<u8>, data: &[u8]) -> usize {
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    let views = json["bufferViews"].as_array_mut().expect("views");
+    views.push(serde_json::json!({"buffer": 0, "byteOffset": bin.len(),
+        "byteLength": data.len(), "target": 34962}));
+    bin.extend_from_slice(data);
+    views.len() - 1
+}
+
+/// Other per-vertex attributes under refine (issue 26 item 5): COLOR_0 (normalized bytes) is
+/// interpolated like the UVs; TANGENT, JOINTS_0/WEIGHTS_0 are dropped with a note each, and
+/// the skin is detached from the node, so the output validates.
+#[test]
+fn a_refined_gltf_interpolates_colours_and_drops_skins_with_a_note() {
+    let (mut json, mut bin, _, _) = mesh_support::textured_cube_gltf();
+    let colours: Vec<u8> = (0..24u32)
+        .flat_map(|i| {
+            [
+                (i * 10) as u8,
+                (255 - i * 7) as u8,
+                (i * i % 256) as u8,
+                255,
+            ]
+        })
+        .collect();
+    let tangents: Vec<u8> = (0..24)
+        .flat_map(|_| [1.0f32, 0.0, 0.0, 1.0])
+        .flat_map(f32::to_le_bytes)
+        .collect();
+    let joints: Vec<u8> = (0..24).flat_map(|_| [0u8, 0, 0, 0]).collect();
+    let weights: Vec<u8> = (0..24)
+        .flat_map(|_| [1.0f32, 0.0, 0.0, 0.0])
+        .flat_map(f32::to_le_bytes)
+        .collect();
+    let vc = push_view(&mut json, &mut bin, &colours);
+    let vt = push_view(&mut json, &mut bin, &tangents);
+    let vj = push_view(&mut json, &mut bin, &joints);
+    let vw = push_view(&mut json, &mut bin, &weights);
+    let accessors = json["accessors"].as_array_mut().expect("accessors");
+    for (view, ty, normalized) in [
+        (vc, 5121, true),
+        (vt, 5126, false),
+        (vj, 5121, false),
+        (vw, 5126, false),
+    ] {
+        let mut a = serde_json::json!({"bufferView": view, "componentType": ty, "count": 24, "type": "VEC4"});
+        if normalized {
+            a["normalized"] = serde_json::json!(true);
+        }
+        accessors.push(a);
+    }
+    let attrs = &mut json["meshes"][0]["primitives"][0]["attributes"];
+    for (k, name) in ["COLOR_0", "TANGENT", "JOINTS_0", "WEIGHTS_0"]
+        .iter()
+        .enumerate()
+    {
+        attrs[*name] = serde_json::json!(4 + k);
+    }
+    json["nodes"][0]["children"] = serde_json::json!([1, 2]);
+    json["nodes"]
+        .as_array_mut()
+        .expect("nodes")
+        .push(serde_json::json!({"name": "bone"}));
+    json["nodes"][1]["skin"] = serde_json::json!(0);
+    json["skins"] = serde_json::json!([{"joints": [2]}]);
+    json["buffers"][0]["byteLength"] = serde_json::json!(bin.len());
+    let glb = mesh_support::glb_bytes(&json, &bin);
+
+    let limits = Limits::default();
+    let asset = Asset::read(&glb, Format::Glb, &limits).expect("cube");
+    let target = 0.3 * willow::mesh::generate::mean_edge_length(asset.surface());
+    let (r, how) = asset.refined(Some(target), &limits).expect("refine");
+    assert_eq!(how.levels, 2);
+    let notes = r.notes();
+    assert!(notes.iter().any(|n| n.contains("TANGENT")), "{notes:?}");
+    assert!(
+        notes.iter().any(|n| n.contains("JOINTS_0, WEIGHTS_0")),
+        "{notes:?}"
+    );
+    assert_eq!(notes.len(), 2, "{notes:?}");
+
+    let out = r.write(&faired(&r), Format::Glb).expect("write");
+    mesh_support::validate_with_khronos(&out, "glb");
+    let (out_json, out_bin) = glb_parts(&out);
+    let mut names: Vec<&str> = out_json["meshes"][0]["primitives"][0]["attributes"]
+        .as_object()
+        .expect("attributes")
+        .keys()
+        .map(String::as_str)
+        .collect();
+    names.sort_unstable();
+    assert_eq!(names, ["COLOR_0", "NORMAL", "POSITION", "TEXCOORD_0"]);
+    assert!(out_json["nodes"][1].get("skin").is_none());
+    assert_eq!(out_json["nodes"][1]["name"], "child");
+
+    let expected = midpoint_split(corner_values(&json, &bin, "COLOR_0"), 2);
+    let written = corner_values(&out_json, &out_bin, "COLOR_0");
+    assert_same_triangles(&written, &expected);
+    let col = out_json["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"]
+        .as_u64()
+        .expect("c");
+    let (values, _) = accessor_numbers(&out_json, &out_bin, col as usize);
+    for (k, &b) in colours.iter().enumerate() {
+        assert!(
+            (values[k] - b as f64 / 255.0).abs() < 1e-6,
+            "colour component {k}"
+        );
+    }
 }
