@@ -1,6 +1,15 @@
 //! What a job gives back: its events (live and replayed), its frames' metrics, a kept
 //! frame as a mesh and the result file. Each download re-reads the stored upload
 //! (`JobSpec::read_asset`) and writes the positions into it.
+//!
+//! For a job with `refine` that re-read subdivides again. It is deterministic, and cheap by
+//! construction: the default target stops at about 16k–64k triangles, and inputs already
+//! that fine are not subdivided. Measured (debug profile, which optimizes; 2 shared cores):
+//! refining adds 45 ms to a download of the Duck (4k → 17k faces), 52 ms for spot (6k →
+//! 23k), 74 ms for bob (500 → 32k), about what reading a file of the refined size costs,
+//! and less than reading a 70k-face upload (the bunny: 300 ms). Storing the refined asset
+//! instead would need a stable serialization of `Asset` in both blob stores; a written file
+//! read back does not keep the refined numbering of a multi-accessor glTF.
 
 use super::*;
 

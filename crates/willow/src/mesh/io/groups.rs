@@ -3,6 +3,7 @@
 //! terms. Faces are numbered as the surface's faces ([`super::Asset::surface`]), which follow
 //! the file's triangles in order.
 
+use super::Source;
 use std::ops::Range;
 
 /// Face ranges per name, in order of first appearance. A name may cover several runs of
@@ -55,6 +56,49 @@ impl Groups {
         let k = self.names.iter().position(|n| n == name)?;
         let runs = self.faces.get(k)?;
         (!runs.is_empty()).then(|| runs.iter().flat_map(|r| r.clone()))
+    }
+}
+
+impl super::Asset {
+    /// The names of the file's face groups: OBJ `g` and `o` names, glTF node and mesh names
+    /// (each with at least one face), in file order.
+    pub fn group_names(&self) -> Vec<&str> {
+        match self.groups() {
+            Some((groups, _)) => groups.names(),
+            // Made in code, or a format without names: no groups.
+            None => Vec::new(),
+        }
+    }
+
+    /// The file's face groups, and the number of faces of this asset per face of the
+    /// groups' (4^levels for a refined asset: the children follow their parent).
+    fn groups(&self) -> Option<(&Groups, usize)> {
+        let (source, per_face) = match &self.source {
+            Source::Refined(r) => (r.original.as_ref(), 1usize << (2 * r.levels)),
+            other => (other, 1),
+        };
+        match source {
+            Source::Obj(src) => Some((&src.groups, per_face)),
+            Source::Gltf(src) => Some((&src.groups, per_face)),
+            _ => None,
+        }
+    }
+
+    /// The surface vertices ([`Asset::surface`]) of the faces in the group `name` (see
+    /// [`Asset::group_names`]), ascending; `None` when no face of the file carries the name.
+    pub fn group_vertices(&self, name: &str) -> Option<Vec<usize>> {
+        let (groups, per_face) = self.groups()?;
+        let faces: Vec<usize> = groups
+            .faces(name)?
+            .flat_map(|f| f * per_face..(f + 1) * per_face)
+            .collect();
+        let mut in_group = vec![false; self.surface.vertex_count()];
+        for f in faces {
+            for &v in self.surface.triangles.get(f).into_iter().flatten() {
+                in_group[v] = true;
+            }
+        }
+        Some((0..in_group.len()).filter(|&v| in_group[v]).collect())
     }
 }
 

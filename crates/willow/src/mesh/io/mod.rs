@@ -427,7 +427,9 @@ impl Asset {
     /// byte for byte except the coordinates of every `v` line (in file order, unused ones
     /// keeping their stored position) and the numbers of every `vn` line a face uses
     /// (recomputed). Across formats, positions, UVs, normals and faces carry over (OBJ has no
-    /// textures to carry into glTF); faces then follow the oriented surface.
+    /// textures to carry into glTF); faces then follow the oriented surface. A refined asset
+    /// written in its input's format keeps the input's document or statements the same way,
+    /// with the subdivided vertices and faces in place of the input's (see `refined.rs`).
     pub fn write(&self, positions: &[[f64; 3]], format: Format) -> Result<Vec<u8>, MeshError> {
         self.check_positions(positions)?;
         match (&self.source, format) {
@@ -576,47 +578,6 @@ impl Asset {
                 .map(|t| t.map(uv))
                 .collect(),
         )
-    }
-
-    /// The names of the file's face groups: OBJ `g` and `o` names, glTF node and mesh names
-    /// (each with at least one face), in file order.
-    pub fn group_names(&self) -> Vec<&str> {
-        match self.groups() {
-            Some((groups, _)) => groups.names(),
-            // Made in code, or a format without names: no groups.
-            None => Vec::new(),
-        }
-    }
-
-    /// The file's face groups, and the number of faces of this asset per face of the
-    /// groups' (4^levels for a refined asset: the children follow their parent).
-    fn groups(&self) -> Option<(&groups::Groups, usize)> {
-        let (source, per_face) = match &self.source {
-            Source::Refined(r) => (r.original.as_ref(), 1usize << (2 * r.levels)),
-            other => (other, 1),
-        };
-        match source {
-            Source::Obj(src) => Some((&src.groups, per_face)),
-            Source::Gltf(src) => Some((&src.groups, per_face)),
-            _ => None,
-        }
-    }
-
-    /// The surface vertices ([`Asset::surface`]) of the faces in the group `name` (see
-    /// [`Asset::group_names`]), ascending; `None` when no face of the file carries the name.
-    pub fn group_vertices(&self, name: &str) -> Option<Vec<usize>> {
-        let (groups, per_face) = self.groups()?;
-        let faces: Vec<usize> = groups
-            .faces(name)?
-            .flat_map(|f| f * per_face..(f + 1) * per_face)
-            .collect();
-        let mut in_group = vec![false; self.surface.vertex_count()];
-        for f in faces {
-            for &v in self.surface.triangles.get(f).into_iter().flatten() {
-                in_group[v] = true;
-            }
-        }
-        Some((0..in_group.len()).filter(|&v| in_group[v]).collect())
     }
 
     /// The welded vertex of each file vertex (see [`Asset::file_vertex_count`]; `None` for

@@ -16,7 +16,8 @@
 //! decoded, as plain data (Draco's extension removed); bytes no buffer view covers any more
 //! and views nothing refers to are left out (`clean::compact`).
 //! The job is told each of these (`clean::notes`). Images, samplers, materials, UVs, indices
-//! and nodes are untouched.
+//! and nodes are untouched. A refined asset (`Asset::refined`) is written into the same
+//! document, with each primitive's vertex data and indices replaced (`refined`).
 
 use super::{format_name, Affine, FileGeometry, Format, Limits, MeshError};
 use base64::Engine as _;
