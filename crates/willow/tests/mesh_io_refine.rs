@@ -582,3 +582,76 @@ fn the_refined_duck_keeps_its_texture() {
     let written = corner_values(&out_json, &out_bin, "TEXCOORD_0");
     assert_same_triangles(&written, &expected, 1 << (2 * how.levels));
 }
+
+/// OBJ vertex colours (`v x y z r g b`) under refine: the file's `v` lines keep theirs, and
+/// each new `v` line carries the mean colour of its edge's ends. Colours are an affine
+/// function of the input position, so the expected set is the function at each edge
+/// midpoint, over the edges of the input's fan-triangulated quads (computed here).
+#[test]
+fn a_refined_obj_interpolates_vertex_colours() {
+    let colour = |p: [f64; 3]| p.map(|x| (x + 1.0) / 4.0);
+    let mut positions = Vec::new();
+    let text: String = two_group_cube_obj()
+        .lines()
+        .map(|l| match l.strip_prefix("v ") {
+            Some(rest) => {
+                let p: Vec<f64> = rest
+                    .split_whitespace()
+                    .map(|x| x.parse().expect("x"))
+                    .collect();
+                let p = [p[0], p[1], p[2]];
+                positions.push(p);
+                let c = colour(p);
+                format!("{l} {} {} {}\n", c[0], c[1], c[2])
+            }
+            None => format!("{l}\n"),
+        })
+        .collect();
+    let mut edges = std::collections::BTreeSet::new();
+    for l in text.lines().filter(|l| l.starts_with("f ")) {
+        let v: Vec<usize> = l[2..]
+            .split_whitespace()
+            .map(|c| c.split('/').next().and_then(|v| v.parse().ok()).expect("v"))
+            .collect();
+        for t in 1..v.len() - 1 {
+            for (a, b) in [(v[0], v[t]), (v[t], v[t + 1]), (v[t + 1], v[0])] {
+                edges.insert((a.min(b), a.max(b)));
+            }
+        }
+    }
+    let key = |c: [f64; 3]| c.map(|x| (x * 1e9).round() as i64);
+    let mut expected: Vec<[i64; 3]> = edges
+        .iter()
+        .map(|&(a, b)| {
+            let (p, q) = (positions[a - 1], positions[b - 1]);
+            key(colour([0, 1, 2].map(|k| 0.5 * (p[k] + q[k]))))
+        })
+        .collect();
+    expected.sort_unstable();
+
+    let limits = Limits::default();
+    let asset = Asset::read(text.as_bytes(), Format::Obj, &limits).expect("cube");
+    let target = 0.5 * willow::mesh::generate::mean_edge_length(asset.surface());
+    let (r, how) = asset.refined(Some(target), &limits).expect("refine");
+    assert_eq!(how.levels, 1);
+    let out = String::from_utf8(r.write(&faired(&r), Format::Obj).expect("write")).expect("utf8");
+    let colours: Vec<[f64; 3]> = out
+        .lines()
+        .filter(|l| l.starts_with("v "))
+        .map(|l| {
+            let n: Vec<f64> = l[2..]
+                .split_whitespace()
+                .map(|x| x.parse().expect("n"))
+                .collect();
+            assert_eq!(n.len(), 6, "{l}");
+            [n[3], n[4], n[5]]
+        })
+        .collect();
+    assert_eq!(colours.len(), 8 + edges.len());
+    for (c, p) in colours.iter().zip(&positions) {
+        assert_eq!(*c, colour(*p), "an input v line keeps its colour");
+    }
+    let mut new: Vec<[i64; 3]> = colours[8..].iter().map(|&c| key(c)).collect();
+    new.sort_unstable();
+    assert_eq!(new, expected);
+}

@@ -53,6 +53,8 @@ struct VLine {
     /// Byte range of the numbers to replace: x y z, or x y z w when w ≠ 1 (the new line then
     /// has no w, so that it reads back as exactly the new position). Colours r g b stay.
     span: Range<usize>,
+    /// The vertex colour r g b after x y z (a common extension of `v`), if the line has one.
+    colour: Option<[f64; 3]>,
 }
 
 impl ObjSource {
@@ -105,6 +107,12 @@ impl ObjSource {
     /// The stored position of every `v` line, in file order.
     pub(crate) fn stored_positions(&self) -> Vec<[f64; 3]> {
         self.v_lines.iter().map(|v| v.stored).collect()
+    }
+
+    /// The colour of every `v` line, in file order, when some `v` line has one.
+    pub(crate) fn v_colours(&self) -> Option<Vec<Option<[f64; 3]>>> {
+        let colours: Vec<Option<[f64; 3]>> = self.v_lines.iter().map(|v| v.colour).collect();
+        colours.iter().any(Option::is_some).then_some(colours)
     }
 }
 
@@ -176,6 +184,7 @@ fn parse_v(line: &str, line_no: usize) -> Result<VLine, MeshError> {
         span.end = at + w.len();
     }
     let extra: Vec<(usize, &str)> = words.collect();
+    let mut colour = None;
     match extra.as_slice() {
         [] => {}
         [(at, w)] => {
@@ -188,10 +197,12 @@ fn parse_v(line: &str, line_no: usize) -> Result<VLine, MeshError> {
                 span.end = at + w.len();
             }
         }
-        [_, _, _] => {
-            for (_, w) in &extra {
-                number(Some(w), line_no, "v colour")?;
+        [r, g, b] => {
+            let mut rgb = [0.0; 3];
+            for (slot, (_, w)) in rgb.iter_mut().zip([r, g, b]) {
+                *slot = number(Some(w), line_no, "v colour")?;
             }
+            colour = Some(rgb);
         }
         _ => {
             return Err(parse_error(
@@ -200,7 +211,11 @@ fn parse_v(line: &str, line_no: usize) -> Result<VLine, MeshError> {
             ))
         }
     }
-    Ok(VLine { stored: xyz, span })
+    Ok(VLine {
+        stored: xyz,
+        span,
+        colour,
+    })
 }
 
 /// One face corner `v`, `v/vt`, `v//vn` or `v/vt/vn` resolved to 0-based indices. An
@@ -617,6 +632,7 @@ mod tests {
     fn v_lines_with_weight_or_colour() {
         let v = parse_v("v 1 2 3 0.5 0.25 1", 0).unwrap();
         assert_eq!((v.stored, v.span), ([1.0, 2.0, 3.0], 2..7));
+        assert_eq!(v.colour, Some([0.5, 0.25, 1.0]));
         let v = parse_v("v 1 2 3 2", 0).unwrap();
         assert_eq!((v.stored, v.span), ([0.5, 1.0, 1.5], 2..9));
         let v = parse_v("v 1 2 3 1.0", 0).unwrap();

@@ -50,6 +50,9 @@ pub(crate) struct RefinedSource {
     pub(crate) flipped: Vec<bool>,
     /// Per-vertex attributes interpolated like the UVs (glTF TEXCOORD_n, COLOR_n).
     pub(crate) varyings: Vec<Varying>,
+    /// Per file vertex its OBJ `v` line colour, interpolated along the file's edges like the
+    /// UVs (`None` for a vertex, or the file, without one).
+    pub(crate) v_colours: Option<Vec<Option<[f64; 3]>>>,
     /// The input's notes and what refining could not carry (`gltf::refined::dropped`).
     pub(crate) notes: Vec<String>,
 }
@@ -116,6 +119,10 @@ impl Asset {
             }
         }
         let mut varyings = self.varyings();
+        let mut v_colours = match &self.source {
+            Source::Obj(src) => src.v_colours(),
+            _ => None,
+        };
         let mut levels = 0;
         while mean_edge_length(&welded) > target {
             check_level(welded.face_count(), limits)?;
@@ -128,6 +135,16 @@ impl Asset {
                 .map(|t| t.map(|sv| v_of_split[sv]))
                 .collect();
             let f = midpoint_split(&file_tris, v_count);
+            if let Some(colours) = v_colours.as_mut() {
+                colours.resize(v_count, None);
+                for &[a, b] in &f.edges {
+                    let mid = match (colours[a], colours[b]) {
+                        (Some(p), Some(q)) => Some([0, 1, 2].map(|k| 0.5 * (p[k] + q[k]))),
+                        _ => None,
+                    };
+                    colours.push(mid);
+                }
+            }
             // New split vertices learn their welded and file vertices from the children's
             // corners (child 4t + i is the same child in all three numberings).
             let n_split = to_welded.len();
@@ -294,6 +311,7 @@ impl Asset {
                     .map(|(f, o)| *f != o)
                     .collect(),
                 varyings,
+                v_colours,
                 notes: self.refined_notes(),
             }),
             repairs: self.repairs.clone(),

@@ -8,8 +8,9 @@
 //! over the whole file, so this changes no number, and no face refers forward):
 //!
 //! - `v`: the file's own `v` lines in order, with their new coordinates spliced in (as the
-//!   unrefined writer does, so colours stay), then one line per new vertex, so `v` line `k`
-//!   is still file vertex `k` of the streamed frames;
+//!   unrefined writer does, so colours stay), then one line per new vertex (with its edge's
+//!   mean colour when the file has `v` colours), so `v` line `k` is still file vertex `k`
+//!   of the streamed frames;
 //! - `vt`: the file's `vt` lines as they are, then one per new corner with a UV (its edge's
 //!   midpoint in UV space, `refined.rs`);
 //! - `vn`: one per normal group, recomputed from the new positions (as `write_new` does).
@@ -59,9 +60,17 @@ pub(crate) fn write_refined(
             _ => {}
         }
     }
-    for p in v_new.iter().skip(v_line) {
+    for (v, p) in v_new.iter().enumerate().skip(v_line) {
         // `write!` into a String cannot fail; the results are ignored for that reason.
-        let _ = write!(block, "v {}{eol}", triple(*p));
+        let _ = write!(block, "v {}", triple(*p));
+        let colour = r
+            .v_colours
+            .as_ref()
+            .and_then(|c| c.get(v).copied().flatten());
+        if let Some(c) = colour {
+            let _ = write!(block, " {}", triple(c));
+        }
+        block.push_str(eol);
     }
     for line in &vt_lines {
         block.push_str(line);
