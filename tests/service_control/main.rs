@@ -517,7 +517,9 @@ fn uv_cylinder_obj(n: usize) -> String {
 async fn refine_subdivides_a_coarse_cylinder_and_frame_zero_says_so() {
     let srv = start(|_| {}).await;
     let n = 16;
-    let obj = uv_cylinder_obj(n);
+    // A material library, group and material: the refined result keeps them (obj/refined.rs).
+    let kept = ["mtllib cylinder.mtl", "g body", "usemtl paint"];
+    let obj = format!("{}\n{}", kept.join("\n"), uv_cylinder_obj(n));
     let upload_faces = 4 * n;
     let (st, _, job) = srv
         .submit_obj(&obj, "steps=2&refine=true&until_converged=false")
@@ -570,6 +572,9 @@ async fn refine_subdivides_a_coarse_cylinder_and_frame_zero_says_so() {
             .all(|f| f.split_whitespace().skip(1).all(|c| c.contains('/'))));
         let vts = text.lines().filter(|l| l.starts_with("vt ")).count();
         assert!(vts > 2 * (n + 1) + n + 1, "{path}: {vts} UVs");
+        let head: Vec<&str> = text.lines().take_while(|l| !l.starts_with("f ")).collect();
+        let statements: Vec<&str> = head.iter().copied().filter(|l| kept.contains(l)).collect();
+        assert_eq!(statements, kept, "{path}");
         if path.contains("frames/0") {
             let v = obj_vertices(&text);
             assert_eq!(v.len(), vertex_count);
