@@ -442,6 +442,11 @@ pub trait BlobStore: Send + Sync + 'static {
     async fn delete(&self, key: BlobKey) -> Result<(), JobError>;
     /// Every blob of a job.
     async fn delete_job(&self, id: &str) -> Result<(), JobError>;
+    /// Whether the store has room for writes again, asked while storage is known full:
+    /// `None` when the store cannot tell (the embedded backend probes its data dir itself).
+    async fn room(&self) -> Option<bool> {
+        None
+    }
 }
 
 /// A job handed to one worker until it acks, releases, or stops heartbeating.

@@ -214,7 +214,8 @@ async fn a_20s_nats_outage_fails_nothing_and_requests_answer_in_bounded_time() {
 }
 
 /// A blob write cut by a NATS stop is retried, or the run is handed back to resume from its
-/// checkpoint; the job never fails. nats-server is stopped (SIGSTOP, 4 s: its connections
+/// checkpoint; the job never fails, and the cut write leaves no chunks in the object store
+/// (each try's chunks that no object names are purged). nats-server is stopped (SIGSTOP, 4 s: its connections
 /// stay open, so every call made meanwhile waits for its timeout) while the job runs; each
 /// step of this job begins its writes with its frame's blobs, so the first call a worker
 /// makes in the stop is a blob write unless the stop caught it between a step's writes.
@@ -297,5 +298,11 @@ async fn a_blob_write_cut_by_a_nats_stop_does_not_fail_the_job() {
     eprintln!(
         "NATS stopped {kills} time(s) before a blob write met it:\n{}",
         lines.join("\n")
+    );
+    let (orphans, messages) = orphan_chunks(&url).await;
+    assert!(
+        orphans.is_empty(),
+        "{} chunk sets ({messages} messages) that no object names: {orphans:?}",
+        orphans.len()
     );
 }

@@ -221,17 +221,20 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         })
         .await
         .map_err(|e| nats_err("creating the KV bucket", e))?;
-    let objects = match js.get_object_store(OBJECT_BUCKET).await {
-        Ok(o) => o,
-        Err(_) => js
-            .create_object_store(jetstream::object_store::Config {
+    // Made by the client's own call (its stream's settings are the object store's); written
+    // and read by `objects` itself.
+    match js.get_object_store(OBJECT_BUCKET).await {
+        Ok(_) => {}
+        Err(_) => {
+            js.create_object_store(jetstream::object_store::Config {
                 bucket: OBJECT_BUCKET.into(),
                 storage: stream::StorageType::File,
                 ..Default::default()
             })
             .await
-            .map_err(|e| nats_err("creating the object store", e))?,
-    };
+            .map_err(|e| nats_err("creating the object store", e))?;
+        }
+    }
     // Blob reads are direct gets (see `objects`): a bucket made by an older client, or by
     // hand, may not allow them yet.
     let mut blobs_stream = js
@@ -278,7 +281,7 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
     Ok(Backend {
         store: Arc::new(store),
         blobs: Arc::new(objects::ObjectBlobs::new(
-            objects,
+            js.clone(),
             blobs_stream,
             OBJECT_BUCKET,
         )),
