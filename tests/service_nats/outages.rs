@@ -201,6 +201,23 @@ async fn job_across_an_outage(outage: Duration) {
         })
         .sum();
     eprintln!("{outage:?} outage: runs handed back while NATS was away: {gave_up}");
+
+    // The webhook scan (every node runs it) logs the outage when it begins, not each read
+    // that fails: at most twice per node (a second for JetStream still recovering after the
+    // restart). It read every 2 s, each failed read logging a warning.
+    for n in [&api, &w1, &w2] {
+        let log = std::fs::read_to_string(&n.log).unwrap_or_default();
+        let warned = log.matches("reading pending webhooks failed").count();
+        eprintln!(
+            "{outage:?} outage: {} logged the webhook scan failing {warned} time(s)",
+            n.name
+        );
+        assert!(
+            warned <= 2,
+            "{}: the webhook scan logged {warned} failures in one outage",
+            n.name
+        );
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
