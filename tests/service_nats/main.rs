@@ -9,7 +9,7 @@
 //! installs under target/ on first use. Every child process is killed when its guard drops, and
 //! a failing test prints the end of each process's log (nodes run with `RUST_LOG=info`).
 //!
-//! One file a theme: `nodes`, `queue`, `consumers`, `fencing`, `outages`, `storage_full`; this one holds the helpers
+//! One file a theme: `blobs`, `nodes`, `queue`, `consumers`, `fencing`, `outages`, `storage_full`; this one holds the helpers
 //! they share.
 
 #[path = "../nats_support/mod.rs"]
@@ -19,6 +19,7 @@ mod service_http_support;
 #[path = "../webhook_support/mod.rs"]
 mod webhook_support;
 
+mod blobs;
 mod consumers;
 mod fencing;
 mod nodes;

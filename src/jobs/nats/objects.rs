@@ -151,7 +151,7 @@ impl BlobStore for ObjectBlobs {
     /// Whether [`ROOM_PROBE_BYTES`] fit in JetStream now: written, then purged. A JetStream
     /// over its `max_file_store` (or the account's limit) refuses the first chunk.
     async fn room(&self) -> Option<bool> {
-        let probe = vec![0u8; ROOM_PROBE_BYTES];
+        let probe = bytes::Bytes::from(vec![0u8; ROOM_PROBE_BYTES]);
         // A probe refused midway leaves no chunks: `put_named` purges a failed try's.
         let fits = match self.put_named(ROOM_PROBE, &probe).await {
             Ok(()) => true,
@@ -171,7 +171,7 @@ impl BlobStore for ObjectBlobs {
 impl ObjectBlobs {
     /// Store `data` as object `name`, retried as [`retry`] does; the chunks of every try that
     /// failed are purged (see the module's doc).
-    async fn put_named(&self, name: &str, data: &[u8]) -> Result<(), JobError> {
+    async fn put_named(&self, name: &str, data: &bytes::Bytes) -> Result<(), JobError> {
         // The chunk ids of failed tries, carried from one try to the next (a try holds them
         // while it runs; a lock is never held across an await).
         let carried = std::sync::Mutex::new(Vec::new());
@@ -205,7 +205,7 @@ impl ObjectBlobs {
     async fn put_once(
         &self,
         name: &str,
-        data: &[u8],
+        data: &bytes::Bytes,
         tries: &mut Vec<String>,
     ) -> Result<(), JobError> {
         let previous = self.read_info(name).await?;
@@ -214,11 +214,13 @@ impl ObjectBlobs {
         let chunks_subject = format!("$O.{}.C.{nuid}", self.bucket);
         let mut digest = Sha256::new();
         let mut chunks = 0;
-        for chunk in data.chunks(CHUNK_BYTES) {
-            digest.update(chunk);
+        for start in (0..data.len()).step_by(CHUNK_BYTES) {
+            // A view of `data`, not a copy.
+            let chunk = data.slice(start..data.len().min(start + CHUNK_BYTES));
+            digest.update(&chunk);
             chunks += 1;
             self.js
-                .publish(chunks_subject.clone(), bytes::Bytes::copy_from_slice(chunk))
+                .publish(chunks_subject.clone(), chunk)
                 .await
                 .map_err(|e| nats_err("storing a blob", format!("failed chunk publish: {e}")))?
                 .await
