@@ -545,6 +545,11 @@ impl Jobs {
         for (id, format) in swept.uploads {
             backend.blobs.delete(BlobKey::Upload { id, format }).await?;
         }
+        match backend.blobs.sweep_orphans().await {
+            Ok(n) if n > 0 => tracing::info!(count = n, "chunks of failed blob writes removed"),
+            Ok(_) => {}
+            Err(e) => tracing::warn!(error = %e, "sweeping chunks of failed blob writes"),
+        }
         Ok(swept.jobs.len())
     }
 }

@@ -447,6 +447,11 @@ pub trait BlobStore: Send + Sync + 'static {
     async fn room(&self) -> Option<bool> {
         None
     }
+    /// Remove what failed writes left behind that no blob names (called with the expiry
+    /// sweep; the store decides how often it looks); how many such sets were removed.
+    async fn sweep_orphans(&self) -> Result<usize, JobError> {
+        Ok(0)
+    }
 }
 
 /// A job handed to one worker until it acks, releases, or stops heartbeating.

@@ -91,3 +91,43 @@ async fn blobs_of_every_size_read_back_and_rewrites_and_deletes_leave_no_chunks(
     }
     assert_eq!(chunk_messages(&url).await, 0);
 }
+
+/// What a writer killed between its chunks and its info leaves (chunks no info names,
+/// published here by hand) is purged by the sweep once two scans `orphan_min_age` apart
+/// (zero here) found it unnamed; stored blobs are left alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_sweep_purges_chunks_no_blob_names_and_keeps_the_blobs() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let nats = Nats::start(dir.path());
+    let url = nats.url();
+    let mut options = NatsOptions::new(url.clone());
+    options.orphan_min_age = Duration::ZERO;
+    let backend = connect(&Config::new(dir.path()), &options)
+        .await
+        .expect("connect");
+    let blobs = backend.blobs.clone();
+    let id = JobId::random();
+    let key = BlobKey::Checkpoint { id: id.clone() };
+    let data = pattern(2 * CHUNK + 7, 3);
+    blobs.put(key.clone(), data.clone()).await.expect("put");
+
+    let js = async_nats::jetstream::new(async_nats::connect(url.as_str()).await.expect("client"));
+    for n in 0..3u8 {
+        js.publish("$O.willow-blobs.C.killedwriter", vec![n; 1000].into())
+            .await
+            .expect("publish")
+            .await
+            .expect("ack");
+    }
+    assert_eq!(orphan_chunks(&url).await.1, 3);
+    assert_eq!(
+        blobs.sweep_orphans().await.expect("first scan"),
+        0,
+        "a first sighting only marks"
+    );
+    assert_eq!(blobs.sweep_orphans().await.expect("second scan"), 1);
+    assert_eq!(orphan_chunks(&url).await, (Vec::new(), 0));
+    assert_eq!(chunk_messages(&url).await, 3, "the blob's own chunks stay");
+    let back = blobs.get(key).await.expect("get").expect("stored");
+    assert!(back == data, "the blob reads back whole");
+}

@@ -59,7 +59,14 @@ pub struct NatsOptions {
     pub request_timeout: Duration,
     /// How long one NATS call (a request, a publish's ack) waits for its answer.
     pub call_timeout: Duration,
+    /// How long chunks that no blob names must stay so before the sweep purges them (what a
+    /// writer killed between its chunks and its info leaves): far past any write's retries,
+    /// so a write in flight is never taken for one. Also the least time between two scans.
+    pub orphan_min_age: Duration,
 }
+
+/// The default of [`NatsOptions::orphan_min_age`].
+pub const ORPHAN_MIN_AGE: Duration = Duration::from_secs(600);
 
 impl NatsOptions {
     pub fn new(url: impl Into<String>) -> NatsOptions {
@@ -69,6 +76,7 @@ impl NatsOptions {
             connect_timeout: Duration::from_secs(30),
             request_timeout: REQUEST_TIMEOUT,
             call_timeout: CALL_TIMEOUT,
+            orphan_min_age: ORPHAN_MIN_AGE,
         }
     }
 }
@@ -284,6 +292,7 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
             js.clone(),
             blobs_stream,
             OBJECT_BUCKET,
+            options.orphan_min_age,
         )),
         queue: Arc::new(queue),
         events: Arc::new(bus::NatsBus::new(nats)),

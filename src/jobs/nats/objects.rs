@@ -36,21 +36,34 @@ use base64::engine::general_purpose::URL_SAFE;
 use base64::Engine;
 use futures::StreamExt;
 use sha2::{Digest, Sha256};
+use std::collections::HashSet;
 
 pub(crate) struct ObjectBlobs {
     js: jetstream::Context,
     /// The bucket's stream (`OBJ_{bucket}`), with `allow_direct`: reads are direct gets on it.
     stream: Stream,
     bucket: String,
+    /// See [`super::NatsOptions::orphan_min_age`].
+    orphan_min_age: std::time::Duration,
+    /// Chunk ids no info named at the last scan, and when that scan was; `None` before the
+    /// first.
+    orphans_seen: std::sync::Mutex<Option<(std::time::Instant, HashSet<String>)>>,
 }
 
 impl ObjectBlobs {
     /// `stream` is the bucket's stream, which must allow direct gets (see [`super::connect`]).
-    pub fn new(js: jetstream::Context, stream: Stream, bucket: &str) -> ObjectBlobs {
+    pub fn new(
+        js: jetstream::Context,
+        stream: Stream,
+        bucket: &str,
+        orphan_min_age: std::time::Duration,
+    ) -> ObjectBlobs {
         ObjectBlobs {
             js,
             stream,
             bucket: bucket.to_string(),
+            orphan_min_age,
+            orphans_seen: std::sync::Mutex::new(None),
         }
     }
 }
@@ -165,6 +178,41 @@ impl BlobStore for ObjectBlobs {
             tracing::warn!(error = %e, "could not remove the room probe");
         }
         Some(fits)
+    }
+
+    /// Chunk sets that no info names, found unnamed by two scans at least
+    /// `orphan_min_age` apart, are purged: a writer killed between its chunks and its info
+    /// (a crash, not a failed try, which `put_named` cleans up itself) leaves such a set,
+    /// and a write in flight has its info within seconds. Scans no more often than that.
+    async fn sweep_orphans(&self) -> Result<usize, JobError> {
+        let now = std::time::Instant::now();
+        let seen = {
+            let guard = self.orphans_seen.lock().unwrap_or_else(|p| p.into_inner());
+            match &*guard {
+                Some((at, _)) if now.duration_since(*at) < self.orphan_min_age => return Ok(0),
+                Some((_, seen)) => seen.clone(),
+                None => HashSet::new(),
+            }
+        };
+        let unnamed = self.unnamed_chunk_sets().await?;
+        let mut purged = 0;
+        let mut left = HashSet::new();
+        for nuid in unnamed {
+            if !seen.contains(&nuid) {
+                left.insert(nuid);
+                continue;
+            }
+            let subject = format!("$O.{}.C.{nuid}", self.bucket);
+            match self.stream.purge().filter(subject.as_str()).await {
+                Ok(_) => purged += 1,
+                Err(e) => {
+                    tracing::debug!(error = %e, "purging unnamed chunks");
+                    left.insert(nuid);
+                }
+            }
+        }
+        *self.orphans_seen.lock().unwrap_or_else(|p| p.into_inner()) = Some((now, left));
+        Ok(purged)
     }
 }
 
@@ -332,6 +380,54 @@ impl ObjectBlobs {
             .await
             .map_err(|e| purge_err("deleting a blob", e))?;
         Ok(())
+    }
+
+    /// The chunk ids in the stream that no object's info names (deletion markers name
+    /// none). The infos are read after the chunk subjects are listed: a write that
+    /// completes in between is named.
+    async fn unnamed_chunk_sets(&self) -> Result<HashSet<String>, JobError> {
+        let chunks_prefix = format!("$O.{}.C.", self.bucket);
+        let meta_prefix = format!("$O.{}.M.", self.bucket);
+        let mut unnamed = HashSet::new();
+        let mut subjects = self
+            .stream
+            .info_with_subjects(format!("{chunks_prefix}>"))
+            .await
+            .map_err(|e| nats_err("listing blob chunks", e))?;
+        while let Some(subject) = subjects.next().await {
+            let (subject, _) = subject.map_err(|e| nats_err("listing blob chunks", e))?;
+            if let Some(nuid) = subject.strip_prefix(chunks_prefix.as_str()) {
+                unnamed.insert(nuid.to_string());
+            }
+        }
+        if unnamed.is_empty() {
+            return Ok(unnamed);
+        }
+        let mut metas = self
+            .stream
+            .info_with_subjects(format!("{meta_prefix}>"))
+            .await
+            .map_err(|e| nats_err("listing blobs", e))?;
+        let mut meta_subjects = Vec::new();
+        while let Some(subject) = metas.next().await {
+            let (subject, _) = subject.map_err(|e| nats_err("listing blobs", e))?;
+            meta_subjects.push(subject);
+        }
+        for subject in meta_subjects {
+            let message = match self
+                .stream
+                .direct_get_last_for_subject(subject.as_str())
+                .await
+            {
+                Ok(m) => m,
+                Err(e) if e.kind() == DirectGetErrorKind::NotFound => continue,
+                Err(e) => return Err(direct_err("reading a blob's info", e)),
+            };
+            if let Ok(info) = serde_json::from_slice::<ObjectInfo>(&message.payload) {
+                unnamed.remove(&info.nuid);
+            }
+        }
+        Ok(unnamed)
     }
 
     fn meta_subject(&self, name: &str) -> String {
