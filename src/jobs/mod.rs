@@ -511,10 +511,17 @@ impl Jobs {
                 _ = stop.cancelled() => return,
                 _ = tokio::time::sleep(period) => {}
             }
+            // A remote store (NATS) is asked whether it has room; only while full.
+            let remote = if self.inner.storage.is_full() {
+                self.inner.backend.blobs.room().await
+            } else {
+                None
+            };
             let me = self.clone();
-            let full = tokio::task::spawn_blocking(move || me.inner.storage.probe(now_ms()))
-                .await
-                .unwrap_or(true);
+            let full =
+                tokio::task::spawn_blocking(move || me.inner.storage.probe_with(now_ms(), remote))
+                    .await
+                    .unwrap_or(true);
             if full || !pending_recovery {
                 continue;
             }
@@ -537,6 +544,11 @@ impl Jobs {
         }
         for (id, format) in swept.uploads {
             backend.blobs.delete(BlobKey::Upload { id, format }).await?;
+        }
+        match backend.blobs.sweep_orphans().await {
+            Ok(n) if n > 0 => tracing::info!(count = n, "chunks of failed blob writes removed"),
+            Ok(_) => {}
+            Err(e) => tracing::warn!(error = %e, "sweeping chunks of failed blob writes"),
         }
         Ok(swept.jobs.len())
     }

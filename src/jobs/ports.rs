@@ -442,6 +442,16 @@ pub trait BlobStore: Send + Sync + 'static {
     async fn delete(&self, key: BlobKey) -> Result<(), JobError>;
     /// Every blob of a job.
     async fn delete_job(&self, id: &str) -> Result<(), JobError>;
+    /// Whether the store has room for writes again, asked while storage is known full:
+    /// `None` when the store cannot tell (the embedded backend probes its data dir itself).
+    async fn room(&self) -> Option<bool> {
+        None
+    }
+    /// Remove what failed writes left behind that no blob names (called with the expiry
+    /// sweep; the store decides how often it looks); how many such sets were removed.
+    async fn sweep_orphans(&self) -> Result<usize, JobError> {
+        Ok(0)
+    }
 }
 
 /// A job handed to one worker until it acks, releases, or stops heartbeating.

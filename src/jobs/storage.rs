@@ -33,8 +33,8 @@ pub const PROBE_BYTES: u64 = 1 << 20;
 /// How often a full disk is probed, in seconds.
 pub const STORAGE_PROBE_SECS: u64 = 2;
 
-/// Without a data dir to probe (the NATS backend's storage is the server's): how long after
-/// the last full write storage counts as full.
+/// Without a data dir to probe (the NATS backend's storage is the server's) and a store that
+/// cannot say whether it has room: how long after the last full write storage counts as full.
 const REMOTE_FULL_MS: u64 = 30_000;
 
 /// Size of the start reserve: what opening the database needs (SQLite recreates its `-wal`
@@ -146,13 +146,20 @@ impl StorageHealth {
     /// reserve is written back and [`PROBE_BYTES`] more must fit; without one, storage counts
     /// full for `REMOTE_FULL_MS` after the last full write. Returns whether storage is full.
     pub fn probe(&self, now: u64) -> bool {
+        self.probe_with(now, None)
+    }
+
+    /// [`StorageHealth::probe`], where a remote store answered whether it has room (`remote`,
+    /// from [`super::ports::BlobStore::room`]): its answer stands for the window's.
+    pub fn probe_with(&self, now: u64, remote: Option<bool>) -> bool {
         let since = self.full_since.load(Ordering::SeqCst);
         if since == 0 {
             return false;
         }
-        let room = match &self.dir {
-            Some(dir) => ensure_reserve(dir).and_then(|()| probe_write(dir)).is_ok(),
-            None => now.saturating_sub(since) >= REMOTE_FULL_MS,
+        let room = match (&self.dir, remote) {
+            (Some(dir), _) => ensure_reserve(dir).and_then(|()| probe_write(dir)).is_ok(),
+            (None, Some(room)) => room,
+            (None, None) => now.saturating_sub(since) >= REMOTE_FULL_MS,
         };
         if room {
             self.full_since.store(0, Ordering::SeqCst);
@@ -265,5 +272,19 @@ mod tests {
         assert!(health.probe(1_000 + REMOTE_FULL_MS - 1));
         assert!(!health.probe(1_000 + REMOTE_FULL_MS));
         assert!(!health.is_full());
+    }
+
+    /// A remote store that can say whether it has room (NATS writes a probe) decides at once,
+    /// either way, whatever the window says.
+    #[test]
+    fn a_remote_stores_own_answer_decides_before_the_window() {
+        let health = StorageHealth::new(None);
+        health.mark_full("nats", 1_000);
+        assert!(health.probe_with(1_000 + REMOTE_FULL_MS, Some(false)));
+        assert!(health.is_full());
+        assert!(!health.probe_with(1_001, Some(true)));
+        assert!(!health.is_full());
+        // Not full: nothing to decide.
+        assert!(!health.probe_with(1_002, Some(false)));
     }
 }

@@ -230,6 +230,38 @@ pub fn event_body(job: &JobStatus) -> Vec<u8> {
     serde_json::to_vec(&body).unwrap_or_default()
 }
 
+/// The longest wait between two reads of the pending callbacks while the store cannot be
+/// read (a NATS outage): a read that fails waits out its own timeout first, and a node that
+/// read every [`POLL`] through a long outage logged a timeout every few seconds (issue 25).
+pub const SCAN_MAX_BACKOFF: Duration = Duration::from_secs(30);
+
+/// Whether the pending callbacks could be read lately: reads that fail back off from
+/// [`POLL`] to [`SCAN_MAX_BACKOFF`], and an outage is logged twice, when it begins and when
+/// it ends, not once per read.
+#[derive(Debug, Default)]
+pub struct ScanHealth {
+    /// Reads failed in a row.
+    failures: u32,
+}
+
+impl ScanHealth {
+    /// A read failed: whether to log it (the first failure of an outage) and how long to
+    /// wait before the next read (doubling from [`POLL`], capped at [`SCAN_MAX_BACKOFF`]).
+    pub fn failed(&mut self) -> (bool, Duration) {
+        self.failures = self.failures.saturating_add(1);
+        let wait = POLL
+            .saturating_mul(1u32 << (self.failures - 1).min(16))
+            .min(SCAN_MAX_BACKOFF);
+        (self.failures == 1, wait)
+    }
+
+    /// A read succeeded: the failures of the outage it ends (`Some`, to log once), if any.
+    pub fn succeeded(&mut self) -> Option<u32> {
+        let failures = std::mem::take(&mut self.failures);
+        (failures > 0).then_some(failures)
+    }
+}
+
 /// The wait before try `attempt + 1` (after `attempt` failed tries): 1 s, 2 s, 4 s, … up to
 /// [`MAX_BACKOFF`].
 pub fn backoff(attempt: u32) -> Duration {
@@ -380,11 +412,24 @@ pub(crate) async fn delivery_loop(jobs: Jobs, stop: CancellationToken) {
     let attempts: Arc<Mutex<HashMap<String, Attempts>>> = Default::default();
     let in_flight: Arc<Mutex<HashSet<String>>> = Default::default();
     let due = jobs.inner.callbacks_due.clone();
+    let mut health = ScanHealth::default();
     loop {
+        let mut scan_wait = POLL;
         let pending = match jobs.inner.backend.store.pending_callbacks(BATCH).await {
-            Ok(p) => p,
+            Ok(p) => {
+                if let Some(failures) = health.succeeded() {
+                    tracing::info!(failed_reads = failures, "pending webhooks readable again");
+                }
+                p
+            }
             Err(e) => {
-                tracing::warn!(error = %e, "reading pending webhooks");
+                let (log, wait) = health.failed();
+                if log {
+                    tracing::warn!(error = %e, "reading pending webhooks failed: reading again with backoff, logged again once it recovers");
+                } else {
+                    tracing::debug!(error = %e, retry_in = ?wait, "reading pending webhooks");
+                }
+                scan_wait = wait;
                 Vec::new()
             }
         };
@@ -398,7 +443,7 @@ pub(crate) async fn delivery_loop(jobs: Jobs, stop: CancellationToken) {
                 .retain(|id, _| ids.contains(id.as_str()));
         }
         let now = tokio::time::Instant::now();
-        let mut next_wake = now + POLL;
+        let mut next_wake = now + scan_wait;
         for job in pending {
             let id = job.id.as_str().to_string();
             {
@@ -521,6 +566,36 @@ mod tests {
     fn backoff_doubles_from_one_second_to_the_cap() {
         let secs: Vec<u64> = (1..=10).map(|a| backoff(a).as_secs()).collect();
         assert_eq!(secs, [1, 2, 4, 8, 16, 32, 64, 128, 256, 300]);
+    }
+
+    /// Through an outage the reads back off 2, 4, 8, 16, 30, 30 s and only the first failure
+    /// is logged; the success that ends it reports the count once, and the next outage starts
+    /// over from [`POLL`].
+    #[test]
+    fn the_scan_backs_off_in_an_outage_and_logs_its_start_and_end_once() {
+        let mut h = ScanHealth::default();
+        assert_eq!(h.succeeded(), None, "no outage, nothing to log");
+        let tries: Vec<(bool, u64)> = (0..6)
+            .map(|_| h.failed())
+            .map(|(log, wait)| (log, wait.as_secs()))
+            .collect();
+        assert_eq!(
+            tries,
+            [
+                (true, 2),
+                (false, 4),
+                (false, 8),
+                (false, 16),
+                (false, 30),
+                (false, 30)
+            ]
+        );
+        for _ in 0..100 {
+            assert_eq!(h.failed(), (false, SCAN_MAX_BACKOFF));
+        }
+        assert_eq!(h.succeeded(), Some(106));
+        assert_eq!(h.succeeded(), None);
+        assert_eq!(h.failed(), (true, POLL));
     }
 
     #[test]

@@ -122,11 +122,24 @@ pub struct Nats {
     dir: PathBuf,
     starts: usize,
     log: PathBuf,
+    /// Settings of the `jetstream { … }` block of a config file (`-c`), e.g.
+    /// `max_file_store: 8MB`, which no command-line flag sets; `None`: flags only.
+    jetstream_config: Option<String>,
 }
 
 impl Nats {
     /// Start a nats-server on free loopback ports with its store in `dir/nats-store`.
     pub fn start(dir: &Path) -> Nats {
+        Nats::start_with(dir, None)
+    }
+
+    /// [`Nats::start`] with JetStream limited to `max_file_store` bytes of file storage
+    /// (over the whole server: every stream's messages count, as nats-server accounts them).
+    pub fn start_with_max_file_store(dir: &Path, max_file_store: u64) -> Nats {
+        Nats::start_with(dir, Some(format!("max_file_store: {max_file_store}")))
+    }
+
+    fn start_with(dir: &Path, jetstream_config: Option<String>) -> Nats {
         let mut nats = Nats {
             child: None,
             port: 0,
@@ -135,6 +148,7 @@ impl Nats {
             dir: dir.to_path_buf(),
             starts: 0,
             log: PathBuf::new(),
+            jetstream_config,
         };
         // A port picked by binding :0 could be taken again before nats-server binds it: try
         // a few times.
@@ -169,7 +183,16 @@ impl Nats {
         self.log = self.dir.join(format!("nats-{}.log", self.starts));
         let log = File::create(&self.log).expect("nats log file");
         let bin = nats_server_bin();
-        let mut child = Command::new(&bin)
+        let mut command = Command::new(&bin);
+        if let Some(settings) = &self.jetstream_config {
+            // The flags below set the address, ports and store dir (`-sd`: a `store_dir`
+            // here too is refused as a duplicate); the file adds what only a config can say.
+            let conf = self.dir.join("nats.conf");
+            let text = format!("jetstream {{\n  {settings}\n}}\n");
+            std::fs::write(&conf, text).expect("write nats.conf");
+            command.arg("-c").arg(&conf);
+        }
+        let mut child = command
             .args(["-a", "127.0.0.1", "-p", &self.port.to_string()])
             .args(["-m", &self.monitor_port.to_string()])
             .arg("-js")

@@ -138,9 +138,96 @@ async fn sse_watchers_blob_reads_leave_no_consumers_behind() {
         .await
         .expect("delete");
     assert!(res.status().is_success(), "delete: {}", res.status());
-    assert!(
-        blobs.info(&input).await.expect("input info").deleted,
-        "the job's input is deleted with it"
+    // Deleted by purging (nothing written, so it works on a full JetStream): no info left.
+    let gone = blobs
+        .info(&input)
+        .await
+        .expect_err("the job's input is deleted with it");
+    assert_eq!(
+        gone.kind(),
+        async_nats::jetstream::object_store::InfoErrorKind::NotFound,
+        "{gone}"
     );
     assert_eq!(blob_consumers(&js).await, 0, "consumers after a delete");
+}
+
+/// A deployment upgraded in place: the jobs stream and the workers' consumers were made by
+/// the release before, whose consumers stopped delivering a job after `max_deliver` =
+/// `--max-deliveries` + 1 deliveries. The new release counts deliveries itself and wants the
+/// server's count unlimited (`max_deliver` -1): starting it against the old consumers updates
+/// them in place (nats-server accepts the change), and a job runs through them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn consumers_made_with_the_old_finite_max_deliver_are_updated_to_unlimited() {
+    use async_nats::jetstream::{consumer, stream};
+    use sha2::Digest;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let nats = Nats::start(d);
+    let url = nats.url();
+    let js = async_nats::jetstream::new(async_nats::connect(url.as_str()).await.expect("client"));
+
+    // What the old release made (its `connect` and tenant consumers, `--max-deliveries 3`).
+    let jobs = js
+        .create_stream(stream::Config {
+            name: "WILLOW_JOBS".into(),
+            subjects: vec!["willow.jobs".into(), "willow.jobs.>".into()],
+            retention: stream::RetentionPolicy::WorkQueue,
+            max_messages: 8,
+            discard: stream::DiscardPolicy::New,
+            storage: stream::StorageType::File,
+            duplicate_window: Duration::from_secs(120),
+            ..Default::default()
+        })
+        .await
+        .expect("the old jobs stream");
+    let old = consumer::pull::Config {
+        ack_policy: consumer::AckPolicy::Explicit,
+        ack_wait: Duration::from_secs(3),
+        max_deliver: 4,
+        ..Default::default()
+    };
+    // The default tenant's consumer is named after a digest of the tenant id.
+    let digest = sha2::Sha256::digest(b"default");
+    let hex: String = digest.iter().take(10).map(|b| format!("{b:02x}")).collect();
+    let tenant_consumer = format!("willow-workers-{hex}");
+    for (name, filter) in [
+        ("willow-workers".to_string(), "willow.jobs"),
+        (tenant_consumer.clone(), "willow.jobs.default"),
+    ] {
+        jobs.create_consumer(consumer::pull::Config {
+            durable_name: Some(name.clone()),
+            filter_subject: filter.into(),
+            inactive_threshold: Duration::from_secs(3600),
+            ..old.clone()
+        })
+        .await
+        .unwrap_or_else(|e| panic!("the old consumer {name}: {e}"));
+    }
+    let max_deliver = |name: String| {
+        let jobs = jobs.clone();
+        async move {
+            let mut c: consumer::PullConsumer = jobs
+                .get_consumer(&name)
+                .await
+                .unwrap_or_else(|e| panic!("consumer {name}: {e}"));
+            c.info().await.expect("consumer info").config.max_deliver
+        }
+    };
+    assert_eq!(max_deliver(tenant_consumer.clone()).await, 4);
+
+    let node = Node::spawn(d, "node", Some(&url), &NodeOpts::all());
+    all_ready(&[&node]).await;
+    assert_eq!(
+        max_deliver("willow-workers".into()).await,
+        -1,
+        "the legacy consumer is updated at start"
+    );
+    let id = node.submit(&small_obj(), "steps=2").await;
+    let v = node.poll_until(&id, is_terminal).await;
+    assert_eq!(v["state"], "succeeded", "{v}");
+    assert_eq!(
+        max_deliver(tenant_consumer).await,
+        -1,
+        "the tenant's consumer is updated when first used"
+    );
 }

@@ -9,7 +9,7 @@
 //! installs under target/ on first use. Every child process is killed when its guard drops, and
 //! a failing test prints the end of each process's log (nodes run with `RUST_LOG=info`).
 //!
-//! One file a theme: `nodes`, `queue`, `consumers`, `fencing`, `outages`; this one holds the helpers
+//! One file a theme: `blobs`, `nodes`, `queue`, `consumers`, `fencing`, `outages`, `storage_full`; this one holds the helpers
 //! they share.
 
 #[path = "../nats_support/mod.rs"]
@@ -19,13 +19,16 @@ mod service_http_support;
 #[path = "../webhook_support/mod.rs"]
 mod webhook_support;
 
+mod blobs;
 mod consumers;
 mod fencing;
 mod nodes;
 mod outages;
 mod queue;
+mod storage_full;
 mod webhooks;
 
+use futures::StreamExt;
 use nats_support::*;
 use service_http_support::{frame_steps, is_terminal, slow_obj, small_obj, Sse};
 use std::path::Path;
@@ -92,4 +95,50 @@ async fn finished(node: &Node, outcome: &str) -> f64 {
         &[("outcome", outcome)],
     )
     .unwrap_or(0.0)
+}
+
+/// Chunk sets in the object store's stream that no object's info names: what a write cut
+/// midway leaves unless it cleans up. (chunk subjects, their messages), from the stream's
+/// per-subject counts and each info's `nuid` (direct gets: the stream allows them).
+pub(crate) async fn orphan_chunks(url: &str) -> (Vec<String>, u64) {
+    let js = async_nats::jetstream::new(async_nats::connect(url).await.expect("client"));
+    let stream = js
+        .get_stream("OBJ_willow-blobs")
+        .await
+        .expect("the object store's stream");
+    let subjects = |filter: &'static str| {
+        let stream = stream.clone();
+        async move {
+            let mut out = Vec::new();
+            let mut s = stream
+                .info_with_subjects(filter)
+                .await
+                .expect("stream subjects");
+            while let Some(item) = s.next().await {
+                out.push(item.expect("subject count"));
+            }
+            out
+        }
+    };
+    let mut named = std::collections::HashSet::new();
+    for (meta, _) in subjects("$O.willow-blobs.M.>").await {
+        let m = stream
+            .direct_get_last_for_subject(meta.as_str())
+            .await
+            .expect("an object's info");
+        let info: serde_json::Value = serde_json::from_slice(&m.payload).expect("info JSON");
+        if info["deleted"] != true {
+            named.insert(info["nuid"].as_str().expect("nuid").to_string());
+        }
+    }
+    let mut orphans = Vec::new();
+    let mut messages = 0;
+    for (subject, count) in subjects("$O.willow-blobs.C.>").await {
+        let nuid = subject.rsplit('.').next().unwrap_or_default();
+        if !named.contains(nuid) {
+            orphans.push(subject);
+            messages += count as u64;
+        }
+    }
+    (orphans, messages)
 }

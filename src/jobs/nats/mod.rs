@@ -59,7 +59,14 @@ pub struct NatsOptions {
     pub request_timeout: Duration,
     /// How long one NATS call (a request, a publish's ack) waits for its answer.
     pub call_timeout: Duration,
+    /// How long chunks that no blob names must stay so before the sweep purges them (what a
+    /// writer killed between its chunks and its info leaves): far past any write's retries,
+    /// so a write in flight is never taken for one. Also the least time between two scans.
+    pub orphan_min_age: Duration,
 }
+
+/// The default of [`NatsOptions::orphan_min_age`].
+pub const ORPHAN_MIN_AGE: Duration = Duration::from_secs(600);
 
 impl NatsOptions {
     pub fn new(url: impl Into<String>) -> NatsOptions {
@@ -69,6 +76,7 @@ impl NatsOptions {
             connect_timeout: Duration::from_secs(30),
             request_timeout: REQUEST_TIMEOUT,
             call_timeout: CALL_TIMEOUT,
+            orphan_min_age: ORPHAN_MIN_AGE,
         }
     }
 }
@@ -221,17 +229,20 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
         })
         .await
         .map_err(|e| nats_err("creating the KV bucket", e))?;
-    let objects = match js.get_object_store(OBJECT_BUCKET).await {
-        Ok(o) => o,
-        Err(_) => js
-            .create_object_store(jetstream::object_store::Config {
+    // Made by the client's own call (its stream's settings are the object store's); written
+    // and read by `objects` itself.
+    match js.get_object_store(OBJECT_BUCKET).await {
+        Ok(_) => {}
+        Err(_) => {
+            js.create_object_store(jetstream::object_store::Config {
                 bucket: OBJECT_BUCKET.into(),
                 storage: stream::StorageType::File,
                 ..Default::default()
             })
             .await
-            .map_err(|e| nats_err("creating the object store", e))?,
-    };
+            .map_err(|e| nats_err("creating the object store", e))?;
+        }
+    }
     // Blob reads are direct gets (see `objects`): a bucket made by an older client, or by
     // hand, may not allow them yet.
     let mut blobs_stream = js
@@ -278,9 +289,10 @@ pub async fn connect(config: &Config, options: &NatsOptions) -> Result<Backend, 
     Ok(Backend {
         store: Arc::new(store),
         blobs: Arc::new(objects::ObjectBlobs::new(
-            objects,
+            js.clone(),
             blobs_stream,
             OBJECT_BUCKET,
+            options.orphan_min_age,
         )),
         queue: Arc::new(queue),
         events: Arc::new(bus::NatsBus::new(nats)),
