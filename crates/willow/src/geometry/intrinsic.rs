@@ -14,7 +14,7 @@
 //!
 //! Halfedge `3f + c` of face `f` is the one opposite corner `c`, from `tri[c+1]` to `tri[c+2]`,
 //! as in [`super::corner_cotangents_into`]. Buffers are sized once; [`IntrinsicDelaunay::flip_to_delaunay`]
-//! refills them in place each step.
+//! refills them in place each step (one pass per refresh of the geometry).
 
 use super::vec3::{norm, sub};
 
@@ -28,16 +28,6 @@ pub const DELAUNAY_TOLERANCE: f64 = 1e-10;
 /// Flips per edge, at most, in one pass: the flip algorithm terminates (Sharp et al. 2019,
 /// §3.3, after Indermitte et al. 2001); this bound only guards against rounding loops.
 const MAX_FLIPS_PER_EDGE: usize = 10;
-
-/// One flip, enough to replay it on per-halfedge data: face `f` (corner `c` opposite the
-/// flipped halfedge) and face `g` (corner `d` opposite its twin).
-#[derive(Clone, Copy, Debug)]
-struct Flip {
-    f: usize,
-    c: usize,
-    g: usize,
-    d: usize,
-}
 
 /// The intrinsic Delaunay triangulation of a fixed mesh under changing positions.
 pub struct IntrinsicDelaunay {
@@ -53,14 +43,9 @@ pub struct IntrinsicDelaunay {
     pub cotangents: Vec<[f64; 3]>,
     /// Faces a flip changed this pass.
     pub changed: Vec<bool>,
-    flips: Vec<Flip>,
+    flips: usize,
     stack: Vec<usize>,
     queued: Vec<bool>,
-    /// Vertex pairs a flip may create (sorted CSC neighbour lists, diagonal included): the
-    /// sparsity pattern the Laplacian is factored on. `None`: any.
-    allowed: Option<(Vec<usize>, Vec<usize>)>,
-    /// Non-Delaunay edges left in place on the last pass because the pattern lacks their flip.
-    pub refused: usize,
 }
 
 impl IntrinsicDelaunay {
@@ -75,27 +60,19 @@ impl IntrinsicDelaunay {
             lengths: vec![0.0; 3 * nf],
             cotangents: vec![[0.0; 3]; nf],
             changed: vec![false; nf],
-            flips: Vec::with_capacity(3 * nf),
+            flips: 0,
             stack: Vec::with_capacity(3 * nf),
             queued: vec![false; 3 * nf],
-            allowed: None,
-            refused: 0,
         }
-    }
-
-    /// Only flips whose new edge joins a pair of this vertex graph (CSC, sorted rows) are
-    /// taken: the Laplacian's sparsity pattern, analysed once per flow.
-    pub fn restrict_to(&mut self, col_ptr: &[usize], rows: &[usize]) {
-        self.allowed = Some((col_ptr.to_vec(), rows.to_vec()));
     }
 
     /// How many flips the last pass made.
     pub fn flip_count(&self) -> usize {
-        self.flips.len()
+        self.flips
     }
 
-    /// Flip the input triangulation, in the metric of `positions`, until every edge is
-    /// Delaunay (or its flip is outside the allowed pattern). `cotangents` are the input's
+    /// Flip the input triangulation, in the metric of `positions`, until every interior edge
+    /// is Delaunay. `cotangents` are the input's
     /// corner cotangents at these positions (from the vectors: more accurate on needles
     /// than from lengths, and bit-identical where nothing flips).
     pub fn flip_to_delaunay(&mut self, positions: &[[f64; 3]], cotangents: &[[f64; 3]]) {
@@ -103,8 +80,7 @@ impl IntrinsicDelaunay {
         self.twin.copy_from_slice(&self.input_twin);
         self.cotangents.copy_from_slice(cotangents);
         self.changed.fill(false);
-        self.flips.clear();
-        self.refused = 0;
+        self.flips = 0;
         for (f, tri) in self.triangles.iter().enumerate() {
             for c in 0..3 {
                 self.lengths[3 * f + c] = norm(sub(
@@ -125,19 +101,14 @@ impl IntrinsicDelaunay {
         while let Some(h) = self.stack.pop() {
             self.queued[h] = false;
             let t = self.twin[h];
-            if t == NONE || t / 3 == h / 3 || self.flips.len() >= max_flips {
+            if t == NONE || t / 3 == h / 3 || self.flips >= max_flips {
                 continue;
             }
             let (f, c, g, d) = (h / 3, h % 3, t / 3, t % 3);
             if self.cotangents[f][c] + self.cotangents[g][d] >= -DELAUNAY_TOLERANCE {
                 continue;
             }
-            let (vc, vd) = (self.triangles[f][c], self.triangles[g][d]);
-            if !self.allows(vc, vd) {
-                self.refused += 1;
-                continue;
-            }
-            self.flip(Flip { f, c, g, d });
+            self.flip(f, c, g, d);
             for k in [0, 2] {
                 for face in [f, g] {
                     let e = 3 * face + k;
@@ -152,32 +123,12 @@ impl IntrinsicDelaunay {
                 }
             }
         }
-        // Count what is left non-Delaunay because of the pattern (a refused flip may have
-        // become Delaunay after a neighbouring flip).
-        self.refused = 0;
-        for h in 0..self.twin.len() {
-            let t = self.twin[h];
-            if t != NONE
-                && h < t
-                && self.cotangents[h / 3][h % 3] + self.cotangents[t / 3][t % 3]
-                    < -DELAUNAY_TOLERANCE
-            {
-                self.refused += 1;
-            }
-        }
-    }
-
-    fn allows(&self, i: usize, j: usize) -> bool {
-        match &self.allowed {
-            None => true,
-            Some((ptr, rows)) => rows[ptr[j]..ptr[j + 1]].binary_search(&i).is_ok(),
-        }
     }
 
     /// Flip the edge between faces `f` and `g`. Quad (counter-clockwise) `vc, a, vd, b` with
     /// `f = (vc, a, b)`, `g = (vd, b, a)` becomes `f = (vc, a, vd)`, `g = (vd, b, vc)`.
-    fn flip(&mut self, flip: Flip) {
-        let Flip { f, c, g, d } = flip;
+    /// `c` is the corner of `f` opposite the edge, `d` the corner of `g` opposite its twin.
+    fn flip(&mut self, f: usize, c: usize, g: usize, d: usize) {
         let (vc, a, b) = (
             self.triangles[f][c],
             self.triangles[f][(c + 1) % 3],
@@ -229,25 +180,7 @@ impl IntrinsicDelaunay {
             self.cotangents[face] = corner_cotangents_from_lengths(l);
             self.changed[face] = true;
         }
-        self.flips.push(flip);
-    }
-
-    /// Carry per-halfedge vectors of the input triangulation (`vectors[f][c]` on halfedge
-    /// `3f + c`, each face's three summing to zero) through the last pass's flips. A flipped
-    /// edge's vector is the path along the two sides of its quad that stay in one face of the
-    /// old pair each (`vc → a → vd` for the new `f`, `vd → b → vc` for `g`): each new face
-    /// then closes, and a field that is exact on the quad (the differential of a map linear
-    /// across it) gives exactly that map's difference on the new edge.
-    pub fn transport(&self, vectors: &mut [[[f64; 3]; 3]]) {
-        for &Flip { f, c, g, d } in &self.flips {
-            let (old_f, old_g) = (vectors[f], vectors[g]);
-            let (a_vd, vc_a) = (old_g[(d + 1) % 3], old_f[(c + 2) % 3]);
-            let (b_vc, vd_b) = (old_f[(c + 1) % 3], old_g[(d + 2) % 3]);
-            let neg_sum =
-                |p: [f64; 3], q: [f64; 3]| [-(p[0] + q[0]), -(p[1] + q[1]), -(p[2] + q[2])];
-            vectors[f] = [a_vd, neg_sum(a_vd, vc_a), vc_a];
-            vectors[g] = [b_vc, neg_sum(b_vc, vd_b), vd_b];
-        }
+        self.flips += 1;
     }
 
     /// `½(cot α + cot β)` of every interior intrinsic edge, once per edge: the off-diagonal

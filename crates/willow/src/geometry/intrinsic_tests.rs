@@ -112,7 +112,6 @@ fn flipping_a_flat_obtuse_mesh_gives_non_negative_weights_and_keeps_linear_preci
 
     let idt = delaunay(&positions, &triangles);
     assert!(idt.flip_count() >= negative, "{} flips", idt.flip_count());
-    assert_eq!(idt.refused, 0);
     for (i, j, w) in idt.interior_edge_weights() {
         assert!(w >= -0.5 * DELAUNAY_TOLERANCE, "edge {i}–{j}: weight {w}");
     }
@@ -142,64 +141,6 @@ fn flipping_a_flat_obtuse_mesh_gives_non_negative_weights_and_keeps_linear_preci
     for (v, l) in lf.iter().enumerate().filter(|(v, _)| interior[*v]) {
         assert!(l.iter().all(|x| x.abs() < 1e-12), "vertex {v}: L f = {l:?}");
     }
-}
-
-#[test]
-fn an_exact_field_transports_to_its_differences_on_flipped_edges() {
-    // Per-halfedge vectors M·(p_tip − p_tail) of a fixed linear map M: the differential of
-    // the linear map x ↦ Mx. Every flipped edge must get M·(p_tip − p_tail) too.
-    let (positions, triangles, _) = flat_obtuse_grid(8);
-    let idt = delaunay(&positions, &triangles);
-    assert!(idt.flip_count() > 0);
-    let m = [[1.0, 0.3, -0.2], [0.5, -1.2, 0.0], [0.1, 0.7, 2.0]];
-    let mapped = |e: [f64; 3]| [0, 1, 2].map(|r| m[r][0] * e[0] + m[r][1] * e[1] + m[r][2] * e[2]);
-    let halfedge = |tri: [usize; 3], c: usize| {
-        mapped(sub(
-            positions[tri[(c + 2) % 3]],
-            positions[tri[(c + 1) % 3]],
-        ))
-    };
-    let mut vectors: Vec<[[f64; 3]; 3]> = triangles
-        .iter()
-        .map(|&t| [halfedge(t, 0), halfedge(t, 1), halfedge(t, 2)])
-        .collect();
-    idt.transport(&mut vectors);
-    for (tri, v) in idt.triangles.iter().zip(&vectors) {
-        for c in 0..3 {
-            let want = halfedge(*tri, c);
-            assert!((0..3).all(|k| (v[c][k] - want[k]).abs() < 1e-12));
-        }
-    }
-}
-
-#[test]
-fn a_restricted_pattern_refuses_flips_it_lacks() {
-    let (positions, triangles, _) = flat_obtuse_grid(6);
-    let mut cot = vec![[0.0; 3]; triangles.len()];
-    corner_cotangents_into(&positions, &triangles, &mut cot);
-    // The input's own vertex graph: no flipped edge fits, so nothing flips.
-    let n = positions.len();
-    let mut nb: Vec<Vec<usize>> = (0..n).map(|v| vec![v]).collect();
-    for t in &triangles {
-        for a in 0..3 {
-            for b in 0..3 {
-                nb[t[a]].push(t[b]);
-            }
-        }
-    }
-    let (mut ptr, mut rows) = (vec![0], Vec::new());
-    for l in &mut nb {
-        l.sort_unstable();
-        l.dedup();
-        rows.extend_from_slice(l);
-        ptr.push(rows.len());
-    }
-    let mut idt = IntrinsicDelaunay::new(&triangles);
-    idt.restrict_to(&ptr, &rows);
-    idt.flip_to_delaunay(&positions, &cot);
-    assert_eq!(idt.flip_count(), 0);
-    assert!(idt.refused > 0);
-    assert_eq!(idt.triangles, triangles);
 }
 
 #[test]
