@@ -8,13 +8,14 @@
 //! from laying the pair out in the plane. Vertices, the surface and the output's connectivity
 //! do not change; only the operator is built on the flipped triangulation. Its edge weights
 //! `½(cot α + cot β)` are then non-negative, and it is still the P1 (Galerkin) Laplacian of
-//! the same piecewise flat surface, so it keeps linear precision (docs/cheburashka-collapse.md
-//! explains why the flow needs this: negative weights across the obtuse angles of slivers
-//! make them collapse).
+//! the same piecewise flat surface, so it keeps linear precision. Negative cotan weights across
+//! the obtuse angles of slivers make them collapse under the conformal flow; what this operator
+//! changes there is measured in docs/cheburashka-collapse.md (it is not the flow's default:
+//! docs/algorithm.md §6b).
 //!
 //! Halfedge `3f + c` of face `f` is the one opposite corner `c`, from `tri[c+1]` to `tri[c+2]`,
 //! as in [`super::corner_cotangents_into`]. Buffers are sized once; [`IntrinsicDelaunay::flip_to_delaunay`]
-//! refills them in place each step (one pass per refresh of the geometry).
+//! refills them in place (one pass per refresh of the geometry, no allocation).
 
 use super::vec3::{norm, sub};
 
