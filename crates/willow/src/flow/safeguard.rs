@@ -52,11 +52,13 @@ pub const W_RISE: f64 = 1e-6;
 /// stopping rules' own tolerance for a quiet step (`stopping::CONVERGED_TOLERANCE`).
 pub const MINIMUM_RISE: f64 = super::stopping::CONVERGED_TOLERANCE;
 /// A triangle has collapsed when its share of the total area is below this fraction of its
-/// share in the input. Four orders of magnitude above the soundness bound of issue 26
-/// ([`crate::metrics::COLLAPSED_SHARE`], 1e-8) so a step that stops short of it leaves room
-/// for the next. A conformal flow legitimately shrinks a protrusion a great deal (nefertiti's
-/// smallest ratio after 20 unguarded steps is 1.3e-5), so the bound is far below that.
-pub const COLLAPSE_SHARE: f64 = 1e-6;
+/// share in the input: one decade above the soundness bound of issue 26
+/// ([`crate::metrics::COLLAPSED_SHARE`], 1e-8). A conformal flow legitimately crowds a
+/// protrusion by many orders of magnitude, smoothly over the region
+/// (docs/cheburashka-collapse.md). Measured on cheburashka at the defaults: 1e-6 stalls at
+/// W/4π 18.9; 1e-7 at 15.8 with 6 → 6 folded faces; 1e-8 at 15.4 but with 6 → 7 (the
+/// corpus test's own fold count), so the decade of room stays.
+pub const COLLAPSE_SHARE: f64 = 1e-7;
 /// Largest factor by which Q max (against the input) may grow in one step of a flow with
 /// pinned vertices ([`Retry::pins_vertices`]).
 pub const Q_JUMP: f64 = 2.0;

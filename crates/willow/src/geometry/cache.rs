@@ -4,6 +4,7 @@
 //! the positions move recomputes everything the flows and metrics read: an explicit cache
 //! with an explicit refill, never a recomputation hidden in a getter.
 
+use super::intrinsic::IntrinsicDelaunay;
 use super::operators::{
     barycentric_vertex_areas_into, corner_cotangents_into, cotan_laplacian_apply_into,
     face_areas_into, mean_curvature_into, vertex_normals_into, willmore_energy,
@@ -14,9 +15,17 @@ pub struct GeometryCache {
     pub cotangents: Vec<[f64; 3]>,
     pub vertex_areas: Vec<f64>,
     pub normals: Vec<[f64; 3]>,
-    /// `L f` (PSD cotan Laplacian applied to the positions).
+    /// `L f` (PSD cotan Laplacian of the mesh's own triangles applied to the positions): what
+    /// the `|Δf|` form of W reports, as other tools compute it (libigl).
     pub laplacian_f: Vec<[f64; 3]>,
+    /// `L f` with L on the intrinsic Delaunay triangulation, when [`GeometryCache::intrinsic`]
+    /// is set (empty otherwise): H is built from it.
+    pub intrinsic_laplacian_f: Vec<[f64; 3]>,
     pub mean_curvature: Vec<f64>,
+    /// The intrinsic Delaunay triangulation of the current surface, refilled by `refresh`,
+    /// when the owner builds its Laplacian there (the conformal flow: docs/algorithm.md §1,
+    /// docs/cheburashka-collapse.md). `cotangents` stay the input triangles' own.
+    pub intrinsic: Option<IntrinsicDelaunay>,
 }
 
 impl GeometryCache {
@@ -28,7 +37,9 @@ impl GeometryCache {
             vertex_areas: vec![0.0; nv],
             normals: vec![[0.0; 3]; nv],
             laplacian_f: vec![[0.0; 3]; nv],
+            intrinsic_laplacian_f: Vec::new(),
             mean_curvature: vec![0.0; nv],
+            intrinsic: None,
         };
         cache.refresh(positions, triangles);
         cache
@@ -45,16 +56,44 @@ impl GeometryCache {
             &self.cotangents,
             &mut self.laplacian_f,
         );
+        let curvature_normal = match &mut self.intrinsic {
+            Some(idt) => {
+                idt.flip_to_delaunay(positions, &self.cotangents);
+                // L applied to the coordinate functions: each intrinsic edge's weight times
+                // the chord between its ends (the coordinates are functions on the vertices).
+                cotan_laplacian_apply_into(
+                    positions,
+                    &idt.triangles,
+                    &idt.cotangents,
+                    &mut self.intrinsic_laplacian_f,
+                );
+                &self.intrinsic_laplacian_f
+            }
+            None => &self.laplacian_f,
+        };
         mean_curvature_into(
-            &self.laplacian_f,
+            curvature_normal,
             &self.normals,
             &self.vertex_areas,
             &mut self.mean_curvature,
         );
     }
 
+    /// Build `L f` and H on the intrinsic Delaunay triangulation from now on (`idt` built on
+    /// these `triangles`), and refresh.
+    pub fn use_intrinsic_delaunay(
+        &mut self,
+        idt: IntrinsicDelaunay,
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+    ) {
+        self.intrinsic = Some(idt);
+        self.intrinsic_laplacian_f = vec![[0.0; 3]; positions.len()];
+        self.refresh(positions, triangles);
+    }
+
     /// Follow a similarity that scaled each connected component by `scales[c]` (and moved it):
-    /// angles, cotangents and normals are unchanged, areas scale by s², `L f` by s and H by 1/s.
+    /// angles, cotangents, normals and the intrinsic Delaunay flips are unchanged, areas scale by s², `L f` by s and H by 1/s.
     /// Exactly what [`GeometryCache::refresh`] would compute, without the trigonometry.
     pub fn rescale(
         &mut self,
@@ -74,6 +113,9 @@ impl GeometryCache {
                 self.laplacian_f[i][1] * s,
                 self.laplacian_f[i][2] * s,
             ];
+            if let Some(l) = self.intrinsic_laplacian_f.get_mut(i) {
+                *l = [l[0] * s, l[1] * s, l[2] * s];
+            }
             self.mean_curvature[i] /= s;
         }
     }
@@ -90,7 +132,7 @@ impl GeometryCache {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::generate::bumpy_sphere;
+    use crate::mesh::generate::{bumpy_sphere, irregular_sphere};
 
     #[test]
     fn rescale_matches_a_fresh_refresh() {
@@ -126,5 +168,65 @@ mod tests {
             .zip(&fresh.laplacian_f)
             .all(|(a, b)| (0..3).all(|k| close(a[k], b[k]))));
         assert!(close(cache.willmore_energy(), fresh.willmore_energy()));
+    }
+
+    /// On the intrinsic Delaunay triangulation: the flips of an irregular sphere do not depend
+    /// on its scale, so a rescale matches a fresh refresh there too; the mesh's own `L f` stays
+    /// the mesh's, and H differs from the mesh-cotan H only where edges flipped.
+    #[test]
+    fn intrinsic_mean_curvature_rescales_and_differs_only_where_flipped() {
+        let mesh = irregular_sphere(3, 7);
+        let with_idt = |p: &[[f64; 3]]| {
+            let mut c = GeometryCache::new(p, &mesh.triangles);
+            c.use_intrinsic_delaunay(IntrinsicDelaunay::new(&mesh.triangles), p, &mesh.triangles);
+            c
+        };
+        let plain = GeometryCache::new(&mesh.positions, &mesh.triangles);
+        let mut cache = with_idt(&mesh.positions);
+        let flips = cache.intrinsic.as_ref().map_or(0, |i| i.flip_count());
+        assert!(flips > 0, "the test mesh needs non-Delaunay edges");
+        assert_eq!(cache.laplacian_f, plain.laplacian_f);
+        let idt = cache.intrinsic.as_ref().expect("set");
+        let mut touched = vec![false; mesh.vertex_count()];
+        for (f, &c) in idt.changed.iter().enumerate() {
+            if c {
+                for v in mesh.triangles[f].iter().chain(&idt.triangles[f]) {
+                    touched[*v] = true;
+                }
+            }
+        }
+        for (v, (a, b)) in cache
+            .mean_curvature
+            .iter()
+            .zip(&plain.mean_curvature)
+            .enumerate()
+        {
+            if !touched[v] {
+                assert!(
+                    (a - b).abs() <= 1e-9 * (1.0 + b.abs()),
+                    "vertex {v}: {a} vs {b}"
+                );
+            }
+        }
+        assert!(cache.mean_curvature != plain.mean_curvature);
+        let s = 0.3;
+        let moved: Vec<[f64; 3]> = mesh
+            .positions
+            .iter()
+            .map(|p| [s * p[0], s * p[1] + 2.0, s * p[2]])
+            .collect();
+        cache.rescale(&mesh.triangles, &vec![0; moved.len()], &[s]);
+        let fresh = with_idt(&moved);
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-10 * (1.0 + a.abs().max(b.abs()));
+        assert!(cache
+            .mean_curvature
+            .iter()
+            .zip(&fresh.mean_curvature)
+            .all(|(a, b)| close(*a, *b)));
+        assert!(cache
+            .intrinsic_laplacian_f
+            .iter()
+            .zip(&fresh.intrinsic_laplacian_f)
+            .all(|(a, b)| (0..3).all(|k| close(a[k], b[k]))));
     }
 }

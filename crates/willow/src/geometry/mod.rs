@@ -9,6 +9,7 @@ pub mod bvh;
 pub mod cache;
 pub mod distance;
 pub mod hodge;
+pub mod intrinsic;
 pub mod operators;
 pub mod quaternion;
 pub mod vec3;
