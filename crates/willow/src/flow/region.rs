@@ -455,6 +455,9 @@ impl RegionFlow {
         if params.seam == Seam::Smooth {
             flow.continue_pinned_curvature()?;
         }
+        // The part of ρ the held border forbids would only distort the region
+        // (`flow/willmore/pinned.rs`).
+        flow.absorb_unrealizable_curvature()?;
         let inner: Box<dyn Flow> = Box::new(Safeguarded::new(
             flow,
             &sub.mesh.triangles,

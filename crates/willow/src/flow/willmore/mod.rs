@@ -133,6 +133,14 @@ pub struct ConformalFlow {
     /// The mean curvature the flow drives toward, `ρ = −2τ(H − H̃)` (a region's smooth seam,
     /// [`Self::continue_pinned_curvature`]); `None`: toward 0.
     curvature_target: Option<Vec<f64>>,
+    /// With pinned vertices, the vertices whose curvature change the λ solve may *not*
+    /// adjust (pinned ones and free components; `pinned.rs`,
+    /// [`Self::absorb_unrealizable_curvature`]), and scratch for the change; empty: ρ is
+    /// taken as it is.
+    absorb_held: Vec<bool>,
+    absorb_delta: Vec<f64>,
+    /// The absorbed change per unit τ, carried between steps (`pinned.rs`, ABSORB_MEMORY).
+    absorb_offset: Vec<f64>,
     /// The surface a step started from, kept when the step's motion is filtered or blended.
     step_start: Vec<[f64; 3]>,
     /// The filtered flow direction of the current surface, when the end of the last step
@@ -449,6 +457,9 @@ impl ConformalFlow {
             filter,
             blend: None,
             curvature_target: None,
+            absorb_held: Vec::new(),
+            absorb_delta: Vec::new(),
+            absorb_offset: Vec::new(),
             step_start: if params.feature_size.is_some() {
                 vec![[0.0; 3]; n]
             } else {
