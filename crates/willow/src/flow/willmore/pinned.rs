@@ -37,7 +37,8 @@ use crate::linalg::solver::add_diagonal;
 /// μ of the absorbed curvature change, relative to the mass matrix: the δ-part's own normal
 /// matrix is about `M/3` (each face adds `A_f/9` per corner pair), so μ = 0.1 lets δ take
 /// most of what the residual asks while keeping its null space (δ summing to zero on every
-/// face) regular.
+/// face) regular. A larger μ absorbs less and lets Q creep again: on the ear's long run
+/// (until converged, at most 150 steps) Q 1.28 at μ = 0.1, 1.43 at 0.3, 1.83 at 1.
 const ABSORB_PENALTY: f64 = 0.1;
 /// Rounds of (λ, δ) descent before the step's λ: each costs one factorization of X and one
 /// of L on the region's submesh. One round left the ear creeping (Q 1.29 at 20 steps, 1.79
