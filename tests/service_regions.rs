@@ -136,3 +136,89 @@ async fn bad_regions_are_refused_naming_their_field() {
     }
     srv.stop().await;
 }
+
+/// Issue 29 item 1: an OBJ of two closed components (two bumpy spheres side by side) with a
+/// region naming every `v` line of the second. That component has no border to hold and is
+/// faired as a closed surface (it was `no_progress` at step 1 before): it comes back rounder
+/// (the spread of its distances from its centroid, computed here, falls), with its area and
+/// centroid kept; the first component is bit-identical.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_region_holding_a_whole_component_fairs_it_and_keeps_the_other() {
+    use willow::mesh::generate::bumpy_sphere;
+    let first = bumpy_sphere(2, 0.1);
+    let second = bumpy_sphere(3, 0.2);
+    let mut mesh = first.clone();
+    let offset = mesh.vertex_count();
+    mesh.positions
+        .extend(second.positions.iter().map(|p| [p[0] + 3.0, p[1], p[2]]));
+    mesh.triangles.extend(
+        second
+            .triangles
+            .iter()
+            .map(|t| [t[0] + offset, t[1] + offset, t[2] + offset]),
+    );
+    let obj = obj_text(&mesh);
+    let input = obj_vertices(&obj);
+    let lines: Vec<String> = (offset..input.len()).map(|k| k.to_string()).collect();
+    let srv = start(|_| {}).await;
+    let res = srv
+        .client
+        .post(srv.url(&format!(
+            "/v1/jobs?steps=4&include_positions=false&region.vertices={}",
+            lines.join(",")
+        )))
+        .header("content-type", "model/obj")
+        .body(obj)
+        .send()
+        .await
+        .expect("POST");
+    let output = result_vertices(&srv, res).await;
+    srv.stop().await;
+    assert_eq!(output.len(), input.len());
+    for k in 0..offset {
+        assert_eq!(
+            input[k].map(f64::to_bits),
+            output[k].map(f64::to_bits),
+            "v line {k} of the first component changed"
+        );
+    }
+    // Area, area-weighted centroid and the spread of the radius of the second component.
+    let measure = |p: &[[f64; 3]]| {
+        let (mut area, mut c) = (0.0, [0.0; 3]);
+        for t in &mesh.triangles[first.face_count()..] {
+            let [a, b, d] = t.map(|v| p[v]);
+            let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            let w = [d[0] - a[0], d[1] - a[1], d[2] - a[2]];
+            let n = [
+                u[1] * w[2] - u[2] * w[1],
+                u[2] * w[0] - u[0] * w[2],
+                u[0] * w[1] - u[1] * w[0],
+            ];
+            let s = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt() / 2.0;
+            area += s;
+            for k in 0..3 {
+                c[k] += s * (a[k] + b[k] + d[k]) / 3.0;
+            }
+        }
+        let c = c.map(|x| x / area);
+        let radii: Vec<f64> = p[offset..]
+            .iter()
+            .map(|q| ((q[0] - c[0]).powi(2) + (q[1] - c[1]).powi(2) + (q[2] - c[2]).powi(2)).sqrt())
+            .collect();
+        let mean = radii.iter().sum::<f64>() / radii.len() as f64;
+        let spread = (radii.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / radii.len() as f64)
+            .sqrt()
+            / mean;
+        (area, c, spread)
+    };
+    let (a0, c0, spread0) = measure(&input);
+    let (a, c, spread) = measure(&output);
+    assert!((a / a0 - 1.0).abs() < 1e-6, "area {a0} -> {a}");
+    for k in 0..3 {
+        assert!((c[k] - c0[k]).abs() < 1e-6, "centroid {c0:?} -> {c:?}");
+    }
+    assert!(
+        spread < 0.5 * spread0,
+        "the component did not round: radius spread {spread0} -> {spread}"
+    );
+}

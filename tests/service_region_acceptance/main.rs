@@ -13,7 +13,7 @@
 //!   its result, and on spot (which has UVs) the texture's, from the UV triangle to the 3D one.
 //!
 //! Those jobs run 5 steps; a second test runs the smooth seam on for 20 steps with
-//! `until_converged`, where the seam must still hold (Q bounded by 1.5 there).
+//! `until_converged`, where the seam must still hold and Q still ≤ 1.3.
 //!
 //! Set `WILLOW_TEST_DUMP=dir` to keep every input and OBJ result there (to render them).
 
@@ -575,9 +575,10 @@ const LONG_STEPS: u32 = 20;
 /// Issue 29 item 1 once the flow has run on (20 steps, `until_converged` at its default): the
 /// smooth seam keeps the border's normal jump within twice the input's on spot's ear, the
 /// genus-2 rim and the open cap, the outside stays bit-identical, W inside falls well and no
-/// face turns over. Q is bounded by 1.5 here, not 1.3: the map's distortion creeps up on long
-/// runs of a region (measured at 20 steps in crates/willow/tests/flow_region.rs: ear 1.43,
-/// genus-2 1.39, cap 1.05; at 5 steps, above, every case holds 1.3).
+/// face turns over, and Q inside stays ≤ 1.3 as at 5 steps. (It crept before the flow
+/// absorbed the curvature change a held border cannot realize, `flow/willmore/pinned.rs`:
+/// 1.43 on the ear, 1.39 on the genus-2 rim at 20 steps, bounded here by 1.5 then; measured
+/// in crates/willow/tests/flow_region.rs now: 1.19, 1.01, cap 1.02.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_smooth_seam_holds_when_the_job_runs_until_converged() {
     let inputs = [spot(), genus_two(), open_cap()];
@@ -631,7 +632,7 @@ async fn a_smooth_seam_holds_when_the_job_runs_until_converged() {
         if folded > 0 {
             failures.push(format!("{name}: {folded} faces turned over"));
         }
-        if q_mean > 1.5 {
+        if q_mean > 1.3 {
             failures.push(format!("{name}: Q mean {q_mean}"));
         }
     }

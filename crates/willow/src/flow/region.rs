@@ -21,6 +21,11 @@
 //! smoothstep of the distance from the border along the mesh's edges ([`falloff_weights`]):
 //! the region fades into its surroundings instead of moving up to the held ring.
 //!
+//! A region may hold every vertex of a closed component of a mesh with several: that
+//! component has no border to hold, and flows as the whole-surface flow would flow it alone
+//! (its constraints and scale policy; `flow/willmore/pinned.rs`). Every vertex of the whole
+//! mesh is refused (leave the region out instead).
+//!
 //! Vertices outside the region are never written: they are bit-identical to the input. The
 //! metrics a region flow reports are those of the submesh (the region and its held rings).
 
@@ -450,6 +455,9 @@ impl RegionFlow {
         if params.seam == Seam::Smooth {
             flow.continue_pinned_curvature()?;
         }
+        // The part of ρ the held border forbids would only distort the region
+        // (`flow/willmore/pinned.rs`).
+        flow.absorb_unrealizable_curvature()?;
         let inner: Box<dyn Flow> = Box::new(Safeguarded::new(
             flow,
             &sub.mesh.triangles,

@@ -22,6 +22,8 @@ pub struct ScalePolicy {
     target_area: Vec<f64>,
     target_volume: Vec<f64>,
     target_centroid: Vec<[f64; 3]>,
+    /// Per component: left exactly as it is (pinned vertices already fix it).
+    held: Vec<bool>,
     area: Vec<f64>,
     volume: Vec<f64>,
     centroid: Vec<[f64; 3]>,
@@ -45,6 +47,7 @@ impl ScalePolicy {
             target_area: vec![0.0; n_components],
             target_volume: vec![0.0; n_components],
             target_centroid: vec![[0.0; 3]; n_components],
+            held: vec![false; n_components],
             area: vec![0.0; n_components],
             volume: vec![0.0; n_components],
             centroid: vec![[0.0; 3]; n_components],
@@ -54,6 +57,13 @@ impl ScalePolicy {
         policy.target_volume.copy_from_slice(&policy.volume);
         policy.target_centroid.copy_from_slice(&policy.centroid);
         policy
+    }
+
+    /// Leave the components marked in `held` (one flag per component) untouched: a flow
+    /// with pinned vertices there (a region's surroundings, a fixed boundary) must not move
+    /// them by a similarity.
+    pub fn hold(&mut self, held: &[bool]) {
+        self.held.copy_from_slice(held);
     }
 
     /// Area and area-weighted centroid of each component, and its volume where the policy
@@ -99,6 +109,7 @@ impl ScalePolicy {
         // Reuse `area` for the factors: it is remeasured on every call.
         for (c, a) in self.area.iter_mut().enumerate() {
             *a = match self.preserve {
+                _ if self.held[c] => 1.0,
                 Preserve::None => 1.0,
                 Preserve::Volume if self.closed[c] => {
                     volume_factor(self.volume[c], self.target_volume[c])
@@ -107,6 +118,9 @@ impl ScalePolicy {
             };
         }
         for (&c, p) in self.vertex_component.iter().zip(positions.iter_mut()) {
+            if self.held[c] {
+                continue;
+            }
             *p = add(
                 self.target_centroid[c],
                 scale(sub(*p, self.centroid[c]), self.area[c]),

@@ -36,6 +36,7 @@ use std::time::Instant;
 
 mod factor;
 use factor::*;
+mod pinned;
 mod seam;
 mod step;
 
@@ -84,6 +85,11 @@ pub struct ConformalFlow {
     /// Boundary vertices held in place (§6.3.2), with their positions; `None` for a free boundary.
     fixed: Option<Vec<bool>>,
     fixed_positions: Vec<[f64; 3]>,
+    /// Per component: it holds no pinned vertex, so it flows as a free surface, with its
+    /// constraints and scale policy (all of them without pinned vertices; `pinned.rs`).
+    free_component: Vec<bool>,
+    /// Some pinned vertex lies on a closed component.
+    pinned_closed: bool,
     /// Prescribed boundary vectors (§6.3.1, CMC with `V = B`); `None` otherwise.
     prescribed: Option<PrescribedSolver>,
     /// Prescribed boundary vectors (not CMC) on a surface with boundary: W may rise while the
@@ -127,6 +133,14 @@ pub struct ConformalFlow {
     /// The mean curvature the flow drives toward, `ρ = −2τ(H − H̃)` (a region's smooth seam,
     /// [`Self::continue_pinned_curvature`]); `None`: toward 0.
     curvature_target: Option<Vec<f64>>,
+    /// With pinned vertices, the vertices whose curvature change the λ solve may *not*
+    /// adjust (pinned ones and free components; `pinned.rs`,
+    /// [`Self::absorb_unrealizable_curvature`]), and scratch for the change; empty: ρ is
+    /// taken as it is.
+    absorb_held: Vec<bool>,
+    absorb_delta: Vec<f64>,
+    /// The absorbed change per unit τ, carried between steps (`pinned.rs`, ABSORB_MEMORY).
+    absorb_offset: Vec<f64>,
     /// The surface a step started from, kept when the step's motion is filtered or blended.
     step_start: Vec<[f64; 3]>,
     /// The filtered flow direction of the current surface, when the end of the last step
@@ -236,6 +250,12 @@ impl ConformalFlow {
         });
         let boundary_vertex =
             (!topology.boundary_loops.is_empty()).then(|| topology.boundary_vertex_mask(n));
+        let mut free_component = vec![true; n_components];
+        let mut pinned_closed = false;
+        for (v, _) in fixed.iter().flatten().enumerate().filter(|(_, &p)| p) {
+            free_component[vertex_component[v]] = false;
+            pinned_closed |= closed_vertex[v];
+        }
 
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
         setup.lap("geometry");
@@ -280,13 +300,15 @@ impl ConformalFlow {
             &topology,
             params.measures_deviation(),
         );
-        let scale = ScalePolicy::new(
+        let mut scale = ScalePolicy::new(
             feature::scale_policy(params.preserve, params.feature_size),
             &topology,
             &mesh.positions,
             &mesh.triangles,
             &geometry.vertex_areas,
         );
+        // Pinned vertices already fix their components' position and size.
+        scale.hold(&free_component.iter().map(|&f| !f).collect::<Vec<bool>>());
         let topology = exactness.is_some().then_some(topology);
         setup.lap("reporter, scale");
         let numerical = |e: SolverError| FlowError::Numerical {
@@ -407,6 +429,8 @@ impl ConformalFlow {
                 Vec::new()
             },
             fixed,
+            free_component,
+            pinned_closed,
             turns_boundary: prescribed.is_some()
                 && matches!(params.boundary, Boundary::Prescribed(_)),
             willmore_lower_bound: (!(prescribed.is_some()
@@ -433,6 +457,9 @@ impl ConformalFlow {
             filter,
             blend: None,
             curvature_target: None,
+            absorb_held: Vec::new(),
+            absorb_delta: Vec::new(),
+            absorb_offset: Vec::new(),
             step_start: if params.feature_size.is_some() {
                 vec![[0.0; 3]; n]
             } else {
@@ -521,7 +548,7 @@ impl super::safeguard::Retry for ConformalFlow {
     }
 
     fn pins_vertices(&self) -> bool {
-        self.fixed.is_some()
+        self.free_component.iter().any(|&f| !f)
     }
 }
 
@@ -566,8 +593,8 @@ impl Flow for ConformalFlow {
         // New geometry, then the scale policy on it, then the geometry again for the metrics
         // and the next step (the rescale changes areas and H).
         self.geometry.refresh(&self.positions, &self.triangles);
-        if self.fixed.is_none() {
-            // A fixed boundary already pins position and size.
+        if self.free_component.iter().any(|&f| f) {
+            // Components with pinned vertices are held by them (`ScalePolicy::hold`).
             let scales = self.scale.restore(
                 &mut self.positions,
                 &self.triangles,

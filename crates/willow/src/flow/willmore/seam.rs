@@ -18,7 +18,10 @@
 //! two held rings) as boundary data, like the clamped Willmore problem. A crease at the seam
 //! raises |H| on the held ring next to it, which `H̃` carries inward, so the region bends back
 //! toward the surroundings' tangent plane (measured, 20 steps: spot's ear 8.7° → 11.6°, a
-//! genus-2 rim 5.7° → 8.3°, an open cap 4.5° → 5.4°). `H̃` is harmonic, so the detail inside
+//! genus-2 rim 5.7° → 8.3°, an open cap 4.5° → 5.4°; with the unrealizable part of ρ absorbed,
+//! `pinned.rs`: 8.7°, 5.1°, 5.3°). The target is recomputed every step on purpose: frozen
+//! after the first step, W stalls (ear 6.47 from 8.43 with τ halved to 1/256; genus-2 rim
+//! 4.64 at 100 steps against 4.05 updated). `H̃` is harmonic, so the detail inside
 //! (the part of H a harmonic function cannot hold) is still removed.
 
 use super::*;

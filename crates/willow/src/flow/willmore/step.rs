@@ -2,7 +2,7 @@
 //! (VII, Eq. 6).
 
 use super::*;
-use crate::flow::dirac::{assemble_dirac_into, sparse_matvec, TriangleAssembly};
+use crate::flow::dirac::{assemble_dirac_into, TriangleAssembly};
 use crate::flow::dirichlet;
 use crate::flow::prescribed::SurfaceState;
 use crate::flow::FlowError;
@@ -17,8 +17,12 @@ impl ConformalFlow {
     /// Table 1 steps I–V: `ρ = −2τ·P(H)`, plus Möbius balancing when asked.
     pub(super) fn curvature_change(&mut self) -> Result<(), FlowError> {
         self.constraints.clear();
-        if self.fixed.is_none() {
+        if self.free_component.iter().any(|&f| f) {
             let g = &self.geometry;
+            // Constraints act on free components only: pinned vertices already hold a
+            // component's position, size and boundary (§6.3.2), so every function is zero on
+            // a component with pinned vertices (without any, this is every component).
+            let on = |v: usize| self.free_component[self.vertex_component[v]];
             let closed = &self.closed_vertex;
             // Prescribed boundary vectors (§6.3.1) change which curvature changes can be
             // integrated on a component with boundary. The constant one cannot: with `V = B`
@@ -34,16 +38,20 @@ impl ConformalFlow {
             let prescribed = self.prescribed.is_some();
             for axis in 0..3 {
                 self.constraints.push_with(&g.vertex_areas, |f| {
-                    for ((fi, n), &c) in f.iter_mut().zip(&g.normals).zip(closed) {
-                        *fi = if c || !prescribed { n[axis] } else { 0.0 };
+                    for (v, ((fi, n), &c)) in f.iter_mut().zip(&g.normals).zip(closed).enumerate() {
+                        *fi = if on(v) && (c || !prescribed) {
+                            n[axis]
+                        } else {
+                            0.0
+                        };
                     }
                 });
             }
             // Total curvature is conserved on closed components (App. B integrates over a
             // surface without boundary), and held under prescribed boundary vectors (above).
             self.constraints.push_with(&g.vertex_areas, |f| {
-                for (fi, &c) in f.iter_mut().zip(closed) {
-                    *fi = if c || prescribed { 1.0 } else { 0.0 };
+                for (v, (fi, &c)) in f.iter_mut().zip(closed).enumerate() {
+                    *fi = if on(v) && (c || prescribed) { 1.0 } else { 0.0 };
                 }
             });
         }
@@ -466,37 +474,6 @@ impl ConformalFlow {
                 step: self.step + 1,
                 reason: e.to_string(),
             })
-    }
-
-    /// §6.3.2: minimize `|(D − ρ)λ|²` with λ fixed on the boundary, a linear least-squares
-    /// problem `X_II λ_I = −X_IB λ_B` rather than an eigenproblem. Returns its relative residual.
-    pub(super) fn solve_lambda_dirichlet(&mut self) -> Result<f64, FlowError> {
-        self.factor_dirac(true)?;
-        self.rhs.copy_from_slice(&self.solve_rhs);
-        self.solve_rhs_with_dirac()?;
-        for (i, l) in self.lambda.iter_mut().enumerate() {
-            *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
-        }
-        if self.lambda.iter().any(|l| !l.norm2().is_finite()) {
-            return Err(FlowError::Numerical {
-                step: self.step + 1,
-                reason: "the boundary-value solve for λ is not finite".into(),
-            });
-        }
-        let pattern = self
-            .dirac_pattern
-            .as_ref()
-            .ok_or_else(|| FlowError::Numerical {
-                step: self.step + 1,
-                reason: "a fixed boundary needs the full pattern of X".into(),
-            })?;
-        sparse_matvec(pattern, &self.dirac_values, &self.rhs, &mut self.product);
-        let (mut res, mut norm) = (0.0, 0.0);
-        for (p, b) in self.product.iter().zip(&self.solve_rhs) {
-            res += (p - b).norm_sqr();
-            norm += b.norm_sqr();
-        }
-        Ok(if norm > 0.0 { (res / norm).sqrt() } else { 0.0 })
     }
 
     /// Table 1 step VII: new edges, their divergence, and the Poisson solve. Returns the closure

@@ -3,6 +3,8 @@
 //! Every check here is computed in the test from positions and faces (face normals, areas,
 //! the triangle's affine map), not from Willow's metrics, except W, which the flow reports.
 
+mod components;
+#[path = "../mesh_support/mod.rs"]
 mod mesh_support;
 
 use willow::flow::region::{resolve_groups, select, Region, Seam};
@@ -19,7 +21,7 @@ const EAR: Region = Region::Sphere {
 };
 
 fn spot() -> Asset {
-    let bytes = include_bytes!("data/spot_triangulated.obj");
+    let bytes = include_bytes!("../data/spot_triangulated.obj");
     Asset::read(bytes, Format::Obj, &Limits::default()).expect("spot reads")
 }
 
@@ -149,6 +151,21 @@ fn run(mesh: &Mesh, params: &FlowParams, steps: usize) -> Outcome {
     }
 }
 
+/// Area-weighted mean Q of `faces` (input areas) between the input and `p`.
+fn area_weighted_q(mesh: &Mesh, faces: &[[usize; 3]], p: &[[f64; 3]]) -> f64 {
+    let (mut sum, mut total) = (0.0, 0.0);
+    for &t in faces {
+        let n = cross(
+            sub(mesh.positions[t[1]], mesh.positions[t[0]]),
+            sub(mesh.positions[t[2]], mesh.positions[t[0]]),
+        );
+        let area = dot(n, n).sqrt() / 2.0;
+        sum += area * face_q(&mesh.positions, p, t);
+        total += area;
+    }
+    sum / total
+}
+
 /// What every region run must show: the outside bit-identical, W down, no fold, Q near 1
 /// inside, and the seam's normal jump no worse than twice the input's.
 fn check(name: &str, mesh: &Mesh, regions: &[Region], out: &Outcome, max_jump_ratio: f64) {
@@ -226,11 +243,14 @@ fn run_until_converged(mesh: &Mesh, params: &FlowParams, steps: usize) -> (Outco
     let flow = new_flow(mesh, params).expect("region flow");
     let w0 = flow.initial_metrics().willmore_energy;
     let mut run = Run::new(flow, params, steps).expect("run");
-    let mut w = w0;
+    let (mut w, mut steps) = (w0, 0);
     let outcome = loop {
         match run.advance().expect("step") {
-            Event::Step(m) => w = m.willmore_energy,
-            Event::Stopped { outcome, .. } => break outcome,
+            Event::Step(m) => (w, steps) = (m.willmore_energy, m.step),
+            Event::Stopped { outcome, .. } => {
+                eprintln!("stopped after {steps} steps: {outcome:?}");
+                break outcome;
+            }
         }
     };
     let out = Outcome {
@@ -271,18 +291,19 @@ fn largest_dihedral(mesh: &Mesh, moving: &[bool], p: &[[f64; 3]]) -> f64 {
 
 /// Issue 29 item 1 at convergence: a smooth seam keeps the border's normal jump within twice
 /// the input's when the flow runs on (20 steps with `until_converged`, then up to 150), on
-/// spot's ear, a genus-2 rim and an open cap, while the same regions with a fixed seam (C0)
-/// open a crease beyond that (the region flattens into the minimal surface spanning its
-/// border; 20 steps). Without the curvature target of `flow/willmore/seam.rs` the smooth seam
-/// measured 2.16× on the ear at 20 steps (18.9°). Measured with it, 20 steps: ear 8.71° →
-/// 11.61° (fixed 37.05°), genus-2 5.66° → 8.30° (fixed 12.45°), cap 4.45° → 5.41° (fixed
-/// 10.18°); converged (ear, 48 steps) 11.51°, genus-2 at 150 steps 7.03°, cap 5.28°.
-/// Q (area-weighted mean over the region's faces) at 20 steps: ear 1.43 (1.41 before the
-/// seam change, 1.55 with a fixed seam: the ear is pulled from a long lobe into a bump),
-/// genus-2 1.39, cap 1.05, bounded here by 1.5; it keeps creeping on a long run (ear 1.54 at
-/// 48 steps, genus-2 1.72 at 150), which is why the long run checks the seam and folds only.
-/// Folds on the long run are checked between neighbouring faces: two faces at the ear's tip
-/// turn by 95° from the input as the lobe becomes a bump, with Q 1.1–1.5 and no crease.
+/// spot's ear, a genus-2 rim and an open cap, and below the fixed seam's (C0) after 20 steps;
+/// and the texture inside keeps its look (Q, the area-weighted mean over the region's faces,
+/// ≤ 1.3 at 20 steps and ≤ 1.35 on the long run). Without the curvature target of
+/// `flow/willmore/seam.rs` the smooth seam measured 2.16× on the ear at 20 steps (18.9°).
+///
+/// Q crept before the held border's unrealizable curvature change was absorbed
+/// (`flow/willmore/pinned.rs`): at 20 steps ear 1.43, genus-2 1.39, cap 1.05; ear 1.54 when
+/// it converged (48 steps), genus-2 1.72 at 150. Measured with it: at 20 steps ear 1.19,
+/// genus-2 1.01, cap 1.02 (normal jump ear 8.71° → 8.73°, fixed seam 11.45°; genus-2 5.66° →
+/// 5.07°, fixed 6.21°; cap 4.45° → 5.30°, fixed 6.01°); the ear converges after 105 steps
+/// (Q 1.28, jump 8.97°), the genus-2 rim and the cap still descend at 150 (Q 1.02, 1.03; W
+/// −31% and −17% from step 20): slower than before, whose faster descent was the
+/// non-conformal creep. Folds on the long run are checked between neighbouring faces.
 #[test]
 fn a_smooth_seam_stays_tangent_to_its_surroundings_at_convergence() {
     let spot = spot().surface().clone();
@@ -317,12 +338,21 @@ fn a_smooth_seam_stays_tangent_to_its_surroundings_at_convergence() {
             &regions,
             &out,
             2.0,
-            1.5,
+            1.3,
         );
-        // Far longer: on the ear until W has stopped falling by the run's own rule (48
-        // steps); the genus-2 rim and the cap still creep at 150 (W −7% and −11% from step
-        // 20), the seam held all the way.
+        // Far longer: on the ear until W has stopped falling by the run's own rule (105
+        // steps); the genus-2 rim and the cap still descend at 150, the seam held all the
+        // way and Q with it.
         let (done, outcome) = run_until_converged(mesh, &smooth, 150);
+        let moving_faces: Vec<[usize; 3]> = mesh
+            .triangles
+            .iter()
+            .copied()
+            .filter(|t| t.iter().any(|&v| moving[v]))
+            .collect();
+        let q_long = area_weighted_q(mesh, &moving_faces, &done.positions);
+        eprintln!("{name}, smooth, long run: Q mean {q_long:.3} ({outcome:?})");
+        assert!(q_long <= 1.35, "{name}: Q mean {q_long} on the long run");
         if name == "spot ear" {
             assert_eq!(outcome, RunOutcome::Converged, "{name}");
         }
@@ -342,13 +372,16 @@ fn a_smooth_seam_stays_tangent_to_its_surroundings_at_convergence() {
             fold < std::f64::consts::FRAC_PI_2,
             "{name}: folds ({fold} rad)"
         );
-        // The fixed seam's crease keeps opening past 20 steps (W still falling on the ear).
+        // A fixed seam (C0) meets its border at a larger angle than the smooth one.
         let fixed = run(mesh, &params(regions.clone(), Seam::Fixed), 20);
         let crease = border_normal_jump(mesh, &moving, &fixed.positions);
+        eprintln!(
+            "{name}, fixed, 20 steps: border normal jump {:.2}°",
+            crease.to_degrees()
+        );
         assert!(
-            crease > 2.0 * jump0 && crease > jump,
-            "{name}: the fixed seam's jump {crease} should exceed twice the input's {jump0} \
-             and the smooth seam's {jump}"
+            crease > jump,
+            "{name}: the fixed seam's jump {crease} should exceed the smooth seam's {jump}"
         );
     }
 }
@@ -612,7 +645,7 @@ fn a_falloff_blends_the_motion_to_zero_at_the_border() {
 /// spot with its faces in two OBJ groups: `g ear` before the faces with every corner in the
 /// ear sphere, `g body` before the rest (and an `o spot` line first).
 fn spot_with_groups() -> String {
-    let text = include_str!("data/spot_triangulated.obj");
+    let text = include_str!("../data/spot_triangulated.obj");
     let mut v: Vec<[f64; 3]> = Vec::new();
     let (mut ear, mut body) = (String::new(), String::new());
     let (c, r) = ([0.40, 0.72, -0.20], 0.15);
