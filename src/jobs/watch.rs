@@ -99,6 +99,8 @@ struct Slot {
     rx: Option<tokio::sync::mpsc::Receiver<JobEvent>>,
     /// The transport's task, woken when the slot is emptied so that it sees the end.
     waker: Option<Waker>,
+    /// Whether the watcher cut its client off ([`Tx::cut`]).
+    cut: bool,
 }
 
 fn lock(slot: &Mutex<Slot>) -> std::sync::MutexGuard<'_, Slot> {
@@ -128,7 +130,15 @@ pub struct WatchCut(Arc<Mutex<Slot>>);
 impl WatchCut {
     /// Whether the watcher dropped its client for being slower than the floor.
     pub fn is_cut(&self) -> bool {
-        lock(&self.0).rx.is_none()
+        lock(&self.0).cut
+    }
+}
+
+impl Drop for Watch {
+    /// The client went away: drop the receiving end now (the task shares the slot), so that
+    /// the watcher task sees its channel closed and stops at once, as it did before the slot.
+    fn drop(&mut self) {
+        lock(&self.slot).rx = None;
     }
 }
 
@@ -186,18 +196,7 @@ pub(super) async fn watch(
     } else {
         Some(live)
     };
-    let (tx, rx) = tokio::sync::mpsc::channel(WATCHER_BUFFER);
-    let slot = Arc::new(Mutex::new(Slot {
-        rx: Some(rx),
-        waker: None,
-    }));
-    let refined = status.spec.refine;
-    let tx = Tx {
-        tx,
-        slot: slot.clone(),
-        floor,
-        recent: Mutex::new(VecDeque::with_capacity(WATCHER_BUFFER)),
-    };
+    let (watch, tx) = channel(floor, status.spec.refine);
     tokio::spawn(async move {
         match run_watcher(jobs, id.clone(), from_step, status, live, &tx).await {
             // The last events must be taken in time too.
@@ -205,7 +204,24 @@ pub(super) async fn watch(
             Err(e) => tracing::debug!(job_id = %id, error = %e, "watcher ended"),
         }
     });
-    Ok(Watch { slot, refined })
+    Ok(watch)
+}
+
+/// A watcher's channel: the client's end and the task's.
+fn channel(floor: WatchFloor, refined: bool) -> (Watch, Tx) {
+    let (tx, rx) = tokio::sync::mpsc::channel(WATCHER_BUFFER);
+    let slot = Arc::new(Mutex::new(Slot {
+        rx: Some(rx),
+        waker: None,
+        cut: false,
+    }));
+    let tx = Tx {
+        tx,
+        slot: slot.clone(),
+        floor,
+        recent: Mutex::new(VecDeque::with_capacity(WATCHER_BUFFER)),
+    };
+    (Watch { slot, refined }, tx)
 }
 
 /// Why a watcher stopped early (its client went away, or the store failed).
@@ -244,6 +260,7 @@ impl Tx {
     fn cut(&self, waited: Duration) -> WatchEnd {
         let mut slot = lock(&self.slot);
         slot.rx = None;
+        slot.cut = true;
         if let Some(w) = slot.waker.take() {
             w.wake();
         }
@@ -439,5 +456,69 @@ async fn run_watcher(
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_floor_allows_the_timeout_plus_the_bytes_at_the_rate() {
+        let floor = WatchFloor {
+            timeout: Duration::from_secs(2),
+            min_rate: 1 << 20,
+        };
+        assert_eq!(floor.allowance(3 << 20), Duration::from_secs(5));
+        let timeout_only = WatchFloor {
+            min_rate: 0,
+            ..floor
+        };
+        assert_eq!(timeout_only.allowance(usize::MAX), Duration::from_secs(2));
+    }
+
+    #[tokio::test]
+    async fn a_client_that_goes_away_closes_the_watchers_channel_at_once() {
+        let (watch, tx) = channel(WatchFloor::default(), false);
+        let cut = watch.cut();
+        assert!(!tx.tx.is_closed());
+        drop(watch);
+        // The task sees it (`closed()` resolves) without waiting for the floor.
+        tokio::time::timeout(Duration::from_secs(5), tx.closed())
+            .await
+            .expect("closed at once");
+        assert!(!cut.is_cut(), "gone, not cut off");
+    }
+
+    #[tokio::test]
+    async fn a_cut_empties_the_queue_and_ends_the_stream() {
+        let floor = WatchFloor {
+            timeout: Duration::from_millis(20),
+            min_rate: 0,
+        };
+        let (mut watch, tx) = channel(floor, false);
+        let cut = watch.cut();
+        tx.linger().await;
+        assert!(!cut.is_cut(), "nothing queued: nothing to cut");
+        // Nobody takes what is queued: the linger after the last event cuts it off.
+        let metrics = super::super::codec::decode_metrics(&[0; super::super::codec::METRICS_BYTES])
+            .expect("zero metrics");
+        for step in 0..WATCHER_BUFFER {
+            tx.tx
+                .try_send(JobEvent::Frame(Frame {
+                    step,
+                    metrics,
+                    positions: None,
+                    connectivity_changed: false,
+                }))
+                .expect("room");
+        }
+        tx.linger().await;
+        assert!(cut.is_cut());
+        assert!(
+            tx.tx.is_closed(),
+            "the queued events are dropped with the receiver"
+        );
+        assert!(watch.next().await.is_none(), "the stream ends");
     }
 }
