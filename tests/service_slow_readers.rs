@@ -1,7 +1,9 @@
 //! Slow readers (issue 25, item 6): clients that request a large result and never read it are
-//! cut off after the write deadline, the memory their downloads hold stays within the budget
-//! (beyond it they get 503 `downloads_busy` + `Retry-After`), and a normal client is served
-//! while they hang.
+//! cut off after the write deadline, the memory their downloads hold (a chunk or two each: a
+//! download is streamed from its stored rendering) stays within the budget (beyond it they get
+//! 503 `downloads_busy` + `Retry-After`), and a normal client is served while they hang.
+//! Watchers of an event stream (SSE, gRPC) that stop reading are cut off at the same floor.
+//! `service_slow_readers_rss` measures the server's RSS with 60 such clients.
 //!
 //! Alone in its binary: it asserts on `download::held_bytes()`, the process-wide count of bytes
 //! held for downloads, which other tests' downloads would disturb.
@@ -14,7 +16,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpSocket, TcpStream};
 use willow::mesh::generate;
 use willow_service::api::conn::ConnLimits;
-use willow_service::api::download::held_bytes;
+use willow_service::api::download::{held_bytes, STORED_HOLD_BYTES};
 use willow_service::api::server::{serve_with, AppOptions, ServeOptions};
 use willow_service::jobs::{Config, Jobs};
 
@@ -84,7 +86,7 @@ async fn drain(s: &mut TcpStream, patience: Duration) -> (usize, bool) {
 /// The real server on a loopback listener whose accepted sockets have a small, fixed send
 /// buffer (Linux: accepted sockets inherit it). With the kernel's autotuning a loopback socket
 /// absorbs up to 4 MiB, and the results a test can afford to compute are smaller than that.
-async fn start(options: ServeOptions) -> (String, tokio::sync::oneshot::Sender<()>) {
+async fn start(options: ServeOptions) -> (String, tokio::sync::oneshot::Sender<()>, Jobs) {
     let dir = tempfile::tempdir().expect("temp dir");
     let mut config = Config::new(dir.path());
     config.workers = 1;
@@ -97,6 +99,7 @@ async fn start(options: ServeOptions) -> (String, tokio::sync::oneshot::Sender<(
     let listener = socket.listen(1024).expect("listen");
     let addr = listener.local_addr().expect("local addr").to_string();
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let handle = jobs.clone();
     tokio::spawn(async move {
         let _dir = dir;
         let shutdown = async move {
@@ -112,7 +115,7 @@ async fn start(options: ServeOptions) -> (String, tokio::sync::oneshot::Sender<(
         )
         .await
     });
-    (addr, tx)
+    (addr, tx, handle)
 }
 
 async fn succeeded_job(client: &reqwest::Client, base: &str, obj: &str) -> String {
@@ -145,7 +148,7 @@ async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
     let obj = obj_text(&generate::bumpy_sphere(5, 0.1));
     let client = reqwest::Client::new();
     let probe = {
-        let (addr, stop) = start(ServeOptions::default()).await;
+        let (addr, stop, _) = start(ServeOptions::default()).await;
         let base = format!("http://{addr}");
         let id = succeeded_job(&client, &base, &obj).await;
         let res = client
@@ -162,8 +165,9 @@ async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
         probe > 500_000,
         "the result should be large, is {probe} bytes"
     );
-    // Room for three hanging downloads on the server (and a whole one per connection).
-    let budget = 3 * probe as u64 + (probe as u64 / 2);
+    // Room for three hanging downloads on the server: each holds a chunk or two, not the
+    // whole result.
+    let budget = 3 * STORED_HOLD_BYTES + STORED_HOLD_BYTES / 2;
     let options = ServeOptions {
         app: AppOptions::default(),
         conn: ConnLimits {
@@ -174,11 +178,19 @@ async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
             ..ConnLimits::default()
         },
     };
-    let (addr, stop) = start(options).await;
+    let (addr, stop, jobs) = start(options).await;
     let base = format!("http://{addr}");
     let id = succeeded_job(&client, &base, &obj).await;
     let path = format!("/v1/jobs/{id}/result?format=obj");
     assert_eq!(held_bytes(), 0, "nothing held before the downloads");
+    // What the mesh writer renders in memory (the path downloads took before they were
+    // stored): the streamed download must be the same bytes.
+    let caller = willow_service::jobs::Caller::anonymous();
+    let rendered = jobs
+        .result(&caller, &id, willow::mesh::io::Format::Obj)
+        .await
+        .expect("rendered in memory");
+    assert_eq!(rendered.len(), probe);
 
     let mut hanging = Vec::new();
     let mut refused = 0;
@@ -210,7 +222,7 @@ async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
     let started = Instant::now();
     assert_eq!(hanging.len(), 3, "exactly the budget's worth are served");
     assert_eq!(refused, HANGERS - 3);
-    assert_eq!(held_bytes(), 3 * probe as u64);
+    assert_eq!(held_bytes(), 3 * STORED_HOLD_BYTES);
 
     // While they hang, a normal client is answered.
     let asked = Instant::now();
@@ -255,6 +267,11 @@ async fn clients_that_never_read_are_cut_and_their_memory_is_bounded() {
     assert_eq!(res.status(), 200);
     let text = res.text().await.expect("result text");
     assert_eq!(text.len(), probe);
+    assert_eq!(
+        text.as_bytes(),
+        &rendered[..],
+        "streamed = rendered in memory"
+    );
     assert_eq!(obj_vertices(&text).len(), 10242);
     assert_eq!(held_bytes(), 0, "a finished download holds nothing");
     let _ = stop.send(());
@@ -268,6 +285,7 @@ async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
     let _serial = SERIAL.lock().await;
     let obj = obj_text(&generate::bumpy_sphere(5, 0.1));
     let client = reqwest::Client::new();
+    const PER_CONNECTION: u64 = 1 << 20;
     // A generous server budget: here the connection's budget is the one that binds.
     let options = ServeOptions {
         app: AppOptions::default(),
@@ -275,11 +293,11 @@ async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
             write_timeout: WRITE_TIMEOUT,
             write_min_rate: MIN_RATE,
             download_memory: 64 << 20,
-            download_memory_per_connection: 3 << 20,
+            download_memory_per_connection: PER_CONNECTION,
             ..ConnLimits::default()
         },
     };
-    let (addr, stop) = start(options).await;
+    let (addr, stop, _) = start(options).await;
     let base = format!("http://{addr}");
     let id = succeeded_job(&client, &base, &obj).await;
     let path = format!("/v1/jobs/{id}/result?format=obj");
@@ -324,7 +342,7 @@ async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
                 other => panic!("unexpected status {other}"),
             }
             assert!(
-                held_bytes() <= CONNECTIONS as u64 * (3 << 20),
+                held_bytes() <= CONNECTIONS as u64 * PER_CONNECTION,
                 "held {} beyond the connections' budgets",
                 held_bytes()
             );
@@ -332,11 +350,12 @@ async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
         drop(h2);
     }
     assert!(len > 500_000, "the result should be large, is {len} bytes");
-    // 3 MiB per connection holds two ~1 MB downloads, or three if they are small enough.
-    let per_connection = ((3u64 << 20) / len as u64) as usize;
+    // 1 MiB per connection holds four streamed downloads of a chunk or two each.
+    let per_connection = (PER_CONNECTION / STORED_HOLD_BYTES) as usize;
+    assert_eq!(per_connection, 4);
     assert_eq!(served, CONNECTIONS * per_connection);
     assert_eq!(refused, CONNECTIONS * (STREAMS - per_connection));
-    assert_eq!(held_bytes(), (served * len) as u64);
+    assert_eq!(held_bytes(), served as u64 * STORED_HOLD_BYTES);
 
     // Nobody reads (the windows stay shut); the deadline frees the memory all the same.
     let started = Instant::now();
@@ -353,5 +372,142 @@ async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     drop(kept);
+    let _ = stop.send(());
+}
+
+/// A job that keeps running (every step kept, 2562 vertices: each frame carries ~40 KB of
+/// positions), once it runs.
+async fn running_job(client: &reqwest::Client, base: &str) -> String {
+    let obj = obj_text(&generate::bumpy_sphere(4, 0.1));
+    let res = client
+        .post(format!(
+            "{base}/v1/jobs?steps=5000&until_converged=false&frame_interval=1"
+        ))
+        .header("content-type", "model/obj")
+        .body(obj)
+        .send()
+        .await
+        .expect("POST /v1/jobs");
+    assert_eq!(res.status(), 202);
+    let job: serde_json::Value = res.json().await.expect("job json");
+    let id = job["id"].as_str().expect("job id").to_string();
+    let running = poll_until(client, base, &id, Duration::from_secs(120), |v| {
+        v["state"] != "queued"
+    })
+    .await;
+    assert_eq!(running["state"], "running", "{running}");
+    id
+}
+
+/// The floor for watchers under test: the write timeout and rate above.
+fn watch_options() -> ServeOptions {
+    ServeOptions {
+        app: AppOptions::default(),
+        conn: ConnLimits {
+            write_timeout: WRITE_TIMEOUT,
+            write_min_rate: MIN_RATE,
+            ..ConnLimits::default()
+        },
+    }
+}
+
+/// How long a test leaves a watcher unread: the floor's allowance for a full channel (16 frames
+/// of ~40 KB at 1 MiB/s, plus the timeout) several times over.
+const UNREAD: Duration = Duration::from_secs(12);
+
+/// An SSE watcher on HTTP/2 that stops reading: its window fills, the server can send nothing,
+/// its events pile up in the watcher's channel, and at the floor the watcher drops them and
+/// ends the stream. When the client reads again, the stream ends cleanly without `done` (an
+/// EventSource reconnects with `Last-Event-ID`) while the job still runs. Without the floor
+/// the stream would go on for the job's 5000 steps.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_sse_watcher_that_stops_reading_is_cut_off_with_a_reconnectable_close() {
+    let _serial = SERIAL.lock().await;
+    let client = reqwest::Client::new();
+    let (addr, stop, _) = start(watch_options()).await;
+    let base = format!("http://{addr}");
+    let id = running_job(&client, &base).await;
+
+    let tcp = TcpStream::connect(&addr).await.expect("connect");
+    let (h2, conn) = h2::client::handshake(tcp).await.expect("h2 handshake");
+    tokio::spawn(conn);
+    let mut h2 = h2.ready().await.expect("stream slot");
+    let req = axum::http::Request::get(format!("{base}/v1/jobs/{id}/events"))
+        .body(())
+        .expect("request");
+    let (response, _) = h2.send_request(req, true).expect("request sent");
+    let response = response.await.expect("response head");
+    assert_eq!(response.status(), 200);
+    let mut body = response.into_body();
+    tokio::time::sleep(UNREAD).await;
+
+    let mut text = Vec::new();
+    let read_all = async {
+        while let Some(chunk) = body.data().await {
+            let chunk = chunk.expect("a clean end, not a reset");
+            let _ = body.flow_control().release_capacity(chunk.len());
+            text.extend_from_slice(&chunk);
+        }
+    };
+    tokio::time::timeout(Duration::from_secs(30), read_all)
+        .await
+        .expect("the stream of a watcher that stopped reading ends");
+    let text = String::from_utf8_lossy(&text);
+    let frames = text.matches("event: frame").count();
+    assert!(frames > 0, "some frames went out before the client stopped");
+    assert!(!text.contains("event: done"), "cut off, not finished");
+    let status: serde_json::Value = client
+        .get(format!("{base}/v1/jobs/{id}"))
+        .send()
+        .await
+        .expect("GET job")
+        .json()
+        .await
+        .expect("job json");
+    assert_eq!(status["state"], "running", "the job goes on: {status}");
+    let step = status["progress"]["step"].as_u64().expect("step") as usize;
+    assert!(frames < step, "{frames} frames sent of {step} steps taken");
+    let _ = stop.send(());
+}
+
+/// The same over gRPC StreamFrames (a 64 KiB stream window, unread): the stream ends with
+/// DEADLINE_EXCEEDED after the frames that were in flight.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_grpc_watcher_that_stops_reading_ends_with_deadline_exceeded() {
+    use willow_service::api::grpc::pb::willow::v1;
+    let _serial = SERIAL.lock().await;
+    let client = reqwest::Client::new();
+    let (addr, stop, _) = start(watch_options()).await;
+    let base = format!("http://{addr}");
+    let id = running_job(&client, &base).await;
+
+    let channel = tonic::transport::Endpoint::from_shared(base.clone())
+        .expect("endpoint")
+        .initial_stream_window_size(Some(65_535))
+        .connect()
+        .await
+        .expect("connect over h2c");
+    let mut fairing = v1::fairing_client::FairingClient::new(channel);
+    let mut stream = fairing
+        .stream_frames(v1::StreamFramesRequest {
+            name: format!("jobs/{id}"),
+            from_step: 0,
+        })
+        .await
+        .expect("StreamFrames")
+        .into_inner();
+    tokio::time::sleep(UNREAD).await;
+
+    let mut frames = 0;
+    let status = loop {
+        match tokio::time::timeout(Duration::from_secs(30), stream.message()).await {
+            Ok(Ok(Some(_))) => frames += 1,
+            Ok(Ok(None)) => panic!("the stream ended OK after {frames} messages"),
+            Ok(Err(status)) => break status,
+            Err(_) => panic!("still streaming after {frames} messages: not cut off"),
+        }
+    };
+    assert_eq!(status.code(), tonic::Code::DeadlineExceeded, "{status:?}");
+    assert!(frames > 0, "the messages in flight arrive first");
     let _ = stop.send(());
 }

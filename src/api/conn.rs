@@ -33,13 +33,15 @@
 //!   (the client stopped reading and the kernel's send buffer is full) closes the connection;
 //!   see [`TimedIo`].
 //! - **Downloads** (`--download-memory-mib`, `--download-memory-per-connection-mib`,
-//!   `--write-min-rate-kib`): the memory a rendered mesh holds is charged to the connection
-//!   and the server and must be taken within the write timeout plus its length at the
+//!   `--write-min-rate-kib`): the memory a mesh download holds (a chunk or two: downloads are
+//!   streamed from their stored rendering) is charged to the connection and the server and must be taken within the write timeout plus its length at the
 //!   minimum rate; see `api::download`.
 //!
 //! None of these limits the *length* of a response: an SSE stream or a gRPC server stream runs
 //! as long as it has something to say and its client reads it (a request in flight is never
-//! idle).
+//! idle). Its client must keep the write floor, though: a watcher that does not take its
+//! events within `--write-timeout-secs` plus their bytes at `--write-min-rate-kib` is cut off
+//! (`jobs::watch::WatchFloor`).
 //!
 //! Shutdown: the listener is closed, every connection is told to finish gracefully (HTTP/1:
 //! after its current response; HTTP/2: GOAWAY) and the loop returns once all have closed.
@@ -115,7 +117,8 @@ pub struct ConnLimits {
     /// Minimum rate (bytes per second) at which a client must take a download once
     /// `write_timeout` has passed (0: only the timeout).
     pub write_min_rate: u64,
-    /// Bytes of rendered downloads held at once, server-wide.
+    /// Bytes held for downloads at once, server-wide (a streamed download is charged
+    /// `download::STORED_HOLD_BYTES`).
     pub download_memory: u64,
     /// Bytes of rendered downloads held at once on one connection.
     pub download_memory_per_connection: u64,

@@ -5,7 +5,11 @@
 //! before this module a client that asked for one and never read it kept it alive for as long
 //! as its connection stayed: ~12 MB each, without bound. Now
 //!
-//! - every download is **charged** against two byte budgets, the connection's
+//! - a download is **streamed from storage**: the job core renders it once, stores it and
+//!   hands out a reader (`Jobs::rendered`), so a download waiting for its client holds a
+//!   chunk or two ([`STORED_HOLD_BYTES`]), not the file; only a rendering that could not be
+//!   stored (storage full) is held whole;
+//! - every download is **charged** what it holds against two byte budgets, the connection's
 //!   (`--download-memory-per-connection-mib`) and the server's (`--download-memory-mib`); a
 //!   download that does not fit answers 503 `downloads_busy` with `Retry-After` (gRPC:
 //!   UNAVAILABLE) instead of being built, so the memory pinned by downloads is bounded per
@@ -15,14 +19,16 @@
 //!   at that rate always makes it). At the deadline a watchdog drops the buffer and releases the
 //!   charge even if the connection is never polled again (an HTTP/2 stream with a zero window);
 //!   the body then ends with an error, which resets the stream or closes the HTTP/1 connection;
-//! - the body is handed to hyper in [`CHUNK_BYTES`] copies, so what hyper and h2 queue per
-//!   stream is a chunk or two, never a slice that keeps the whole buffer alive after the
-//!   watchdog dropped it.
+//! - the body is handed to hyper a stored chunk at a time (a whole one in [`CHUNK_BYTES`]
+//!   copies), so what hyper and h2 queue per stream is a chunk or two, never a slice that keeps
+//!   a whole buffer alive after the watchdog dropped it.
 //!
 //! The connection's socket has its own write deadline (`conn::TimedIo`): a write that stays
 //! blocked for `--write-timeout-secs` closes the connection, whatever the response.
 
+use crate::jobs::{JobError, MeshDownload};
 use axum::body::{Body, Bytes, HttpBody};
+use futures::stream::BoxStream;
 use http_body::{Frame, SizeHint};
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -164,6 +170,15 @@ impl DownloadBudget {
         })
     }
 
+    /// The pace a client of this connection must keep on an event stream: the write timeout
+    /// and the minimum rate, as for downloads.
+    pub fn watch_floor(&self) -> crate::jobs::watch::WatchFloor {
+        crate::jobs::watch::WatchFloor {
+            timeout: self.limits.write_timeout,
+            min_rate: self.limits.write_min_rate,
+        }
+    }
+
     /// How long a client may take to read `len` bytes: the write timeout plus `len` at the
     /// minimum rate.
     pub fn allowance(&self, len: usize) -> Duration {
@@ -180,25 +195,41 @@ pub fn allowance(len: usize, timeout: Duration, min_rate: u64) -> Duration {
     timeout.saturating_add(earned)
 }
 
-/// A rendered mesh on its way to a client, with its charge and deadline.
+/// What a download streamed from storage is charged: the chunk being read from storage and
+/// the one hyper is writing (a stored blob is read 64 KiB at a time on the embedded backend,
+/// in the object store's 128 KiB chunks on NATS). What h2 queues per stream beyond that is
+/// bounded by `conn`'s send buffer.
+pub const STORED_HOLD_BYTES: u64 = 256 << 10;
+
+/// A mesh on its way to a client, with its charge and deadline: streamed from its stored
+/// rendering, or (when it could not be stored) held whole and handed out in copies.
 pub struct Download {
     shared: Arc<Mutex<Option<Held>>>,
-    len: usize,
-    pos: usize,
+    len: u64,
+    sent: u64,
     watchdog: Option<JoinHandle<()>>,
 }
 
+enum Source {
+    Whole(Bytes),
+    Stored(BoxStream<'static, Result<Bytes, JobError>>),
+}
+
 struct Held {
-    data: Vec<u8>,
+    source: Source,
     _charge: Option<Charge>,
 }
 
 impl Download {
     /// Hold `data` (charged by `charge`, if any) until it is read or `allowance` passes.
-    pub fn new(data: Vec<u8>, charge: Option<Charge>, allowance: Duration) -> Download {
+    pub fn new(data: MeshDownload, charge: Option<Charge>, allowance: Duration) -> Download {
         let len = data.len();
+        let source = match data {
+            MeshDownload::Whole(b) => Source::Whole(b),
+            MeshDownload::Stored(r) => Source::Stored(r.chunks),
+        };
         let shared = Arc::new(Mutex::new(Some(Held {
-            data,
+            source,
             _charge: charge,
         })));
         let held = shared.clone();
@@ -216,36 +247,76 @@ impl Download {
         Download {
             shared,
             len,
-            pos: 0,
+            sent: 0,
             watchdog: Some(watchdog),
         }
     }
 
-    /// The next chunk (a copy), `None` at the end, or an error once the deadline dropped it.
-    pub fn next_chunk(&mut self) -> Option<Result<Bytes, TooSlow>> {
-        if self.pos >= self.len {
-            return None;
+    /// The next chunk, `None` at the end, or an error once the deadline dropped it (or its
+    /// storage failed, or gave other than its length).
+    pub fn poll_chunk(
+        &mut self,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Bytes, DownloadError>>> {
+        if self.sent >= self.len {
+            return Poll::Ready(None);
         }
         let mut guard = lock(&self.shared);
-        let Some(held) = guard.as_ref() else {
-            self.pos = self.len;
-            return Some(Err(TooSlow));
+        let Some(held) = guard.as_mut() else {
+            self.sent = self.len;
+            return Poll::Ready(Some(Err(DownloadError::TooSlow)));
         };
-        let end = (self.pos + CHUNK_BYTES).min(self.len);
-        let chunk = Bytes::copy_from_slice(&held.data[self.pos..end]);
-        self.pos = end;
-        if end == self.len {
-            // All handed out: free the buffer and the charge now, not when hyper drops us.
-            guard.take();
-            if let Some(w) = self.watchdog.take() {
-                w.abort();
+        let chunk = match &mut held.source {
+            Source::Whole(data) => {
+                let start = self.sent as usize;
+                let end = (start + CHUNK_BYTES).min(data.len());
+                // A copy, not a slice: a slice queued in hyper would keep the whole buffer
+                // alive after the watchdog dropped it.
+                Ok(Bytes::copy_from_slice(&data[start..end]))
+            }
+            Source::Stored(chunks) => match chunks.as_mut().poll_next(cx) {
+                Poll::Pending => return Poll::Pending,
+                Poll::Ready(Some(Ok(c))) if self.sent + c.len() as u64 <= self.len => Ok(c),
+                Poll::Ready(Some(Ok(_))) => Err(DownloadError::Storage(format!(
+                    "the stored download is longer than its {} bytes",
+                    self.len
+                ))),
+                Poll::Ready(Some(Err(e))) => Err(DownloadError::Storage(e.to_string())),
+                Poll::Ready(None) => Err(DownloadError::Storage(format!(
+                    "the stored download ended at byte {} of {}",
+                    self.sent, self.len
+                ))),
+            },
+        };
+        match chunk {
+            Ok(c) => {
+                self.sent += c.len() as u64;
+                if self.sent == self.len {
+                    // All handed out: free the source and the charge now, not when hyper drops
+                    // us.
+                    guard.take();
+                    if let Some(w) = self.watchdog.take() {
+                        w.abort();
+                    }
+                }
+                Poll::Ready(Some(Ok(c)))
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "download failed");
+                guard.take();
+                self.sent = self.len;
+                Poll::Ready(Some(Err(e)))
             }
         }
-        Some(Ok(chunk))
+    }
+
+    /// [`Download::poll_chunk`] as a future.
+    pub async fn next_chunk(&mut self) -> Option<Result<Bytes, DownloadError>> {
+        std::future::poll_fn(|cx| self.poll_chunk(cx)).await
     }
 
     /// The total length.
-    pub fn len(&self) -> usize {
+    pub fn len(&self) -> u64 {
         self.len
     }
 
@@ -273,28 +344,36 @@ impl Drop for Download {
     }
 }
 
-/// The error a download ends with when its client did not take it in time.
-#[derive(Debug, Clone, Copy, thiserror::Error)]
-#[error("the client did not read the download in time (write deadline)")]
-pub struct TooSlow;
+/// Why a download ended before its last byte.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum DownloadError {
+    /// The client did not take it in time: its deadline dropped it.
+    #[error("the client did not read the download in time (write deadline)")]
+    TooSlow,
+    /// Reading it from storage failed.
+    #[error("reading the download from storage failed: {0}")]
+    Storage(String),
+}
 
 impl HttpBody for Download {
     type Data = Bytes;
-    type Error = TooSlow;
+    type Error = DownloadError;
 
     fn poll_frame(
         self: Pin<&mut Self>,
-        _cx: &mut Context<'_>,
-    ) -> Poll<Option<Result<Frame<Bytes>, TooSlow>>> {
-        Poll::Ready(self.get_mut().next_chunk().map(|r| r.map(Frame::data)))
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, DownloadError>>> {
+        self.get_mut()
+            .poll_chunk(cx)
+            .map(|o| o.map(|r| r.map(Frame::data)))
     }
 
     fn is_end_stream(&self) -> bool {
-        self.pos >= self.len
+        self.sent >= self.len
     }
 
     fn size_hint(&self) -> SizeHint {
-        SizeHint::with_exact((self.len - self.pos) as u64)
+        SizeHint::with_exact(self.len - self.sent)
     }
 }
 
@@ -322,18 +401,28 @@ impl From<Busy> for super::problem::Problem {
     }
 }
 
+/// What a download holds in memory while it waits for its client: all of it when held whole,
+/// a chunk or two when streamed from storage.
+pub fn held(data: &MeshDownload) -> u64 {
+    match data {
+        MeshDownload::Whole(b) => b.len() as u64,
+        MeshDownload::Stored(r) => r.len.min(STORED_HOLD_BYTES),
+    }
+}
+
 /// Start a download of `data` under `budget` (none: the router is used without `conn::serve`,
 /// as in some tests, and nothing is charged; the deadline is then the default write timeout).
-pub fn start(budget: Option<&DownloadBudget>, data: Vec<u8>) -> Result<Download, Busy> {
+pub fn start(budget: Option<&DownloadBudget>, data: MeshDownload) -> Result<Download, Busy> {
+    let len = usize::try_from(data.len()).unwrap_or(usize::MAX);
     match budget {
         Some(b) => {
-            let charge = b.charge(data.len())?;
-            let allowance = b.allowance(data.len());
+            let charge = b.charge(usize::try_from(held(&data)).unwrap_or(usize::MAX))?;
+            let allowance = b.allowance(len);
             Ok(Download::new(data, Some(charge), allowance))
         }
         None => {
             let d = super::conn::ConnLimits::default();
-            let allowance = allowance(data.len(), d.write_timeout, d.write_min_rate);
+            let allowance = allowance(len, d.write_timeout, d.write_min_rate);
             Ok(Download::new(data, None, allowance))
         }
     }
@@ -342,6 +431,7 @@ pub fn start(budget: Option<&DownloadBudget>, data: Vec<u8>) -> Result<Download,
 #[cfg(test)]
 mod tests {
     use super::*;
+    use futures::StreamExt;
 
     #[test]
     fn allowance_is_timeout_plus_length_at_the_floor() {
@@ -379,9 +469,13 @@ mod tests {
         let data: Vec<u8> = (0..(3 * CHUNK_BYTES + 17))
             .map(|i| (i % 251) as u8)
             .collect();
-        let mut d = Download::new(data.clone(), None, Duration::from_secs(60));
+        let mut d = Download::new(
+            MeshDownload::Whole(data.clone().into()),
+            None,
+            Duration::from_secs(60),
+        );
         let mut out = Vec::new();
-        while let Some(c) = d.next_chunk() {
+        while let Some(c) = d.next_chunk().await {
             let c = c.expect("in time");
             assert!(c.len() <= CHUNK_BYTES);
             out.extend_from_slice(&c);
@@ -389,13 +483,82 @@ mod tests {
         assert_eq!(out, data);
     }
 
+    fn stored(chunks: Vec<Result<Bytes, JobError>>, len: u64) -> MeshDownload {
+        MeshDownload::Stored(crate::jobs::ports::BlobReader {
+            len,
+            chunks: futures::stream::iter(chunks).boxed(),
+        })
+    }
+
+    #[tokio::test]
+    async fn a_stored_download_is_charged_a_chunk_or_two_and_comes_back_whole() {
+        let data: Vec<u8> = (0..(5 * CHUNK_BYTES + 3))
+            .map(|i| (i % 241) as u8)
+            .collect();
+        let chunks = data
+            .chunks(CHUNK_BYTES)
+            .map(|c| Ok(Bytes::copy_from_slice(c)))
+            .collect();
+        let source = stored(chunks, data.len() as u64);
+        assert_eq!(held(&source), STORED_HOLD_BYTES);
+        assert_eq!(
+            held(&MeshDownload::Whole(data.clone().into())),
+            data.len() as u64
+        );
+        let limits = DownloadLimits::new(1 << 20, 1 << 20, Duration::from_secs(60), 0);
+        let mut d = start(Some(&limits.for_connection()), source).expect("fits");
+        assert_eq!(
+            limits.global.available_permits() as u64,
+            limits.global_units - STORED_HOLD_BYTES / UNIT
+        );
+        let mut out = Vec::new();
+        while let Some(c) = d.next_chunk().await {
+            out.extend_from_slice(&c.expect("read"));
+        }
+        assert_eq!(out, data);
+        assert_eq!(
+            limits.global.available_permits() as u64,
+            limits.global_units
+        );
+    }
+
+    #[tokio::test]
+    async fn a_stored_download_shorter_or_longer_than_announced_ends_with_an_error() {
+        let short = stored(vec![Ok(Bytes::from_static(b"abc"))], 5);
+        let mut d = Download::new(short, None, Duration::from_secs(60));
+        assert_eq!(d.next_chunk().await.expect("a chunk").expect("ok").len(), 3);
+        assert!(matches!(
+            d.next_chunk().await,
+            Some(Err(DownloadError::Storage(_)))
+        ));
+        assert!(d.next_chunk().await.is_none());
+        let long = stored(vec![Ok(Bytes::from_static(b"abcdef"))], 5);
+        let mut d = Download::new(long, None, Duration::from_secs(60));
+        assert!(matches!(
+            d.next_chunk().await,
+            Some(Err(DownloadError::Storage(_)))
+        ));
+        let failing = stored(vec![Err(JobError::Unavailable("nats away".into()))], 5);
+        let mut d = Download::new(failing, None, Duration::from_secs(60));
+        let e = d
+            .next_chunk()
+            .await
+            .expect("an item")
+            .expect_err("an error");
+        assert!(e.to_string().contains("nats away"), "{e}");
+    }
+
     #[tokio::test]
     async fn the_deadline_drops_an_unread_download_and_its_charge() {
         let limits = DownloadLimits::new(1 << 20, 1 << 20, Duration::from_secs(60), 0);
         let budget = limits.for_connection();
         let charge = budget.charge(300 << 10).expect("fits");
-        let mut d = Download::new(vec![7; 300 << 10], Some(charge), Duration::from_millis(50));
-        let first = d.next_chunk().expect("a chunk").expect("in time");
+        let mut d = Download::new(
+            MeshDownload::Whole(vec![7; 300 << 10].into()),
+            Some(charge),
+            Duration::from_millis(50),
+        );
+        let first = d.next_chunk().await.expect("a chunk").expect("in time");
         assert_eq!(first.len(), CHUNK_BYTES);
         // Nobody polls the body: the watchdog frees the charge on its own.
         let freed = async {
@@ -406,7 +569,10 @@ mod tests {
         tokio::time::timeout(Duration::from_secs(10), freed)
             .await
             .expect("charge released by the deadline");
-        assert!(matches!(d.next_chunk(), Some(Err(TooSlow))));
-        assert!(d.next_chunk().is_none());
+        assert!(matches!(
+            d.next_chunk().await,
+            Some(Err(DownloadError::TooSlow))
+        ));
+        assert!(d.next_chunk().await.is_none());
     }
 }

@@ -148,14 +148,16 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = 30.0)]
     pub write_timeout_secs: f64,
     /// Minimum rate (KiB/s) at which a client must take a mesh download: one of n bytes must
-    /// be read within --write-timeout-secs + n / rate, or it is dropped; 0: only the timeout.
+    /// be read within --write-timeout-secs + n / rate, or it is dropped; event streams (SSE,
+    /// StreamFrames) keep the same floor or are cut off; 0: only the timeout.
     #[arg(long, default_value_t = 64)]
     pub write_min_rate_kib: u64,
-    /// MiB of rendered mesh downloads held for clients at once, server-wide; beyond it
+    /// MiB held for mesh downloads waiting for their clients, server-wide (a download streamed
+    /// from storage holds 256 KiB, one that could not be stored all of it); beyond it
     /// downloads answer 503 `downloads_busy` (gRPC UNAVAILABLE) with Retry-After.
     #[arg(long, default_value_t = 256)]
     pub download_memory_mib: u64,
-    /// MiB of rendered mesh downloads held at once for one connection.
+    /// MiB held for mesh downloads at once for one connection.
     #[arg(long, default_value_t = 32)]
     pub download_memory_per_connection_mib: u64,
 }

@@ -1,34 +1,83 @@
 //! What a job gives back: its events (live and replayed), its frames' metrics, a kept
-//! frame as a mesh and the result file. Each download re-reads the stored upload
-//! (`JobSpec::read_asset`) and writes the positions into it.
+//! frame as a mesh and the result file. A mesh is rendered by re-reading the stored upload
+//! (`JobSpec::read_asset`) and writing the positions into it; downloads render it once, store
+//! it and stream it from storage ([`Jobs::rendered`]).
 //!
-//! For a job with `refine` that re-read subdivides again. It is deterministic, and cheap by
-//! construction: the default target stops at about 16k–64k triangles, and inputs already
-//! that fine are not subdivided. Measured (debug profile, which optimizes; 2 shared cores):
-//! refining adds 45 ms to a download of the Duck (4k → 17k faces), 52 ms for spot (6k →
-//! 23k), 74 ms for bob (500 → 32k), about what reading a file of the refined size costs,
-//! and less than reading a 70k-face upload (the bunny: 300 ms). Storing the refined asset
-//! instead would need a stable serialization of `Asset` in both blob stores; a written file
-//! read back does not keep the refined numbering of a multi-accessor glTF.
+//! For a job with `refine` the re-read subdivides again, once per rendering. It is
+//! deterministic, and cheap by construction: the default target stops at about 16k–64k
+//! triangles, and inputs already that fine are not subdivided. Measured (debug profile, which
+//! optimizes; 2 shared cores): refining adds 45 ms to rendering the Duck (4k → 17k faces),
+//! 52 ms for spot (6k → 23k), 74 ms for bob (500 → 32k), about what reading a file of the
+//! refined size costs, and less than reading a 70k-face upload (the bunny: 300 ms).
 
 use super::*;
+use ports::BlobReader;
+
+/// Renders that may run at once ([`Jobs::rendered`]); renders of one key share a stripe, so
+/// they run one after the other and only the first renders.
+pub(super) const RENDER_STRIPES: usize = 8;
+
+/// A mesh download, as the transports send it.
+pub enum MeshDownload {
+    /// Streamed from its stored rendering, a chunk at a time.
+    Stored(BlobReader),
+    /// Held whole in memory (it could not be stored).
+    Whole(bytes::Bytes),
+}
+
+impl MeshDownload {
+    /// Its length in bytes.
+    pub fn len(&self) -> u64 {
+        match self {
+            MeshDownload::Stored(r) => r.len,
+            MeshDownload::Whole(b) => b.len() as u64,
+        }
+    }
+
+    /// Whether it is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The stripe of [`Inner::renders`] a key renders under.
+fn render_stripe(key: &BlobKey) -> usize {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    format!("{key:?}").hash(&mut h);
+    (h.finish() % RENDER_STRIPES as u64) as usize
+}
 
 impl Jobs {
     /// Events of a job from `from_step` on: its current state, the stored frames (replay),
     /// then live frames, ending with `Done`. A watcher that falls behind the live channel
     /// resumes from the store, so it sees every step once and in order, and never slows the
-    /// worker down.
+    /// worker down. A client slower than the default [`watch::WatchFloor`] is cut off.
     pub async fn watch(
         &self,
         caller: &Caller,
         id: &str,
         from_step: usize,
-    ) -> Result<impl Stream<Item = JobEvent> + Send + 'static, JobError> {
+    ) -> Result<watch::Watch, JobError> {
+        self.watch_with_floor(caller, id, from_step, watch::WatchFloor::default())
+            .await
+    }
+
+    /// [`Jobs::watch`] for a client that must keep up with `floor` (the transports pass their
+    /// connection's write deadline and minimum rate).
+    pub async fn watch_with_floor(
+        &self,
+        caller: &Caller,
+        id: &str,
+        from_step: usize,
+        floor: watch::WatchFloor,
+    ) -> Result<watch::Watch, JobError> {
         self.read(watch::watch(
             self.clone(),
             &caller.tenant,
             id.to_string(),
             from_step,
+            floor,
         ))
         .await
     }
@@ -72,6 +121,40 @@ impl Jobs {
         format: Format,
     ) -> Result<Vec<u8>, JobError> {
         let status = self.get(caller, id).await?;
+        let positions = self.frame_positions(&status, step).await?;
+        self.render(&status, positions, format).await
+    }
+
+    /// [`Jobs::frame_mesh`] as a download: rendered once, stored, and streamed from storage
+    /// (see [`Jobs::rendered`]).
+    pub async fn frame_download(
+        &self,
+        caller: &Caller,
+        id: &str,
+        step: usize,
+        format: Format,
+    ) -> Result<MeshDownload, JobError> {
+        let status = self.get(caller, id).await?;
+        let key = BlobKey::Rendered {
+            id: status.id.clone(),
+            step: Some(step),
+            format,
+        };
+        // Only a kept step is ever rendered, so a stored rendering answers for the step.
+        self.rendered(key, async {
+            let positions = self.frame_positions(&status, step).await?;
+            self.render(&status, positions, format).await
+        })
+        .await
+    }
+
+    /// The stored welded positions of `step`, or why there are none.
+    async fn frame_positions(
+        &self,
+        status: &JobStatus,
+        step: usize,
+    ) -> Result<Vec<[f64; 3]>, JobError> {
+        let id = status.id.as_str();
         let kept = if step <= status.step {
             let rows = self
                 .read(self.inner.backend.store.frame_rows(id, step, 1))
@@ -112,8 +195,7 @@ impl Jobs {
                 detail,
             });
         };
-        self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
-            .await
+        codec::bytes_to_f64s(&bytes)
     }
 
     /// The faired mesh in `format` (input UVs, materials and textures kept). `Conflict` until
@@ -124,6 +206,34 @@ impl Jobs {
         id: &str,
         format: Format,
     ) -> Result<Vec<u8>, JobError> {
+        let status = self.succeeded(caller, id).await?;
+        let positions = self.result_positions(&status).await?;
+        self.render(&status, positions, format).await
+    }
+
+    /// [`Jobs::result`] as a download: rendered once, stored, and streamed from storage (see
+    /// [`Jobs::rendered`]).
+    pub async fn result_download(
+        &self,
+        caller: &Caller,
+        id: &str,
+        format: Format,
+    ) -> Result<MeshDownload, JobError> {
+        let status = self.succeeded(caller, id).await?;
+        let key = BlobKey::Rendered {
+            id: status.id.clone(),
+            step: None,
+            format,
+        };
+        self.rendered(key, async {
+            let positions = self.result_positions(&status).await?;
+            self.render(&status, positions, format).await
+        })
+        .await
+    }
+
+    /// The job's status if it succeeded; `Conflict` otherwise.
+    async fn succeeded(&self, caller: &Caller, id: &str) -> Result<JobStatus, JobError> {
         let status = self.get(caller, id).await?;
         if status.state != JobState::Succeeded {
             return Err(JobError::Conflict(format!(
@@ -131,15 +241,66 @@ impl Jobs {
                 status.state.as_str()
             )));
         }
+        Ok(status)
+    }
+
+    async fn result_positions(&self, status: &JobStatus) -> Result<Vec<[f64; 3]>, JobError> {
         let key = BlobKey::Result {
             id: status.id.clone(),
         };
         let bytes = self
             .on_request(self.inner.backend.blobs.get(key))
             .await?
-            .ok_or_else(|| JobError::Internal(format!("the result of job `{id}` is missing")))?;
-        self.render(&status, codec::bytes_to_f64s(&bytes)?, format)
-            .await
+            .ok_or_else(|| {
+                JobError::Internal(format!("the result of job `{}` is missing", status.id))
+            })?;
+        codec::bytes_to_f64s(&bytes)
+    }
+
+    /// The download stored under `key`, rendered by `render` and stored first if it is not
+    /// there yet.
+    ///
+    /// Why store it rather than stream the writer's output: the mesh writers need the whole
+    /// asset and positions in memory (a glTF's buffer offsets and an OBJ's groups are known
+    /// only at the end), so a writer feeding a slow client would pin the asset, its output
+    /// and a blocking thread for as long as the client dawdles (issue 25 item 6: ~12 MB a
+    /// client). Rendered once and stored, a download is read from storage a chunk at a time
+    /// as its client takes it, so a client that never reads pins one chunk; and a repeat
+    /// download (a page reload, many viewers of one result) renders nothing.
+    ///
+    /// Renders of the same key wait for each other (the second finds the first's blob), and
+    /// at most [`RENDER_STRIPES`] run at once, which bounds the memory rendering takes.
+    /// When the rendering cannot be stored (storage full), it is handed out whole from memory,
+    /// as before: the download budget still bounds that.
+    async fn rendered(
+        &self,
+        key: BlobKey,
+        render: impl std::future::Future<Output = Result<Vec<u8>, JobError>>,
+    ) -> Result<MeshDownload, JobError> {
+        let blobs = &self.inner.backend.blobs;
+        if let Some(r) = self.on_request(blobs.open(key.clone())).await? {
+            return Ok(MeshDownload::Stored(r));
+        }
+        let _one_at_a_time = self.inner.renders[render_stripe(&key)].lock().await;
+        if let Some(r) = self.on_request(blobs.open(key.clone())).await? {
+            return Ok(MeshDownload::Stored(r));
+        }
+        let data = bytes::Bytes::from(render.await?);
+        if self.inner.storage.is_full() {
+            return Ok(MeshDownload::Whole(data));
+        }
+        match self.on_request(blobs.put(key.clone(), data.clone())).await {
+            Ok(()) => Ok(match self.on_request(blobs.open(key)).await? {
+                Some(r) => MeshDownload::Stored(r),
+                // Deleted in between (the job expired): this request still gets its bytes.
+                None => MeshDownload::Whole(data),
+            }),
+            Err(e) => {
+                let e = self.inner.storage.noted(e);
+                tracing::warn!(error = %e, "a rendered download could not be stored; serving it from memory");
+                Ok(MeshDownload::Whole(data))
+            }
+        }
     }
 
     /// Write `positions` (welded, f64) over the job's input asset in `format`.

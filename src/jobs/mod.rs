@@ -48,13 +48,13 @@ pub mod watch;
 pub mod webhooks;
 pub mod worker;
 
+pub use downloads::MeshDownload;
 pub use error::{is_storage_full, FailureCode, JobError, STORAGE_FULL_RETRY_SECS};
 pub use ids::JobId;
 pub use model::*;
 pub(crate) use page_token::page_token_key;
 use page_token::{seal_page_token, unseal_page_token};
 
-use futures::Stream;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -106,6 +106,8 @@ pub(crate) struct Inner {
     pub storage: storage::StorageHealth,
     /// The key of list page tokens' HMAC ([`page_token_key`]).
     pub page_token_key: ring::hmac::Key,
+    /// Downloads being rendered ([`Jobs::rendered`]): one lock per stripe of keys.
+    pub renders: Box<[tokio::sync::Mutex<()>]>,
 }
 
 /// The cheap, cloneable handle every transport holds.
@@ -205,6 +207,9 @@ impl Jobs {
             callbacks_due: Arc::new(tokio::sync::Notify::new()),
             storage,
             page_token_key: page_token_key(config.webhook_secret.as_deref()),
+            renders: (0..downloads::RENDER_STRIPES)
+                .map(|_| tokio::sync::Mutex::new(()))
+                .collect(),
         });
         let jobs = Jobs { inner };
         jobs.inner

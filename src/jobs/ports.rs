@@ -23,6 +23,7 @@
 use super::{FailureCode, JobError, JobEvent, JobId, JobSpec, JobState, JobStatus, TenantQuotas};
 use async_trait::async_trait;
 use futures::stream::BoxStream;
+use futures::StreamExt;
 use tokio_util::sync::CancellationToken;
 use willow::mesh::io::Format;
 use willow::metrics::StepMetrics;
@@ -411,13 +412,38 @@ pub enum BlobKey {
     Checkpoint { id: JobId },
     /// An upload stored ahead of its job.
     Upload { id: String, format: Format },
+    /// A mesh download rendered once and kept, so that it is streamed from storage (a slow
+    /// reader then pins a chunk, not the whole file) and a repeat download renders nothing:
+    /// the result (`step: None`) or a kept frame, in `format`.
+    Rendered {
+        id: JobId,
+        step: Option<usize>,
+        format: Format,
+    },
+}
+
+/// A blob read in pieces ([`BlobStore::open`]): its length, then its bytes in order, a chunk
+/// at a time, each read from storage only when the one before it was taken.
+pub struct BlobReader {
+    pub len: u64,
+    pub chunks: BoxStream<'static, Result<bytes::Bytes, JobError>>,
+}
+
+impl BlobReader {
+    /// A blob already in memory, as one chunk.
+    pub fn whole(data: bytes::Bytes) -> BlobReader {
+        BlobReader {
+            len: data.len() as u64,
+            chunks: futures::stream::once(async move { Ok(data) }).boxed(),
+        }
+    }
 }
 
 impl BlobKey {
     /// Whether losing the blob in a power cut would lose accepted work (inputs, results,
     /// checkpoints, uploads), as opposed to what a resumed job writes again (frames).
     pub fn durable(&self) -> bool {
-        !matches!(self, BlobKey::Frame { .. })
+        !matches!(self, BlobKey::Frame { .. } | BlobKey::Rendered { .. })
     }
 
     /// The job the blob belongs to, if any.
@@ -426,7 +452,8 @@ impl BlobKey {
             BlobKey::Input { id, .. }
             | BlobKey::Frame { id, .. }
             | BlobKey::Result { id }
-            | BlobKey::Checkpoint { id } => Some(id),
+            | BlobKey::Checkpoint { id }
+            | BlobKey::Rendered { id, .. } => Some(id),
             BlobKey::Upload { .. } => None,
         }
     }
@@ -439,6 +466,12 @@ pub trait BlobStore: Send + Sync + 'static {
     async fn put(&self, key: BlobKey, data: bytes::Bytes) -> Result<(), JobError>;
     /// `None` when there is no such blob.
     async fn get(&self, key: BlobKey) -> Result<Option<bytes::Bytes>, JobError>;
+    /// The blob to read in chunks, `None` when there is no such blob. A backend that can read
+    /// part of a blob overrides this so that what a reader holds is a chunk; this default
+    /// reads it whole.
+    async fn open(&self, key: BlobKey) -> Result<Option<BlobReader>, JobError> {
+        Ok(self.get(key).await?.map(BlobReader::whole))
+    }
     async fn delete(&self, key: BlobKey) -> Result<(), JobError>;
     /// Every blob of a job.
     async fn delete_job(&self, id: &str) -> Result<(), JobError>;

@@ -13,7 +13,7 @@ use super::pb::google::longrunning as lro;
 use super::pb::willow::v1;
 use super::upload::UploadAssembly;
 use super::{BoxStream, GrpcApi, WAIT_DEADLINE_MARGIN};
-use crate::api::download::{self, Busy, DownloadBudget, BUSY_RETRY_SECS};
+use crate::api::download::{self, Busy, DownloadBudget, DownloadError, BUSY_RETRY_SECS};
 use crate::jobs::curve::{CurveInput, CurveSpec};
 use crate::jobs::{JobError, JobEvent, UploadRef};
 use std::time::Duration;
@@ -170,6 +170,11 @@ impl v1::fairing_server::Fairing for GrpcApi {
     ) -> Result<Response<Self::StreamFramesStream>, Status> {
         use v1::stream_frames_response::Event;
         let caller = caller(&request)?;
+        let floor = request
+            .extensions()
+            .get::<DownloadBudget>()
+            .map(DownloadBudget::watch_floor)
+            .unwrap_or_default();
         let request = request.into_inner();
         let id = parse_name("name", "jobs/", &request.name)?;
         // No job has more steps than the server's limit, so a `from_step` beyond it could only
@@ -192,9 +197,20 @@ impl v1::fairing_server::Fairing for GrpcApi {
         }
         let events = self
             .jobs
-            .watch(&caller, &id, request.from_step as usize)
+            .watch_with_floor(&caller, &id, request.from_step as usize, floor)
             .await
             .map_err(|e| job_error(e, "name"))?;
+        // A client slower than the floor is cut off: its stream ends with DEADLINE_EXCEEDED.
+        let cut = events.cut();
+        let tail = futures::stream::once(async move {
+            cut.is_cut().then(|| {
+                Err(Status::deadline_exceeded(
+                    "the client did not take the stream's events in time (write deadline and \
+                     minimum rate); watch again from the next step",
+                ))
+            })
+        })
+        .filter_map(futures::future::ready);
         // End the stream right after `Done`, whatever the core does afterwards: the proto
         // promises the terminal job message is the last one.
         let responses = events
@@ -214,6 +230,7 @@ impl v1::fairing_server::Fairing for GrpcApi {
                 };
                 futures::future::ready(item)
             })
+            .chain(tail)
             .boxed();
         Ok(Response::new(responses))
     }
@@ -243,20 +260,23 @@ impl v1::fairing_server::Fairing for GrpcApi {
         };
         let bytes = self
             .jobs
-            .result(&caller, &id, format)
+            .result_download(&caller, &id, format)
             .await
             .map_err(|e| job_error(e, "name"))?;
         let download = download::start(budget.as_ref(), bytes).map_err(downloads_busy)?;
         // Chunks are handed out as the client takes them, and the download's deadline drops
         // the buffer of a client that does not (see api::download).
         let chunks = futures::stream::unfold((download, true), move |(mut d, first)| async move {
-            let chunk = d.next_chunk()?;
+            let chunk = d.next_chunk().await?;
             let item = chunk
                 .map(|data| v1::DownloadResultChunk {
                     format: if first { format_pb(format) as i32 } else { 0 },
                     data,
                 })
-                .map_err(|e| Status::deadline_exceeded(e.to_string()));
+                .map_err(|e| match e {
+                    DownloadError::TooSlow => Status::deadline_exceeded(e.to_string()),
+                    DownloadError::Storage(_) => Status::unavailable(e.to_string()),
+                });
             Some((item, (d, false)))
         });
         Ok(Response::new(chunks.boxed()))

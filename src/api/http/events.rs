@@ -2,6 +2,7 @@
 
 use super::jobs::{record_job, JobView};
 use super::params::{query, EventsQuery};
+use crate::api::download::DownloadBudget;
 use crate::api::problem::{clip, Problem};
 use crate::api::state::AppState;
 use crate::jobs::{Caller, JobEvent};
@@ -9,6 +10,7 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, Uri};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
+use axum::Extension;
 use base64::Engine as _;
 use futures::StreamExt;
 use serde::Serialize;
@@ -57,6 +59,7 @@ pub async fn job_events(
     caller: Caller,
     Path(id): Path<String>,
     headers: HeaderMap,
+    budget: Option<Extension<DownloadBudget>>,
     uri: Uri,
 ) -> Response {
     record_job(&id);
@@ -89,7 +92,12 @@ pub async fn job_events(
         Some(n) => n.saturating_add(1),
         None => q.from_step.unwrap_or(0),
     };
-    let stream = match st.jobs.watch(&caller, &id, from).await {
+    // A client that does not keep up with the connection's write floor is cut off: the
+    // stream ends and its EventSource reconnects with `Last-Event-ID` (see jobs::watch).
+    let floor = budget
+        .map(|Extension(b)| b.watch_floor())
+        .unwrap_or_default();
+    let stream = match st.jobs.watch_with_floor(&caller, &id, from, floor).await {
         Ok(s) => s,
         Err(e) => {
             return Problem::from(e)

@@ -6,6 +6,8 @@
 //! jobs/{id}/frames/{step}.f64      welded positions, f64 LE xyz (to write frame meshes)
 //! jobs/{id}/result.f64             final welded positions, f64 LE xyz
 //! jobs/{id}/checkpoint             the flow's latest checkpoint (codec::encode_checkpoint)
+//! jobs/{id}/rendered/result.{ext}  the result as downloaded, rendered once (streamed from here)
+//! jobs/{id}/rendered/{step}.{ext}  a kept frame's mesh as downloaded, likewise
 //! uploads/{id}.{ext}               uploads stored ahead of a job (chunked gRPC)
 //! ```
 //! Every file is written to a temporary name and renamed into place, so a reader sees the old
@@ -14,11 +16,16 @@
 //! them again. Everything else is ([`BlobKey::durable`]).
 
 use super::super::ids::well_formed;
-use super::super::ports::{BlobKey, BlobStore};
+use super::super::ports::{BlobKey, BlobReader, BlobStore};
 use super::super::{format_name, join_err, JobError, JobId};
 use async_trait::async_trait;
 use std::fs;
 use std::io::Write;
+use tokio::io::AsyncReadExt;
+
+/// What an open blob reads at a time ([`BlobStore::open`]): what a download holds per
+/// client while it waits to be taken.
+const READ_CHUNK_BYTES: usize = 64 << 10;
 use std::path::{Path, PathBuf};
 
 #[derive(Clone)]
@@ -51,6 +58,12 @@ impl FileBlobs {
                 .join(format!("{step}.{}", if *welded { "f64" } else { "f32" })),
             BlobKey::Result { id } => self.job_dir(id)?.join("result.f64"),
             BlobKey::Checkpoint { id } => self.job_dir(id)?.join("checkpoint"),
+            BlobKey::Rendered { id, step, format } => {
+                let name = step.map_or_else(|| "result".to_string(), |s| s.to_string());
+                self.job_dir(id)?
+                    .join("rendered")
+                    .join(format!("{name}.{}", format_name(*format)))
+            }
             BlobKey::Upload { id, format } => {
                 if !well_formed(id) {
                     return Err(JobError::UploadNotFound(id.clone()));
@@ -82,6 +95,31 @@ impl BlobStore for FileBlobs {
         })
         .await
         .map_err(join_err)?
+    }
+
+    async fn open(&self, key: BlobKey) -> Result<Option<BlobReader>, JobError> {
+        let path = self.path(&key)?;
+        // The open handle keeps reading the file it opened even if a put renames a new one
+        // over it or the job is deleted: a reader sees one whole blob.
+        let file = match tokio::fs::File::open(&path).await {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(e.into()),
+        };
+        let len = file.metadata().await?.len();
+        let chunks = futures::stream::try_unfold((file, len), |(mut file, left)| async move {
+            if left == 0 {
+                return Ok(None);
+            }
+            let want = left.min(READ_CHUNK_BYTES as u64) as usize;
+            let mut buf = vec![0u8; want];
+            file.read_exact(&mut buf).await?;
+            Ok(Some((bytes::Bytes::from(buf), (file, left - want as u64))))
+        });
+        Ok(Some(BlobReader {
+            len,
+            chunks: Box::pin(chunks),
+        }))
     }
 
     async fn delete(&self, key: BlobKey) -> Result<(), JobError> {

@@ -25,7 +25,7 @@
 //!   `max_file_store` refuses, so no job could be deleted to make room.
 
 use super::super::ids::well_formed;
-use super::super::ports::{BlobKey, BlobStore};
+use super::super::ports::{BlobKey, BlobReader, BlobStore};
 use super::super::{format_name, JobError, JobId};
 use super::{nats_err, retry};
 use async_nats::jetstream::object_store::{ObjectInfo, ObjectOptions};
@@ -131,6 +131,10 @@ fn name(key: &BlobKey) -> Result<String, JobError> {
         }
         BlobKey::Result { id } => format!("jobs/{id}/result.f64"),
         BlobKey::Checkpoint { id } => format!("jobs/{id}/checkpoint"),
+        BlobKey::Rendered { id, step, format } => {
+            let name = step.map_or_else(|| "result".to_string(), |s| s.to_string());
+            format!("jobs/{id}/rendered/{name}.{}", format_name(*format))
+        }
         BlobKey::Upload { id, format } => {
             if !well_formed(id) {
                 return Err(JobError::UploadNotFound(id.clone()));
@@ -150,6 +154,42 @@ impl BlobStore for ObjectBlobs {
     async fn get(&self, key: BlobKey) -> Result<Option<bytes::Bytes>, JobError> {
         let name = name(&key)?;
         retry(|| self.get_once(&name)).await
+    }
+
+    async fn open(&self, key: BlobKey) -> Result<Option<BlobReader>, JobError> {
+        let name = name(&key)?;
+        let Some((info, info_sequence)) = retry(|| self.read_info(&name)).await? else {
+            return Ok(None);
+        };
+        if info.options.as_ref().is_some_and(|o| o.link.is_some()) {
+            return Err(JobError::Internal(format!(
+                "nats: blob {name} is a link, which this service never writes"
+            )));
+        }
+        let len = info.size as u64;
+        let chunks = futures::stream::try_unfold(
+            ChunkReader {
+                stream: self.stream.clone(),
+                subject: format!("$O.{}.C.{}", self.bucket, info.nuid),
+                next: 1,
+                chunks_left: info.chunks,
+                read: 0,
+                digest: Sha256::new(),
+                info,
+                info_sequence,
+                name,
+            },
+            |mut r| async move {
+                match r.next_chunk().await? {
+                    Some(chunk) => Ok(Some((chunk, r))),
+                    None => Ok(None),
+                }
+            },
+        );
+        Ok(Some(BlobReader {
+            len,
+            chunks: Box::pin(chunks),
+        }))
     }
 
     async fn delete(&self, key: BlobKey) -> Result<(), JobError> {
@@ -213,6 +253,82 @@ impl BlobStore for ObjectBlobs {
         }
         *self.orphans_seen.lock().unwrap_or_else(|p| p.into_inner()) = Some((now, left));
         Ok(purged)
+    }
+}
+
+/// An object read chunk by chunk with direct gets ([`BlobStore::open`]): one chunk in memory
+/// at a time. Unlike a whole read, a read whose object changes under it cannot start over
+/// (its first bytes are already sent): it ends with an error.
+struct ChunkReader {
+    stream: Stream,
+    subject: String,
+    /// The stream sequence to look for the next chunk from.
+    next: u64,
+    chunks_left: usize,
+    read: usize,
+    digest: Sha256,
+    info: ObjectInfo,
+    info_sequence: u64,
+    name: String,
+}
+
+impl ChunkReader {
+    /// The next chunk, `None` after the last; the last is checked against the info's size and
+    /// digest before it is handed out.
+    async fn next_chunk(&mut self) -> Result<Option<bytes::Bytes>, JobError> {
+        if self.chunks_left == 0 {
+            return Ok(None);
+        }
+        let changed = |why: String| {
+            JobError::Internal(format!(
+                "nats: blob {} changed while it was read: {why}",
+                self.name
+            ))
+        };
+        let (stream, subject, next) = (&self.stream, self.subject.as_str(), self.next);
+        let chunk = retry(|| async move {
+            match stream
+                .direct_get_next_for_subject(subject, Some(next))
+                .await
+            {
+                Ok(c) => Ok(Some(c)),
+                Err(e) if e.kind() == DirectGetErrorKind::NotFound => Ok(None),
+                Err(e) => Err(direct_err("reading a blob's chunk", e)),
+            }
+        })
+        .await?
+        .ok_or_else(|| changed(format!("chunk at byte {} is gone", self.read)))?;
+        if chunk.sequence >= self.info_sequence {
+            return Err(changed("a chunk is newer than the info".into()));
+        }
+        self.next = chunk.sequence + 1;
+        self.chunks_left -= 1;
+        self.read += chunk.payload.len();
+        self.digest.update(&chunk.payload);
+        if self.read > self.info.size {
+            return Err(changed(format!(
+                "more bytes than its info's {}",
+                self.info.size
+            )));
+        }
+        if self.chunks_left == 0 {
+            if self.read != self.info.size {
+                return Err(changed(format!(
+                    "{} bytes in its chunks, {} in its info",
+                    self.read, self.info.size
+                )));
+            }
+            if let Some(want) = self.info.digest.as_deref() {
+                let got = format!(
+                    "SHA-256={}",
+                    URL_SAFE.encode(std::mem::take(&mut self.digest).finalize())
+                );
+                if got != want {
+                    return Err(changed(format!("digest {got}, its info says {want}")));
+                }
+            }
+        }
+        Ok(Some(chunk.payload))
     }
 }
 
