@@ -158,7 +158,9 @@ impl BlobStore for ObjectBlobs {
 
     async fn open(&self, key: BlobKey) -> Result<Option<BlobReader>, JobError> {
         let name = name(&key)?;
-        let Some((info, info_sequence)) = retry(|| self.read_info(&name)).await? else {
+        let Some((info, info_sequence)) =
+            retry(|| self.read_info(&name, "reading a blob's info")).await?
+        else {
             return Ok(None);
         };
         if info.options.as_ref().is_some_and(|o| o.link.is_some()) {
@@ -372,7 +374,10 @@ impl ObjectBlobs {
         data: &bytes::Bytes,
         tries: &mut Vec<String>,
     ) -> Result<(), JobError> {
-        let previous = self.read_info(name).await?;
+        // Named as the write it belongs to, so an outage met here reads as a blob write's.
+        let previous = self
+            .read_info(name, "storing a blob (its current info)")
+            .await?;
         let nuid = chunk_id();
         tries.push(nuid.clone());
         let chunks_subject = format!("$O.{}.C.{nuid}", self.bucket);
@@ -451,7 +456,7 @@ impl ObjectBlobs {
         if tries.is_empty() {
             return;
         }
-        let current = match self.read_info(name).await {
+        let current = match self.read_info(name, "reading a blob's info").await {
             Ok(info) => info.map(|(i, _)| i.nuid),
             // NATS still away: try again later.
             Err(_) => return,
@@ -568,8 +573,12 @@ impl ObjectBlobs {
     }
 
     /// The info of `name` and its sequence in the stream; `None` if there is no such object
-    /// or it was deleted.
-    async fn read_info(&self, name: &str) -> Result<Option<(ObjectInfo, u64)>, JobError> {
+    /// or it was deleted. `what` names the operation in an error.
+    async fn read_info(
+        &self,
+        name: &str,
+        what: &str,
+    ) -> Result<Option<(ObjectInfo, u64)>, JobError> {
         let message = match self
             .stream
             .direct_get_last_for_subject(self.meta_subject(name))
@@ -577,7 +586,7 @@ impl ObjectBlobs {
         {
             Ok(m) => m,
             Err(e) if e.kind() == DirectGetErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(direct_err("reading a blob's info", e)),
+            Err(e) => return Err(direct_err(what, e)),
         };
         let info: ObjectInfo = serde_json::from_slice(&message.payload).map_err(|e| {
             JobError::Internal(format!("nats: blob {name} has an unreadable info: {e}"))
@@ -587,7 +596,8 @@ impl ObjectBlobs {
 
     /// One read of `name` by direct gets: its info, then its chunks in order.
     async fn read_direct(&self, name: &str) -> Result<Read, JobError> {
-        let Some((info, info_sequence)) = self.read_info(name).await? else {
+        let Some((info, info_sequence)) = self.read_info(name, "reading a blob's info").await?
+        else {
             return Ok(Read::Missing);
         };
         if info.options.as_ref().is_some_and(|o| o.link.is_some()) {
