@@ -11,6 +11,7 @@ pub mod distance;
 pub mod hodge;
 pub mod operators;
 pub mod quaternion;
+pub mod stratified;
 pub mod vec3;
 
 pub use operators::*;
