@@ -225,14 +225,20 @@ impl Side<'_> {
         } else {
             0.0
         };
+        // The draws come stratum by stratum, each stratum a patch: the last draw's nearest
+        // face is a near start for a sample not drawn last frame (the draws move with the
+        // weights), whose own remembered face may be its initial hint, far off.
+        let mut last = usize::MAX;
         strata.estimate(self.weights, MEAN_ACCURACY, slack, |i| {
             let p = self.samples[i];
-            let (start, _) = self.walk(p, memory.nearest[i] as usize);
+            let hint = self.nearer(p, memory.nearest[i] as usize, last);
+            let (start, _) = self.walk(p, hint);
             let (face, d) = self
                 .other
                 .nearest_within(self.other_positions, self.triangles, p, Some(start), slack)
                 .map_or((start, 0.0), |(f, d2)| (f, d2.sqrt()));
             memory.nearest[i] = face as u32;
+            last = face;
             if slack == 0.0 {
                 memory.settled[i] = self.frame;
             }
