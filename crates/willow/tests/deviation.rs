@@ -158,7 +158,7 @@ fn matches_brute_force_on_small_meshes() {
 }
 
 /// Above `MEAN_SAMPLES` samples per side the max is still exact over every sample (the
-/// bounds only skip samples that cannot raise it), and the mean, taken over a strided subset,
+/// bounds only skip samples that cannot raise it), and the mean, estimated over strata,
 /// stays within 1% of the mean over all of them.
 #[test]
 fn the_max_stays_exact_and_the_mean_close_on_a_larger_mesh() {
@@ -359,5 +359,65 @@ fn hints_from_previous_frames_give_the_cold_answer() {
             assert!(max > previous, "frame {k}: the frames move away ({max})");
             previous = max;
         }
+    }
+}
+
+/// The mean's stated error bound (`Deviation::mean_bound`, a stratified estimate's three
+/// standard errors) holds against the brute-force mean over every sample, and is at most 1%
+/// of it, on a surface moved far (several edge lengths) and on one moved a fraction of an
+/// edge; the max stays exact on both. A mesh above `MEAN_SAMPLES` samples per side, so the
+/// mean is estimated, not taken over every sample.
+#[test]
+fn the_mean_stays_within_its_stated_bound_near_and_far() {
+    let mesh = bumpy_sphere(4, 0.15);
+    let samples_per_side = mesh.vertex_count() + 3 * mesh.face_count() / 2 + mesh.face_count();
+    assert!(samples_per_side > 4 * willow::geometry::distance::MEAN_SAMPLES);
+    let edge = {
+        let t = mesh.triangles[0];
+        let d = sub(mesh.positions[t[0]], mesh.positions[t[1]]);
+        dot(d, d).sqrt()
+    };
+    let far = |p: P| -> P {
+        let g = 1.2 + 0.1 * (1.7 * p[0]).sin();
+        [g * p[0] + 0.8, g * p[1] - 0.4, g * p[2] + 0.1 * p[0] * p[0]]
+    };
+    let near = |p: P| -> P {
+        let g = 1.0 + 0.01 * (3.0 * p[0]).sin() * (2.0 * p[1] + 0.3).cos();
+        [g * p[0], g * p[1], g * p[2]]
+    };
+    let topology = Topology::new(&mesh);
+    let mut areas = vec![0.0; mesh.face_count()];
+    for (name, moved, far_away) in [
+        ("far", &far as &dyn Fn(P) -> P, true),
+        ("near", &near, false),
+    ] {
+        face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
+        let mut deviation = Deviation::new(&mesh.positions, &mesh.triangles, &topology, &areas);
+        let current: Vec<P> = mesh.positions.iter().map(|&p| moved(p)).collect();
+        face_areas_into(&current, &mesh.triangles, &mut areas);
+        let (max, mean) = deviation.measure(&current, &mesh.triangles, &areas);
+        let bound = deviation.mean_bound();
+        let (bmax, bmean) = brute_two_sided(&mesh.positions, &current, &mesh.triangles);
+        if far_away {
+            assert!(
+                bmean > 3.0 * edge,
+                "{name}: moved far ({bmean}, edge {edge})"
+            );
+        } else {
+            assert!(
+                bmean < 0.5 * edge,
+                "{name}: moved little ({bmean}, edge {edge})"
+            );
+        }
+        assert!(bound > 0.0, "{name}: an estimate states its error");
+        assert!(bound <= 0.01 * mean, "{name}: bound {bound} vs mean {mean}");
+        assert!(
+            (mean - bmean).abs() <= bound,
+            "{name}: mean {mean} vs brute force {bmean}, stated bound {bound}"
+        );
+        assert!(
+            (max - bmax).abs() <= 1e-9 * bmax,
+            "{name}: max {max} vs {bmax}"
+        );
     }
 }

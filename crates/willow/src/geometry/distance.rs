@@ -10,13 +10,16 @@
 //! What is measured: with `S_A` the samples of surface A, `d(x, B)` the distance from x to
 //! the nearest point of B's triangles, `deviation_max = max(max_{x∈S_cur} d(x, input),
 //! max_{x∈S_in} d(x, current))` (a sampled symmetric Hausdorff distance, exact over every
-//! sample), and `deviation_mean` the mean of the two one-sided area-weighted means (over
-//! every sample up to [`MEAN_SAMPLES`] per side, a strided subset above: see [`Deviation`]).
+//! sample), and `deviation_mean` the mean of the two one-sided area-weighted means (every
+//! sample up to [`MEAN_SAMPLES`] per side; above, a stratified estimate within
+//! [`MEAN_ACCURACY`] as its stated bound [`Deviation::mean_bound`] says: see
+//! [`super::stratified`]).
 //! The weights are the 7-point triangle rule (vertices 1/20, edge midpoints 2/15, centroid 9/20 of each incident face's area;
 //! exact for cubic integrands), so a one-sided mean approximates `∫ d(x, B) dA / A`.
 
 use super::bvh::dist2;
 pub use super::bvh::{closest_point_on_triangle, Bvh};
+use super::stratified::{MeanEstimate, Strata, STRATA};
 use super::vec3::{add, scale};
 use crate::mesh::topology::Topology;
 
@@ -93,13 +96,15 @@ impl SamplePlan {
     }
 }
 
-/// Samples per side whose distance enters the mean: all of them up to this many, else an
-/// evenly strided subset of about this many (see [`Deviation`]). A query costs about the
-/// number of boxes within the distance of the sample (hundreds once the surface moved tens
-/// of edge lengths, as nefertiti does in one step at τ 0.5), so every sample of a
-/// 100k-triangle mesh (600k queries) would cost several conformal steps; 2048 per side keep
-/// the mean's sampling error near 1%.
-pub const MEAN_SAMPLES: usize = 2048;
+/// Samples per side the mean measures first (two per stratum, [`super::stratified`]); a side
+/// with at most this many has every sample measured. A query costs about the number of boxes
+/// within the distance of the sample (hundreds once the surface moved tens of edge lengths,
+/// as nefertiti does in one step at τ 0.5), so every sample of a 100k-triangle mesh (600k
+/// queries) would cost several conformal steps.
+pub const MEAN_SAMPLES: usize = 2 * STRATA;
+/// The relative accuracy the mean is measured to (issue 29): its stated error bound
+/// ([`Deviation::mean_bound`]) is at most this fraction of it, or every sample was measured.
+pub const MEAN_ACCURACY: f64 = 0.01;
 /// Samples per side above which the mean's distances are taken within [`MEAN_SLACK`]
 /// rather than exactly (see [`Deviation`]).
 pub const EXACT_MEAN_SAMPLES: usize = 16 * MEAN_SAMPLES;
@@ -211,35 +216,34 @@ impl Side<'_> {
         )
     }
 
-    /// The exact largest and weighted mean distance over the strided subset of the
-    /// [`Deviation`] docs.
-    fn subset(&self, memory: &mut Memory) -> (f64, f64) {
-        let n = self.samples.len();
-        let stride = n.div_ceil(MEAN_SAMPLES).max(1);
-        let slack = if n > EXACT_MEAN_SAMPLES {
+    /// The weighted mean distance, estimated over strata to [`MEAN_ACCURACY`]
+    /// ([`super::stratified`]), each distance a query within the slack (exact on small
+    /// meshes).
+    fn mean(&self, memory: &mut Memory, strata: &mut Strata) -> MeanEstimate {
+        let slack = if self.samples.len() > EXACT_MEAN_SAMPLES {
             MEAN_SLACK
         } else {
             0.0
         };
-        let (mut max, mut sum, mut total) = (0.0f64, 0.0, 0.0);
-        for i in (0..n).step_by(stride) {
+        // The draws come stratum by stratum, each stratum a patch: the last draw's nearest
+        // face is a near start for a sample not drawn last frame (the draws move with the
+        // weights), whose own remembered face may be its initial hint, far off.
+        let mut last = usize::MAX;
+        strata.estimate(self.weights, MEAN_ACCURACY, slack, |i| {
             let p = self.samples[i];
-            let (start, _) = self.walk(p, memory.nearest[i] as usize);
+            let hint = self.nearer(p, memory.nearest[i] as usize, last);
+            let (start, _) = self.walk(p, hint);
             let (face, d) = self
                 .other
                 .nearest_within(self.other_positions, self.triangles, p, Some(start), slack)
                 .map_or((start, 0.0), |(f, d2)| (f, d2.sqrt()));
             memory.nearest[i] = face as u32;
+            last = face;
             if slack == 0.0 {
                 memory.settled[i] = self.frame;
             }
-            // Within the slack, `d` is at most 1 + slack times the distance: the max (exact,
-            // settled later) starts from what is surely reached.
-            max = max.max(d / (1.0 + slack));
-            sum += self.weights[i] * d;
-            total += self.weights[i];
-        }
-        (max, if total > 0.0 { sum / total } else { 0.0 })
+            d
+        })
     }
 
     /// The largest distance over every sample of this side, exactly, given `max`, one
@@ -385,12 +389,14 @@ impl Side<'_> {
 /// ([`Memory`]).
 ///
 /// The maximum is exact over every sample. The mean is exact over every sample up to
-/// [`MEAN_SAMPLES`] per side, and over every k-th sample (k = ⌈samples / MEAN_SAMPLES⌉,
-/// weights as for all) above that: the cost of exact nearest points grows with how far the
+/// [`MEAN_SAMPLES`] per side; above that it is a stratified estimate
+/// ([`super::stratified`]: samples drawn with probability ∝ weight in equal-weight strata
+/// along the input tree's leaves) whose stated error bound ([`Deviation::mean_bound`]) is at
+/// most [`MEAN_ACCURACY`] of it: the cost of exact nearest points grows with how far the
 /// surface moved, and the mean, unlike the max, does not need every sample. Above
 /// [`EXACT_MEAN_SAMPLES`] per side, each of those distances is within [`MEAN_SLACK`] above
-/// the exact one (so is the mean). What a side remembers from the last frame changes how
-/// fast, never what, it measures (up to that slack).
+/// the exact one (half of it enters the bound). What a side remembers from the last frame
+/// changes how fast, never what, it measures (up to that slack).
 pub struct Deviation {
     plan: SamplePlan,
     /// Per face, the faces across its edges (`u32::MAX` across a boundary edge).
@@ -405,6 +411,11 @@ pub struct Deviation {
     /// The current surface's samples against the input, and the input's against it.
     out_memory: Memory,
     back_memory: Memory,
+    /// Each side's strata for the mean ([`super::stratified`]).
+    out_strata: Strata,
+    back_strata: Strata,
+    /// The stated error bound of the last mean ([`Deviation::mean_bound`]).
+    mean_bound: f64,
     frame: u32,
     stack: Vec<(u32, u32)>,
 }
@@ -445,7 +456,12 @@ impl Deviation {
             })
             .collect();
         let memory = Memory::new(&plan.hints, input_bvh.nodes.len());
+        let strata = Strata::new(&plan.hints, &input_bvh.order);
+        let back_strata = Strata::new(&plan.hints, &input_bvh.order);
         Deviation {
+            out_strata: strata,
+            back_strata,
+            mean_bound: 0.0,
             current_bvh: input_bvh.clone(),
             samples: input_samples.clone(),
             weights: input_weights.clone(),
@@ -512,12 +528,22 @@ impl Deviation {
             neighbours: &self.neighbours,
             frame: self.frame,
         };
-        let (max_out, mean_out) = out.subset(&mut self.out_memory);
-        let (max_in, mean_in) = back.subset(&mut self.back_memory);
+        let mean_out = out.mean(&mut self.out_memory, &mut self.out_strata);
+        let mean_in = back.mean(&mut self.back_memory, &mut self.back_strata);
+        let (max_out, max_in) = (mean_out.max_seen, mean_in.max_seen);
+        self.mean_bound = 0.5 * (mean_out.bound + mean_in.bound);
         // Both sides' distances so far bound the max below before either settles it, so the
         // side with the smaller distances mostly has nothing left to check.
         let max = back.settle_max(max_out.max(max_in), &mut self.back_memory, &mut self.stack);
         let max = out.settle_max(max, &mut self.out_memory, &mut self.stack);
-        (max, 0.5 * (mean_out + mean_in))
+        (max, 0.5 * (mean_out.mean + mean_in.mean))
+    }
+
+    /// The stated error bound of the last [`Deviation::measure`]'s mean: the mean over every
+    /// sample is within `mean ± mean_bound` ([`super::stratified`]: three standard errors of
+    /// the stratified estimate plus the queries' slack; 0 where every sample was measured
+    /// exactly). At most [`MEAN_ACCURACY`] times the mean, unless every sample was measured.
+    pub fn mean_bound(&self) -> f64 {
+        self.mean_bound
     }
 }

@@ -12,6 +12,7 @@ pub mod hodge;
 pub mod intrinsic;
 pub mod operators;
 pub mod quaternion;
+pub mod stratified;
 pub mod vec3;
 
 pub use operators::*;
