@@ -456,8 +456,14 @@ impl RegionFlow {
             flow.continue_pinned_curvature()?;
         }
         // The part of ρ the held border forbids would only distort the region
-        // (`flow/willmore/pinned.rs`).
-        flow.absorb_unrealizable_curvature()?;
+        // (`flow/willmore/pinned.rs`). Not under a feature scale: its filter already keeps
+        // the low frequencies a held border cannot realize out of ρ (docs/algorithm.md §11),
+        // and absorbing on top of it fought the filter's stopping rule (a bumpy ellipsoid's
+        // box region: Q max 1.9 and no `feature_scale_reached` in 40 steps, against Q max
+        // < 1.5 and the scale reached without absorbing; `flow_feature`).
+        if params.feature_size.is_none() {
+            flow.absorb_unrealizable_curvature()?;
+        }
         let inner: Box<dyn Flow> = Box::new(Safeguarded::new(
             flow,
             &sub.mesh.triangles,
