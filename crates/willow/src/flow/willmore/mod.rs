@@ -36,6 +36,7 @@ use std::time::Instant;
 
 mod factor;
 use factor::*;
+mod pcg;
 mod pinned;
 mod seam;
 mod step;
@@ -141,6 +142,9 @@ pub struct ConformalFlow {
     absorb_delta: Vec<f64>,
     /// The absorbed change per unit τ, carried between steps (`pinned.rs`, ABSORB_MEMORY).
     absorb_offset: Vec<f64>,
+    /// Work vectors of the absorbing rounds' refined solves (`pcg.rs`), sized once.
+    absorb_refine_real: pcg::Scratch<f64>,
+    absorb_refine_complex: pcg::Scratch<c64>,
     /// The surface a step started from, kept when the step's motion is filtered or blended.
     step_start: Vec<[f64; 3]>,
     /// The filtered flow direction of the current surface, when the end of the last step
@@ -460,6 +464,8 @@ impl ConformalFlow {
             absorb_held: Vec::new(),
             absorb_delta: Vec::new(),
             absorb_offset: Vec::new(),
+            absorb_refine_real: pcg::Scratch::default(),
+            absorb_refine_complex: pcg::Scratch::default(),
             step_start: if params.feature_size.is_some() {
                 vec![[0.0; 3]; n]
             } else {

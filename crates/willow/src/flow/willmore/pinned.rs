@@ -29,8 +29,9 @@
 //! ρ the border forbids goes into δ and stops driving non-conformal motion; the realizable
 //! part flows as before. δ is carried from step to step ([`ABSORB_MEMORY`]).
 
+use super::pcg;
 use super::*;
-use crate::flow::dirac::{opposite_edges, sparse_matvec};
+use crate::flow::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
 use crate::flow::dirichlet;
 use crate::linalg::solver::add_diagonal;
 
@@ -40,8 +41,9 @@ use crate::linalg::solver::add_diagonal;
 /// face) regular. A larger μ absorbs less and lets Q creep again: on the ear's long run
 /// (until converged, at most 150 steps) Q 1.28 at μ = 0.1, 1.43 at 0.3, 1.83 at 1.
 const ABSORB_PENALTY: f64 = 0.1;
-/// Rounds of (λ, δ) descent before the step's λ: each costs one factorization of X and one
-/// of L on the region's submesh. One round left the ear creeping (Q 1.29 at 20 steps, 1.79
+/// Rounds of (λ, δ) descent before the step's λ. A step factors X twice (at its start and
+/// at the final ρ) and the δ-system once, whatever the rounds; the rounds in between refine
+/// against their own matrices with those factors (`pcg.rs`, [`ConformalFlow::solve_dirichlet`]). One round left the ear creeping (Q 1.29 at 20 steps, 1.79
 /// at 150, with the memory below); three hold it.
 const ABSORB_ROUNDS: usize = 3;
 /// The part of ρ a border forbids changes little from one step to the next, so each step
@@ -65,25 +67,35 @@ impl ConformalFlow {
     /// eigen-residual `|Xλ − γMλ| / |Xλ|` over their vertices (as a whole surface reports
     /// it); otherwise the relative residual `|X λ − b| / |b|` of the boundary-value solve.
     pub(super) fn solve_lambda_dirichlet(&mut self) -> Result<f64, FlowError> {
-        self.factor_dirac(true)?;
-        if !self.absorb_held.is_empty() {
+        let absorbing = !self.absorb_held.is_empty();
+        if absorbing {
             // Start from what the last steps absorbed (fading: see ABSORB_MEMORY).
             for (r, o) in self.rho.iter_mut().zip(self.absorb_offset.iter_mut()) {
                 *o *= ABSORB_MEMORY;
                 *r += self.tau * *o;
             }
-            self.factor_dirac(true)?;
-            for _ in 0..ABSORB_ROUNDS {
+        }
+        // The step's one factor of X: the rounds below change ρ by a little each, and their
+        // solves are refined against the changed X with this factor (`pcg.rs`).
+        self.factor_dirac(true)?;
+        if absorbing {
+            for round in 0..ABSORB_ROUNDS {
                 // λ of the pinned components from their Dirichlet data alone (free
                 // components get 0 here and δ = 0: they are solved below as they were).
                 self.rhs.copy_from_slice(&self.solve_rhs);
-                self.solve_rhs_with_dirac()?;
+                self.solve_dirichlet(round > 0, pcg::STEER_TOLERANCE)?;
                 for (i, l) in self.lambda.iter_mut().enumerate() {
                     *l = Quaternion::from_complex_column([self.rhs[2 * i], self.rhs[2 * i + 1]]);
                 }
-                self.absorb_round()?;
-                self.factor_dirac(true)?;
+                self.absorb_round(round == 0)?;
+                if round + 1 < ABSORB_ROUNDS {
+                    self.assemble_dirac_dirichlet()?;
+                }
             }
+            // The step's λ at the final ρ: refined to the tight tolerance it takes 7–10
+            // iterations (nefertiti's 5% region), and an iteration costs a fifth of a
+            // factorization, so a second factor is cheaper.
+            self.factor_dirac(true)?;
         }
         let any_free = self.free_component.iter().any(|&f| f);
         // The previous surface is the reference: inverse iteration starts from λ ≡ 1.
@@ -173,6 +185,69 @@ impl ConformalFlow {
         }
     }
 
+    /// X with the current ρ and its Dirichlet data (`dirac_values`, `solve_rhs`), with the
+    /// diagonal shift of the last factorization, left unfactored: the absorbing rounds'
+    /// solves refine against it ([`Self::solve_dirichlet`]).
+    fn assemble_dirac_dirichlet(&mut self) -> Result<(), FlowError> {
+        let (Some(pattern), Some(fixed)) = (self.dirac_pattern.as_ref(), self.fixed.as_deref())
+        else {
+            return Err(FlowError::Numerical {
+                step: self.step + 1,
+                reason: "a fixed boundary needs the full pattern of X".into(),
+            });
+        };
+        assemble_dirac_into(
+            pattern,
+            &self.positions,
+            &self.triangles,
+            &self.geometry.face_areas,
+            &self.rho,
+            &self.shift,
+            &mut self.dirac_values,
+        );
+        self.solve_rhs.fill(c64::new(0.0, 0.0));
+        dirichlet::apply_complex(
+            pattern,
+            &mut self.dirac_values,
+            fixed,
+            |_| Quaternion::ONE.to_complex_column(),
+            Some(&mut self.solve_rhs[..]),
+        );
+        self.profile.lap("X assembly");
+        Ok(())
+    }
+
+    /// `rhs ← X⁻¹ rhs` for the Dirichlet system in `dirac_values`: by the factor directly,
+    /// or, when X changed since it was factored (`refine`), by conjugate gradients with that
+    /// factor as the preconditioner to the relative residual `tolerance`, refactoring only
+    /// if they stall.
+    fn solve_dirichlet(&mut self, refine: bool, tolerance: f64) -> Result<(), FlowError> {
+        if refine {
+            let (Some(pattern), Some(factor)) =
+                (self.dirac_pattern.as_ref(), self.dirac.double_mut())
+            else {
+                return Err(FlowError::Numerical {
+                    step: self.step + 1,
+                    reason: "a fixed boundary needs the double-precision factor of X".into(),
+                });
+            };
+            let values = &self.dirac_values;
+            if pcg::refine(
+                |x: &[c64], y: &mut [c64]| pcg::matvec(pattern, values, x, y),
+                |v: &mut [c64]| factor.solve_in_place(v, 1),
+                &mut self.rhs,
+                &mut self.absorb_refine_complex,
+                tolerance,
+            ) {
+                self.profile.lap("λ refined");
+                return Ok(());
+            }
+            // `refine` restored the right-hand side.
+            self.factor_dirac(true)?;
+        }
+        self.solve_rhs_with_dirac()
+    }
+
     /// Lets the λ solve change the curvature change where the held border forbids it (module
     /// docs). Needs pinned vertices.
     pub(crate) fn absorb_unrealizable_curvature(&mut self) -> Result<(), FlowError> {
@@ -188,6 +263,8 @@ impl ConformalFlow {
             .map(|(&p, &c)| p || self.free_component[c])
             .collect();
         self.absorb_delta = vec![0.0; fixed.len()];
+        self.absorb_refine_real = pcg::Scratch::new(fixed.len());
+        self.absorb_refine_complex = pcg::Scratch::new(2 * fixed.len());
         self.absorb_offset = vec![0.0; fixed.len()];
         Ok(())
     }
@@ -197,7 +274,7 @@ impl ConformalFlow {
     /// it; minimizing `Σ_f |r_f + (√A/3) Σ_i δ_i λ_i|² + μ Σ_i A_i δ_i²` gives
     /// `(G + μM) δ = −Σ_f (√A/3) Re(λ̄_i r_f)` with `G_ij = Σ_f (A_f/9) Re(λ̄_i λ_j)`, δ = 0
     /// on `absorb_held`. Solved with L's factor (refactored by the Poisson solve later).
-    fn absorb_round(&mut self) -> Result<(), FlowError> {
+    fn absorb_round(&mut self, first: bool) -> Result<(), FlowError> {
         let g = &self.geometry;
         let pattern = &self.laplace_pattern;
         let values = &mut self.laplace_values;
@@ -239,13 +316,27 @@ impl ConformalFlow {
                 *d = 0.0;
             }
         }
-        self.laplace
-            .factorize(pattern, values)
-            .map_err(|e| FlowError::Numerical {
-                step: self.step + 1,
-                reason: format!("the absorbed curvature change: {e}"),
-            })?;
-        self.laplace.solve_in_place(delta, 1);
+        // The step's first round factors the system; the later ones (λ moved a little)
+        // refine against their own matrix with that factor (`pcg.rs`), refactoring only if
+        // the refinement stalls.
+        let refined = !first
+            && pcg::refine(
+                |x: &[f64], y: &mut [f64]| pcg::matvec(pattern, values, x, y),
+                |v: &mut [f64]| self.laplace.solve_in_place(v, 1),
+                delta,
+                &mut self.absorb_refine_real,
+                pcg::REFINE_TOLERANCE,
+            );
+        if !refined {
+            self.laplace
+                .factorize(pattern, values)
+                .map_err(|e| FlowError::Numerical {
+                    step: self.step + 1,
+                    reason: format!("the absorbed curvature change: {e}"),
+                })?;
+            self.laplace.solve_in_place(delta, 1);
+        }
+        self.profile.lap("absorbed change");
         if delta.iter().any(|d| !d.is_finite()) {
             return Err(FlowError::Numerical {
                 step: self.step + 1,
