@@ -97,27 +97,24 @@ fn nefertiti_is_fair_and_sound_within_twenty_steps() {
     assert!(matches!(r.outcome, Outcome::Completed | Outcome::Converged));
 }
 
-/// Cheburashka's ears shrink under the conformal flow (crowding) until a triangle there would
-/// collapse or fold: the safeguard refuses those steps, and the run says so (`stalled`,
-/// naming the damage) with a sound surface, instead of streaming collapsed triangles (64
-/// after 20 steps before issue 26) or calling the crawl "converged". With the safeguard's
-/// collapse rule at the soundness bound itself (1e-8) it gets to W/4π 15.4 (18.9 under the
-/// earlier 1e-6). The issue's target W/4π ≤ 1.2 is NOT met here: docs/cheburashka-collapse.md.
+/// Issue 26's target on cheburashka at the default settings: W/4π ≤ 1.2 within 20 steps, no
+/// collapsed triangle, no more folds than the input, Q p95 ≤ 3. Its ears crowd under the
+/// conformal flow; the first try refused for folds or collapse switches the Poisson solve to
+/// non-negative weights on crowded faces, which removes the collapsing tail
+/// (docs/cheburashka-collapse.md, "A fallback"). Before: `stalled` at W/4π 15.8.
 #[test]
-fn cheburashka_stops_sound_and_says_why() {
+fn cheburashka_is_fair_and_sound_within_twenty_steps() {
     let mesh = shared_surface("cheburashka.obj").expect("the shared meshes are test data");
     let r = run(&mesh, 20);
     assert_sound("cheburashka", &mesh, &r);
-    let last = r.frames.last().expect("steps").willmore_energy;
-    assert!(last < 0.6 * r.w0, "W {} → {last}", r.w0);
-    if r.outcome != Outcome::Completed {
-        assert_eq!(r.outcome, Outcome::Stalled, "{}", r.reason);
-        assert!(
-            r.reason.contains("collapse") || r.reason.contains("fold"),
-            "{}",
-            r.reason
-        );
-    }
+    let last = r.frames.last().expect("steps");
+    assert!(
+        last.willmore_energy / (4.0 * PI) <= 1.2,
+        "W/4π {}",
+        last.willmore_energy / (4.0 * PI)
+    );
+    assert!(last.q_p95 <= 3.0, "Q p95 {}", last.q_p95);
+    assert!(matches!(r.outcome, Outcome::Completed | Outcome::Converged));
 }
 
 /// Noise (Gaussian and heavy-tailed, with tangential jitter), terraces and strips: every

@@ -52,13 +52,13 @@ pub const W_RISE: f64 = 1e-6;
 /// stopping rules' own tolerance for a quiet step (`stopping::CONVERGED_TOLERANCE`).
 pub const MINIMUM_RISE: f64 = super::stopping::CONVERGED_TOLERANCE;
 /// A triangle has collapsed when its share of the total area is below this fraction of its
-/// share in the input: one decade above the soundness bound of issue 26
-/// ([`crate::metrics::COLLAPSED_SHARE`], 1e-8). A conformal flow legitimately crowds a
-/// protrusion by many orders of magnitude, smoothly over the region
-/// (docs/cheburashka-collapse.md). Measured on cheburashka at the defaults: 1e-6 stalls at
-/// W/4π 18.9; 1e-7 at 15.8 with 6 → 6 folded faces; 1e-8 at 15.4 but with 6 → 7 (the
-/// corpus test's own fold count), so the decade of room stays.
-pub const COLLAPSE_SHARE: f64 = 1e-7;
+/// share in the input: the soundness bound of issue 26 ([`crate::metrics::COLLAPSED_SHARE`]).
+/// A conformal flow legitimately crowds a protrusion by many orders of magnitude, smoothly
+/// over the region (docs/cheburashka-collapse.md). With the cotan Poisson solve alone, 1e-8
+/// ended cheburashka with 6 → 7 folded faces; with [`Retry::resist_damage`] (non-negative
+/// weights on crowded faces after the first crumpling try) it reaches W/4π 1.17 in 20
+/// steps with 6 → 0 (1e-7: stalled at 11.3).
+pub const COLLAPSE_SHARE: f64 = 1e-8;
 /// Largest factor by which Q max (against the input) may grow in one step of a flow with
 /// pinned vertices ([`Retry::pins_vertices`]).
 pub const Q_JUMP: f64 = 2.0;
@@ -88,6 +88,13 @@ pub trait Retry: Flow {
     /// whatever τ is, so a smaller τ would not shrink it. Finiteness, folds and Q still count.
     fn descends(&self) -> bool {
         true
+    }
+    /// Called when a try was refused for folds or collapsed triangles: the flow may switch
+    /// to a discretization that resists them for the rest of the run and return `true`, and
+    /// the step is then retried at the same τ (once per run). The conformal flow clamps the
+    /// Poisson solve's weights on crowded faces ([`crate::geometry::cache::GeometryCache::clamp_crowded`]).
+    fn resist_damage(&mut self) -> bool {
+        false
     }
     /// Whether the flow meets vertices held in place (a region's surroundings, a fixed
     /// boundary). There the Dirichlet Poisson solve puts whatever of the new edges is not
@@ -197,7 +204,9 @@ impl<F: Retry> Safeguarded<F> {
             &mut self.sound_try,
         );
         if folded > 0 || collapsed > 0 {
-            return Some(Refusal::damage(match (folded, collapsed) {
+            return Some(Refusal {
+                crumples: true,
+                ..Refusal::damage(match (folded, collapsed) {
                 (f, 0) => format!("{f} faces would fold over"),
                 (0, c) => format!(
                     "{c} triangles would collapse below {COLLAPSE_SHARE:e} of their input area share"
@@ -206,7 +215,8 @@ impl<F: Retry> Safeguarded<F> {
                     "{f} faces would fold over and {c} triangles would collapse below \
                      {COLLAPSE_SHARE:e} of their input area share"
                 ),
-            }));
+                })
+            });
         }
         let q0 = self.accepted_metrics.q_max;
         if self.inner.pins_vertices() && m.q_max > Q_JUMP * q0 {
@@ -230,6 +240,7 @@ impl<F: Retry> Safeguarded<F> {
                     m.willmore_energy
                 ),
                 rise: Some((m.willmore_energy - w0) / w0.abs().max(f64::MIN_POSITIVE)),
+                crumples: false,
             });
         }
         None
@@ -240,11 +251,17 @@ impl<F: Retry> Safeguarded<F> {
 struct Refusal {
     reason: String,
     rise: Option<f64>,
+    /// Refused for folds or collapsed triangles.
+    crumples: bool,
 }
 
 impl Refusal {
     fn damage(reason: String) -> Self {
-        Refusal { reason, rise: None }
+        Refusal {
+            reason,
+            rise: None,
+            crumples: false,
+        }
     }
 }
 
@@ -300,6 +317,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
         // Whether every refusal so far was for a rise of W (no damage, no numerical failure),
         // and whether the last one was a rise below MINIMUM_RISE.
         let (mut only_rises, mut tiny_rise) = (true, false);
+        let mut crumples = false;
         loop {
             self.inner.set_tau(tau);
             let reason = match self.inner.step() {
@@ -324,6 +342,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
                         return Ok(m);
                     }
                     Some(refusal) => {
+                        crumples = refusal.crumples;
                         only_rises &= refusal.rise.is_some();
                         tiny_rise = refusal.rise.is_some_and(|r| r < MINIMUM_RISE);
                         refusal.reason
@@ -335,9 +354,15 @@ impl<F: Retry> Flow for Safeguarded<F> {
                 }
                 Err(other) => return Err(other),
             };
+            let resisting = crumples && self.inner.resist_damage();
             self.inner.restore(&self.accepted, step);
             self.last_refusal = Some(reason.clone());
             rejected += 1;
+            if resisting {
+                // Same τ on the operator that resists the damage (docs/cheburashka-collapse.md).
+                crumples = false;
+                continue;
+            }
             if rejected > MAX_HALVINGS {
                 self.inner.set_tau(self.requested_tau);
                 return Err(FlowError::NoProgress {

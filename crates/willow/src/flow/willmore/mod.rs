@@ -549,6 +549,14 @@ impl super::safeguard::Retry for ConformalFlow {
         }
     }
 
+    fn resist_damage(&mut self) -> bool {
+        // Non-negative Poisson weights on crowded faces from now on (docs/cheburashka-collapse.md,
+        // "A fallback"); `restore` refreshes the cotangents with it.
+        let first = !self.geometry.clamp_crowded;
+        self.geometry.clamp_crowded = true;
+        first
+    }
+
     fn descends(&self) -> bool {
         !self.turns_boundary
     }
