@@ -22,7 +22,8 @@
 
 use super::accessors::{dims_of, layout};
 use super::write::{
-    append_aligned, bounds, finish_document, malformed, merged_document, push_view, was_compressed,
+    append_aligned, bounds, finish_document, malformed, merged_document, push_view,
+    repoint_accessor_as, was_compressed,
 };
 use super::{GltfSource, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, FLOAT, UNSIGNED_INT};
 use crate::mesh::io::refined::RefinedSource;
@@ -154,23 +155,7 @@ fn repoint_float(
     ty: &str,
     min_max: Option<(Value, Value)>,
 ) -> Result<(), MeshError> {
-    let acc = doc
-        .get_mut("accessors")
-        .and_then(|a| a.get_mut(index))
-        .and_then(Value::as_object_mut)
-        .ok_or_else(|| malformed("missing accessor"))?;
-    for key in ["byteOffset", "sparse", "normalized", "min", "max"] {
-        acc.remove(key);
-    }
-    acc.insert("bufferView".into(), json!(view));
-    acc.insert("componentType".into(), json!(FLOAT));
-    acc.insert("type".into(), json!(ty));
-    acc.insert("count".into(), json!(count));
-    if let Some((lo, hi)) = min_max {
-        acc.insert("min".into(), lo);
-        acc.insert("max".into(), hi);
-    }
-    Ok(())
+    repoint_accessor_as(doc, index, view, count, ty, (FLOAT, false), min_max)
 }
 
 /// Appends float32 `values` (`width` per element) as a new vertex view; returns the view.

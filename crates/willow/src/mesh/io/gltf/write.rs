@@ -285,6 +285,20 @@ pub(super) fn repoint_accessor(
     index: usize,
     view: usize,
     count: usize,
+    encoding: (u32, bool),
+    min_max: Option<(Value, Value)>,
+) -> Result<(), MeshError> {
+    repoint_accessor_as(doc, index, view, count, "VEC3", encoding, min_max)
+}
+
+/// Repoints accessor `index` at a new buffer view of `count` elements of type `ty`
+/// (`"VEC2"`, `"VEC3"`, ...) stored as `(componentType, normalized)`.
+pub(super) fn repoint_accessor_as(
+    doc: &mut Value,
+    index: usize,
+    view: usize,
+    count: usize,
+    ty: &str,
     (component, normalized): (u32, bool),
     min_max: Option<(Value, Value)>,
 ) -> Result<(), MeshError> {
@@ -301,7 +315,7 @@ pub(super) fn repoint_accessor(
     if normalized {
         acc.insert("normalized".into(), json!(true));
     }
-    acc.insert("type".into(), json!("VEC3"));
+    acc.insert("type".into(), json!(ty));
     acc.insert("count".into(), json!(count));
     if let Some((lo, hi)) = min_max {
         acc.insert("min".into(), lo);
