@@ -30,6 +30,7 @@
 //! part flows as before. δ is carried from step to step ([`ABSORB_MEMORY`]).
 
 use super::pcg;
+use super::step::normalize_components_where;
 use super::*;
 use crate::flow::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
 use crate::flow::dirichlet;
@@ -402,15 +403,12 @@ fn normalize_free_components(
     norms: &mut [f64],
     component_areas: &mut [f64],
 ) {
-    norms.fill(0.0);
-    component_areas.fill(0.0);
-    for ((l, &a), &c) in lambda.iter().zip(areas).zip(vertex_component) {
-        norms[c] += l.norm2() * a;
-        component_areas[c] += a;
-    }
-    for (l, &c) in lambda.iter_mut().zip(vertex_component) {
-        if free[c] && norms[c] > 0.0 {
-            *l = l.scale((component_areas[c] / norms[c]).sqrt());
-        }
-    }
+    normalize_components_where(
+        lambda,
+        areas,
+        vertex_component,
+        norms,
+        component_areas,
+        |c| free[c],
+    );
 }

@@ -677,6 +677,25 @@ pub(super) fn normalize_per_component(
     norms: &mut [f64],
     component_areas: &mut [f64],
 ) {
+    normalize_components_where(
+        lambda,
+        areas,
+        vertex_component,
+        norms,
+        component_areas,
+        |_| true,
+    );
+}
+
+/// [`normalize_per_component`] on the components `scaled` accepts; the others keep their λ.
+pub(super) fn normalize_components_where(
+    lambda: &mut [Quaternion],
+    areas: &[f64],
+    vertex_component: &[usize],
+    norms: &mut [f64],
+    component_areas: &mut [f64],
+    scaled: impl Fn(usize) -> bool,
+) {
     norms.fill(0.0);
     component_areas.fill(0.0);
     for ((l, &a), &c) in lambda.iter().zip(areas).zip(vertex_component) {
@@ -684,11 +703,8 @@ pub(super) fn normalize_per_component(
         component_areas[c] += a;
     }
     for (l, &c) in lambda.iter_mut().zip(vertex_component) {
-        let factor = if norms[c] > 0.0 {
-            (component_areas[c] / norms[c]).sqrt()
-        } else {
-            1.0
-        };
-        *l = l.scale(factor);
+        if scaled(c) && norms[c] > 0.0 {
+            *l = l.scale((component_areas[c] / norms[c]).sqrt());
+        }
     }
 }
