@@ -30,9 +30,9 @@
 //! part flows as before. δ is carried from step to step ([`ABSORB_MEMORY`]).
 
 use super::pcg;
-use super::step::normalize_components_where;
+use super::step::{assemble_dirac_with_unit_boundary, normalize_components_where};
 use super::*;
-use crate::flow::dirac::{assemble_dirac_into, opposite_edges, sparse_matvec};
+use crate::flow::dirac::{opposite_edges, sparse_matvec};
 use crate::flow::dirichlet;
 use crate::linalg::solver::add_diagonal;
 
@@ -197,22 +197,13 @@ impl ConformalFlow {
                 reason: "a fixed boundary needs the full pattern of X".into(),
             });
         };
-        assemble_dirac_into(
+        assemble_dirac_with_unit_boundary(
             pattern,
-            &self.positions,
-            &self.triangles,
-            &self.geometry.face_areas,
-            &self.rho,
-            &self.shift,
-            &mut self.dirac_values,
-        );
-        self.solve_rhs.fill(c64::new(0.0, 0.0));
-        dirichlet::apply_complex(
-            pattern,
-            &mut self.dirac_values,
             fixed,
-            |_| Quaternion::ONE.to_complex_column(),
-            Some(&mut self.solve_rhs[..]),
+            (&self.positions, &self.triangles, &self.geometry.face_areas),
+            (&self.rho, &self.shift),
+            &mut self.dirac_values,
+            &mut self.solve_rhs,
         );
         self.profile.lap("X assembly");
         Ok(())

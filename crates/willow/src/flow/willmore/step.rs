@@ -225,28 +225,14 @@ impl ConformalFlow {
                 &self.rho,
                 self.dirac.triangle_values_mut(),
             ),
-            Some((fixed, pattern)) => {
-                let mean_diagonal = assemble_dirac_into(
-                    pattern,
-                    &self.positions,
-                    &self.triangles,
-                    &g.face_areas,
-                    &self.rho,
-                    &self.shift,
-                    &mut self.dirac_values,
-                );
-                // λ = 1 on the boundary: the boundary keeps its tangents (§6.3.2 with the
-                // input boundary as target).
-                self.solve_rhs.fill(c64::new(0.0, 0.0));
-                dirichlet::apply_complex(
-                    pattern,
-                    &mut self.dirac_values,
-                    fixed,
-                    |_| Quaternion::ONE.to_complex_column(),
-                    Some(&mut self.solve_rhs[..]),
-                );
-                mean_diagonal
-            }
+            Some((fixed, pattern)) => assemble_dirac_with_unit_boundary(
+                pattern,
+                fixed,
+                (&self.positions, &self.triangles, &g.face_areas),
+                (&self.rho, &self.shift),
+                &mut self.dirac_values,
+                &mut self.solve_rhs,
+            ),
         };
         self.profile.lap("X assembly");
         // X is dimensionless (|e|²/A and Aρ² are scale-free), so the shift is relative to its
@@ -664,6 +650,31 @@ pub(super) fn mat3_apply(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
         m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
         m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
     ]
+}
+
+/// X of a flow with held vertices, with its Dirichlet data λ = 1 there (the boundary keeps
+/// its tangents: §6.3.2 with the input boundary as target) moved into `rhs`; returns X's mean
+/// diagonal as [`assemble_dirac_into`] does.
+pub(super) fn assemble_dirac_with_unit_boundary(
+    pattern: &crate::linalg::solver::BlockPattern,
+    fixed: &[bool],
+    (positions, triangles, face_areas): (&[[f64; 3]], &[[usize; 3]], &[f64]),
+    (rho, shift): (&[f64], &[f64]),
+    values: &mut [c64],
+    rhs: &mut [c64],
+) -> f64 {
+    let mean_diagonal = assemble_dirac_into(
+        pattern, positions, triangles, face_areas, rho, shift, values,
+    );
+    rhs.fill(c64::new(0.0, 0.0));
+    dirichlet::apply_complex(
+        pattern,
+        values,
+        fixed,
+        |_| Quaternion::ONE.to_complex_column(),
+        Some(rhs),
+    );
+    mean_diagonal
 }
 
 /// Scale λ on each component so that `Σ |λ_i|² A_i = Σ A_i` there: λ is defined up to a
