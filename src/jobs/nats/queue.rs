@@ -15,8 +15,10 @@
 //!   a worker that dies stops them, and the server delivers the job again after `ack_wait`,
 //!   up to `max_deliver`.
 //! - **Waiting**: an idle worker sleeps until a job is queued (the publisher sends a core
-//!   message on [`WAKE_SUBJECT`] once the stream has stored the job) or [`FETCH_WAIT`]
-//!   passes, then looks again; the second covers redeliveries, which publish nothing.
+//!   message on [`WAKE_SUBJECT`] once the stream has stored the job) or [`idle_look`] of
+//!   `ack_wait` passes, then looks again; the second covers redeliveries, which publish
+//!   nothing, so a crashed worker's job waits at most a fifth of `ack_wait` past its
+//!   redelivery.
 //! - **Withdrawing** a queued job deletes its message by sequence (kept in KV at push).
 
 use super::super::ports::{Lease, LeaseControl, Recovered, WorkQueue};
@@ -33,8 +35,20 @@ use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-/// How long an idle worker sleeps before it looks for jobs again without being woken.
+/// The longest an idle worker sleeps before it looks for jobs again without being woken.
 const FETCH_WAIT: Duration = Duration::from_secs(5);
+/// The shortest: a fetch request a fifth of a second per idle worker is still nothing to the
+/// server.
+const FETCH_WAIT_MIN: Duration = Duration::from_millis(200);
+
+/// How long an idle worker sleeps between looks when nothing wakes it: a fifth of
+/// `ack_wait`, within [`FETCH_WAIT_MIN`, `FETCH_WAIT`]. Redeliveries publish nothing, so
+/// this is how late a crashed worker's job can be picked up after the server delivers it
+/// again; a fixed 5 s doubled the recovery time at `--nats-ack-wait-secs 5` (the README's
+/// part 6 figures).
+fn idle_look(ack_wait: Duration) -> Duration {
+    (ack_wait / 5).clamp(FETCH_WAIT_MIN, FETCH_WAIT)
+}
 /// Core subject (outside the jobs stream) that tells idle workers a job was stored.
 const WAKE_SUBJECT: &str = "willow.wake.jobs";
 /// A tenant's consumer unused this long is removed by the server (created again on demand).
@@ -49,6 +63,8 @@ pub(crate) struct NatsQueue {
     legacy: Consumer<pull::Config>,
     /// Settings of the tenants' consumers (ack wait, deliveries).
     template: pull::Config,
+    /// An idle worker's sleep between looks ([`idle_look`] of the ack wait).
+    idle_look: Duration,
     /// Tenant → its consumer, as created or found.
     consumers: tokio::sync::Mutex<HashMap<String, Consumer<pull::Config>>>,
     /// Tenant → the turn this node last served it at; a tenant never served sorts first.
@@ -108,7 +124,7 @@ impl NatsQueue {
         let client = nats.client.clone();
         tokio::spawn(async move {
             let Ok(mut sub) = client.subscribe(WAKE_SUBJECT).await else {
-                // Without it idle workers still look every FETCH_WAIT.
+                // Without it idle workers still look every `idle_look`.
                 return;
             };
             while sub.next().await.is_some() {
@@ -122,6 +138,7 @@ impl NatsQueue {
             nats,
             stream,
             legacy,
+            idle_look: idle_look(template.ack_wait),
             template,
             consumers: tokio::sync::Mutex::new(HashMap::new()),
             served: Mutex::new(HashMap::new()),
@@ -326,7 +343,7 @@ async fn publish_job(nats: &Nats, subject: &str, id: &str, msg_id: &str) -> Resu
         .await
         .map_err(|e| nats_err("recording a job's queue entry", e))?;
     // After the stream's ack: a woken worker finds the job stored. Best effort: a lost wake-up
-    // costs at most FETCH_WAIT.
+    // costs at most `idle_look`.
     let _ = nats.client.publish(WAKE_SUBJECT, bytes::Bytes::new()).await;
     Ok(())
 }
@@ -376,11 +393,11 @@ impl WorkQueue for NatsQueue {
             if let Some(message) = fetch_one(&self.legacy).await? {
                 return Ok(self.lease_of(message));
             }
-            // Nothing deliverable: sleep until a job is queued or FETCH_WAIT passes (a
+            // Nothing deliverable: sleep until a job is queued or `idle_look` passes (a
             // redelivery after `ack_wait` publishes nothing).
-            if let Ok(Err(_)) = tokio::time::timeout(FETCH_WAIT, published.changed()).await {
-                // No wake-ups (the subscription failed): look every FETCH_WAIT.
-                tokio::time::sleep(FETCH_WAIT).await;
+            if let Ok(Err(_)) = tokio::time::timeout(self.idle_look, published.changed()).await {
+                // No wake-ups (the subscription failed): look every `idle_look`.
+                tokio::time::sleep(self.idle_look).await;
             }
         }
     }
@@ -427,5 +444,21 @@ impl WorkQueue for NatsQueue {
         // was caught by the outage).
         self.connected.load(Ordering::Relaxed)
             && self.nats.client.connection_state() == async_nats::connection::State::Connected
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_idle_worker_looks_a_fifth_of_ack_wait_apart_within_its_bounds() {
+        assert_eq!(idle_look(Duration::from_secs(5)), Duration::from_secs(1));
+        assert_eq!(idle_look(Duration::from_secs(10)), Duration::from_secs(2));
+        // The default ack wait (30 s) and longer keep the 5 s ceiling.
+        assert_eq!(idle_look(Duration::from_secs(30)), FETCH_WAIT);
+        assert_eq!(idle_look(Duration::from_secs(600)), FETCH_WAIT);
+        // The 1 s minimum ack wait: not a tight loop.
+        assert_eq!(idle_look(Duration::from_secs(1)), FETCH_WAIT_MIN);
     }
 }
