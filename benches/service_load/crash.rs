@@ -123,14 +123,19 @@ where
     }
 }
 
-/// The step the worker logged `resumed from the checkpoint` at, in a JSON log file.
-pub(crate) fn resumed_step(log: &Path) -> Option<u64> {
-    std::fs::read_to_string(log).ok()?.lines().find_map(|l| {
-        let v: serde_json::Value = serde_json::from_str(l).ok()?;
-        (v["fields"]["message"] == "resumed from the checkpoint")
-            .then(|| v["fields"]["step"].as_u64())
-            .flatten()
-    })
+/// The steps a worker logged `resumed from the checkpoint` at, in order, in a JSON log file.
+pub(crate) fn resumed_steps(log: &Path) -> Vec<u64> {
+    let Ok(text) = std::fs::read_to_string(log) else {
+        return Vec::new();
+    };
+    text.lines()
+        .filter_map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).ok()?;
+            (v["fields"]["message"] == "resumed from the checkpoint")
+                .then(|| v["fields"]["step"].as_u64())
+                .flatten()
+        })
+        .collect()
 }
 
 /// What one crash measurement found (times from the SIGKILL, in seconds).
@@ -164,20 +169,29 @@ pub(crate) async fn wait_past(
     .await
 }
 
-/// After the kill at `t0`: until `node` reports the resume and the job at `api` passes
-/// `dead_step`.
+/// After the kill at `t0`: until one of `nodes` (base URL, its `willow_jobs_resumed_total`
+/// before the kill) reports one more resume, and the job at `api` passes `dead_step`. Which
+/// node resumed it, and when. A node that resumed an earlier round's job counts from there
+/// (comparing with 1 read an old resume as this one, at 0.01 s).
 pub(crate) async fn wait_recovery(
     client: &reqwest::Client,
     api: &str,
-    node: &str,
+    nodes: &[(String, f64)],
     id: &str,
     dead_step: u64,
     t0: Instant,
     deadline: Instant,
-) -> Result<(f64, f64), String> {
-    let resumed = poll("the resume", deadline, || async {
-        let n = metric(client, node, "willow_jobs_resumed_total").await?;
-        (n >= 1.0).then(|| t0.elapsed().as_secs_f64())
+) -> Result<(usize, f64, f64), String> {
+    let (node, resumed) = poll("the resume", deadline, || async {
+        for (i, (base, before)) in nodes.iter().enumerate() {
+            let n = metric(client, base, "willow_jobs_resumed_total")
+                .await
+                .unwrap_or(0.0);
+            if n > *before {
+                return Some((i, t0.elapsed().as_secs_f64()));
+            }
+        }
+        None
     })
     .await?;
     let progress = poll("progress past the crash", deadline, || async {
@@ -185,7 +199,7 @@ pub(crate) async fn wait_recovery(
         (s > dead_step).then(|| t0.elapsed().as_secs_f64())
     })
     .await?;
-    Ok((resumed, progress))
+    Ok((node, resumed, progress))
 }
 
 /// Crashes per backend: each round kills the process running the job once.
@@ -284,6 +298,15 @@ pub(crate) async fn crash_nats_rounds(
         // the job): the redelivery is due `ack_wait` after the last heartbeat.
         let at = leased + Duration::from_millis(1250 * round as u64);
         tokio::time::sleep_until(at.into()).await;
+        // Each node's resumes so far: the one that takes this job over counts one more.
+        let mut resumes_before = Vec::new();
+        for (_, base, _) in &workers {
+            resumes_before.push(
+                metric(&client, base, "willow_jobs_resumed_total")
+                    .await
+                    .unwrap_or(0.0),
+            );
+        }
         let t0 = Instant::now();
         workers[runner].0.kill();
         let heartbeat = ack_wait_secs as f64 / 3.0;
@@ -292,16 +315,20 @@ pub(crate) async fn crash_nats_rounds(
         let dead_step = job_step(&client, &api, &id)
             .await
             .ok_or("status after the kill")?;
-        let survivor = workers
-            .iter()
-            .position(|w| w.0 .0.is_some())
-            .ok_or("no worker left")?;
-        let (_, base, log) = &workers[survivor];
-        let recovery = wait_recovery(&client, &api, base, &id, dead_step, t0, deadline)
+        let mut survivors = Vec::new();
+        for (i, (child, base, log)) in workers.iter().enumerate() {
+            if child.0.is_some() {
+                survivors.push((i, base.clone(), resumes_before[i], resumed_steps(log).len()));
+            }
+        }
+        let nodes: Vec<(String, f64)> = survivors.iter().map(|s| (s.1.clone(), s.2)).collect();
+        let recovery = wait_recovery(&client, &api, &nodes, &id, dead_step, t0, deadline)
             .await
-            .map(|(resumed, progress)| Recovery {
+            .map(|(node, resumed, progress)| Recovery {
                 dead_step,
-                resumed_from: resumed_step(log),
+                resumed_from: resumed_steps(&workers[survivors[node].0].2)
+                    .get(survivors[node].3)
+                    .copied(),
                 listening: None,
                 resumed,
                 progress,
@@ -316,7 +343,12 @@ pub(crate) async fn crash_nats_rounds(
             .send()
             .await;
         poll("the cancel", deadline, || async {
-            (metric(&client, base, "willow_jobs_running").await == Some(0.0)).then_some(())
+            for (base, _) in &nodes {
+                if metric(&client, base, "willow_jobs_running").await != Some(0.0) {
+                    return None;
+                }
+            }
+            Some(())
         })
         .await?;
         if failed {
@@ -387,11 +419,13 @@ pub(crate) async fn crash_embedded_rounds(
         let log = dir.path().join(format!("{}.log", round + 1));
         (process, base) = spawn_willow(args.clone(), &log).await?;
         let listening = t0.elapsed().as_secs_f64();
-        let recovery = wait_recovery(&client, &base, &base, &id, dead_step, t0, deadline)
+        // A new process: its resume counter starts at 0.
+        let nodes = [(base.clone(), 0.0)];
+        let recovery = wait_recovery(&client, &base, &nodes, &id, dead_step, t0, deadline)
             .await
-            .map(|(resumed, progress)| Recovery {
+            .map(|(_, resumed, progress)| Recovery {
                 dead_step,
-                resumed_from: resumed_step(&log),
+                resumed_from: resumed_steps(&log).first().copied(),
                 listening: Some(listening),
                 resumed,
                 progress,
