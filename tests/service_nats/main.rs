@@ -97,10 +97,36 @@ async fn finished(node: &Node, outcome: &str) -> f64 {
     .unwrap_or(0.0)
 }
 
+/// [`orphan_chunks`] seen by two scans `apart`: a write in flight while the first scan ran
+/// (a job's checkpoint, a re-queued job trying again) has its chunks named or purged by the
+/// second, and every try writes under a fresh chunk id, so only chunk sets that something
+/// left behind are in both. (chunk subjects, their messages in the second scan)
+pub(crate) async fn lasting_orphan_chunks(url: &str, apart: Duration) -> (Vec<String>, u64) {
+    let first = orphan_chunk_counts(url).await;
+    if first.is_empty() {
+        return (Vec::new(), 0);
+    }
+    tokio::time::sleep(apart).await;
+    let lasting: Vec<(String, u64)> = orphan_chunk_counts(url)
+        .await
+        .into_iter()
+        .filter(|(s, _)| first.iter().any(|(f, _)| f == s))
+        .collect();
+    let messages = lasting.iter().map(|(_, n)| n).sum();
+    (lasting.into_iter().map(|(s, _)| s).collect(), messages)
+}
+
 /// Chunk sets in the object store's stream that no object's info names: what a write cut
 /// midway leaves unless it cleans up. (chunk subjects, their messages), from the stream's
 /// per-subject counts and each info's `nuid` (direct gets: the stream allows them).
 pub(crate) async fn orphan_chunks(url: &str) -> (Vec<String>, u64) {
+    let counts = orphan_chunk_counts(url).await;
+    let messages = counts.iter().map(|(_, n)| n).sum();
+    (counts.into_iter().map(|(s, _)| s).collect(), messages)
+}
+
+/// [`orphan_chunks`], each chunk subject with its message count.
+async fn orphan_chunk_counts(url: &str) -> Vec<(String, u64)> {
     let js = async_nats::jetstream::new(async_nats::connect(url).await.expect("client"));
     let stream = js
         .get_stream("OBJ_willow-blobs")
@@ -132,13 +158,11 @@ pub(crate) async fn orphan_chunks(url: &str) -> (Vec<String>, u64) {
         }
     }
     let mut orphans = Vec::new();
-    let mut messages = 0;
     for (subject, count) in subjects("$O.willow-blobs.C.>").await {
         let nuid = subject.rsplit('.').next().unwrap_or_default();
         if !named.contains(nuid) {
-            orphans.push(subject);
-            messages += count as u64;
+            orphans.push((subject, count as u64));
         }
     }
-    (orphans, messages)
+    orphans
 }
