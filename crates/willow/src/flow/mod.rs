@@ -563,6 +563,28 @@ pub struct FlowState {
     pub next_tau: f64,
     /// Steps accepted at their first try since τ last changed.
     pub clean_steps: u32,
+    /// What the flow and its run carry from step to step beyond the surface: without it a
+    /// resumed region job would not take the steps an uninterrupted one takes.
+    pub carried: Carried,
+}
+
+/// A flow's memory between steps that its surface does not determine ([`FlowState`]). A
+/// checkpoint written before it was kept (the service's version 2) resumes with the default:
+/// nothing absorbed, the plain Poisson weights, the stopping rules' look-back afresh.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Carried {
+    /// The curvature change a held border cannot realize, absorbed per unit τ and carried to
+    /// the next step (a region's flow: `flow/willmore/pinned.rs`, `ABSORB_MEMORY`), per
+    /// vertex of the flow's own mesh (a region's submesh); empty: nothing absorbed.
+    pub absorbed: Vec<f64>,
+    /// The safeguard switched the Poisson solve to non-negative weights on crowded faces
+    /// for the rest of the run ([`safeguard::Retry::resist_damage`]).
+    pub resists_damage: bool,
+    /// Quiet steps in a row ([`stopping::Run`]'s convergence window), as the run counted
+    /// them at the checkpoint; 0 from a flow's own [`Flow::checkpoint`].
+    pub quiet_steps: u32,
+    /// Crawling steps in a row ([`stopping::Run`]'s stall window), likewise.
+    pub crawling_steps: u32,
 }
 
 /// Milliseconds per phase of one step, in the order the phases ran. Refilled in place each

@@ -107,6 +107,23 @@ pub trait Retry: Flow {
     fn pins_vertices(&self) -> bool {
         false
     }
+    /// What the flow carries from one step to the next beyond its surface, for a checkpoint
+    /// (the absorbed curvature change, whether it resists damage); the run's counters stay 0.
+    fn carried(&self) -> super::Carried {
+        super::Carried::default()
+    }
+    /// Puts back what [`Retry::carried`] gave, before [`Retry::restore`] puts the surface
+    /// back; an error, with nothing changed, when it does not fit this flow.
+    fn carry(&mut self, carried: &super::Carried) -> Result<(), FlowError> {
+        if carried.absorbed.is_empty() && !carried.resists_damage {
+            Ok(())
+        } else {
+            Err(FlowError::InvalidParameter {
+                name: "checkpoint",
+                reason: "holds step-to-step state this flow does not keep".into(),
+            })
+        }
+    }
 }
 
 /// A flow whose steps are accepted or retried as the module docs describe.
@@ -410,6 +427,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
             positions: self.inner.positions().to_vec(),
             next_tau: self.next_tau,
             clean_steps: self.clean_steps,
+            carried: self.inner.carried(),
         })
     }
 
@@ -429,6 +447,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
                 reason: "holds a non-finite surface or time step".into(),
             });
         }
+        self.inner.carry(&state.carried)?;
         self.inner.restore(&state.positions, state.metrics.step);
         self.accepted.copy_from_slice(&state.positions);
         self.accepted_metrics = state.metrics;

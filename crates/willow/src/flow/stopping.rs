@@ -171,18 +171,30 @@ impl Run {
         })
     }
 
-    /// [`Run::new`] for a flow already put back on a checkpoint ([`Flow::resume`]) whose
-    /// surface has the metrics `at`: the run counts its steps from `at.step`, and the rules
-    /// that look back (convergence) start afresh there.
+    /// [`Run::new`] for a flow already put back on `state` ([`Flow::resume`]), a checkpoint
+    /// of a run ([`Run::checkpoint`]): the run counts its steps from `state.metrics.step`,
+    /// and the rules that look back (convergence, stalling) go on from the counts it holds
+    /// (a flow's own checkpoint holds none: they start afresh there).
     pub fn resumed(
         flow: Box<dyn Flow>,
         params: &FlowParams,
         steps: usize,
-        at: StepMetrics,
+        state: &FlowState,
     ) -> Result<Run, FlowError> {
         let mut run = Run::new(flow, params, steps)?;
-        run.last = at;
+        run.last = state.metrics;
+        run.quiet = state.carried.quiet_steps as usize;
+        run.crawling = state.carried.crawling_steps as usize;
         Ok(run)
+    }
+
+    /// The flow's checkpoint ([`Flow::checkpoint`]) with what the stopping rules have
+    /// counted so far, so that [`Run::resumed`] stops where this run would have.
+    pub fn checkpoint(&self) -> Option<FlowState> {
+        let mut state = self.flow.checkpoint()?;
+        state.carried.quiet_steps = u32::try_from(self.quiet).unwrap_or(u32::MAX);
+        state.carried.crawling_steps = u32::try_from(self.crawling).unwrap_or(u32::MAX);
+        Some(state)
     }
 
     /// Whether the run has decided to stop: the next [`Run::advance`] takes no step and says
@@ -461,10 +473,10 @@ mod tests {
         let (whole, _, _) = drive(&mesh, &params, 4);
         let mut first = Run::new(new_flow(&mesh, &params).expect("flow"), &params, 2).expect("run");
         while let Event::Step(_) = first.advance().expect("steps") {}
-        let state = first.flow().checkpoint().expect("a checkpoint");
+        let state = first.checkpoint().expect("a checkpoint");
         let mut flow = new_flow(&mesh, &params).expect("flow");
         flow.resume(&state).expect("resumes");
-        let mut run = Run::resumed(flow, &params, 4, state.metrics).expect("run");
+        let mut run = Run::resumed(flow, &params, 4, &state).expect("run");
         let mut steps = Vec::new();
         let outcome = loop {
             match run.advance().expect("steps") {
@@ -480,6 +492,45 @@ mod tests {
             (resumed - straight).abs() <= 1e-12 * straight,
             "{resumed} vs {straight}"
         );
+    }
+
+    /// A run checkpointed inside its convergence window ([`Run::checkpoint`]) and resumed
+    /// stops `converged` at the step the uninterrupted run stops at, not a whole window
+    /// later: the quiet steps counted before the checkpoint still count.
+    #[test]
+    fn a_resumed_run_converges_where_the_uninterrupted_one_does() {
+        let mesh = bumpy_sphere(3, 0.05);
+        let params = FlowParams::default();
+        let (whole, outcome, _) = drive(&mesh, &params, 100);
+        assert_eq!(outcome, Outcome::Converged);
+        let last = whole.len();
+        // One step before the end: the window holds CONVERGED_WINDOW − 1 quiet steps.
+        let at = last - 1;
+        let mut first =
+            Run::new(new_flow(&mesh, &params).expect("flow"), &params, 100).expect("run");
+        for _ in 0..at {
+            assert!(matches!(first.advance().expect("steps"), Event::Step(_)));
+        }
+        let state = first.checkpoint().expect("a checkpoint");
+        assert_eq!(state.metrics.step, at);
+        assert_eq!(state.carried.quiet_steps as usize, CONVERGED_WINDOW - 1);
+        let resume = |state: &FlowState| {
+            let mut flow = new_flow(&mesh, &params).expect("flow");
+            flow.resume(state).expect("resumes");
+            let mut run = Run::resumed(flow, &params, 100, state).expect("run");
+            let mut steps = 0;
+            loop {
+                match run.advance().expect("steps") {
+                    Event::Step(_) => steps += 1,
+                    Event::Stopped { outcome, .. } => return (steps, outcome),
+                }
+            }
+        };
+        assert_eq!(resume(&state), (1, Outcome::Converged));
+        // A flow's own checkpoint counts nothing: its run needs a whole window again.
+        let plain = first.flow().checkpoint().expect("a checkpoint");
+        assert_eq!(plain.carried.quiet_steps, 0);
+        assert!(resume(&plain).0 >= CONVERGED_WINDOW);
     }
 
     /// A slightly bumpy sphere at τ 0.5 reaches its round minimum within a few steps and

@@ -258,6 +258,7 @@ impl ConformalFlow {
         self.absorb_refine_real = pcg::Scratch::new(fixed.len());
         self.absorb_refine_complex = pcg::Scratch::new(2 * fixed.len());
         self.absorb_offset = vec![0.0; fixed.len()];
+        self.absorb_offset_accepted = vec![0.0; fixed.len()];
         Ok(())
     }
 
