@@ -521,6 +521,13 @@ pub trait Flow: Send {
     fn feature_detail(&self) -> Option<feature::FeatureDetail> {
         None
     }
+    /// For a flow that absorbs the curvature change a held border cannot realize (a region,
+    /// `flow/willmore/pinned.rs`): the part of the requested change its last try still aimed
+    /// at, `⟨ρ, ρ_req⟩_M / |ρ_req|²_M` over the free vertices (1: nothing absorbed, ≤ 0: the
+    /// absorbed change cancels or reverses the request); `None` for any other flow.
+    fn kept_share(&self) -> Option<f64> {
+        None
+    }
     /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics and
     /// the step-size control. `None` for a flow that cannot be resumed.
     fn checkpoint(&self) -> Option<FlowState> {

@@ -413,6 +413,10 @@ impl<F: Retry> Flow for Safeguarded<F> {
         self.inner.feature_detail()
     }
 
+    fn kept_share(&self) -> Option<f64> {
+        self.inner.kept_share()
+    }
+
     fn willmore_lower_bound(&self) -> Option<f64> {
         self.inner.willmore_lower_bound()
     }

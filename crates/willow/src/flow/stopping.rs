@@ -51,6 +51,10 @@ pub const NOISE_FLOOR: f64 = 1e-5;
 pub const STALL_HALVINGS: i32 = 4;
 /// Crawling steps in a row after which a run has stalled.
 pub const STALL_WINDOW: usize = 5;
+/// A run that ends at a "minimum" while its flow kept less than this part of the requested
+/// curvature change ([`Flow::kept_share`]) says so: it stopped where its held border lets a
+/// conformal flow go, not at a minimum of W (docs/algorithm.md §12).
+pub const KEPT_SHARE_NOTE: f64 = 0.5;
 
 /// Relative change of W and of the area below which the first step counts as not moving.
 pub const STILL_TOLERANCE: f64 = 1e-12;
@@ -236,13 +240,20 @@ impl Run {
                 tau,
                 reason,
             }) => {
-                let reason = format!(
+                let mut reason = format!(
                     "Willmore energy {:.6} is at a minimum to the solver's accuracy: no try of \
                      step {step} down to tau = {tau:e} lowered it, and the smallest raised it by \
                      less than {:e} (relative; last: {reason})",
                     self.last.willmore_energy,
                     super::safeguard::MINIMUM_RISE
                 );
+                if let Some(kept) = self.flow.kept_share().filter(|&k| k < KEPT_SHARE_NOTE) {
+                    reason.push_str(&format!(
+                        "; a minimum of what the held border lets a conformal flow do, not of W: \
+                         the curvature change the border cannot realize, absorbed, left {kept:.2} \
+                         of the requested change"
+                    ));
+                }
                 return Ok(self.finish((Outcome::Converged, reason)));
             }
             Err(e @ FlowError::NoProgress { .. }) => {
@@ -531,6 +542,42 @@ mod tests {
         let plain = first.flow().checkpoint().expect("a checkpoint");
         assert_eq!(plain.carried.quiet_steps, 0);
         assert!(resume(&plain).0 >= CONVERGED_WINDOW);
+    }
+
+    /// A wide fixed-seam cap on a bumpy sphere: its held border forbids most of what the
+    /// flow asks, the absorbed change comes to reverse the request (kept share −0.19 at step
+    /// 3, docs/algorithm.md §12), every try of step 3 raises W, and the run ends `converged`
+    /// saying that this is the border's limit, not a minimum of W.
+    #[test]
+    fn a_region_stopped_by_its_held_border_says_so() {
+        use crate::flow::region::{Region, Seam};
+        let mesh = bumpy_sphere(3, 0.15);
+        let params = FlowParams {
+            regions: vec![Region::Sphere {
+                center: mesh.positions[0],
+                radius: 0.6,
+            }],
+            seam: Seam::Fixed,
+            until_converged: false,
+            ..FlowParams::default()
+        };
+        let flow = new_flow(&mesh, &params).expect("flow");
+        let mut run = Run::new(flow, &params, 10).expect("run");
+        let (outcome, reason) = loop {
+            match run.advance().expect("steps") {
+                Event::Step(_) => {}
+                Event::Stopped { outcome, reason } => break (outcome, reason),
+            }
+        };
+        assert_eq!(outcome, Outcome::Converged, "{reason}");
+        assert!(run.last_metrics().step < 10, "{reason}");
+        assert!(reason.contains("held border"), "{reason}");
+        let kept = run.flow().kept_share().expect("a region flow absorbs");
+        eprintln!("{reason}; kept {kept}");
+        assert!(kept < KEPT_SHARE_NOTE, "kept {kept}");
+        // A whole-surface flow absorbs nothing.
+        let whole = new_flow(&mesh, &FlowParams::default()).expect("flow");
+        assert_eq!(whole.kept_share(), None);
     }
 
     /// A slightly bumpy sphere at τ 0.5 reaches its round minimum within a few steps and
