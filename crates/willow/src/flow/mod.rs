@@ -528,15 +528,17 @@ pub trait Flow: Send {
     fn kept_share(&self) -> Option<f64> {
         None
     }
-    /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics and
-    /// the step-size control. `None` for a flow that cannot be resumed.
+    /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics, the
+    /// step-size control and what the flow carries between steps ([`Carried`]). `None` for a
+    /// flow that cannot be resumed.
     fn checkpoint(&self) -> Option<FlowState> {
         None
     }
     /// Put a flow freshly built on the same input and parameters back where
     /// [`Flow::checkpoint`] left another one. Every quantity a step reads is recomputed from
-    /// the surface (the inverse iteration starts from λ = 1 each step, App. G), so the steps
-    /// that follow are those the first flow would have taken.
+    /// the surface (the inverse iteration starts from λ = 1 each step, App. G) or put back
+    /// from [`FlowState::carried`], so the steps that follow are those the first flow would
+    /// have taken.
     fn resume(&mut self, state: &FlowState) -> Result<(), FlowError> {
         let _ = state;
         Err(FlowError::Unsupported(
