@@ -4,7 +4,7 @@
 mod service_http_support;
 
 use futures::StreamExt;
-use service_http_support::{obj, slow_obj, small_obj, spec};
+use service_http_support::{obj, obj_vertices, slow_obj, small_obj, spec};
 use std::time::Duration;
 use willow::mesh::io::Format;
 use willow_service::jobs::{Caller, Config, JobEvent, JobSpec, JobState, Jobs, UploadRef};
@@ -278,6 +278,101 @@ async fn stored_uploads_idempotency_and_errors_in_core_terms() {
         jobs.get(&me(), &a.id).await,
         Err(willow_service::jobs::JobError::NotFound(_))
     ));
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// A region job (spot's ear, smooth seam) stopped by a shutdown, checkpointed and resumed
+/// after the restart ends on the result of the same job run without a stop: the checkpoint
+/// carries the curvature change the held border could not realize (`willow::flow::Carried`),
+/// which the region's flow keeps from step to step; without it the resumed steps differ.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resumed_region_job_ends_where_an_uninterrupted_one_does() {
+    use willow::flow::region::{Region, Seam};
+    use willow_service::jobs::codec::decode_checkpoint;
+    let spot = include_str!("../crates/willow/tests/data/spot_triangulated.obj").to_string();
+    let ear = JobSpec {
+        region: vec![Region::Sphere {
+            center: [0.40, 0.72, -0.20],
+            radius: 0.15,
+        }],
+        seam: Seam::Smooth,
+        // Long enough that the job is still running when the shutdown comes.
+        ..spec(150)
+    };
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("start");
+    let stopped = jobs
+        .submit(&me(), obj(spot.clone()), ear.clone(), None)
+        .await
+        .expect("submit");
+    let mut events = Box::pin(jobs.watch(&me(), &stopped.id, 0).await.expect("watch"));
+    while let Some(ev) = events.next().await {
+        if matches!(ev, JobEvent::Frame(ref f) if f.step >= 3) {
+            break;
+        }
+    }
+    drop(events);
+    core.shutdown(Duration::ZERO).await;
+    let s = jobs.get(&me(), &stopped.id).await.expect("get");
+    assert_eq!(s.state, JobState::Queued, "stopped mid-run: {s:?}");
+    let blob = std::fs::read(
+        dir.path()
+            .join("jobs")
+            .join(&*stopped.id)
+            .join("checkpoint"),
+    )
+    .expect("the shutdown wrote a checkpoint");
+    let state = decode_checkpoint(&blob).expect("decodes");
+    assert!(state.metrics.step >= 3 && state.metrics.step < 150);
+    assert!(
+        state.carried.absorbed.iter().any(|&d| d.abs() > 1e-3),
+        "the checkpoint holds the absorbed curvature change"
+    );
+    drop(jobs);
+
+    let (jobs, core) = Jobs::start(config(dir.path())).await.expect("restart");
+    let resumed = jobs
+        .wait(&me(), &stopped.id, Duration::from_secs(120))
+        .await
+        .expect("wait");
+    assert_eq!(resumed.state, JobState::Succeeded, "{resumed:?}");
+    assert!(
+        jobs.metrics_text().contains("willow_jobs_resumed_total 1"),
+        "resumed from its checkpoint, not restarted"
+    );
+    let straight = jobs
+        .submit(&me(), obj(spot.clone()), ear, None)
+        .await
+        .expect("submit");
+    let done = jobs
+        .wait(&me(), &straight.id, Duration::from_secs(120))
+        .await
+        .expect("wait");
+    assert_eq!(done.state, JobState::Succeeded, "{done:?}");
+    let result = |id: willow_service::jobs::JobId| {
+        let jobs = &jobs;
+        async move {
+            let bytes = jobs.result(&me(), &id, Format::Obj).await.expect("result");
+            obj_vertices(&String::from_utf8(bytes).expect("OBJ text"))
+        }
+    };
+    let (a, b) = (
+        result(stopped.id.clone()).await,
+        result(straight.id.clone()).await,
+    );
+    assert_eq!(a.len(), b.len());
+    let input = obj_vertices(&spot);
+    let moved = a.iter().zip(&input).filter(|(p, q)| p != q).count();
+    assert!(moved > 0, "the ear moved");
+    let worst = a
+        .iter()
+        .zip(&b)
+        .flat_map(|(p, q)| (0..3).map(move |k| (p[k] - q[k]).abs()))
+        .fold(0.0f64, f64::max);
+    assert!(
+        worst <= 1e-9,
+        "resumed and uninterrupted results differ by {worst:e}"
+    );
     core.shutdown(Duration::from_secs(1)).await;
 }
 

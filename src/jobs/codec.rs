@@ -4,7 +4,7 @@
 
 use super::{format_name, FramePositions, JobError, JobSpec};
 use sha2::{Digest, Sha256};
-use willow::flow::FlowState;
+use willow::flow::{Carried, FlowState};
 use willow::mesh::io::Format;
 use willow::metrics::StepMetrics;
 
@@ -306,16 +306,28 @@ pub fn decode_frame_positions(b: &[u8]) -> Result<FramePositions, JobError> {
 
 /// First bytes of a checkpoint blob, with its version: a checkpoint some other version wrote
 /// is not trusted (the job then restarts from step 0, which is always correct).
-const CHECKPOINT_MAGIC: &[u8; 8] = b"WLWCKP02";
+const CHECKPOINT_MAGIC: &[u8; 8] = b"WLWCKP03";
+/// The second version: no carried state after the positions (it resumes with none,
+/// [`willow::flow::Carried`]'s default).
+const CHECKPOINT_MAGIC_V2: &[u8; 8] = b"WLWCKP02";
 /// The first version: metrics of exactly [`METRICS_BYTES`], with no length before them.
 const CHECKPOINT_MAGIC_V1: &[u8; 8] = b"WLWCKP01";
 
+/// Bit of the carried state's flags: the safeguard resists damage (`Carried::resists_damage`).
+const CARRIED_RESISTS_DAMAGE: u32 = 1;
+
 /// A flow's state as a blob: magic, the length of the step's metrics (u32) and the metrics
-/// ([`encode_metrics`]), `next_tau` (f64), `clean_steps` (u32), the vertex count (u64), then
-/// the welded positions as f64 xyz, all little-endian.
+/// ([`encode_metrics`]), `next_tau` (f64), `clean_steps` (u32), the vertex count (u64), the
+/// welded positions as f64 xyz, then what the flow carries between steps
+/// ([`willow::flow::Carried`]): flags (u32), the run's quiet and crawling steps (u32 each),
+/// the length of the absorbed curvature change (u64) and its values (f64), all
+/// little-endian.
 pub fn encode_checkpoint(state: &FlowState) -> Vec<u8> {
     let metrics = encode_metrics(&state.metrics);
-    let mut out = Vec::with_capacity(12 + metrics.len() + 20 + state.positions.len() * 24);
+    let carried = &state.carried;
+    let mut out = Vec::with_capacity(
+        12 + metrics.len() + 20 + state.positions.len() * 24 + 20 + carried.absorbed.len() * 8,
+    );
     out.extend_from_slice(CHECKPOINT_MAGIC);
     out.extend_from_slice(&(metrics.len() as u32).to_le_bytes());
     out.extend_from_slice(&metrics);
@@ -323,19 +335,72 @@ pub fn encode_checkpoint(state: &FlowState) -> Vec<u8> {
     out.extend_from_slice(&state.clean_steps.to_le_bytes());
     out.extend_from_slice(&(state.positions.len() as u64).to_le_bytes());
     out.extend_from_slice(&f64s_to_bytes(&state.positions));
+    let flags = if carried.resists_damage {
+        CARRIED_RESISTS_DAMAGE
+    } else {
+        0
+    };
+    out.extend_from_slice(&flags.to_le_bytes());
+    out.extend_from_slice(&carried.quiet_steps.to_le_bytes());
+    out.extend_from_slice(&carried.crawling_steps.to_le_bytes());
+    out.extend_from_slice(&(carried.absorbed.len() as u64).to_le_bytes());
+    for d in &carried.absorbed {
+        out.extend_from_slice(&d.to_le_bytes());
+    }
     out
 }
 
-/// The inverse of [`encode_checkpoint`] (and of the first version's, whose jobs resume after
-/// an upgrade); an error for anything else (truncated, another version), never a panic.
+/// The carried state after a checkpoint's positions ([`encode_checkpoint`]).
+fn decode_carried(b: &[u8]) -> Result<Carried, JobError> {
+    let bad = |why: &str| JobError::Internal(format!("checkpoint: {why}"));
+    let (head, values) = b
+        .split_at_checked(20)
+        .ok_or_else(|| bad("truncated carried state"))?;
+    let u32_at = |k: usize| u32::from_le_bytes([head[k], head[k + 1], head[k + 2], head[k + 3]]);
+    let flags = u32_at(0);
+    if flags & !CARRIED_RESISTS_DAMAGE != 0 {
+        return Err(bad("unknown carried-state flags"));
+    }
+    let mut n = [0u8; 8];
+    n.copy_from_slice(&head[12..20]);
+    let count = u64::from_le_bytes(n);
+    if values.len() as u64 != count.saturating_mul(8) {
+        return Err(bad("truncated absorbed curvature change"));
+    }
+    Ok(Carried {
+        absorbed: values
+            .chunks_exact(8)
+            .map(|c| {
+                n.copy_from_slice(c);
+                f64::from_le_bytes(n)
+            })
+            .collect(),
+        resists_damage: flags & CARRIED_RESISTS_DAMAGE != 0,
+        quiet_steps: u32_at(4),
+        crawling_steps: u32_at(8),
+    })
+}
+
+/// The inverse of [`encode_checkpoint`] (and of the earlier versions', whose jobs resume
+/// after an upgrade, carrying nothing); an error for anything else (truncated, another
+/// version), never a panic.
 pub fn decode_checkpoint(b: &[u8]) -> Result<FlowState, JobError> {
     let bad = |why: &str| JobError::Internal(format!("checkpoint: {why}"));
-    let (metrics_len, rest) = if let Some(rest) = b.strip_prefix(CHECKPOINT_MAGIC.as_slice()) {
-        let mut n = [0u8; 4];
-        n.copy_from_slice(rest.get(..4).ok_or_else(|| bad("truncated header"))?);
-        (u32::from_le_bytes(n) as usize, &rest[4..])
-    } else if let Some(rest) = b.strip_prefix(CHECKPOINT_MAGIC_V1.as_slice()) {
-        (METRICS_BYTES, rest)
+    // Versions 2 and 3 give the metrics' length; version 3 carries state after the positions.
+    fn with_length(rest: &[u8]) -> Result<(usize, &[u8]), JobError> {
+        let (n, rest) = rest
+            .split_first_chunk::<4>()
+            .ok_or_else(|| JobError::Internal("checkpoint: truncated header".into()))?;
+        Ok((u32::from_le_bytes(*n) as usize, rest))
+    }
+    let (metrics_len, rest, carries) = if let Some(rest) = b.strip_prefix(CHECKPOINT_MAGIC) {
+        let (len, rest) = with_length(rest)?;
+        (len, rest, true)
+    } else if let Some(rest) = b.strip_prefix(CHECKPOINT_MAGIC_V2) {
+        let (len, rest) = with_length(rest)?;
+        (len, rest, false)
+    } else if let Some(rest) = b.strip_prefix(CHECKPOINT_MAGIC_V1) {
+        (METRICS_BYTES, rest, false)
     } else {
         return Err(bad("not a checkpoint of this version"));
     };
@@ -352,7 +417,17 @@ pub fn decode_checkpoint(b: &[u8]) -> Result<FlowState, JobError> {
     let clean_steps = u32::from_le_bytes(c);
     f.copy_from_slice(&rest[12..20]);
     let n = u64::from_le_bytes(f);
-    let positions = bytes_to_f64s(&rest[20..])?;
+    let rest = &rest[20..];
+    let (positions, carried) = if carries {
+        let end = usize::try_from(n)
+            .ok()
+            .and_then(|n| n.checked_mul(24))
+            .filter(|&end| end <= rest.len())
+            .ok_or_else(|| bad("truncated positions"))?;
+        (bytes_to_f64s(&rest[..end])?, decode_carried(&rest[end..])?)
+    } else {
+        (bytes_to_f64s(rest)?, Carried::default())
+    };
     if positions.len() as u64 != n {
         return Err(bad("truncated positions"));
     }
@@ -361,6 +436,7 @@ pub fn decode_checkpoint(b: &[u8]) -> Result<FlowState, JobError> {
         positions,
         next_tau,
         clean_steps,
+        carried,
     })
 }
 
@@ -653,17 +729,20 @@ mod tests {
             positions: vec![[1.0, 2.0, 3.0]],
             next_tau: 0.25,
             clean_steps: 2,
+            carried: Carried::default(),
         };
         let again = decode_checkpoint(&encode_checkpoint(&state)).expect("checkpoint");
         assert_eq!(again.metrics.volume, Some(4.1887));
         assert_eq!(again.positions, state.positions);
-        // A first-version checkpoint: the fixed-length metrics and no length before them.
+        // A first-version checkpoint: the fixed-length metrics and no length before them,
+        // and nothing carried after the positions (20 bytes with nothing absorbed).
         m.volume = None;
         m.deviation_max = None;
         m.deviation_mean = None;
         let mut v1 = CHECKPOINT_MAGIC_V1.to_vec();
         v1.extend_from_slice(&encode_metrics(&m));
-        v1.extend_from_slice(&encode_checkpoint(&state)[12 + blob.len()..]);
+        let current = encode_checkpoint(&state);
+        v1.extend_from_slice(&current[12 + blob.len()..current.len() - 20]);
         let old = decode_checkpoint(&v1).expect("a v1 checkpoint resumes");
         assert_eq!((old.metrics.step, old.metrics.volume), (3, None));
         assert_eq!(old.next_tau, 0.25);
@@ -713,14 +792,40 @@ mod tests {
             positions: vec![[1.0, -2.0, 3.5], [0.1, 0.2, f64::MIN_POSITIVE]],
             next_tau: 0.25,
             clean_steps: 2,
+            carried: Carried {
+                absorbed: vec![0.5, -1.25e-3],
+                resists_damage: true,
+                quiet_steps: 2,
+                crawling_steps: 1,
+            },
         };
         let blob = encode_checkpoint(&state);
         assert_eq!(decode_checkpoint(&blob).expect("decodes"), state);
-        for cut in [0, 7, 8, 50, blob.len() - 1] {
+        // The carried state is 20 bytes and 8 per absorbed value after the positions.
+        let carried_len = 20 + 8 * state.carried.absorbed.len();
+        for cut in [0, 7, 8, 50, blob.len() - carried_len, blob.len() - 1] {
             assert!(decode_checkpoint(&blob[..cut]).is_err(), "cut at {cut}");
         }
         let mut other = blob.clone();
         other[7] = b'9';
         assert!(decode_checkpoint(&other).is_err(), "another version");
+        let mut flags = blob.clone();
+        flags[blob.len() - carried_len] |= 2;
+        assert!(decode_checkpoint(&flags).is_err(), "an unknown flag");
+        // A second-version checkpoint (written before the carried state was kept) resumes
+        // with nothing carried: no absorbed change, the rules' look-back afresh.
+        let mut v2 = CHECKPOINT_MAGIC_V2.to_vec();
+        v2.extend_from_slice(&blob[8..blob.len() - carried_len]);
+        let old = decode_checkpoint(&v2).expect("a v2 checkpoint resumes");
+        assert_eq!(old.carried, Carried::default());
+        assert_eq!(
+            (old.metrics, old.positions, old.next_tau, old.clean_steps),
+            (
+                state.metrics,
+                state.positions.clone(),
+                state.next_tau,
+                state.clean_steps
+            )
+        );
     }
 }

@@ -17,9 +17,8 @@ use std::time::{Duration, Instant};
 use tokio::runtime::Handle;
 use tokio_util::sync::CancellationToken;
 use willow::flow::stopping::{Event, Run};
-use willow::flow::{new_flow, Flow};
+use willow::flow::{new_flow, Flow, FlowState};
 use willow::mesh::io::Asset;
-use willow::metrics::StepMetrics;
 
 /// What ended a run early.
 enum Stop {
@@ -171,10 +170,11 @@ pub(super) fn run_job(
     let resumed_at = resume(inner, rt, id, flow.as_mut())?;
     let first = match &resumed_at {
         Some(at) => {
-            rt.block_on(backend.store.rewind(id, at.step, fence))?;
+            let step = at.metrics.step;
+            rt.block_on(backend.store.rewind(id, step, fence))?;
             inner.telemetry.resumed.inc();
-            tracing::info!(step = at.step, "resumed from the checkpoint");
-            at.step + 1
+            tracing::info!(step, "resumed from the checkpoint");
+            step + 1
         }
         None => {
             rt.block_on(backend.store.rewind(id, 0, fence))?;
@@ -186,7 +186,7 @@ pub(super) fn run_job(
     // The stopping rules (`willow::flow::stopping`): the steps, convergence, `until_willmore`,
     // `max_deviation`, and the safeguard's "no acceptable step".
     let run = match resumed_at {
-        Some(at) => Run::resumed(flow, &params, spec.steps, at),
+        Some(at) => Run::resumed(flow, &params, spec.steps, &at),
         None => Run::new(flow, &params, spec.steps),
     };
     let mut run = match run {
@@ -199,7 +199,7 @@ pub(super) fn run_job(
     let mut step = first;
     let (outcome, reason) = loop {
         if let Some(stop) = check(step - 1).filter(|_| !run.is_over()) {
-            return stopped(inner, rt, id, stop, &running, Some(run.flow()), fence);
+            return stopped(inner, rt, id, stop, &running, Some(&run), fence);
         }
         let t = Instant::now();
         let metrics = match run.advance() {
@@ -236,7 +236,7 @@ pub(super) fn run_job(
             || last_checkpoint.1.elapsed() >= inner.config.checkpoint_interval;
         if due && step < spec.steps {
             still_held()?;
-            if checkpoint(inner, rt, id, run.flow())? {
+            if checkpoint(inner, rt, id, &run)? {
                 // Progress that outlives this worker: a delivery after it is not a repeat.
                 rt.block_on(backend.store.checkpointed(id, step, fence))?;
             }
@@ -334,7 +334,8 @@ fn read_asset(inner: &Inner, rt: &Handle, status: &JobStatus) -> Result<Asset, J
         .map_err(mesh_error)
 }
 
-/// Put `flow` on the job's checkpoint, if it has a usable one; the metrics of the step it is at.
+/// Put `flow` on the job's checkpoint, if it has a usable one; the checkpoint (its metrics
+/// are those of the step it is at, its carried state the run's, [`Run::resumed`]).
 /// A store that cannot answer now (NATS away: `Unavailable`, or full) is an error, so that
 /// the job is handed back and resumed later instead of starting over from step 0.
 fn resume(
@@ -342,7 +343,7 @@ fn resume(
     rt: &Handle,
     id: &JobId,
     flow: &mut dyn Flow,
-) -> Result<Option<StepMetrics>, JobError> {
+) -> Result<Option<FlowState>, JobError> {
     let key = BlobKey::Checkpoint { id: id.clone() };
     let bytes = match rt.block_on(inner.backend.blobs.get(key)) {
         Ok(Some(b)) => b,
@@ -361,7 +362,7 @@ fn resume(
         }
     };
     match flow.resume(&state) {
-        Ok(()) => Ok(Some(state.metrics)),
+        Ok(()) => Ok(Some(state)),
         Err(e) => {
             tracing::warn!(error = %e, "checkpoint does not fit the flow: the job starts from step 0");
             Ok(None)
@@ -369,9 +370,10 @@ fn resume(
     }
 }
 
-/// Write the flow's state as the job's checkpoint; whether the flow has one to write.
-fn checkpoint(inner: &Inner, rt: &Handle, id: &JobId, flow: &dyn Flow) -> Result<bool, JobError> {
-    let Some(state) = flow.checkpoint() else {
+/// Write the run's state (its flow's and its stopping rules', [`Run::checkpoint`]) as the
+/// job's checkpoint; whether the flow has one to write.
+fn checkpoint(inner: &Inner, rt: &Handle, id: &JobId, run: &Run) -> Result<bool, JobError> {
+    let Some(state) = run.checkpoint() else {
         return Ok(false);
     };
     let t = Instant::now();
@@ -402,7 +404,7 @@ fn stopped(
     id: &JobId,
     stop: Stop,
     status: &JobStatus,
-    flow: Option<&dyn Flow>,
+    run: Option<&Run>,
     fence: &Fence,
 ) -> Result<Outcome, JobError> {
     match stop {
@@ -440,11 +442,11 @@ fn stopped(
         }
         Stop::Shutdown => {
             // Keep every step taken: the next worker resumes right here.
-            if let Some(flow) = flow {
+            if let Some(run) = run {
                 if fence.lost.is_cancelled() {
                     return Ok(Outcome::Lost);
                 }
-                checkpoint(inner, rt, id, flow)?;
+                checkpoint(inner, rt, id, run)?;
             }
             let backend = &inner.backend;
             rt.block_on(backend.store.requeue(id, fence))?;

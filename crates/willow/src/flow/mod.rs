@@ -521,15 +521,24 @@ pub trait Flow: Send {
     fn feature_detail(&self) -> Option<feature::FeatureDetail> {
         None
     }
-    /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics and
-    /// the step-size control. `None` for a flow that cannot be resumed.
+    /// For a flow that absorbs the curvature change a held border cannot realize (a region,
+    /// `flow/willmore/pinned.rs`): the part of the requested change its last try still aimed
+    /// at, `⟨ρ, ρ_req⟩_M / |ρ_req|²_M` over the free vertices (1: nothing absorbed, ≤ 0: the
+    /// absorbed change cancels or reverses the request); `None` for any other flow.
+    fn kept_share(&self) -> Option<f64> {
+        None
+    }
+    /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics, the
+    /// step-size control and what the flow carries between steps ([`Carried`]). `None` for a
+    /// flow that cannot be resumed.
     fn checkpoint(&self) -> Option<FlowState> {
         None
     }
     /// Put a flow freshly built on the same input and parameters back where
     /// [`Flow::checkpoint`] left another one. Every quantity a step reads is recomputed from
-    /// the surface (the inverse iteration starts from λ = 1 each step, App. G), so the steps
-    /// that follow are those the first flow would have taken.
+    /// the surface (the inverse iteration starts from λ = 1 each step, App. G) or put back
+    /// from [`FlowState::carried`], so the steps that follow are those the first flow would
+    /// have taken.
     fn resume(&mut self, state: &FlowState) -> Result<(), FlowError> {
         let _ = state;
         Err(FlowError::Unsupported(
@@ -563,6 +572,28 @@ pub struct FlowState {
     pub next_tau: f64,
     /// Steps accepted at their first try since τ last changed.
     pub clean_steps: u32,
+    /// What the flow and its run carry from step to step beyond the surface: without it a
+    /// resumed region job would not take the steps an uninterrupted one takes.
+    pub carried: Carried,
+}
+
+/// A flow's memory between steps that its surface does not determine ([`FlowState`]). A
+/// checkpoint written before it was kept (the service's version 2) resumes with the default:
+/// nothing absorbed, the plain Poisson weights, the stopping rules' look-back afresh.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Carried {
+    /// The curvature change a held border cannot realize, absorbed per unit τ and carried to
+    /// the next step (a region's flow: `flow/willmore/pinned.rs`, `ABSORB_MEMORY`), per
+    /// vertex of the flow's own mesh (a region's submesh); empty: nothing absorbed.
+    pub absorbed: Vec<f64>,
+    /// The safeguard switched the Poisson solve to non-negative weights on crowded faces
+    /// for the rest of the run ([`safeguard::Retry::resist_damage`]).
+    pub resists_damage: bool,
+    /// Quiet steps in a row ([`stopping::Run`]'s convergence window), as the run counted
+    /// them at the checkpoint; 0 from a flow's own [`Flow::checkpoint`].
+    pub quiet_steps: u32,
+    /// Crawling steps in a row ([`stopping::Run`]'s stall window), likewise.
+    pub crawling_steps: u32,
 }
 
 /// Milliseconds per phase of one step, in the order the phases ran. Refilled in place each

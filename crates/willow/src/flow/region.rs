@@ -513,6 +513,14 @@ impl Flow for RegionFlow {
         self.inner.feature_detail()
     }
 
+    fn kept_share(&self) -> Option<f64> {
+        self.inner.kept_share()
+    }
+
+    fn last_refusal(&self) -> Option<String> {
+        self.inner.last_refusal()
+    }
+
     /// The whole surface's positions (so a resumed job writes the whole file), with the inner
     /// flow's metrics and step-size control.
     fn checkpoint(&self) -> Option<FlowState> {

@@ -107,6 +107,23 @@ pub trait Retry: Flow {
     fn pins_vertices(&self) -> bool {
         false
     }
+    /// What the flow carries from one step to the next beyond its surface, for a checkpoint
+    /// (the absorbed curvature change, whether it resists damage); the run's counters stay 0.
+    fn carried(&self) -> super::Carried {
+        super::Carried::default()
+    }
+    /// Puts back what [`Retry::carried`] gave, before [`Retry::restore`] puts the surface
+    /// back; an error, with nothing changed, when it does not fit this flow.
+    fn carry(&mut self, carried: &super::Carried) -> Result<(), FlowError> {
+        if carried.absorbed.is_empty() && !carried.resists_damage {
+            Ok(())
+        } else {
+            Err(FlowError::InvalidParameter {
+                name: "checkpoint",
+                reason: "holds step-to-step state this flow does not keep".into(),
+            })
+        }
+    }
 }
 
 /// A flow whose steps are accepted or retried as the module docs describe.
@@ -396,6 +413,10 @@ impl<F: Retry> Flow for Safeguarded<F> {
         self.inner.feature_detail()
     }
 
+    fn kept_share(&self) -> Option<f64> {
+        self.inner.kept_share()
+    }
+
     fn willmore_lower_bound(&self) -> Option<f64> {
         self.inner.willmore_lower_bound()
     }
@@ -410,6 +431,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
             positions: self.inner.positions().to_vec(),
             next_tau: self.next_tau,
             clean_steps: self.clean_steps,
+            carried: self.inner.carried(),
         })
     }
 
@@ -429,6 +451,7 @@ impl<F: Retry> Flow for Safeguarded<F> {
                 reason: "holds a non-finite surface or time step".into(),
             });
         }
+        self.inner.carry(&state.carried)?;
         self.inner.restore(&state.positions, state.metrics.step);
         self.accepted.copy_from_slice(&state.positions);
         self.accepted_metrics = state.metrics;

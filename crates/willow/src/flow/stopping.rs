@@ -51,6 +51,10 @@ pub const NOISE_FLOOR: f64 = 1e-5;
 pub const STALL_HALVINGS: i32 = 4;
 /// Crawling steps in a row after which a run has stalled.
 pub const STALL_WINDOW: usize = 5;
+/// A run that ends at a "minimum" while its flow kept less than this part of the requested
+/// curvature change ([`Flow::kept_share`]) says so: it stopped where its held border lets a
+/// conformal flow go, not at a minimum of W (docs/algorithm.md §12).
+pub const KEPT_SHARE_NOTE: f64 = 0.5;
 
 /// Relative change of W and of the area below which the first step counts as not moving.
 pub const STILL_TOLERANCE: f64 = 1e-12;
@@ -171,18 +175,30 @@ impl Run {
         })
     }
 
-    /// [`Run::new`] for a flow already put back on a checkpoint ([`Flow::resume`]) whose
-    /// surface has the metrics `at`: the run counts its steps from `at.step`, and the rules
-    /// that look back (convergence) start afresh there.
+    /// [`Run::new`] for a flow already put back on `state` ([`Flow::resume`]), a checkpoint
+    /// of a run ([`Run::checkpoint`]): the run counts its steps from `state.metrics.step`,
+    /// and the rules that look back (convergence, stalling) go on from the counts it holds
+    /// (a flow's own checkpoint holds none: they start afresh there).
     pub fn resumed(
         flow: Box<dyn Flow>,
         params: &FlowParams,
         steps: usize,
-        at: StepMetrics,
+        state: &FlowState,
     ) -> Result<Run, FlowError> {
         let mut run = Run::new(flow, params, steps)?;
-        run.last = at;
+        run.last = state.metrics;
+        run.quiet = state.carried.quiet_steps as usize;
+        run.crawling = state.carried.crawling_steps as usize;
         Ok(run)
+    }
+
+    /// The flow's checkpoint ([`Flow::checkpoint`]) with what the stopping rules have
+    /// counted so far, so that [`Run::resumed`] stops where this run would have.
+    pub fn checkpoint(&self) -> Option<FlowState> {
+        let mut state = self.flow.checkpoint()?;
+        state.carried.quiet_steps = u32::try_from(self.quiet).unwrap_or(u32::MAX);
+        state.carried.crawling_steps = u32::try_from(self.crawling).unwrap_or(u32::MAX);
+        Some(state)
     }
 
     /// Whether the run has decided to stop: the next [`Run::advance`] takes no step and says
@@ -224,13 +240,20 @@ impl Run {
                 tau,
                 reason,
             }) => {
-                let reason = format!(
+                let mut reason = format!(
                     "Willmore energy {:.6} is at a minimum to the solver's accuracy: no try of \
                      step {step} down to tau = {tau:e} lowered it, and the smallest raised it by \
                      less than {:e} (relative; last: {reason})",
                     self.last.willmore_energy,
                     super::safeguard::MINIMUM_RISE
                 );
+                if let Some(kept) = self.flow.kept_share().filter(|&k| k < KEPT_SHARE_NOTE) {
+                    reason.push_str(&format!(
+                        "; a minimum of what the held border lets a conformal flow do, not of W: \
+                         the curvature change the border cannot realize, absorbed, left {kept:.2} \
+                         of the requested change"
+                    ));
+                }
                 return Ok(self.finish((Outcome::Converged, reason)));
             }
             Err(e @ FlowError::NoProgress { .. }) => {
@@ -461,10 +484,10 @@ mod tests {
         let (whole, _, _) = drive(&mesh, &params, 4);
         let mut first = Run::new(new_flow(&mesh, &params).expect("flow"), &params, 2).expect("run");
         while let Event::Step(_) = first.advance().expect("steps") {}
-        let state = first.flow().checkpoint().expect("a checkpoint");
+        let state = first.checkpoint().expect("a checkpoint");
         let mut flow = new_flow(&mesh, &params).expect("flow");
         flow.resume(&state).expect("resumes");
-        let mut run = Run::resumed(flow, &params, 4, state.metrics).expect("run");
+        let mut run = Run::resumed(flow, &params, 4, &state).expect("run");
         let mut steps = Vec::new();
         let outcome = loop {
             match run.advance().expect("steps") {
@@ -480,6 +503,81 @@ mod tests {
             (resumed - straight).abs() <= 1e-12 * straight,
             "{resumed} vs {straight}"
         );
+    }
+
+    /// A run checkpointed inside its convergence window ([`Run::checkpoint`]) and resumed
+    /// stops `converged` at the step the uninterrupted run stops at, not a whole window
+    /// later: the quiet steps counted before the checkpoint still count.
+    #[test]
+    fn a_resumed_run_converges_where_the_uninterrupted_one_does() {
+        let mesh = bumpy_sphere(3, 0.05);
+        let params = FlowParams::default();
+        let (whole, outcome, _) = drive(&mesh, &params, 100);
+        assert_eq!(outcome, Outcome::Converged);
+        let last = whole.len();
+        // One step before the end: the window holds CONVERGED_WINDOW − 1 quiet steps.
+        let at = last - 1;
+        let mut first =
+            Run::new(new_flow(&mesh, &params).expect("flow"), &params, 100).expect("run");
+        for _ in 0..at {
+            assert!(matches!(first.advance().expect("steps"), Event::Step(_)));
+        }
+        let state = first.checkpoint().expect("a checkpoint");
+        assert_eq!(state.metrics.step, at);
+        assert_eq!(state.carried.quiet_steps as usize, CONVERGED_WINDOW - 1);
+        let resume = |state: &FlowState| {
+            let mut flow = new_flow(&mesh, &params).expect("flow");
+            flow.resume(state).expect("resumes");
+            let mut run = Run::resumed(flow, &params, 100, state).expect("run");
+            let mut steps = 0;
+            loop {
+                match run.advance().expect("steps") {
+                    Event::Step(_) => steps += 1,
+                    Event::Stopped { outcome, .. } => return (steps, outcome),
+                }
+            }
+        };
+        assert_eq!(resume(&state), (1, Outcome::Converged));
+        // A flow's own checkpoint counts nothing: its run needs a whole window again.
+        let plain = first.flow().checkpoint().expect("a checkpoint");
+        assert_eq!(plain.carried.quiet_steps, 0);
+        assert!(resume(&plain).0 >= CONVERGED_WINDOW);
+    }
+
+    /// A wide fixed-seam cap on a bumpy sphere: its held border forbids most of what the
+    /// flow asks, the absorbed change comes to reverse the request (kept share −0.19 at step
+    /// 3, docs/algorithm.md §12), every try of step 3 raises W, and the run ends `converged`
+    /// saying that this is the border's limit, not a minimum of W.
+    #[test]
+    fn a_region_stopped_by_its_held_border_says_so() {
+        use crate::flow::region::{Region, Seam};
+        let mesh = bumpy_sphere(3, 0.15);
+        let params = FlowParams {
+            regions: vec![Region::Sphere {
+                center: mesh.positions[0],
+                radius: 0.6,
+            }],
+            seam: Seam::Fixed,
+            until_converged: false,
+            ..FlowParams::default()
+        };
+        let flow = new_flow(&mesh, &params).expect("flow");
+        let mut run = Run::new(flow, &params, 10).expect("run");
+        let (outcome, reason) = loop {
+            match run.advance().expect("steps") {
+                Event::Step(_) => {}
+                Event::Stopped { outcome, reason } => break (outcome, reason),
+            }
+        };
+        assert_eq!(outcome, Outcome::Converged, "{reason}");
+        assert!(run.last_metrics().step < 10, "{reason}");
+        assert!(reason.contains("held border"), "{reason}");
+        let kept = run.flow().kept_share().expect("a region flow absorbs");
+        eprintln!("{reason}; kept {kept}");
+        assert!(kept < KEPT_SHARE_NOTE, "kept {kept}");
+        // A whole-surface flow absorbs nothing.
+        let whole = new_flow(&mesh, &FlowParams::default()).expect("flow");
+        assert_eq!(whole.kept_share(), None);
     }
 
     /// A slightly bumpy sphere at τ 0.5 reaches its round minimum within a few steps and

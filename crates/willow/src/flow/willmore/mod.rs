@@ -140,8 +140,14 @@ pub struct ConformalFlow {
     /// taken as it is.
     absorb_held: Vec<bool>,
     absorb_delta: Vec<f64>,
-    /// The absorbed change per unit τ, carried between steps (`pinned.rs`, ABSORB_MEMORY).
+    /// The absorbed change per unit τ, carried between steps (`pinned.rs`, ABSORB_MEMORY),
+    /// and its value on the accepted surface the current try started from: a rejected try
+    /// puts it back ([`super::safeguard::Retry::restore`]), so a retry starts from what the
+    /// accepted steps absorbed, not from what the refused try added.
     absorb_offset: Vec<f64>,
+    absorb_offset_accepted: Vec<f64>,
+    /// [`Flow::kept_share`] of the last try (`None` until a try absorbed).
+    absorb_kept: Option<f64>,
     /// Work vectors of the absorbing rounds' refined solves (`pcg.rs`), sized once.
     absorb_refine_real: pcg::Scratch<f64>,
     absorb_refine_complex: pcg::Scratch<c64>,
@@ -464,6 +470,8 @@ impl ConformalFlow {
             absorb_held: Vec::new(),
             absorb_delta: Vec::new(),
             absorb_offset: Vec::new(),
+            absorb_offset_accepted: Vec::new(),
+            absorb_kept: None,
             absorb_refine_real: pcg::Scratch::default(),
             absorb_refine_complex: pcg::Scratch::default(),
             step_start: if params.feature_size.is_some() {
@@ -543,6 +551,8 @@ impl super::safeguard::Retry for ConformalFlow {
         self.geometry.refresh(&self.positions, &self.triangles);
         self.step = step;
         self.direction_ready = false;
+        self.absorb_offset
+            .copy_from_slice(&self.absorb_offset_accepted);
         // The retry runs at a smaller τ: its X is not the rejected try's.
         if let DiracFactor::Mixed(m) = &mut self.dirac {
             m.refactor_next();
@@ -564,12 +574,29 @@ impl super::safeguard::Retry for ConformalFlow {
     fn pins_vertices(&self) -> bool {
         self.free_component.iter().any(|&f| !f)
     }
+
+    fn carried(&self) -> super::Carried {
+        super::Carried {
+            absorbed: self.absorb_offset.clone(),
+            resists_damage: self.geometry.clamp_crowded,
+            ..super::Carried::default()
+        }
+    }
+
+    fn carry(&mut self, carried: &super::Carried) -> Result<(), FlowError> {
+        self.carry_absorbed(&carried.absorbed)?;
+        self.geometry.clamp_crowded = carried.resists_damage;
+        Ok(())
+    }
 }
 
 impl Flow for ConformalFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let start = Instant::now();
         self.profile.start();
+        // What the accepted steps absorbed, for a refused try to put back (`restore`).
+        self.absorb_offset_accepted
+            .copy_from_slice(&self.absorb_offset);
         self.curvature_change()?;
         self.profile.lap("curvature");
         let eigen_residual = self.solve_lambda()?;
@@ -661,6 +688,10 @@ impl Flow for ConformalFlow {
 
     fn feature_detail(&self) -> Option<FeatureDetail> {
         self.feature.as_ref().map(|f| f.detail)
+    }
+
+    fn kept_share(&self) -> Option<f64> {
+        self.absorb_kept
     }
 }
 

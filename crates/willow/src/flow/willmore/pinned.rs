@@ -60,7 +60,10 @@ const ABSORB_ROUNDS: usize = 3;
 ///   through the step's higher-order residual.
 ///
 /// W falls more slowly than without absorption: the faster descent was bought with
-/// non-conformal motion.
+/// non-conformal motion. Per step, the carried δ comes to cancel nearly all of the request
+/// (docs/algorithm.md §12: the ear keeps 2% of it at step 20, the rim and cap 11–12%); every
+/// change tried against that (a floor on the kept part, μ on the total, no memory) raised the
+/// ear's Q past its bound.
 const ABSORB_MEMORY: f64 = 0.8;
 
 impl ConformalFlow {
@@ -93,6 +96,13 @@ impl ConformalFlow {
                     self.assemble_dirac_dirichlet()?;
                 }
             }
+            self.absorb_kept = Some(kept_share(
+                &self.rho,
+                &self.absorb_offset,
+                self.tau,
+                &self.geometry.vertex_areas,
+                &self.absorb_held,
+            ));
             // The step's λ at the final ρ: refined to the tight tolerance it takes 7–10
             // iterations (nefertiti's 5% region), and an iteration costs a fifth of a
             // factorization, so a second factor is cheaper.
@@ -258,6 +268,40 @@ impl ConformalFlow {
         self.absorb_refine_real = pcg::Scratch::new(fixed.len());
         self.absorb_refine_complex = pcg::Scratch::new(2 * fixed.len());
         self.absorb_offset = vec![0.0; fixed.len()];
+        self.absorb_offset_accepted = vec![0.0; fixed.len()];
+        Ok(())
+    }
+
+    /// Puts a checkpoint's absorbed change (per unit τ) back as the offset the next step
+    /// starts from ([`super::super::safeguard::Retry::carry`]); empty: none absorbed (a
+    /// checkpoint from before it was kept). An error, with nothing changed, when it does
+    /// not fit this flow.
+    pub(super) fn carry_absorbed(&mut self, absorbed: &[f64]) -> Result<(), FlowError> {
+        let refuse = |reason: String| {
+            Err(FlowError::InvalidParameter {
+                name: "checkpoint",
+                reason,
+            })
+        };
+        if !absorbed.is_empty() && absorbed.len() != self.absorb_offset.len() {
+            return refuse(format!(
+                "holds an absorbed curvature change for {} vertices, the flow absorbs on {}",
+                absorbed.len(),
+                self.absorb_offset.len()
+            ));
+        }
+        if let Some(v) = absorbed.iter().position(|d| !d.is_finite()) {
+            return refuse(format!(
+                "holds a non-finite absorbed curvature change at vertex {v}"
+            ));
+        }
+        if absorbed.is_empty() {
+            self.absorb_offset.fill(0.0);
+        } else {
+            self.absorb_offset.copy_from_slice(absorbed);
+        }
+        self.absorb_offset_accepted
+            .copy_from_slice(&self.absorb_offset);
         Ok(())
     }
 
@@ -384,6 +428,24 @@ impl ConformalFlow {
     }
 }
 
+/// The part of the requested curvature change `ρ_req` the final `rho` still aims at,
+/// `⟨ρ, ρ_req⟩_M / |ρ_req|²_M` over the vertices not `held` ([`Flow::kept_share`]). What was
+/// absorbed this step and carried from earlier ones is `τ · offset` (the offset is the
+/// absorbed change per unit τ), so `ρ_req = ρ − τ · offset`; 1 when nothing was requested.
+fn kept_share(rho: &[f64], offset: &[f64], tau: f64, areas: &[f64], held: &[bool]) -> f64 {
+    let (mut along, mut requested) = (0.0, 0.0);
+    for i in (0..rho.len()).filter(|&i| !held[i]) {
+        let r = rho[i] - tau * offset[i];
+        along += areas[i] * rho[i] * r;
+        requested += areas[i] * r * r;
+    }
+    if requested > 0.0 {
+        along / requested
+    } else {
+        1.0
+    }
+}
+
 /// [`normalize_per_component`] on the free components only: a pinned component's λ is the
 /// boundary-value solution, whose scale the pinned λ = 1 sets.
 fn normalize_free_components(
@@ -402,4 +464,58 @@ fn normalize_free_components(
         component_areas,
         |c| free[c],
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::flow::safeguard::Retry;
+
+    /// A try the safeguard refuses does not leave its absorbed curvature change behind: after
+    /// `restore` the offset is the accepted steps' again, so the retry takes exactly the
+    /// step a flow that never tried the refused one takes (`pinned.rs`, ABSORB_MEMORY).
+    #[test]
+    fn a_refused_try_leaves_no_absorbed_change_behind() {
+        use crate::mesh::generate::{bumpy_cap, with_noise};
+        let mesh = with_noise(bumpy_cap(3, 0.06), 0.05, 11);
+        let pinned: Vec<bool> = mesh
+            .positions
+            .iter()
+            .map(|p| p[0].abs() > 0.4 || p[1].abs() > 0.4)
+            .collect();
+        let build = || {
+            let mut flow =
+                ConformalFlow::with_pinned(&mesh, &FlowParams::default(), pinned.clone(), None)
+                    .expect("flow");
+            flow.absorb_unrealizable_curvature().expect("absorbs");
+            flow.step().expect("step 1");
+            flow
+        };
+        let mut tried = build();
+        let accepted = tried.positions.clone();
+        let offset = tried.absorb_offset.clone();
+        assert!(
+            offset.iter().any(|&o| o != 0.0),
+            "step 1 absorbed something"
+        );
+        tried.step().expect("the try");
+        assert_ne!(tried.absorb_offset, offset, "the try changed the offset");
+        tried.restore(&accepted, 1);
+        assert_eq!(tried.absorb_offset, offset, "restore puts it back");
+        tried.set_tau(0.25);
+        let retry = tried.step().expect("the retry");
+        let mut direct = build();
+        direct.set_tau(0.25);
+        let step = direct.step().expect("the same step");
+        // The same to rounding (the restored surface's geometry is recomputed).
+        let scale = direct
+            .absorb_offset
+            .iter()
+            .fold(0.0f64, |m, o| m.max(o.abs()));
+        for (a, b) in tried.absorb_offset.iter().zip(&direct.absorb_offset) {
+            assert!((a - b).abs() <= 1e-9 * scale, "offset {a} vs {b}");
+        }
+        let (a, b) = (retry.willmore_energy, step.willmore_energy);
+        assert!((a - b).abs() <= 1e-12 * b, "W {a} vs {b}");
+    }
 }
