@@ -127,6 +127,11 @@ impl Jobs {
 
     /// [`Jobs::frame_mesh`] as a download: rendered once, stored, and streamed from storage
     /// (see [`Jobs::rendered`]).
+    ///
+    /// The rendering is named after the version of the positions it is rendered from
+    /// ([`BlobKey::Rendered::source`]): a job resumed from a checkpoint before `step` writes
+    /// the step's positions again, and the next download renders those, not the stored
+    /// rendering of the first run.
     pub async fn frame_download(
         &self,
         caller: &Caller,
@@ -135,17 +140,45 @@ impl Jobs {
         format: Format,
     ) -> Result<MeshDownload, JobError> {
         let status = self.get(caller, id).await?;
+        self.kept_frame(&status, step).await?;
+        let positions = BlobKey::Frame {
+            id: status.id.clone(),
+            step,
+            welded: true,
+        };
+        let source = self
+            .on_request(self.inner.backend.blobs.version(positions))
+            .await?
+            .ok_or_else(|| self.frame_not_found(&status, step))?;
         let key = BlobKey::Rendered {
             id: status.id.clone(),
             step: Some(step),
             format,
+            source: Some(ports::rendered_source(&source)),
         };
-        // Only a kept step is ever rendered, so a stored rendering answers for the step.
         self.rendered(key, async {
             let positions = self.frame_positions(&status, step).await?;
             self.render(&status, positions, format).await
         })
         .await
+    }
+
+    /// Whether the job's progress has reached `step` and the step kept positions; the
+    /// reason why not ([`JobError::FrameNotFound`]) otherwise.
+    async fn kept_frame(&self, status: &JobStatus, step: usize) -> Result<(), JobError> {
+        let kept = if step <= status.step {
+            let rows = self
+                .read(self.inner.backend.store.frame_rows(&status.id, step, 1))
+                .await?;
+            rows.first().is_some_and(|(m, p)| m.step == step && *p)
+        } else {
+            false
+        };
+        if kept {
+            Ok(())
+        } else {
+            Err(self.frame_not_found(status, step))
+        }
     }
 
     /// The stored welded positions of `step`, or why there are none.
@@ -154,48 +187,41 @@ impl Jobs {
         status: &JobStatus,
         step: usize,
     ) -> Result<Vec<[f64; 3]>, JobError> {
-        let id = status.id.as_str();
-        let kept = if step <= status.step {
-            let rows = self
-                .read(self.inner.backend.store.frame_rows(id, step, 1))
-                .await?;
-            rows.first().is_some_and(|(m, p)| m.step == step && *p)
-        } else {
-            false
-        };
+        self.kept_frame(status, step).await?;
         let key = BlobKey::Frame {
             id: status.id.clone(),
             step,
             welded: true,
         };
-        let bytes = if kept {
-            self.on_request(self.inner.backend.blobs.get(key)).await?
-        } else {
-            None
-        };
-        let Some(bytes) = bytes else {
-            let detail = if step > status.step
-                || (step == status.step && !status.state.is_terminal() && status.latest.is_none())
-            {
-                format!(
-                    "the job has completed {} of {} steps",
-                    status.step, status.total_steps
-                )
-            } else if !status.spec.include_positions {
-                "the job was submitted with include_positions=false".to_string()
-            } else {
-                format!(
-                    "positions are kept at step 0, every {} steps and the last step",
-                    status.spec.frame_interval
-                )
-            };
-            return Err(JobError::FrameNotFound {
-                id: id.to_string(),
-                step,
-                detail,
-            });
-        };
+        let bytes = self
+            .on_request(self.inner.backend.blobs.get(key))
+            .await?
+            .ok_or_else(|| self.frame_not_found(status, step))?;
         codec::bytes_to_f64s(&bytes)
+    }
+
+    /// Why `status`'s job has no mesh for `step`.
+    fn frame_not_found(&self, status: &JobStatus, step: usize) -> JobError {
+        let detail = if step > status.step
+            || (step == status.step && !status.state.is_terminal() && status.latest.is_none())
+        {
+            format!(
+                "the job has completed {} of {} steps",
+                status.step, status.total_steps
+            )
+        } else if !status.spec.include_positions {
+            "the job was submitted with include_positions=false".to_string()
+        } else {
+            format!(
+                "positions are kept at step 0, every {} steps and the last step",
+                status.spec.frame_interval
+            )
+        };
+        JobError::FrameNotFound {
+            id: status.id.to_string(),
+            step,
+            detail,
+        }
     }
 
     /// The faired mesh in `format` (input UVs, materials and textures kept). `Conflict` until
@@ -224,6 +250,7 @@ impl Jobs {
             id: status.id.clone(),
             step: None,
             format,
+            source: None,
         };
         self.rendered(key, async {
             let positions = self.result_positions(&status).await?;
@@ -270,8 +297,14 @@ impl Jobs {
     ///
     /// Renders of the same key wait for each other (the second finds the first's blob), and
     /// at most [`RENDER_STRIPES`] run at once, which bounds the memory rendering takes.
-    /// When the rendering cannot be stored (storage full), it is handed out whole from memory,
-    /// as before: the download budget still bounds that.
+    ///
+    /// A stored rendering counts in its tenant's `stored_bytes` quota until the job is
+    /// deleted or expires ([`ports::JobStore::charge_rendered`]). When it cannot be stored
+    /// (storage full, or the tenant's quota has no room for it) it is handed out whole from
+    /// memory, uncounted: a download is a read of a job the tenant already has, and the
+    /// stored copy is the server's cache, so a tenant at its quota still gets its result (as
+    /// it can still read its job and its frames); the download budget bounds that memory, and
+    /// the price is a render per download until the tenant frees room.
     async fn rendered(
         &self,
         key: BlobKey,
@@ -289,6 +322,33 @@ impl Jobs {
         if self.inner.storage.is_full() {
             return Ok(MeshDownload::Whole(data));
         }
+        let BlobKey::Rendered {
+            id,
+            step,
+            format,
+            source,
+        } = &key
+        else {
+            return Err(JobError::Internal(format!("{key:?} is not a rendering")));
+        };
+        let name = ports::rendered_name(*step, *format, source.as_deref());
+        let store = &self.inner.backend.store;
+        let quotas = &self.inner.config.quotas;
+        let charged = self.on_request(store.charge_rendered(id, &name, data.len() as u64, quotas));
+        match charged.await {
+            Ok(None) => {}
+            Ok(Some(over)) => {
+                tracing::info!(
+                    job = %id, quota = over.quota, limit = over.limit, used = over.used,
+                    "a rendered download is over its tenant's quota; served from memory, not stored"
+                );
+                return Ok(MeshDownload::Whole(data));
+            }
+            Err(e) => {
+                tracing::warn!(job = %id, error = %e, "a rendered download could not be counted; serving it from memory");
+                return Ok(MeshDownload::Whole(data));
+            }
+        }
         match self.on_request(blobs.put(key.clone(), data.clone())).await {
             Ok(()) => Ok(match self.on_request(blobs.open(key)).await? {
                 Some(r) => MeshDownload::Stored(r),
@@ -298,6 +358,9 @@ impl Jobs {
             Err(e) => {
                 let e = self.inner.storage.noted(e);
                 tracing::warn!(error = %e, "a rendered download could not be stored; serving it from memory");
+                if let Err(e) = self.on_request(store.refund_rendered(id, &name)).await {
+                    tracing::warn!(job = %id, error = %e, "the count of an unstored rendering stays until its job goes");
+                }
                 Ok(MeshDownload::Whole(data))
             }
         }
