@@ -26,7 +26,8 @@
 //! The connection's socket has its own write deadline (`conn::TimedIo`): a write that stays
 //! blocked for `--write-timeout-secs` closes the connection, whatever the response.
 
-use crate::jobs::{JobError, MeshDownload};
+use crate::jobs::render_memory::units;
+use crate::jobs::{DownloadMemory, JobError, MeshDownload};
 use axum::body::{Body, Bytes, HttpBody};
 use futures::stream::BoxStream;
 use http_body::{Frame, SizeHint};
@@ -41,10 +42,6 @@ use tokio::task::JoinHandle;
 /// Size of the copies a download is handed out in: large enough that per-chunk overhead is
 /// negligible, small enough that what hyper queues per stream stays small.
 pub const CHUNK_BYTES: usize = 64 << 10;
-
-/// The budgets count KiB: `Semaphore::acquire_many` takes a `u32`, and a KiB grain keeps any
-/// budget up to 4 TiB representable.
-const UNIT: u64 = 1024;
 
 /// `Retry-After` of a download refused for want of budget: a download in the budget is either
 /// taken or dropped by its deadline, so a few seconds usually frees room.
@@ -61,8 +58,8 @@ pub fn held_bytes() -> u64 {
 /// The server-wide limits; one per `serve`.
 #[derive(Debug)]
 pub struct DownloadLimits {
-    global: Arc<Semaphore>,
-    global_units: u64,
+    /// The server's budget, which renders draw on too ([`crate::jobs::render_memory`]).
+    global: DownloadMemory,
     per_connection_units: u64,
     write_timeout: Duration,
     write_min_rate: u64,
@@ -77,10 +74,8 @@ impl DownloadLimits {
         write_timeout: Duration,
         write_min_rate: u64,
     ) -> Arc<Self> {
-        let global_units = units(total).min(Semaphore::MAX_PERMITS as u64);
         Arc::new(DownloadLimits {
-            global: Arc::new(Semaphore::new(global_units as usize)),
-            global_units,
+            global: DownloadMemory::new(total),
             per_connection_units: units(per_connection).min(Semaphore::MAX_PERMITS as u64),
             write_timeout,
             write_min_rate,
@@ -94,10 +89,6 @@ impl DownloadLimits {
             conn: Arc::new(Semaphore::new(self.per_connection_units as usize)),
         }
     }
-}
-
-fn units(bytes: u64) -> u64 {
-    bytes.div_ceil(UNIT).max(1)
 }
 
 /// One connection's share of the download budget.
@@ -137,10 +128,15 @@ impl DownloadBudget {
                 scope: "connection",
             });
         }
-        if self.limits.global.available_permits() == 0 {
+        if self.limits.global.available() == 0 {
             return Err(Busy { scope: "server" });
         }
         Ok(())
+    }
+
+    /// The server's budget, for the renders of this connection's downloads.
+    pub fn memory(&self) -> &DownloadMemory {
+        &self.limits.global
     }
 
     /// Charge `len` bytes to this connection and the server. A download larger than a budget
@@ -148,7 +144,6 @@ impl DownloadBudget {
     pub fn charge(&self, len: usize) -> Result<Charge, Busy> {
         let want = units(len as u64);
         let conn_units = want.min(self.limits.per_connection_units) as u32;
-        let global_units = want.min(self.limits.global_units) as u32;
         let conn = self
             .conn
             .clone()
@@ -159,9 +154,8 @@ impl DownloadBudget {
         let global = self
             .limits
             .global
-            .clone()
-            .try_acquire_many_owned(global_units)
-            .map_err(|_| Busy { scope: "server" })?;
+            .try_take(want)
+            .ok_or(Busy { scope: "server" })?;
         HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
         Ok(Charge {
             _global: global,
@@ -431,6 +425,7 @@ pub fn start(budget: Option<&DownloadBudget>, data: MeshDownload) -> Result<Down
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::jobs::render_memory::UNIT;
     use futures::StreamExt;
 
     #[test]
@@ -508,18 +503,15 @@ mod tests {
         let limits = DownloadLimits::new(1 << 20, 1 << 20, Duration::from_secs(60), 0);
         let mut d = start(Some(&limits.for_connection()), source).expect("fits");
         assert_eq!(
-            limits.global.available_permits() as u64,
-            limits.global_units - STORED_HOLD_BYTES / UNIT
+            limits.global.available(),
+            limits.global.units() - STORED_HOLD_BYTES / UNIT
         );
         let mut out = Vec::new();
         while let Some(c) = d.next_chunk().await {
             out.extend_from_slice(&c.expect("read"));
         }
         assert_eq!(out, data);
-        assert_eq!(
-            limits.global.available_permits() as u64,
-            limits.global_units
-        );
+        assert_eq!(limits.global.available(), limits.global.units());
     }
 
     #[tokio::test]
@@ -562,7 +554,7 @@ mod tests {
         assert_eq!(first.len(), CHUNK_BYTES);
         // Nobody polls the body: the watchdog frees the charge on its own.
         let freed = async {
-            while limits.global.available_permits() < limits.global_units as usize {
+            while limits.global.available() < limits.global.units() {
                 tokio::time::sleep(Duration::from_millis(10)).await;
             }
         };

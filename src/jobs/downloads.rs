@@ -12,6 +12,7 @@
 
 use super::*;
 use ports::BlobReader;
+use render_memory::{render_estimate, DownloadMemory, RENDER_WAIT};
 
 /// Renders that may run at once ([`Jobs::rendered`]); renders of one key share a stripe, so
 /// they run one after the other and only the first renders.
@@ -138,6 +139,7 @@ impl Jobs {
         id: &str,
         step: usize,
         format: Format,
+        memory: Option<&DownloadMemory>,
     ) -> Result<MeshDownload, JobError> {
         let status = self.get(caller, id).await?;
         self.kept_frame(&status, step).await?;
@@ -156,11 +158,8 @@ impl Jobs {
             format,
             source: Some(ports::rendered_source(&source)),
         };
-        self.rendered(key, async {
-            let positions = self.frame_positions(&status, step).await?;
-            self.render(&status, positions, format).await
-        })
-        .await
+        let positions = self.frame_positions(&status, step);
+        self.rendered(key, &status, memory, positions).await
     }
 
     /// Whether the job's progress has reached `step` and the step kept positions; the
@@ -238,12 +237,14 @@ impl Jobs {
     }
 
     /// [`Jobs::result`] as a download: rendered once, stored, and streamed from storage (see
-    /// [`Jobs::rendered`]).
+    /// [`Jobs::rendered`]). A first render holds its memory from `memory`, the server's
+    /// download budget (`None`: uncounted, for callers without one).
     pub async fn result_download(
         &self,
         caller: &Caller,
         id: &str,
         format: Format,
+        memory: Option<&DownloadMemory>,
     ) -> Result<MeshDownload, JobError> {
         let status = self.succeeded(caller, id).await?;
         let key = BlobKey::Rendered {
@@ -252,11 +253,8 @@ impl Jobs {
             format,
             source: None,
         };
-        self.rendered(key, async {
-            let positions = self.result_positions(&status).await?;
-            self.render(&status, positions, format).await
-        })
-        .await
+        let positions = self.result_positions(&status);
+        self.rendered(key, &status, memory, positions).await
     }
 
     /// The job's status if it succeeded; `Conflict` otherwise.
@@ -296,7 +294,12 @@ impl Jobs {
     /// download (a page reload, many viewers of one result) renders nothing.
     ///
     /// Renders of the same key wait for each other (the second finds the first's blob), and
-    /// at most [`RENDER_STRIPES`] run at once, which bounds the memory rendering takes.
+    /// at most [`RENDER_STRIPES`] run at once. The memory a render takes is held from the
+    /// server's download budget (`memory`), so renders and the downloads waiting for their
+    /// clients together stay within it: the render's estimate ([`render_estimate`]) before it
+    /// starts, more if the positions are more than the job recorded (a refined mesh), then the
+    /// output's real length while it is stored; a render that finds no room within
+    /// [`RENDER_WAIT`] is refused with [`JobError::DownloadsBusy`].
     ///
     /// A stored rendering counts in its tenant's `stored_bytes` quota until the job is
     /// deleted or expires ([`ports::JobStore::charge_rendered`]). When it cannot be stored
@@ -308,7 +311,9 @@ impl Jobs {
     async fn rendered(
         &self,
         key: BlobKey,
-        render: impl std::future::Future<Output = Result<Vec<u8>, JobError>>,
+        status: &JobStatus,
+        memory: Option<&DownloadMemory>,
+        positions: impl std::future::Future<Output = Result<Vec<[f64; 3]>, JobError>>,
     ) -> Result<MeshDownload, JobError> {
         let blobs = &self.inner.backend.blobs;
         if let Some(r) = self.on_request(blobs.open(key.clone())).await? {
@@ -317,10 +322,6 @@ impl Jobs {
         let _one_at_a_time = self.inner.renders[render_stripe(&key)].lock().await;
         if let Some(r) = self.on_request(blobs.open(key.clone())).await? {
             return Ok(MeshDownload::Stored(r));
-        }
-        let data = bytes::Bytes::from(render.await?);
-        if self.inner.storage.is_full() {
-            return Ok(MeshDownload::Whole(data));
         }
         let BlobKey::Rendered {
             id,
@@ -331,6 +332,32 @@ impl Jobs {
         else {
             return Err(JobError::Internal(format!("{key:?} is not a rendering")));
         };
+        let estimate =
+            |vertices: usize, faces: usize| render_estimate(status.input_bytes, vertices, faces);
+        let mut hold = match memory {
+            Some(m) => {
+                let bytes = estimate(status.vertex_count, status.face_count);
+                Some(m.hold(bytes, RENDER_WAIT).await?)
+            }
+            None => None,
+        };
+        let positions = positions.await?;
+        if let Some(h) = &mut hold {
+            // A refined job's positions are more than its upload's vertices; its faces about
+            // twice its vertices (a closed surface: F = 2V − 2χ).
+            let vertices = positions.len().max(status.vertex_count);
+            let faces = status.face_count.max(2 * positions.len());
+            h.fit(estimate(vertices, faces).max(h.bytes()), RENDER_WAIT)
+                .await?;
+        }
+        let data = bytes::Bytes::from(self.render(status, positions, *format).await?);
+        if let Some(h) = &mut hold {
+            // What is left is the output: hold its length while it is stored.
+            h.fit(data.len() as u64, RENDER_WAIT).await?;
+        }
+        if self.inner.storage.is_full() {
+            return Ok(MeshDownload::Whole(data));
+        }
         let name = ports::rendered_name(*step, *format, source.as_deref());
         let store = &self.inner.backend.store;
         let quotas = &self.inner.config.quotas;

@@ -94,7 +94,7 @@ pub async fn assert_rendered_downloads_count_in_stored_bytes(
     // Stored: counted once, however often it is downloaded.
     for n in 0..2 {
         let download = jobs
-            .result_download(a, &id, Format::Obj)
+            .result_download(a, &id, Format::Obj, None)
             .await
             .expect("OBJ");
         let (got, stored) = take(download).await;
@@ -112,7 +112,7 @@ pub async fn assert_rendered_downloads_count_in_stored_bytes(
     // A deleted job gives back its input and its stored renderings.
     let deleted = succeeded(jobs, a, small_obj()).await;
     let (got, stored) = take(
-        jobs.result_download(a, &deleted, Format::Obj)
+        jobs.result_download(a, &deleted, Format::Obj, None)
             .await
             .expect("OBJ"),
     )
@@ -133,7 +133,7 @@ pub async fn assert_rendered_downloads_count_in_stored_bytes(
     let full = RENDERED_QUOTA - ply_bytes.len() as u64 + 1;
     assert_eq!(stored_bytes(jobs, a).await, full);
     let (got, stored) = take(
-        jobs.result_download(a, &id, Format::Ply)
+        jobs.result_download(a, &id, Format::Ply, None)
             .await
             .expect("PLY"),
     )
@@ -147,7 +147,7 @@ pub async fn assert_rendered_downloads_count_in_stored_bytes(
     );
     // The stored OBJ is still streamed at the quota.
     let (got, stored) = take(
-        jobs.result_download(a, &id, Format::Obj)
+        jobs.result_download(a, &id, Format::Obj, None)
             .await
             .expect("OBJ"),
     )
@@ -172,7 +172,7 @@ pub async fn assert_rendered_downloads_count_in_stored_bytes(
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
     assert!(matches!(
-        jobs.result_download(a, &id, Format::Obj).await,
+        jobs.result_download(a, &id, Format::Obj, None).await,
         Err(JobError::Gone(_))
     ));
 }

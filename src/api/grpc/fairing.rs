@@ -260,7 +260,12 @@ impl v1::fairing_server::Fairing for GrpcApi {
         };
         let bytes = self
             .jobs
-            .result_download(&caller, &id, format)
+            .result_download(
+                &caller,
+                &id,
+                format,
+                budget.as_ref().map(DownloadBudget::memory),
+            )
             .await
             .map_err(|e| job_error(e, "name"))?;
         let download = download::start(budget.as_ref(), bytes).map_err(downloads_busy)?;

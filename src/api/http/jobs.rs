@@ -608,7 +608,16 @@ pub async fn frame_mesh(
         let budget = budget.as_ref().map(|Extension(b)| b);
         // Refused before rendering when no budget is left: a refusal costs nothing.
         budget.map(DownloadBudget::check).transpose()?;
-        let bytes = st.jobs.frame_download(&caller, &id, step, format).await?;
+        let bytes = st
+            .jobs
+            .frame_download(
+                &caller,
+                &id,
+                step,
+                format,
+                budget.map(DownloadBudget::memory),
+            )
+            .await?;
         let download = download::start(budget, bytes)?;
         Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, download))
     };
@@ -643,7 +652,10 @@ pub async fn job_result(
             Some(f) => f,
             None => st.jobs.get(&caller, &id).await?.input_format,
         };
-        let bytes = st.jobs.result_download(&caller, &id, format).await?;
+        let bytes = st
+            .jobs
+            .result_download(&caller, &id, format, budget.map(DownloadBudget::memory))
+            .await?;
         let download = download::start(budget, bytes)?;
         Ok::<_, Problem>(mesh_response(&id, "result", format, download))
     };
