@@ -13,7 +13,8 @@
 //!   (`--download-memory-per-connection-mib`) and the server's (`--download-memory-mib`); a
 //!   download that does not fit answers 503 `downloads_busy` with `Retry-After` (gRPC:
 //!   UNAVAILABLE) instead of being built, so the memory pinned by downloads is bounded per
-//!   connection and in total;
+//!   connection and in total; a download's first render holds its memory from the same
+//!   server budget ([`crate::jobs::render_memory`]), so renders count in that total too;
 //! - every download has a **deadline**: it must be taken by the client within
 //!   `--write-timeout-secs` plus its length at `--write-min-rate-kib` (a floor: an honest reader
 //!   at that rate always makes it). At the deadline a watchdog drops the buffer and releases the

@@ -587,7 +587,7 @@ pub async fn list_frames(
         (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
-        (status = 503, description = "Too many downloads waiting to be read (`downloads_busy`; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
+        (status = 503, description = "No room in the download memory budget (`downloads_busy`; `scope`: `connection` or `server` for downloads waiting to be read, `render` for a first render that found no room in time; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
     State(st): State<AppState>,
     caller: Caller,
@@ -636,7 +636,7 @@ pub async fn frame_mesh(
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
-        (status = 503, description = "Too many downloads waiting to be read (`downloads_busy`; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
+        (status = 503, description = "No room in the download memory budget (`downloads_busy`; `scope`: `connection` or `server` for downloads waiting to be read, `render` for a first render that found no room in time; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_result(
     State(st): State<AppState>,
     caller: Caller,
