@@ -122,14 +122,17 @@ impl Drop for Charge {
 
 impl DownloadBudget {
     /// Whether a download could start at all (checked before rendering, so a refused request
-    /// costs no rendering).
+    /// costs no rendering). A server budget held in full by downloads waiting for their
+    /// clients refuses at once; one that renders hold part of lets the request go on, to
+    /// wait (bounded) for a render's room ([`crate::jobs::render_memory`]).
     pub fn check(&self) -> Result<(), Busy> {
         if self.conn.available_permits() == 0 {
             return Err(Busy {
                 scope: "connection",
             });
         }
-        if self.limits.global.available() == 0 {
+        let global = &self.limits.global;
+        if global.available() == 0 && !global.renders_active() {
             return Err(Busy { scope: "server" });
         }
         Ok(())
@@ -157,6 +160,38 @@ impl DownloadBudget {
             .global
             .try_take(want)
             .ok_or(Busy { scope: "server" })?;
+        HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
+        Ok(Charge {
+            _global: global,
+            _conn: conn,
+            bytes: len as u64,
+        })
+    }
+
+    /// [`DownloadBudget::charge`], but when the server's budget is short while renders hold
+    /// part of it, wait for it as long as a render would
+    /// ([`crate::jobs::render_memory::RENDER_WAIT`]): renders let go within a render's time,
+    /// and a download whose own render just ended must not be refused for the next one's.
+    pub async fn charge_or_wait(&self, len: usize) -> Result<Charge, Busy> {
+        let busy = match self.charge(len) {
+            Err(b) if b.scope == "server" && self.limits.global.renders_active() => b,
+            other => return other,
+        };
+        let want = units(len as u64);
+        let conn_units = want.min(self.limits.per_connection_units) as u32;
+        let conn = self
+            .conn
+            .clone()
+            .try_acquire_many_owned(conn_units)
+            .map_err(|_| Busy {
+                scope: "connection",
+            })?;
+        let global = self
+            .limits
+            .global
+            .take(want, crate::jobs::render_memory::RENDER_WAIT)
+            .await
+            .ok_or(busy)?;
         HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
         Ok(Charge {
             _global: global,
@@ -407,11 +442,12 @@ pub fn held(data: &MeshDownload) -> u64 {
 
 /// Start a download of `data` under `budget` (none: the router is used without `conn::serve`,
 /// as in some tests, and nothing is charged; the deadline is then the default write timeout).
-pub fn start(budget: Option<&DownloadBudget>, data: MeshDownload) -> Result<Download, Busy> {
+pub async fn start(budget: Option<&DownloadBudget>, data: MeshDownload) -> Result<Download, Busy> {
     let len = usize::try_from(data.len()).unwrap_or(usize::MAX);
     match budget {
         Some(b) => {
-            let charge = b.charge(usize::try_from(held(&data)).unwrap_or(usize::MAX))?;
+            let held = usize::try_from(held(&data)).unwrap_or(usize::MAX);
+            let charge = b.charge_or_wait(held).await?;
             let allowance = b.allowance(len);
             Ok(Download::new(data, Some(charge), allowance))
         }
@@ -502,7 +538,9 @@ mod tests {
             data.len() as u64
         );
         let limits = DownloadLimits::new(1 << 20, 1 << 20, Duration::from_secs(60), 0);
-        let mut d = start(Some(&limits.for_connection()), source).expect("fits");
+        let mut d = start(Some(&limits.for_connection()), source)
+            .await
+            .expect("fits");
         assert_eq!(
             limits.global.available(),
             limits.global.units() - STORED_HOLD_BYTES / UNIT

@@ -60,6 +60,10 @@ pub fn units(bytes: u64) -> u64 {
 pub struct DownloadMemory {
     permits: Arc<Semaphore>,
     units: u64,
+    /// Units held by renders now.
+    rendering: Arc<AtomicU64>,
+    /// Renders waiting for room now.
+    waiting: Arc<AtomicU64>,
 }
 
 impl DownloadMemory {
@@ -69,6 +73,8 @@ impl DownloadMemory {
         DownloadMemory {
             permits: Arc::new(Semaphore::new(units as usize)),
             units,
+            rendering: Arc::new(AtomicU64::new(0)),
+            waiting: Arc::new(AtomicU64::new(0)),
         }
     }
 
@@ -82,6 +88,19 @@ impl DownloadMemory {
         self.permits.available_permits() as u64
     }
 
+    /// Units renders hold now.
+    pub fn rendering(&self) -> u64 {
+        self.rendering.load(Ordering::Relaxed)
+    }
+
+    /// Whether renders hold part of the budget or wait for it. What they hold comes back
+    /// within a render's time, so a download that finds the budget short then may wait for it
+    /// (downloads waiting for their clients may hold theirs for the whole write deadline),
+    /// and must: the units a render waits for are handed to it as they come free.
+    pub fn renders_active(&self) -> bool {
+        self.rendering() > 0 || self.waiting.load(Ordering::Relaxed) > 0
+    }
+
     /// Take `units` (at most the whole budget) now, or `None` if they are not free.
     pub fn try_take(&self, units: u64) -> Option<OwnedSemaphorePermit> {
         let want = units.min(self.units) as u32;
@@ -91,7 +110,7 @@ impl DownloadMemory {
     }
 
     /// Take `units` (at most the whole budget), waiting at most `wait` for them.
-    async fn take(&self, units: u64, wait: Duration) -> Option<OwnedSemaphorePermit> {
+    pub async fn take(&self, units: u64, wait: Duration) -> Option<OwnedSemaphorePermit> {
         let want = units.min(self.units) as u32;
         let acquired = tokio::time::timeout(wait, self.permits.clone().acquire_many_owned(want));
         let permit = acquired.await.ok()?.ok()?;
@@ -140,11 +159,10 @@ impl RenderHold {
     pub async fn fit(&mut self, bytes: u64, wait: Duration) -> Result<(), JobError> {
         let want = units(bytes).min(self.memory.units);
         if want > self.units {
-            let more = self
-                .memory
-                .take(want - self.units, wait)
-                .await
-                .ok_or_else(|| self.memory.busy(bytes))?;
+            let waiting = Waiting::new(&self.memory.waiting);
+            let more = self.memory.take(want - self.units, wait).await;
+            drop(waiting);
+            let more = more.ok_or_else(|| self.memory.busy(bytes))?;
             match &mut self.permit {
                 Some(p) => p.merge(more),
                 None => self.permit = Some(more),
@@ -156,11 +174,17 @@ impl RenderHold {
         } else {
             return Ok(());
         }
-        let (old, new) = (self.units * UNIT, want * UNIT);
+        let (old, new) = (self.units, want);
         if new > old {
-            RENDERING_BYTES.fetch_add(new - old, Ordering::Relaxed);
+            RENDERING_BYTES.fetch_add((new - old) * UNIT, Ordering::Relaxed);
+            self.memory
+                .rendering
+                .fetch_add(new - old, Ordering::Relaxed);
         } else {
-            RENDERING_BYTES.fetch_sub(old - new, Ordering::Relaxed);
+            RENDERING_BYTES.fetch_sub((old - new) * UNIT, Ordering::Relaxed);
+            self.memory
+                .rendering
+                .fetch_sub(old - new, Ordering::Relaxed);
         }
         self.units = want;
         Ok(())
@@ -175,6 +199,26 @@ impl RenderHold {
 impl Drop for RenderHold {
     fn drop(&mut self) {
         RENDERING_BYTES.fetch_sub(self.units * UNIT, Ordering::Relaxed);
+        self.memory
+            .rendering
+            .fetch_sub(self.units, Ordering::Relaxed);
+    }
+}
+
+/// One render counted as waiting while it lives (a wait cut short by its request going away
+/// counts off too).
+struct Waiting<'a>(&'a AtomicU64);
+
+impl<'a> Waiting<'a> {
+    fn new(count: &'a AtomicU64) -> Waiting<'a> {
+        count.fetch_add(1, Ordering::Relaxed);
+        Waiting(count)
+    }
+}
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Relaxed);
     }
 }
 
@@ -246,6 +290,6 @@ mod tests {
         let all = memory.hold(100 * UNIT, RENDER_WAIT).await.expect("alone");
         assert_eq!((memory.available(), all.bytes()), (0, 10 * UNIT));
         drop(all);
-        assert_eq!(memory.available(), 10);
+        assert_eq!((memory.available(), memory.rendering()), (10, 0));
     }
 }

@@ -618,7 +618,7 @@ pub async fn frame_mesh(
                 budget.map(DownloadBudget::memory),
             )
             .await?;
-        let download = download::start(budget, bytes)?;
+        let download = download::start(budget, bytes).await?;
         Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, download))
     };
     match run.await {
@@ -656,7 +656,7 @@ pub async fn job_result(
             .jobs
             .result_download(&caller, &id, format, budget.map(DownloadBudget::memory))
             .await?;
-        let download = download::start(budget, bytes)?;
+        let download = download::start(budget, bytes).await?;
         Ok::<_, Problem>(mesh_response(&id, "result", format, download))
     };
     match run.await {
