@@ -326,3 +326,32 @@ async fn nats_jobs_from_a_stored_upload_do_not_count_as_meshes_received() {
     assert_stored_upload_jobs_receive_no_mesh(&jobs, &tenant("alpha")).await;
     core.shutdown(Duration::from_secs(2)).await;
 }
+
+/// Downloads rendered and stored count in `stored_bytes` once (the names in the job's record),
+/// are served from memory when the quota has no room for them, and are given back with their
+/// job (deleted or expired), as on the embedded backend.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_rendered_downloads_count_in_stored_bytes() {
+    use service_http_support::rendered::{
+        assert_rendered_downloads_count_in_stored_bytes, RENDERED_QUOTA,
+    };
+    let dir = tempfile::tempdir().expect("dir");
+    let nats = Nats::start(dir.path());
+    let ttl = Duration::from_secs(30);
+    let (jobs, core) = start_with(
+        &nats,
+        &dir.path().join("node"),
+        TenantQuotas {
+            max_live_jobs: 0,
+            max_stored_bytes: RENDERED_QUOTA,
+            uploads_per_minute: 0,
+        },
+        |c| {
+            c.result_ttl = ttl;
+            c.sweep_interval = Duration::from_millis(500);
+        },
+    )
+    .await;
+    assert_rendered_downloads_count_in_stored_bytes(&jobs, &tenant("alpha"), ttl).await;
+    core.shutdown(Duration::from_secs(1)).await;
+}

@@ -437,3 +437,27 @@ async fn audit_lines_for_create_cancel_and_delete() {
         assert_eq!(line["fields"]["job_id"], job.id.as_str(), "{line}");
     }
 }
+
+/// Downloads rendered and stored count in `stored_bytes` once, are served from memory when the
+/// quota has no room for them, and are given back with their job (deleted or expired).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rendered_downloads_count_in_stored_bytes() {
+    use service_http_support::rendered::{
+        assert_rendered_downloads_count_in_stored_bytes, RENDERED_QUOTA,
+    };
+    let dir = tempfile::tempdir().expect("dir");
+    let ttl = Duration::from_secs(30);
+    let (jobs, core) = Jobs::start(config(dir.path(), |c| {
+        c.quotas = TenantQuotas {
+            max_live_jobs: 0,
+            max_stored_bytes: RENDERED_QUOTA,
+            uploads_per_minute: 0,
+        };
+        c.result_ttl = ttl;
+        c.sweep_interval = Duration::from_millis(200);
+    }))
+    .await
+    .expect("start");
+    assert_rendered_downloads_count_in_stored_bytes(&jobs, &tenant("alpha"), ttl).await;
+    core.shutdown(Duration::from_secs(1)).await;
+}

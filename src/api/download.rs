@@ -13,7 +13,8 @@
 //!   (`--download-memory-per-connection-mib`) and the server's (`--download-memory-mib`); a
 //!   download that does not fit answers 503 `downloads_busy` with `Retry-After` (gRPC:
 //!   UNAVAILABLE) instead of being built, so the memory pinned by downloads is bounded per
-//!   connection and in total;
+//!   connection and in total; a download's first render holds its memory from the same
+//!   server budget ([`crate::jobs::render_memory`]), so renders count in that total too;
 //! - every download has a **deadline**: it must be taken by the client within
 //!   `--write-timeout-secs` plus its length at `--write-min-rate-kib` (a floor: an honest reader
 //!   at that rate always makes it). At the deadline a watchdog drops the buffer and releases the
@@ -26,7 +27,8 @@
 //! The connection's socket has its own write deadline (`conn::TimedIo`): a write that stays
 //! blocked for `--write-timeout-secs` closes the connection, whatever the response.
 
-use crate::jobs::{JobError, MeshDownload};
+use crate::jobs::render_memory::units;
+use crate::jobs::{DownloadMemory, JobError, MeshDownload};
 use axum::body::{Body, Bytes, HttpBody};
 use futures::stream::BoxStream;
 use http_body::{Frame, SizeHint};
@@ -41,10 +43,6 @@ use tokio::task::JoinHandle;
 /// Size of the copies a download is handed out in: large enough that per-chunk overhead is
 /// negligible, small enough that what hyper queues per stream stays small.
 pub const CHUNK_BYTES: usize = 64 << 10;
-
-/// The budgets count KiB: `Semaphore::acquire_many` takes a `u32`, and a KiB grain keeps any
-/// budget up to 4 TiB representable.
-const UNIT: u64 = 1024;
 
 /// `Retry-After` of a download refused for want of budget: a download in the budget is either
 /// taken or dropped by its deadline, so a few seconds usually frees room.
@@ -61,8 +59,8 @@ pub fn held_bytes() -> u64 {
 /// The server-wide limits; one per `serve`.
 #[derive(Debug)]
 pub struct DownloadLimits {
-    global: Arc<Semaphore>,
-    global_units: u64,
+    /// The server's budget, which renders draw on too ([`crate::jobs::render_memory`]).
+    global: DownloadMemory,
     per_connection_units: u64,
     write_timeout: Duration,
     write_min_rate: u64,
@@ -77,10 +75,8 @@ impl DownloadLimits {
         write_timeout: Duration,
         write_min_rate: u64,
     ) -> Arc<Self> {
-        let global_units = units(total).min(Semaphore::MAX_PERMITS as u64);
         Arc::new(DownloadLimits {
-            global: Arc::new(Semaphore::new(global_units as usize)),
-            global_units,
+            global: DownloadMemory::new(total),
             per_connection_units: units(per_connection).min(Semaphore::MAX_PERMITS as u64),
             write_timeout,
             write_min_rate,
@@ -94,10 +90,6 @@ impl DownloadLimits {
             conn: Arc::new(Semaphore::new(self.per_connection_units as usize)),
         }
     }
-}
-
-fn units(bytes: u64) -> u64 {
-    bytes.div_ceil(UNIT).max(1)
 }
 
 /// One connection's share of the download budget.
@@ -130,17 +122,25 @@ impl Drop for Charge {
 
 impl DownloadBudget {
     /// Whether a download could start at all (checked before rendering, so a refused request
-    /// costs no rendering).
+    /// costs no rendering). A server budget held in full by downloads waiting for their
+    /// clients refuses at once; one that renders hold part of lets the request go on, to
+    /// wait (bounded) for a render's room ([`crate::jobs::render_memory`]).
     pub fn check(&self) -> Result<(), Busy> {
         if self.conn.available_permits() == 0 {
             return Err(Busy {
                 scope: "connection",
             });
         }
-        if self.limits.global.available_permits() == 0 {
+        let global = &self.limits.global;
+        if global.available() == 0 && !global.renders_active() {
             return Err(Busy { scope: "server" });
         }
         Ok(())
+    }
+
+    /// The server's budget, for the renders of this connection's downloads.
+    pub fn memory(&self) -> &DownloadMemory {
+        &self.limits.global
     }
 
     /// Charge `len` bytes to this connection and the server. A download larger than a budget
@@ -148,7 +148,6 @@ impl DownloadBudget {
     pub fn charge(&self, len: usize) -> Result<Charge, Busy> {
         let want = units(len as u64);
         let conn_units = want.min(self.limits.per_connection_units) as u32;
-        let global_units = want.min(self.limits.global_units) as u32;
         let conn = self
             .conn
             .clone()
@@ -159,9 +158,40 @@ impl DownloadBudget {
         let global = self
             .limits
             .global
+            .try_take(want)
+            .ok_or(Busy { scope: "server" })?;
+        HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
+        Ok(Charge {
+            _global: global,
+            _conn: conn,
+            bytes: len as u64,
+        })
+    }
+
+    /// [`DownloadBudget::charge`], but when the server's budget is short while renders hold
+    /// part of it, wait for it as long as a render would
+    /// ([`crate::jobs::render_memory::RENDER_WAIT`]): renders let go within a render's time,
+    /// and a download whose own render just ended must not be refused for the next one's.
+    pub async fn charge_or_wait(&self, len: usize) -> Result<Charge, Busy> {
+        let busy = match self.charge(len) {
+            Err(b) if b.scope == "server" && self.limits.global.renders_active() => b,
+            other => return other,
+        };
+        let want = units(len as u64);
+        let conn_units = want.min(self.limits.per_connection_units) as u32;
+        let conn = self
+            .conn
             .clone()
-            .try_acquire_many_owned(global_units)
-            .map_err(|_| Busy { scope: "server" })?;
+            .try_acquire_many_owned(conn_units)
+            .map_err(|_| Busy {
+                scope: "connection",
+            })?;
+        let global = self
+            .limits
+            .global
+            .take(want, crate::jobs::render_memory::RENDER_WAIT)
+            .await
+            .ok_or(busy)?;
         HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
         Ok(Charge {
             _global: global,
@@ -412,11 +442,12 @@ pub fn held(data: &MeshDownload) -> u64 {
 
 /// Start a download of `data` under `budget` (none: the router is used without `conn::serve`,
 /// as in some tests, and nothing is charged; the deadline is then the default write timeout).
-pub fn start(budget: Option<&DownloadBudget>, data: MeshDownload) -> Result<Download, Busy> {
+pub async fn start(budget: Option<&DownloadBudget>, data: MeshDownload) -> Result<Download, Busy> {
     let len = usize::try_from(data.len()).unwrap_or(usize::MAX);
     match budget {
         Some(b) => {
-            let charge = b.charge(usize::try_from(held(&data)).unwrap_or(usize::MAX))?;
+            let held = usize::try_from(held(&data)).unwrap_or(usize::MAX);
+            let charge = b.charge_or_wait(held).await?;
             let allowance = b.allowance(len);
             Ok(Download::new(data, Some(charge), allowance))
         }
@@ -431,6 +462,7 @@ pub fn start(budget: Option<&DownloadBudget>, data: MeshDownload) -> Result<Down
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::jobs::render_memory::UNIT;
     use futures::StreamExt;
 
     #[test]
@@ -506,20 +538,19 @@ mod tests {
             data.len() as u64
         );
         let limits = DownloadLimits::new(1 << 20, 1 << 20, Duration::from_secs(60), 0);
-        let mut d = start(Some(&limits.for_connection()), source).expect("fits");
+        let mut d = start(Some(&limits.for_connection()), source)
+            .await
+            .expect("fits");
         assert_eq!(
-            limits.global.available_permits() as u64,
-            limits.global_units - STORED_HOLD_BYTES / UNIT
+            limits.global.available(),
+            limits.global.units() - STORED_HOLD_BYTES / UNIT
         );
         let mut out = Vec::new();
         while let Some(c) = d.next_chunk().await {
             out.extend_from_slice(&c.expect("read"));
         }
         assert_eq!(out, data);
-        assert_eq!(
-            limits.global.available_permits() as u64,
-            limits.global_units
-        );
+        assert_eq!(limits.global.available(), limits.global.units());
     }
 
     #[tokio::test]
@@ -562,7 +593,7 @@ mod tests {
         assert_eq!(first.len(), CHUNK_BYTES);
         // Nobody polls the body: the watchdog frees the charge on its own.
         let freed = async {
-            while limits.global.available_permits() < limits.global_units as usize {
+            while limits.global.available() < limits.global.units() {
                 tokio::time::sleep(Duration::from_millis(10)).await;
             }
         };

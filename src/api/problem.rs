@@ -195,6 +195,17 @@ impl From<JobError> for Problem {
                 p.with("step", step).with("steps", steps)
             }
             JobError::Numerical { step, .. } => p.with("step", step),
+            // As the transports' own `downloads_busy` (api::download::Busy), with the scope
+            // that was full: the server's budget, asked by a render.
+            JobError::DownloadsBusy {
+                retry_after_secs,
+                wanted,
+                budget,
+            } => p
+                .with("scope", "render")
+                .with("retry_after_secs", retry_after_secs)
+                .with("wanted_bytes", wanted)
+                .with("budget_bytes", budget),
             JobError::StorageFull { .. } => {
                 p.with("retry_after_secs", crate::jobs::STORAGE_FULL_RETRY_SECS)
             }

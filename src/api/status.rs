@@ -41,7 +41,7 @@ pub fn of_error(e: &JobError) -> Statuses {
         JobError::TooLarge { .. } => (StatusCode::PAYLOAD_TOO_LARGE, Code::ResourceExhausted),
         JobError::Conflict(_) => (StatusCode::CONFLICT, Code::FailedPrecondition),
         JobError::IdempotencyMismatch(_) => (StatusCode::UNPROCESSABLE_ENTITY, Code::AlreadyExists),
-        JobError::ShuttingDown | JobError::Unavailable(_) => {
+        JobError::ShuttingDown | JobError::Unavailable(_) | JobError::DownloadsBusy { .. } => {
             (StatusCode::SERVICE_UNAVAILABLE, Code::Unavailable)
         }
         // 507 Insufficient Storage (RFC 4918 §11.5): the server cannot store what the request
@@ -173,6 +173,11 @@ mod tests {
             },
             JobError::ShuttingDown,
             JobError::Unavailable("nats".into()),
+            JobError::DownloadsBusy {
+                retry_after_secs: 5,
+                wanted: 2048,
+                budget: 1024,
+            },
         ];
         for e in retryable {
             assert!(e.retry_after_secs().is_some(), "{e}");

@@ -12,6 +12,7 @@
 
 use super::*;
 use ports::BlobReader;
+use render_memory::{render_estimate, DownloadMemory, RENDER_WAIT};
 
 /// Renders that may run at once ([`Jobs::rendered`]); renders of one key share a stripe, so
 /// they run one after the other and only the first renders.
@@ -127,25 +128,56 @@ impl Jobs {
 
     /// [`Jobs::frame_mesh`] as a download: rendered once, stored, and streamed from storage
     /// (see [`Jobs::rendered`]).
+    ///
+    /// The rendering is named after the version of the positions it is rendered from
+    /// ([`BlobKey::Rendered::source`]): a job resumed from a checkpoint before `step` writes
+    /// the step's positions again, and the next download renders those, not the stored
+    /// rendering of the first run.
     pub async fn frame_download(
         &self,
         caller: &Caller,
         id: &str,
         step: usize,
         format: Format,
+        memory: Option<&DownloadMemory>,
     ) -> Result<MeshDownload, JobError> {
         let status = self.get(caller, id).await?;
+        self.kept_frame(&status, step).await?;
+        let positions = BlobKey::Frame {
+            id: status.id.clone(),
+            step,
+            welded: true,
+        };
+        let source = self
+            .on_request(self.inner.backend.blobs.version(positions))
+            .await?
+            .ok_or_else(|| self.frame_not_found(&status, step))?;
         let key = BlobKey::Rendered {
             id: status.id.clone(),
             step: Some(step),
             format,
+            source: Some(ports::rendered_source(&source)),
         };
-        // Only a kept step is ever rendered, so a stored rendering answers for the step.
-        self.rendered(key, async {
-            let positions = self.frame_positions(&status, step).await?;
-            self.render(&status, positions, format).await
-        })
-        .await
+        let positions = self.frame_positions(&status, step);
+        self.rendered(key, &status, memory, positions).await
+    }
+
+    /// Whether the job's progress has reached `step` and the step kept positions; the
+    /// reason why not ([`JobError::FrameNotFound`]) otherwise.
+    async fn kept_frame(&self, status: &JobStatus, step: usize) -> Result<(), JobError> {
+        let kept = if step <= status.step {
+            let rows = self
+                .read(self.inner.backend.store.frame_rows(&status.id, step, 1))
+                .await?;
+            rows.first().is_some_and(|(m, p)| m.step == step && *p)
+        } else {
+            false
+        };
+        if kept {
+            Ok(())
+        } else {
+            Err(self.frame_not_found(status, step))
+        }
     }
 
     /// The stored welded positions of `step`, or why there are none.
@@ -154,48 +186,41 @@ impl Jobs {
         status: &JobStatus,
         step: usize,
     ) -> Result<Vec<[f64; 3]>, JobError> {
-        let id = status.id.as_str();
-        let kept = if step <= status.step {
-            let rows = self
-                .read(self.inner.backend.store.frame_rows(id, step, 1))
-                .await?;
-            rows.first().is_some_and(|(m, p)| m.step == step && *p)
-        } else {
-            false
-        };
+        self.kept_frame(status, step).await?;
         let key = BlobKey::Frame {
             id: status.id.clone(),
             step,
             welded: true,
         };
-        let bytes = if kept {
-            self.on_request(self.inner.backend.blobs.get(key)).await?
-        } else {
-            None
-        };
-        let Some(bytes) = bytes else {
-            let detail = if step > status.step
-                || (step == status.step && !status.state.is_terminal() && status.latest.is_none())
-            {
-                format!(
-                    "the job has completed {} of {} steps",
-                    status.step, status.total_steps
-                )
-            } else if !status.spec.include_positions {
-                "the job was submitted with include_positions=false".to_string()
-            } else {
-                format!(
-                    "positions are kept at step 0, every {} steps and the last step",
-                    status.spec.frame_interval
-                )
-            };
-            return Err(JobError::FrameNotFound {
-                id: id.to_string(),
-                step,
-                detail,
-            });
-        };
+        let bytes = self
+            .on_request(self.inner.backend.blobs.get(key))
+            .await?
+            .ok_or_else(|| self.frame_not_found(status, step))?;
         codec::bytes_to_f64s(&bytes)
+    }
+
+    /// Why `status`'s job has no mesh for `step`.
+    fn frame_not_found(&self, status: &JobStatus, step: usize) -> JobError {
+        let detail = if step > status.step
+            || (step == status.step && !status.state.is_terminal() && status.latest.is_none())
+        {
+            format!(
+                "the job has completed {} of {} steps",
+                status.step, status.total_steps
+            )
+        } else if !status.spec.include_positions {
+            "the job was submitted with include_positions=false".to_string()
+        } else {
+            format!(
+                "positions are kept at step 0, every {} steps and the last step",
+                status.spec.frame_interval
+            )
+        };
+        JobError::FrameNotFound {
+            id: status.id.to_string(),
+            step,
+            detail,
+        }
     }
 
     /// The faired mesh in `format` (input UVs, materials and textures kept). `Conflict` until
@@ -212,24 +237,24 @@ impl Jobs {
     }
 
     /// [`Jobs::result`] as a download: rendered once, stored, and streamed from storage (see
-    /// [`Jobs::rendered`]).
+    /// [`Jobs::rendered`]). A first render holds its memory from `memory`, the server's
+    /// download budget (`None`: uncounted, for callers without one).
     pub async fn result_download(
         &self,
         caller: &Caller,
         id: &str,
         format: Format,
+        memory: Option<&DownloadMemory>,
     ) -> Result<MeshDownload, JobError> {
         let status = self.succeeded(caller, id).await?;
         let key = BlobKey::Rendered {
             id: status.id.clone(),
             step: None,
             format,
+            source: None,
         };
-        self.rendered(key, async {
-            let positions = self.result_positions(&status).await?;
-            self.render(&status, positions, format).await
-        })
-        .await
+        let positions = self.result_positions(&status);
+        self.rendered(key, &status, memory, positions).await
     }
 
     /// The job's status if it succeeded; `Conflict` otherwise.
@@ -269,13 +294,26 @@ impl Jobs {
     /// download (a page reload, many viewers of one result) renders nothing.
     ///
     /// Renders of the same key wait for each other (the second finds the first's blob), and
-    /// at most [`RENDER_STRIPES`] run at once, which bounds the memory rendering takes.
-    /// When the rendering cannot be stored (storage full), it is handed out whole from memory,
-    /// as before: the download budget still bounds that.
+    /// at most [`RENDER_STRIPES`] run at once. The memory a render takes is held from the
+    /// server's download budget (`memory`), so renders and the downloads waiting for their
+    /// clients together stay within it: the render's estimate ([`render_estimate`]) before it
+    /// starts, more if the positions are more than the job recorded (a refined mesh), then the
+    /// output's real length while it is stored; a render that finds no room within
+    /// [`RENDER_WAIT`] is refused with [`JobError::DownloadsBusy`].
+    ///
+    /// A stored rendering counts in its tenant's `stored_bytes` quota until the job is
+    /// deleted or expires ([`ports::JobStore::charge_rendered`]). When it cannot be stored
+    /// (storage full, or the tenant's quota has no room for it) it is handed out whole from
+    /// memory, uncounted: a download is a read of a job the tenant already has, and the
+    /// stored copy is the server's cache, so a tenant at its quota still gets its result (as
+    /// it can still read its job and its frames); the download budget bounds that memory, and
+    /// the price is a render per download until the tenant frees room.
     async fn rendered(
         &self,
         key: BlobKey,
-        render: impl std::future::Future<Output = Result<Vec<u8>, JobError>>,
+        status: &JobStatus,
+        memory: Option<&DownloadMemory>,
+        positions: impl std::future::Future<Output = Result<Vec<[f64; 3]>, JobError>>,
     ) -> Result<MeshDownload, JobError> {
         let blobs = &self.inner.backend.blobs;
         if let Some(r) = self.on_request(blobs.open(key.clone())).await? {
@@ -285,9 +323,58 @@ impl Jobs {
         if let Some(r) = self.on_request(blobs.open(key.clone())).await? {
             return Ok(MeshDownload::Stored(r));
         }
-        let data = bytes::Bytes::from(render.await?);
+        let BlobKey::Rendered {
+            id,
+            step,
+            format,
+            source,
+        } = &key
+        else {
+            return Err(JobError::Internal(format!("{key:?} is not a rendering")));
+        };
+        let estimate =
+            |vertices: usize, faces: usize| render_estimate(status.input_bytes, vertices, faces);
+        let mut hold = match memory {
+            Some(m) => {
+                let bytes = estimate(status.vertex_count, status.face_count);
+                Some(m.hold(bytes, RENDER_WAIT).await?)
+            }
+            None => None,
+        };
+        let positions = positions.await?;
+        if let Some(h) = &mut hold {
+            // A refined job's positions are more than its upload's vertices; its faces about
+            // twice its vertices (a closed surface: F = 2V − 2χ).
+            let vertices = positions.len().max(status.vertex_count);
+            let faces = status.face_count.max(2 * positions.len());
+            h.fit(estimate(vertices, faces).max(h.bytes()), RENDER_WAIT)
+                .await?;
+        }
+        let data = bytes::Bytes::from(self.render(status, positions, *format).await?);
+        if let Some(h) = &mut hold {
+            // What is left is the output: hold its length while it is stored.
+            h.fit(data.len() as u64, RENDER_WAIT).await?;
+        }
         if self.inner.storage.is_full() {
             return Ok(MeshDownload::Whole(data));
+        }
+        let name = ports::rendered_name(*step, *format, source.as_deref());
+        let store = &self.inner.backend.store;
+        let quotas = &self.inner.config.quotas;
+        let charged = self.on_request(store.charge_rendered(id, &name, data.len() as u64, quotas));
+        match charged.await {
+            Ok(None) => {}
+            Ok(Some(over)) => {
+                tracing::info!(
+                    job = %id, quota = over.quota, limit = over.limit, used = over.used,
+                    "a rendered download is over its tenant's quota; served from memory, not stored"
+                );
+                return Ok(MeshDownload::Whole(data));
+            }
+            Err(e) => {
+                tracing::warn!(job = %id, error = %e, "a rendered download could not be counted; serving it from memory");
+                return Ok(MeshDownload::Whole(data));
+            }
         }
         match self.on_request(blobs.put(key.clone(), data.clone())).await {
             Ok(()) => Ok(match self.on_request(blobs.open(key)).await? {
@@ -298,6 +385,9 @@ impl Jobs {
             Err(e) => {
                 let e = self.inner.storage.noted(e);
                 tracing::warn!(error = %e, "a rendered download could not be stored; serving it from memory");
+                if let Err(e) = self.on_request(store.refund_rendered(id, &name)).await {
+                    tracing::warn!(job = %id, error = %e, "the count of an unstored rendering stays until its job goes");
+                }
                 Ok(MeshDownload::Whole(data))
             }
         }

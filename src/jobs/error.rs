@@ -71,6 +71,15 @@ pub enum JobError {
     /// Every slot for synchronous work is taken (curve fairing); retry shortly.
     #[error("all {slots} curve slots are busy; retry in about {retry_after_secs} s")]
     Busy { retry_after_secs: u64, slots: usize },
+    /// The server's download memory budget had no room for a download's render within the
+    /// wait ([`super::render_memory`]); retry shortly. `wanted`: the render's estimate;
+    /// `budget`: the server's, both in bytes.
+    #[error("the server's memory for downloads ({budget} bytes) has no room to render this one ({wanted} bytes) now; retry in about {retry_after_secs} s")]
+    DownloadsBusy {
+        retry_after_secs: u64,
+        wanted: u64,
+        budget: u64,
+    },
     /// A synchronous request ran out of its time budget.
     #[error("deadline of {secs} s exceeded after step {step} of {steps}")]
     DeadlineExceeded {
@@ -104,6 +113,7 @@ impl JobError {
             JobError::UploadNotFound(_) => "upload_not_found",
             JobError::InvalidCurve(e) => curve_error_code(e),
             JobError::Busy { .. } => "busy",
+            JobError::DownloadsBusy { .. } => "downloads_busy",
             JobError::DeadlineExceeded { .. } => "deadline_exceeded",
             JobError::Numerical { .. } => "numerical",
         }
@@ -123,6 +133,9 @@ impl JobError {
                 retry_after_secs, ..
             }
             | JobError::Busy {
+                retry_after_secs, ..
+            }
+            | JobError::DownloadsBusy {
                 retry_after_secs, ..
             } => Some(*retry_after_secs),
             // Another replica (or this one after restart) can take it shortly.

@@ -41,6 +41,7 @@ mod model;
 pub mod nats;
 mod page_token;
 pub mod ports;
+pub mod render_memory;
 pub mod spec;
 pub mod storage;
 pub mod telemetry;
@@ -54,6 +55,7 @@ pub use ids::JobId;
 pub use model::*;
 pub(crate) use page_token::page_token_key;
 use page_token::{seal_page_token, unseal_page_token};
+pub use render_memory::DownloadMemory;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;

@@ -84,6 +84,9 @@ pub enum Admitting {
     Upload,
     /// A job; `received`: its mesh came with it ([`NewJob::received`]).
     Job { received: bool },
+    /// A download rendered and about to be stored ([`JobStore::charge_rendered`]): only
+    /// `stored_bytes` counts it.
+    Rendered,
 }
 
 /// The quota `usage` plus what is `admitting` would break, if any: one more stored mesh of
@@ -99,6 +102,7 @@ pub fn over_quota(
     let (job, received) = match admitting {
         Admitting::Upload => (false, true),
         Admitting::Job { received } => (true, received),
+        Admitting::Rendered => (false, false),
     };
     if job && q.max_live_jobs > 0 && usage.live_jobs >= q.max_live_jobs {
         return over("live_jobs", q.max_live_jobs as u64, usage.live_jobs as u64);
@@ -136,7 +140,8 @@ pub struct Swept {
 pub struct Usage {
     /// Queued and running jobs.
     pub live_jobs: usize,
-    /// Bytes of uploaded meshes kept: inputs of unexpired jobs and unexpired uploads.
+    /// Bytes kept: inputs of unexpired jobs, unexpired uploads, and the downloads rendered
+    /// and stored for unexpired jobs ([`JobStore::charge_rendered`]).
     pub stored_bytes: u64,
     /// Meshes received (uploads, and jobs that brought theirs) in the minute before the `now` of
     /// [`JobStore::usage`] (the SQLite store estimates the sliding minute from two fixed ones).
@@ -301,6 +306,23 @@ pub trait JobStore: Send + Sync + 'static {
     /// that keeps killing its workers fails `redelivered`, while one whose workers die after
     /// progress goes on (issue 25 item 4).
     async fn delivered(&self, id: &str, fence: &Fence) -> Result<u32, JobError>;
+    /// Count `bytes` of a download of job `id`, rendered and about to be stored as `name`
+    /// ([`BlobKey::Rendered`]), in its tenant's `stored_bytes`, unless `quotas` leave no room
+    /// for them: then nothing is counted and the quota is named (the caller serves the
+    /// rendering from memory without storing it). A name counted already is not counted
+    /// again (two nodes rendering one download store one blob). `Gone`/`NotFound` when the
+    /// job is retired or unknown. The count goes when the job is deleted or expires, with
+    /// its blobs.
+    async fn charge_rendered(
+        &self,
+        id: &str,
+        name: &str,
+        bytes: u64,
+        quotas: &TenantQuotas,
+    ) -> Result<Option<OverQuota>, JobError>;
+    /// Take back [`JobStore::charge_rendered`]'s count of `name`, whose blob could not be
+    /// stored.
+    async fn refund_rendered(&self, id: &str, name: &str) -> Result<(), JobError>;
     /// Remove `tenant`'s terminal (or expired) job's record and frames; `Conflict` if it is
     /// live. Its blobs are the caller's to delete.
     async fn delete(&self, tenant: &str, id: &str) -> Result<(), JobError>;
@@ -415,11 +437,39 @@ pub enum BlobKey {
     /// A mesh download rendered once and kept, so that it is streamed from storage (a slow
     /// reader then pins a chunk, not the whole file) and a repeat download renders nothing:
     /// the result (`step: None`) or a kept frame, in `format`.
+    ///
+    /// `source` is the [`BlobStore::version`] of the positions it was rendered from (a
+    /// frame's welded positions), so a step that a resumed job writes again is rendered
+    /// again instead of being served stale; `None` for the result, which is written once,
+    /// when its job succeeds. A [`rendered_source`] token: safe in a file or object name.
     Rendered {
         id: JobId,
         step: Option<usize>,
         format: Format,
+        source: Option<String>,
     },
+}
+
+/// `version` as a token for a rendered blob's name ([`BlobKey::Rendered::source`]): its
+/// ASCII letters, digits, `-` and `_`, at most 64 of them (a version from a backend is one of
+/// these already: hex, or a base64url digest without its padding).
+pub fn rendered_source(version: &str) -> String {
+    version
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_'))
+        .take(64)
+        .collect()
+}
+
+/// The file or object name of a rendered blob inside its job's `rendered/` folder:
+/// `result.{ext}`, `{step}.{ext}`, or `{step}-{source}.{ext}`.
+pub fn rendered_name(step: Option<usize>, format: Format, source: Option<&str>) -> String {
+    let ext = super::format_name(format);
+    match (step, source) {
+        (None, _) => format!("result.{ext}"),
+        (Some(s), None) => format!("{s}.{ext}"),
+        (Some(s), Some(v)) => format!("{s}-{}.{ext}", rendered_source(v)),
+    }
 }
 
 /// A blob read in pieces ([`BlobStore::open`]): its length, then its bytes in order, a chunk
@@ -471,6 +521,18 @@ pub trait BlobStore: Send + Sync + 'static {
     /// reads it whole.
     async fn open(&self, key: BlobKey) -> Result<Option<BlobReader>, JobError> {
         Ok(self.get(key).await?.map(BlobReader::whole))
+    }
+    /// What identifies the blob's current content, `None` when there is no such blob: it
+    /// changes when the blob is written again with other bytes (the embedded backend: the
+    /// file's inode, modification time and length, a `stat`; NATS: the object's SHA-256
+    /// digest, from its info). Renderings are named after the version of their source
+    /// ([`BlobKey::Rendered::source`]). This default reads the blob and hashes it.
+    async fn version(&self, key: BlobKey) -> Result<Option<String>, JobError> {
+        use sha2::Digest;
+        Ok(self.get(key).await?.map(|b| {
+            let d = sha2::Sha256::digest(&b);
+            d[..16].iter().map(|x| format!("{x:02x}")).collect()
+        }))
     }
     async fn delete(&self, key: BlobKey) -> Result<(), JobError>;
     /// Every blob of a job.

@@ -519,3 +519,56 @@ async fn textured_upload_keeps_uvs_in_the_validated_result() {
     }
     srv.stop().await;
 }
+
+/// A stored frame rendering names the positions it was rendered from: when a step's positions
+/// are written again (a job resumed from a checkpoint before the step takes it again), the
+/// next download renders the new positions instead of serving the first run's rendering.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rewritten_frame_is_rendered_again() {
+    let srv = start(|_| {}).await;
+    let (status, _, job) = srv
+        .submit_obj(&small_obj(), "steps=2&frame_interval=1")
+        .await;
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let path = format!("/v1/jobs/{id}/frames/1?format=obj");
+    let download = || async {
+        let res = srv.get(&path).await;
+        assert_eq!(res.status(), 200);
+        obj_vertices(&res.text().await.expect("frame body"))
+    };
+    let first = download().await;
+    assert!(!first.is_empty());
+
+    // Step 1's welded positions written again, moved by +1 in x, as a put writes them: a new
+    // file renamed into place.
+    let file = srv.dir.path().join(format!("jobs/{id}/frames/1.f64"));
+    let old = std::fs::read(&file).expect("the step's welded positions");
+    assert_eq!(old.len() % 24, 0, "f64 xyz");
+    let moved: Vec<u8> = old
+        .chunks_exact(8)
+        .enumerate()
+        .flat_map(|(i, c)| {
+            let v = f64::from_le_bytes(c.try_into().expect("8 bytes"));
+            (if i % 3 == 0 { v + 1.0 } else { v }).to_le_bytes()
+        })
+        .collect();
+    let tmp = file.with_extension("rewrite");
+    std::fs::write(&tmp, &moved).expect("write");
+    std::fs::rename(&tmp, &file).expect("rename into place");
+
+    for n in 0..2 {
+        let again = download().await;
+        assert_eq!(again.len(), first.len());
+        for (a, b) in first.iter().zip(&again) {
+            assert!(
+                (b[0] - (a[0] + 1.0)).abs() < 1e-6,
+                "download {n}: {a:?} -> {b:?}"
+            );
+            assert!((b[1] - a[1]).abs() < 1e-6 && (b[2] - a[2]).abs() < 1e-6);
+        }
+    }
+    srv.stop().await;
+}

@@ -2,6 +2,8 @@
 //! loopback port, an SSE reader, polling.
 #![allow(dead_code)]
 
+pub mod rendered;
+
 use futures::StreamExt;
 use std::time::{Duration, Instant};
 use willow::mesh::generate;

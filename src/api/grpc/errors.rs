@@ -201,6 +201,17 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
         JobError::Numerical { .. } => {
             details.set_error_info("NUMERICAL", ERROR_DOMAIN, HashMap::new());
         }
+        JobError::DownloadsBusy { wanted, budget, .. } => {
+            details.set_error_info(
+                "DOWNLOADS_BUSY",
+                ERROR_DOMAIN,
+                HashMap::from([
+                    ("scope".to_string(), "render".to_string()),
+                    ("wanted_bytes".to_string(), wanted.to_string()),
+                    ("budget_bytes".to_string(), budget.to_string()),
+                ]),
+            );
+        }
         JobError::Unavailable(detail) => {
             tracing::warn!(error = %detail, "backend unavailable in a gRPC call");
         }

@@ -260,10 +260,17 @@ impl v1::fairing_server::Fairing for GrpcApi {
         };
         let bytes = self
             .jobs
-            .result_download(&caller, &id, format)
+            .result_download(
+                &caller,
+                &id,
+                format,
+                budget.as_ref().map(DownloadBudget::memory),
+            )
             .await
             .map_err(|e| job_error(e, "name"))?;
-        let download = download::start(budget.as_ref(), bytes).map_err(downloads_busy)?;
+        let download = download::start(budget.as_ref(), bytes)
+            .await
+            .map_err(downloads_busy)?;
         // Chunks are handed out as the client takes them, and the download's deadline drops
         // the buffer of a client that does not (see api::download).
         let chunks = futures::stream::unfold((download, true), move |(mut d, first)| async move {

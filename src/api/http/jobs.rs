@@ -587,7 +587,7 @@ pub async fn list_frames(
         (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
-        (status = 503, description = "Too many downloads waiting to be read (`downloads_busy`; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
+        (status = 503, description = "No room in the download memory budget (`downloads_busy`; `scope`: `connection` or `server` for downloads waiting to be read, `render` for a first render that found no room in time; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
     State(st): State<AppState>,
     caller: Caller,
@@ -608,8 +608,17 @@ pub async fn frame_mesh(
         let budget = budget.as_ref().map(|Extension(b)| b);
         // Refused before rendering when no budget is left: a refusal costs nothing.
         budget.map(DownloadBudget::check).transpose()?;
-        let bytes = st.jobs.frame_download(&caller, &id, step, format).await?;
-        let download = download::start(budget, bytes)?;
+        let bytes = st
+            .jobs
+            .frame_download(
+                &caller,
+                &id,
+                step,
+                format,
+                budget.map(DownloadBudget::memory),
+            )
+            .await?;
+        let download = download::start(budget, bytes).await?;
         Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, download))
     };
     match run.await {
@@ -627,7 +636,7 @@ pub async fn frame_mesh(
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
-        (status = 503, description = "Too many downloads waiting to be read (`downloads_busy`; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
+        (status = 503, description = "No room in the download memory budget (`downloads_busy`; `scope`: `connection` or `server` for downloads waiting to be read, `render` for a first render that found no room in time; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_result(
     State(st): State<AppState>,
     caller: Caller,
@@ -643,8 +652,11 @@ pub async fn job_result(
             Some(f) => f,
             None => st.jobs.get(&caller, &id).await?.input_format,
         };
-        let bytes = st.jobs.result_download(&caller, &id, format).await?;
-        let download = download::start(budget, bytes)?;
+        let bytes = st
+            .jobs
+            .result_download(&caller, &id, format, budget.map(DownloadBudget::memory))
+            .await?;
+        let download = download::start(budget, bytes).await?;
         Ok::<_, Problem>(mesh_response(&id, "result", format, download))
     };
     match run.await {

@@ -7,7 +7,8 @@
 //! jobs/{id}/result.f64             final welded positions, f64 LE xyz
 //! jobs/{id}/checkpoint             the flow's latest checkpoint (codec::encode_checkpoint)
 //! jobs/{id}/rendered/result.{ext}  the result as downloaded, rendered once (streamed from here)
-//! jobs/{id}/rendered/{step}.{ext}  a kept frame's mesh as downloaded, likewise
+//! jobs/{id}/rendered/{step}-{source}.{ext}  a kept frame's mesh as downloaded, likewise;
+//!                                  `source` names the positions it was rendered from
 //! uploads/{id}.{ext}               uploads stored ahead of a job (chunked gRPC)
 //! ```
 //! Every file is written to a temporary name and renamed into place, so a reader sees the old
@@ -16,7 +17,7 @@
 //! them again. Everything else is ([`BlobKey::durable`]).
 
 use super::super::ids::well_formed;
-use super::super::ports::{BlobKey, BlobReader, BlobStore};
+use super::super::ports::{rendered_name, BlobKey, BlobReader, BlobStore};
 use super::super::{format_name, join_err, JobError, JobId};
 use async_trait::async_trait;
 use std::fs;
@@ -58,12 +59,16 @@ impl FileBlobs {
                 .join(format!("{step}.{}", if *welded { "f64" } else { "f32" })),
             BlobKey::Result { id } => self.job_dir(id)?.join("result.f64"),
             BlobKey::Checkpoint { id } => self.job_dir(id)?.join("checkpoint"),
-            BlobKey::Rendered { id, step, format } => {
-                let name = step.map_or_else(|| "result".to_string(), |s| s.to_string());
-                self.job_dir(id)?
-                    .join("rendered")
-                    .join(format!("{name}.{}", format_name(*format)))
-            }
+            BlobKey::Rendered {
+                id,
+                step,
+                format,
+                source,
+            } => self.job_dir(id)?.join("rendered").join(rendered_name(
+                *step,
+                *format,
+                source.as_deref(),
+            )),
             BlobKey::Upload { id, format } => {
                 if !well_formed(id) {
                     return Err(JobError::UploadNotFound(id.clone()));
@@ -120,6 +125,28 @@ impl BlobStore for FileBlobs {
             len,
             chunks: Box::pin(chunks),
         }))
+    }
+
+    /// The file's inode, modification time (ns) and length: a put renames a new file into
+    /// place, so a rewrite has a new inode (the old one is in use until the rename) and a new
+    /// time; no read of the content.
+    async fn version(&self, key: BlobKey) -> Result<Option<String>, JobError> {
+        let path = self.path(&key)?;
+        let meta = match tokio::fs::metadata(&path).await {
+            Ok(m) => m,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(e.into()),
+        };
+        let modified = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_nanos());
+        #[cfg(unix)]
+        let inode = std::os::unix::fs::MetadataExt::ino(&meta);
+        #[cfg(not(unix))]
+        let inode = 0u64;
+        Ok(Some(format!("{inode:x}-{modified:x}-{:x}", meta.len())))
     }
 
     async fn delete(&self, key: BlobKey) -> Result<(), JobError> {

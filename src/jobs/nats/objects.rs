@@ -25,7 +25,7 @@
 //!   `max_file_store` refuses, so no job could be deleted to make room.
 
 use super::super::ids::well_formed;
-use super::super::ports::{BlobKey, BlobReader, BlobStore};
+use super::super::ports::{rendered_name, BlobKey, BlobReader, BlobStore};
 use super::super::{format_name, JobError, JobId};
 use super::{nats_err, retry};
 use async_nats::jetstream::object_store::{ObjectInfo, ObjectOptions};
@@ -131,10 +131,15 @@ fn name(key: &BlobKey) -> Result<String, JobError> {
         }
         BlobKey::Result { id } => format!("jobs/{id}/result.f64"),
         BlobKey::Checkpoint { id } => format!("jobs/{id}/checkpoint"),
-        BlobKey::Rendered { id, step, format } => {
-            let name = step.map_or_else(|| "result".to_string(), |s| s.to_string());
-            format!("jobs/{id}/rendered/{name}.{}", format_name(*format))
-        }
+        BlobKey::Rendered {
+            id,
+            step,
+            format,
+            source,
+        } => format!(
+            "jobs/{id}/rendered/{}",
+            rendered_name(*step, *format, source.as_deref())
+        ),
         BlobKey::Upload { id, format } => {
             if !well_formed(id) {
                 return Err(JobError::UploadNotFound(id.clone()));
@@ -191,6 +196,20 @@ impl BlobStore for ObjectBlobs {
         Ok(Some(BlobReader {
             len,
             chunks: Box::pin(chunks),
+        }))
+    }
+
+    /// The object's SHA-256 digest from its info (one direct get), or its chunk id when the
+    /// info has none (objects the client wrote without one): equal bytes, equal version.
+    async fn version(&self, key: BlobKey) -> Result<Option<String>, JobError> {
+        let name = name(&key)?;
+        let info = retry(|| self.read_info(&name, "reading a blob's info")).await?;
+        Ok(info.map(|(info, _)| {
+            info.digest
+                .as_deref()
+                .and_then(|d| d.strip_prefix("SHA-256="))
+                .map(|d| d.trim_end_matches('=').to_string())
+                .unwrap_or(info.nuid)
         }))
     }
 

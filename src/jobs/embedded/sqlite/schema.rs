@@ -53,6 +53,12 @@ CREATE TABLE IF NOT EXISTS idempotency (
     request_hash    TEXT NOT NULL,
     job_id          TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS rendered (
+    job_id          TEXT NOT NULL,
+    name            TEXT NOT NULL,
+    bytes           INTEGER NOT NULL,
+    PRIMARY KEY (job_id, name)
+) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS uploads (
     id              TEXT PRIMARY KEY,
     format          TEXT NOT NULL,
@@ -107,7 +113,9 @@ macro_rules! receive_into_windows {
 /// `tenant_usage` is what each tenant's quotas check, one row per tenant so that an
 /// admission reads one row however many jobs the tenant keeps (`cargo bench --bench
 /// service_load`, part 8: counting the rows cost 5–10% of a submission at 8 clients):
-/// - `bytes`: inputs of unexpired jobs and uploads;
+/// - `bytes`: inputs of unexpired jobs and uploads, and the downloads rendered and stored
+///   for unexpired jobs (`rendered`, one row per stored rendering: a rendering is counted
+///   once however often it is charged);
 /// - `live`: queued and running jobs;
 /// - `window_start`, `window_count`, `previous_count`: meshes received (uploads, and jobs
 ///   that brought their mesh: `received`; a stored upload's job does not count again) in
@@ -184,6 +192,18 @@ BEGIN
         live = live - (OLD.state IN ('queued', 'running'))
     WHERE tenant = OLD.tenant;
 END;
+DROP TRIGGER IF EXISTS tenant_usage_rendered_in;
+CREATE TRIGGER tenant_usage_rendered_in AFTER INSERT ON rendered
+BEGIN
+    UPDATE tenant_usage SET bytes = bytes + NEW.bytes
+    WHERE tenant = (SELECT tenant FROM jobs WHERE id = NEW.job_id AND expired = 0);
+END;
+DROP TRIGGER IF EXISTS tenant_usage_rendered_out;
+CREATE TRIGGER tenant_usage_rendered_out AFTER DELETE ON rendered
+BEGIN
+    UPDATE tenant_usage SET bytes = bytes - OLD.bytes
+    WHERE tenant = (SELECT tenant FROM jobs WHERE id = OLD.job_id AND expired = 0);
+END;
 DROP TRIGGER IF EXISTS tenant_usage_upload_in;
 CREATE TRIGGER tenant_usage_upload_in AFTER INSERT ON uploads
 BEGIN
@@ -209,6 +229,8 @@ INSERT INTO tenant_usage (tenant, bytes, live, window_start, window_count, previ
                (state IN ('queued', 'running')) AS l,
                (CASE WHEN received != 0 THEN created_at ELSE 0 END) AS c FROM jobs
         UNION ALL SELECT tenant, size, 0, created_at FROM uploads
+        UNION ALL SELECT j.tenant, r.bytes, 0, 0 FROM rendered r JOIN jobs j ON j.id = r.job_id
+            WHERE j.expired = 0
     ) GROUP BY tenant;
 ";
 

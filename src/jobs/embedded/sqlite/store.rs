@@ -3,10 +3,12 @@
 
 use super::super::super::codec::encode_metrics;
 use super::super::super::ports::{
-    Fence, Inserted, JobStore, NewJob, Recovered, Started, Swept, Usage,
+    over_quota, Admitting, Fence, Inserted, JobStore, NewJob, OverQuota, Recovered, Started, Swept,
+    Usage,
 };
 use super::super::super::{
     format_name, now_ms, parse_format, FailureCode, JobError, JobId, JobState, JobStatus,
+    TenantQuotas,
 };
 use super::{ms, row_to_status, usage_on, SqliteStore, STATUS_COLUMNS};
 use async_trait::async_trait;
@@ -225,9 +227,59 @@ impl JobStore for SqliteStore {
             let mut conn = s.conn()?;
             let tx = conn.transaction()?;
             tx.execute("DELETE FROM frames WHERE job_id = ?1", params![id])?;
+            forget_rendered(&tx, &id)?;
             tx.execute("DELETE FROM idempotency WHERE job_id = ?1", params![id])?;
             tx.execute("DELETE FROM jobs WHERE id = ?1", params![id])?;
             tx.commit()?;
+            Ok(())
+        })
+        .await
+    }
+
+    async fn charge_rendered(
+        &self,
+        id: &str,
+        name: &str,
+        bytes: u64,
+        quotas: &TenantQuotas,
+    ) -> Result<Option<OverQuota>, JobError> {
+        let (id, name, quotas) = (id.to_string(), name.to_string(), quotas.clone());
+        self.blocking(move |s| {
+            let row = s.row(&id)?;
+            if row.expired {
+                return Err(JobError::Gone(id));
+            }
+            let mut conn = s.conn()?;
+            // One transaction: concurrent charges of one tenant cannot both take the last
+            // bytes of its quota.
+            let tx = conn.transaction()?;
+            let counted = tx
+                .prepare_cached("SELECT 1 FROM rendered WHERE job_id = ?1 AND name = ?2")?
+                .exists(params![id, name])?;
+            if counted {
+                return Ok(None);
+            }
+            if quotas.any() {
+                let usage = usage_on(&tx, &row.status.tenant, now_ms())?;
+                if let Some(over) = over_quota(&quotas, &usage, bytes, Admitting::Rendered) {
+                    return Ok(Some(over));
+                }
+            }
+            tx.prepare_cached("INSERT INTO rendered (job_id, name, bytes) VALUES (?1, ?2, ?3)")?
+                .execute(params![id, name, ms(bytes)])?;
+            tx.commit()?;
+            Ok(None)
+        })
+        .await
+    }
+
+    async fn refund_rendered(&self, id: &str, name: &str) -> Result<(), JobError> {
+        let (id, name) = (id.to_string(), name.to_string());
+        self.blocking(move |s| {
+            s.conn()?.execute(
+                "DELETE FROM rendered WHERE job_id = ?1 AND name = ?2",
+                params![id, name],
+            )?;
             Ok(())
         })
         .await
@@ -246,6 +298,7 @@ impl JobStore for SqliteStore {
             };
             for id in &jobs {
                 tx.execute("DELETE FROM frames WHERE job_id = ?1", params![id])?;
+                forget_rendered(&tx, id)?;
                 tx.execute("UPDATE jobs SET expired = 1 WHERE id = ?1", params![id])?;
             }
             let uploads: Vec<(String, String)> = {
@@ -387,5 +440,17 @@ impl JobStore for SqliteStore {
         let tenant = tenant.to_string();
         self.blocking(move |s| usage_on(&*s.conn()?, &tenant, now))
             .await
+    }
+}
+
+/// Forget the stored renderings of job `id` (their count leaves its tenant's bytes while the
+/// job is unexpired: call before it expires or goes). A database from before `rendered` that
+/// could not be upgraded (a full disk at start) has none to forget, and a delete must work
+/// there.
+fn forget_rendered(conn: &rusqlite::Connection, id: &str) -> Result<(), JobError> {
+    match conn.execute("DELETE FROM rendered WHERE job_id = ?1", params![id]) {
+        Ok(_) => Ok(()),
+        Err(e) if e.to_string().contains("no such table") => Ok(()),
+        Err(e) => Err(e.into()),
     }
 }

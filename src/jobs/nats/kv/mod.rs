@@ -67,6 +67,23 @@ struct Record {
     /// [`JobStore::delivered`]: crate::jobs::ports::JobStore::delivered
     #[serde(default, skip_serializing_if = "Ledger::is_empty")]
     ledger: Ledger,
+    /// Downloads rendered and stored for the job, by blob name, with their sizes: counted in
+    /// its tenant's bytes while the job is unexpired ([`JobStore::charge_rendered`]); absent
+    /// in records from before they were counted.
+    ///
+    /// [`JobStore::charge_rendered`]: crate::jobs::ports::JobStore::charge_rendered
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    rendered: std::collections::BTreeMap<String, u64>,
+}
+
+impl Record {
+    /// What the job counts in its tenant's bytes while unexpired: its upload and its stored
+    /// renderings.
+    fn stored_bytes(&self) -> u64 {
+        self.rendered
+            .values()
+            .fold(self.status.input_bytes, |a, b| a.saturating_add(*b))
+    }
 }
 
 /// A job's delivery ledger: the step of its checkpoint, the one its last delivery saw, and

@@ -1,9 +1,12 @@
 //! [`KvStore`] behind the [`JobStore`] port.
 
 use super::super::super::ports::{
-    over_quota, Admitting, Fence, Inserted, JobStore, NewJob, Recovered, Started, Swept, Usage,
+    over_quota, Admitting, Fence, Inserted, JobStore, NewJob, OverQuota, Recovered, Started, Swept,
+    Usage,
 };
-use super::super::super::{now_ms, FailureCode, JobError, JobId, JobState, JobStatus};
+use super::super::super::{
+    now_ms, FailureCode, JobError, JobId, JobState, JobStatus, TenantQuotas,
+};
 use super::super::{nats_err, retry};
 use super::*;
 
@@ -381,7 +384,7 @@ impl JobStore for KvStore {
             .await?;
         if let Some(r) = retired {
             self.update_usage(tenant, |u| {
-                u.bytes = u.bytes.saturating_sub(r.status.input_bytes);
+                u.bytes = u.bytes.saturating_sub(r.stored_bytes());
                 true
             })
             .await?;
@@ -402,6 +405,87 @@ impl JobStore for KvStore {
             .filter(frames_subject(id))
             .await
             .map_err(|e| nats_err("deleting a job's frames", e))?;
+        Ok(())
+    }
+
+    /// The tenant's bytes first, with the quota check (one compare-and-set, as an
+    /// admission), then the name in the job's record; a name another node recorded first,
+    /// or a job retired meanwhile, gives the bytes back.
+    async fn charge_rendered(
+        &self,
+        id: &str,
+        name: &str,
+        bytes: u64,
+        quotas: &TenantQuotas,
+    ) -> Result<Option<OverQuota>, JobError> {
+        let (rec, _) = self.record(id).await?;
+        if rec.expired {
+            return Err(JobError::Gone(id.to_string()));
+        }
+        if rec.rendered.contains_key(name) {
+            return Ok(None);
+        }
+        let tenant = rec.status.tenant.clone();
+        let mut over = None;
+        let now = now_ms();
+        self.update_usage(&tenant, |u| {
+            over = quotas
+                .any()
+                .then(|| over_quota(quotas, &u.usage(now), bytes, Admitting::Rendered))
+                .flatten();
+            if over.is_some() {
+                return false;
+            }
+            u.bytes = u.bytes.saturating_add(bytes);
+            true
+        })
+        .await?;
+        if over.is_some() {
+            return Ok(over);
+        }
+        let mut gone = false;
+        let recorded = self
+            .update(id, |r| {
+                gone = r.expired;
+                if r.expired || r.rendered.contains_key(name) {
+                    return Ok(false);
+                }
+                r.rendered.insert(name.to_string(), bytes);
+                Ok(true)
+            })
+            .await;
+        if !matches!(recorded, Ok(Some(_))) {
+            self.update_usage(&tenant, |u| {
+                u.bytes = u.bytes.saturating_sub(bytes);
+                true
+            })
+            .await?;
+        }
+        match recorded {
+            Err(e) => Err(e),
+            Ok(_) if gone => Err(JobError::Gone(id.to_string())),
+            Ok(_) => Ok(None),
+        }
+    }
+
+    async fn refund_rendered(&self, id: &str, name: &str) -> Result<(), JobError> {
+        let mut refund = 0;
+        let removed = self
+            .update(id, |r| {
+                if r.expired {
+                    return Ok(false);
+                }
+                refund = r.rendered.remove(name).unwrap_or(0);
+                Ok(refund > 0)
+            })
+            .await?;
+        if let Some(r) = removed {
+            self.update_usage(&r.status.tenant, |u| {
+                u.bytes = u.bytes.saturating_sub(refund);
+                true
+            })
+            .await?;
+        }
         Ok(())
     }
 
@@ -426,7 +510,7 @@ impl JobStore for KvStore {
                 continue;
             };
             self.update_usage(&r.status.tenant, |u| {
-                u.bytes = u.bytes.saturating_sub(r.status.input_bytes);
+                u.bytes = u.bytes.saturating_sub(r.stored_bytes());
                 true
             })
             .await?;

@@ -117,7 +117,7 @@ impl KvStore {
             }
             let c = counted.entry(rec.status.tenant.clone()).or_default();
             c.0 += u64::from(!rec.status.state.is_terminal());
-            c.1 = c.1.saturating_add(rec.status.input_bytes);
+            c.1 = c.1.saturating_add(rec.stored_bytes());
         }
         for k in self.keys("upload.").await? {
             let Some(b) = self
@@ -213,6 +213,7 @@ impl KvStore {
             hold: None,
             callback_pending: job.spec.callback_url.is_some(),
             ledger: Ledger::default(),
+            rendered: Default::default(),
         };
         kv.create(job_key(&job.id), to_json(&rec)?)
             .await
