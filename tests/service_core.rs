@@ -438,6 +438,8 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
          DROP TRIGGER tenant_usage_job_state;
          DROP TRIGGER tenant_usage_job_expired; DROP TRIGGER tenant_usage_job_out;
          DROP TRIGGER tenant_usage_upload_in; DROP TRIGGER tenant_usage_upload_out;
+         DROP TRIGGER tenant_usage_rendered_in; DROP TRIGGER tenant_usage_rendered_out;
+         DROP TABLE rendered;
          DROP TABLE tenant_usage;
          DROP INDEX jobs_by_tenant; DROP INDEX jobs_by_tenant_state;
          DROP INDEX jobs_by_tenant_created; DROP INDEX uploads_by_tenant;
