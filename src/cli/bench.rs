@@ -125,6 +125,8 @@ struct Figures {
     region_setup_ms: f64,
     region_median_try_ms: f64,
     region_try_ratio: f64,
+    /// Where the region flow's last step went, as `profile` for the whole mesh.
+    region_profile: Vec<(String, f64)>,
     /// The distance from the input (`deviation_max`, `deviation_mean`) measured on every frame
     /// of the conformal flow, as a job measures it (one `Deviation`, frame after frame), in ms
     /// and over the median try (issue 29: at most 10% at 100k triangles, in every phase): after
@@ -219,6 +221,12 @@ pub fn run(args: BenchArgs) -> ExitCode {
                         f.region_median_try_ms,
                         f.region_try_ratio * 100.0
                     );
+                    let phases: Vec<String> = f
+                        .region_profile
+                        .iter()
+                        .map(|(name, value)| format!("{name} {value:.2}"))
+                        .collect();
+                    println!("    last region step: {}", phases.join(", "));
                     println!(
                         "    distance from the input (deviation_*) a frame: near (step 1) {:.2} ms, \
                          {:.1}% of a try; far (step {}, max {:.3e}) {:.2} ms, {:.1}%; slowest \
@@ -467,14 +475,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
             }
         }
     }
-    let profile = flow
-        .profile()
-        .map(|p| {
-            let phases = p.phases().iter().map(|&(n, ms)| (format!("{n} ms"), ms));
-            let counts = p.counts().iter().map(|&(n, c)| (n.to_string(), c));
-            phases.chain(counts).collect()
-        })
-        .unwrap_or_default();
+    let profile = profile_of(flow.as_ref());
     let setup_profile = flow
         .setup_profile()
         .map(|p| {
@@ -520,6 +521,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         } else {
             f64::NAN
         },
+        region_profile: region.profile,
         deviation_near_ms: deviation.near_ms(),
         deviation_near_ratio: share(deviation.near_ms()),
         deviation_far_ms: deviation.far_ms(),
@@ -587,10 +589,22 @@ impl FrameDeviation {
     }
 }
 
+/// Where a flow's last step went: its phases in ms, then its counts.
+fn profile_of(flow: &dyn willow::flow::Flow) -> Vec<(String, f64)> {
+    flow.profile()
+        .map(|p| {
+            let phases = p.phases().iter().map(|&(n, ms)| (format!("{n} ms"), ms));
+            let counts = p.counts().iter().map(|&(n, c)| (n.to_string(), c));
+            phases.chain(counts).collect()
+        })
+        .unwrap_or_default()
+}
+
 struct RegionFigures {
     vertices: usize,
     setup_ms: f64,
     median_try_ms: f64,
+    profile: Vec<(String, f64)>,
 }
 
 /// `steps` steps of `params`' flow on a sphere about the vertex farthest along +x holding
@@ -632,6 +646,7 @@ fn measure_region(mesh: &Mesh, params: &FlowParams, steps: usize) -> Result<Regi
         vertices: k,
         setup_ms,
         median_try_ms: median(&mut tries),
+        profile: profile_of(flow.as_ref()),
     })
 }
 

@@ -344,6 +344,13 @@ impl ConformalFlow {
         // assembles into it later, so elsewhere it (and the factor's gather table) goes as
         // soon as the assembly is built, before L's analysis on one thread.
         let keep_pattern = fixed.is_some();
+        // Held vertices: a region's submesh, small beside the mesh, whose X is factored twice a
+        // step and solved in every refining round, where faer's size rule would pick its
+        // simplicial kernel ([`Cholesky::analyze_supernodal_with_vertex_order`]). Not L: real
+        // and scalar, its simplicial factor is as fast, and faer's supernodal solve of one
+        // right-hand side is slower (nefertiti's 5% region: 0.31 against 0.13 ms a solve, which
+        // the δ-system's refining rounds repeat).
+        let supernodal = fixed.is_some();
         let vertex_fwd_ref = &vertex_fwd;
         let analyze_dirac = move || -> Result<_, SolverError> {
             let vertex_fwd = vertex_fwd_ref;
@@ -352,11 +359,16 @@ impl ConformalFlow {
                 mixed.set_quaternionic();
                 DiracFactor::Mixed(Box::new(mixed))
             } else {
-                let mut double = Cholesky::<c64>::analyze_with_vertex_order(
-                    &dirac_pattern,
-                    form_count.max(1),
-                    vertex_fwd,
-                )?;
+                let nrhs = form_count.max(1);
+                let mut double = if supernodal {
+                    Cholesky::<c64>::analyze_supernodal_with_vertex_order(
+                        &dirac_pattern,
+                        nrhs,
+                        vertex_fwd,
+                    )?
+                } else {
+                    Cholesky::<c64>::analyze_with_vertex_order(&dirac_pattern, nrhs, vertex_fwd)?
+                };
                 double.set_quaternionic();
                 double.release_triangle();
                 DiracFactor::Double(Box::new(double))

@@ -99,13 +99,48 @@ impl<T: Scalar> Cholesky<T> {
         nrhs: usize,
         vertex_fwd: &[usize],
     ) -> Result<Self, SolverError> {
+        Self::analyze_with_vertex_order_as(pattern, nrhs, vertex_fwd, SupernodalThreshold::AUTO)
+    }
+
+    /// [`Cholesky::analyze_with_vertex_order`], supernodal whatever the size: faer's
+    /// automatic choice (by flops per factor entry) makes the factor of a small mesh
+    /// simplicial, which is faer's scalar kernel, neither our vectorized one nor the
+    /// quaternionic halving ([`Cholesky::set_quaternionic`]). A region's flow (issue 29)
+    /// factors X twice a step on a few thousand vertices and solves with it in every
+    /// refining round: the simplicial factor of X made nefertiti's 5% region step 16–18% of
+    /// the whole mesh's (`willow bench`: X factor 23–43 ms of a try, 4 ms supernodal).
+    pub fn analyze_supernodal_with_vertex_order(
+        pattern: &BlockPattern,
+        nrhs: usize,
+        vertex_fwd: &[usize],
+    ) -> Result<Self, SolverError> {
+        Self::analyze_with_vertex_order_as(
+            pattern,
+            nrhs,
+            vertex_fwd,
+            SupernodalThreshold::FORCE_SUPERNODAL,
+        )
+    }
+
+    fn analyze_with_vertex_order_as(
+        pattern: &BlockPattern,
+        nrhs: usize,
+        vertex_fwd: &[usize],
+        threshold: SupernodalThreshold,
+    ) -> Result<Self, SolverError> {
         if vertex_fwd.len() != pattern.vertex_col_ptr.len() - 1 {
             return Err(SolverError::Symbolic(
                 "the vertex ordering is for another mesh".into(),
             ));
         }
         let (fwd, inv) = pattern.expand_order(vertex_fwd);
-        Self::with_ordering(pattern.symbolic.as_ref(), pattern.block, fwd, inv, nrhs)
+        Self::with_ordering(
+            pattern.symbolic.as_ref(),
+            pattern.block,
+            (fwd, inv),
+            nrhs,
+            threshold,
+        )
     }
 
     /// [`Cholesky::analyze`] with the vertex graph ordered by `ordering`.
@@ -117,7 +152,13 @@ impl<T: Scalar> Cholesky<T> {
         let (fwd, inv) = pattern
             .block_order(ordering)
             .map_err(|e| SolverError::Symbolic(e.to_string()))?;
-        Self::with_ordering(pattern.symbolic.as_ref(), pattern.block, fwd, inv, nrhs)
+        Self::with_ordering(
+            pattern.symbolic.as_ref(),
+            pattern.block,
+            (fwd, inv),
+            nrhs,
+            SupernodalThreshold::AUTO,
+        )
     }
 
     /// Symbolic analysis of an arbitrary symmetric pattern (both triangles stored), ordered by
@@ -140,17 +181,17 @@ impl<T: Scalar> Cholesky<T> {
         )
         .map_err(|e| SolverError::Symbolic(format!("{e:?}")))?;
         drop(mem);
-        Self::with_ordering(pattern, 1, fwd, inv, nrhs)
+        Self::with_ordering(pattern, 1, (fwd, inv), nrhs, SupernodalThreshold::AUTO)
     }
 
     /// `block`: the pattern's columns come in groups of this many (see
-    /// [`supernodal_params`]).
+    /// [`supernodal_params`]); `threshold`: faer's choice between simplicial and supernodal.
     fn with_ordering(
         pattern: faer::sparse::SymbolicSparseColMatRef<'_, usize>,
         block: usize,
-        fwd: Vec<usize>,
-        inv: Vec<usize>,
+        (fwd, inv): (Vec<usize>, Vec<usize>),
         nrhs: usize,
+        threshold: SupernodalThreshold,
     ) -> Result<Self, SolverError> {
         let n = pattern.nrows();
         // Only the upper triangle is analyzed (faer's contract with the identity ordering).
@@ -160,7 +201,7 @@ impl<T: Scalar> Cholesky<T> {
             Side::Upper,
             SymmetricOrdering::Identity,
             CholeskySymbolicParams {
-                supernodal_flop_ratio_threshold: SupernodalThreshold::AUTO,
+                supernodal_flop_ratio_threshold: threshold,
                 supernodal_params: supernodal_params(block),
                 ..Default::default()
             },

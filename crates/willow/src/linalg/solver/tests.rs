@@ -427,3 +427,30 @@ fn zeroed_buffers_are_zero_and_writable_at_every_size() {
         Err(SolverError::OutOfMemory)
     ));
 }
+
+/// On a small mesh faer's size rule picks its simplicial factor; the supernodal analysis a
+/// region's flow asks for (`Cholesky::analyze_supernodal_with_vertex_order`) is supernodal
+/// there all the same and solves the same system to the same solution, to rounding.
+#[test]
+fn a_forced_supernodal_factor_solves_what_the_simplicial_one_solves() {
+    let mesh = icosphere(1);
+    let p = BlockPattern::new(mesh.vertex_count(), &mesh.triangles, 2);
+    let values = hermitian_block_values(&p, &mesh.triangles);
+    let (order, _) = p.vertex_order(Ordering::Amd).expect("order");
+    let mut simplicial = Cholesky::<c64>::analyze_with_vertex_order(&p, 1, &order).expect("auto");
+    let mut supernodal =
+        Cholesky::<c64>::analyze_supernodal_with_vertex_order(&p, 1, &order).expect("forced");
+    assert_eq!(simplicial.widest_supernode(), 0, "the size rule's choice");
+    assert!(supernodal.widest_supernode() > 0);
+    simplicial.factorize(&p, &values).expect("factorize");
+    supernodal.factorize(&p, &values).expect("factorize");
+    let b: Vec<c64> = (0..p.dim())
+        .map(|i| c64::new((i as f64 * 0.37).sin(), (i as f64 * 0.11).cos()))
+        .collect();
+    let (mut x, mut y) = (b.clone(), b.clone());
+    simplicial.solve_in_place(&mut x, 1);
+    supernodal.solve_in_place(&mut y, 1);
+    let residual = max_distance(&full_storage_product(&p, &values, &y), &b);
+    assert!(residual < 1e-12, "residual {residual}");
+    assert!(max_distance(&x, &y) < 1e-13, "{}", max_distance(&x, &y));
+}
