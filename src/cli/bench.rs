@@ -140,6 +140,9 @@ struct Figures {
     deviation_worst_ratio: f64,
     /// The last frame's `deviation_max` (model units): how far "far" was.
     deviation_far_max: f64,
+    /// Where the slowest frame's measure went: (phase, ms), as
+    /// `Deviation::profile` names them.
+    deviation_worst_profile: Vec<(String, f64)>,
 }
 
 /// The share of a mesh's vertices the region benchmark fairs.
@@ -240,6 +243,12 @@ pub fn run(args: BenchArgs) -> ExitCode {
                         f.deviation_worst_ms,
                         f.deviation_worst_ratio * 100.0
                     );
+                    let phases: Vec<String> = f
+                        .deviation_worst_profile
+                        .iter()
+                        .map(|(name, value)| format!("{name} {value:.1}"))
+                        .collect();
+                    println!("    slowest distance frame: {}", phases.join(", "));
                 }
             }
             Err(e) => return fail(EXIT_FAILURE, format!("{name}: {e}")),
@@ -529,6 +538,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
         deviation_worst_ms: deviation.worst_ms(),
         deviation_worst_ratio: share(deviation.worst_ms()),
         deviation_far_max: deviation.far_max,
+        deviation_worst_profile: deviation.worst_profile,
     })
 }
 
@@ -541,6 +551,8 @@ struct FrameDeviation {
     deviation: willow::geometry::distance::Deviation,
     frame_ms: Vec<f64>,
     far_max: f64,
+    /// The slowest frame's `Deviation::profile`.
+    worst_profile: Vec<(String, f64)>,
 }
 
 impl FrameDeviation {
@@ -560,6 +572,7 @@ impl FrameDeviation {
             deviation,
             frame_ms: Vec::new(),
             far_max: f64::NAN,
+            worst_profile: Vec::new(),
         }
     }
 
@@ -572,7 +585,16 @@ impl FrameDeviation {
             &self.triangles,
             &self.areas,
         ));
-        self.frame_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        if self.frame_ms.iter().all(|&slower| slower < ms) {
+            self.worst_profile = self
+                .deviation
+                .profile()
+                .iter()
+                .map(|&(name, v)| (format!("{name} ms"), v))
+                .collect();
+        }
+        self.frame_ms.push(ms);
         self.far_max = max;
     }
 

@@ -421,3 +421,53 @@ fn the_mean_stays_within_its_stated_bound_near_and_far() {
         );
     }
 }
+
+/// The large-mesh regime (the mean's distances within `MEAN_SLACK`, so the remembered faces
+/// change the estimate within its bound; the max seeded by last frame's farthest sample),
+/// checked frame after frame on a mesh a brute force can afford by lowering its threshold: over consecutive frames that move away from the input (a bend
+/// growing with a slide), then jump back near it (every remembered face stale), the max
+/// equals the brute-force max over every sample, and the mean is within its stated bound
+/// (at most 1%) of the brute-force mean.
+#[test]
+fn the_large_mesh_estimate_holds_over_consecutive_frames() {
+    let mesh = bumpy_sphere(4, 0.15);
+    let samples_per_side = mesh.vertex_count() + 3 * mesh.face_count() / 2 + mesh.face_count();
+    let threshold = 4 * willow::geometry::distance::MEAN_SAMPLES;
+    assert!(samples_per_side > threshold);
+    let moved = |p: P, s: f64| -> P {
+        let (sn, c) = (0.5 * s * p[2]).sin_cos();
+        let g = 1.0 + 0.1 * s * (1.7 * p[0]).sin();
+        [
+            g * (c * p[0] - sn * p[1]) + 0.3 * s,
+            g * (sn * p[0] + c * p[1]),
+            g * p[2] + 0.1 * s * p[0] * p[0],
+        ]
+    };
+    let topology = Topology::new(&mesh);
+    let mut areas = vec![0.0; mesh.face_count()];
+    face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
+    let mut deviation = Deviation::new(&mesh.positions, &mesh.triangles, &topology, &areas)
+        .with_exact_mean_samples(threshold);
+    let mut previous = 0.0;
+    for (k, s) in [0.05, 0.2, 0.5, 1.0, 1.6, 0.1].into_iter().enumerate() {
+        let current: Vec<P> = mesh.positions.iter().map(|&p| moved(p, s)).collect();
+        face_areas_into(&current, &mesh.triangles, &mut areas);
+        let (max, mean) = deviation.measure(&current, &mesh.triangles, &areas);
+        let bound = deviation.mean_bound();
+        let (bmax, bmean) = brute_two_sided(&mesh.positions, &current, &mesh.triangles);
+        assert!(
+            (max - bmax).abs() <= 1e-9 * bmax,
+            "frame {k}: max {max} vs brute force {bmax}"
+        );
+        assert!(bound > 0.0, "frame {k}: an estimate states its error");
+        assert!(bound <= 0.01 * mean, "frame {k}: bound {bound} vs {mean}");
+        assert!(
+            (mean - bmean).abs() <= bound,
+            "frame {k}: mean {mean} vs brute force {bmean}, stated bound {bound}"
+        );
+        if k < 5 {
+            assert!(bmax > previous, "frame {k}: the frames move away ({bmax})");
+            previous = bmax;
+        }
+    }
+}

@@ -169,6 +169,9 @@ struct Memory {
     node_face: Vec<u32>,
     /// Per sample, the frame in which its distance was shown to be at most the max.
     settled: Vec<u32>,
+    /// The sample whose exact distance set the last max (`usize::MAX`: none): measured
+    /// first, it bounds this frame's max from below before anything is pruned.
+    argmax: usize,
 }
 
 impl Memory {
@@ -177,6 +180,7 @@ impl Memory {
             nearest: hints.to_vec(),
             node_face: vec![u32::MAX; nodes],
             settled: vec![0; hints.len()],
+            argmax: usize::MAX,
         }
     }
 }
@@ -197,6 +201,9 @@ struct Side<'a> {
     neighbours: &'a [[u32; 3]],
     /// This frame's number, for [`Memory::settled`].
     frame: u32,
+    /// Samples per side above which the mean takes its distances within [`MEAN_SLACK`]
+    /// ([`Deviation::with_exact_mean_samples`]).
+    exact_mean_samples: usize,
 }
 
 impl Side<'_> {
@@ -220,7 +227,7 @@ impl Side<'_> {
     /// ([`super::stratified`]), each distance a query within the slack (exact on small
     /// meshes).
     fn mean(&self, memory: &mut Memory, strata: &mut Strata) -> MeanEstimate {
-        let slack = if self.samples.len() > EXACT_MEAN_SAMPLES {
+        let slack = if self.samples.len() > self.exact_mean_samples {
             MEAN_SLACK
         } else {
             0.0
@@ -244,6 +251,18 @@ impl Side<'_> {
             }
             d
         })
+    }
+
+    /// The exact distance of the sample that set the last frame's max (0 if none): a lower
+    /// bound of this frame's max, near it while the surface moves a little per frame.
+    fn last_argmax(&self, memory: &mut Memory) -> f64 {
+        let i = memory.argmax;
+        if i >= self.samples.len() {
+            return 0.0;
+        }
+        let (face, d) = self.exact(self.samples[i], memory.nearest[i] as usize);
+        memory.nearest[i] = face as u32;
+        d
     }
 
     /// The largest distance over every sample of this side, exactly, given `max`, one
@@ -326,7 +345,10 @@ impl Side<'_> {
                     }
                     let (nearest, d) = self.exact(p, near);
                     memory.nearest[i] = nearest as u32;
-                    max = max.max(d);
+                    if d > max {
+                        max = d;
+                        memory.argmax = i;
+                    }
                 }
             }
         }
@@ -418,6 +440,10 @@ pub struct Deviation {
     mean_bound: f64,
     frame: u32,
     stack: Vec<(u32, u32)>,
+    /// See [`Deviation::with_exact_mean_samples`].
+    exact_mean_samples: usize,
+    /// Where the last [`Deviation::measure`] spent its time ([`Deviation::profile`]).
+    profile: [(&'static str, f64); 4],
 }
 
 impl Deviation {
@@ -475,7 +501,23 @@ impl Deviation {
             plan,
             neighbours,
             stack: Vec::new(),
+            exact_mean_samples: EXACT_MEAN_SAMPLES,
+            profile: [
+                ("samples", 0.0),
+                ("mean out", 0.0),
+                ("mean in", 0.0),
+                ("max", 0.0),
+            ],
         }
+    }
+
+    /// The same measure with another threshold than [`EXACT_MEAN_SAMPLES`] for the large-mesh
+    /// mean (distances within [`MEAN_SLACK`], so what a side remembers changes the result
+    /// within that slack): a test lowers it to check that regime against a brute force, frame
+    /// after frame, on a mesh small enough for one.
+    pub fn with_exact_mean_samples(mut self, samples: usize) -> Self {
+        self.exact_mean_samples = samples;
+        self
     }
 
     /// `(deviation_max, deviation_mean)` of the surface at `positions` (whose face areas are
@@ -489,6 +531,12 @@ impl Deviation {
         if triangles.is_empty() {
             return (0.0, 0.0);
         }
+        let mut clock = std::time::Instant::now();
+        let mut lap = |profile: &mut [(&'static str, f64); 4], k: usize| {
+            let now = std::time::Instant::now();
+            profile[k].1 = (now - clock).as_secs_f64() * 1e3;
+            clock = now;
+        };
         self.plan
             .points_into(positions, triangles, &mut self.samples);
         self.plan
@@ -515,6 +563,7 @@ impl Deviation {
             face_edges: &self.plan.face_edges,
             neighbours: &self.neighbours,
             frame: self.frame,
+            exact_mean_samples: self.exact_mean_samples,
         };
         let back = Side {
             samples: &self.input_samples,
@@ -527,16 +576,29 @@ impl Deviation {
             face_edges: &self.plan.face_edges,
             neighbours: &self.neighbours,
             frame: self.frame,
+            exact_mean_samples: self.exact_mean_samples,
         };
+        lap(&mut self.profile, 0);
         let mean_out = out.mean(&mut self.out_memory, &mut self.out_strata);
+        lap(&mut self.profile, 1);
         let mean_in = back.mean(&mut self.back_memory, &mut self.back_strata);
+        lap(&mut self.profile, 2);
         let (max_out, max_in) = (mean_out.max_seen, mean_in.max_seen);
         self.mean_bound = 0.5 * (mean_out.bound + mean_in.bound);
+        let max_out = max_out.max(out.last_argmax(&mut self.out_memory));
+        let max_in = max_in.max(back.last_argmax(&mut self.back_memory));
         // Both sides' distances so far bound the max below before either settles it, so the
         // side with the smaller distances mostly has nothing left to check.
         let max = back.settle_max(max_out.max(max_in), &mut self.back_memory, &mut self.stack);
         let max = out.settle_max(max, &mut self.out_memory, &mut self.stack);
+        lap(&mut self.profile, 3);
         (max, 0.5 * (mean_out.mean + mean_in.mean))
+    }
+
+    /// Where the last [`Deviation::measure`] spent its time, in ms: the samples and the
+    /// current tree's refit, each side's mean, the max (both sides).
+    pub fn profile(&self) -> &[(&'static str, f64)] {
+        &self.profile
     }
 
     /// The stated error bound of the last [`Deviation::measure`]'s mean: the mean over every
