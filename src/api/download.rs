@@ -114,6 +114,18 @@ pub struct Charge {
     bytes: u64,
 }
 
+impl Charge {
+    /// Both permits of a charge of `len` bytes, counted as held until dropped.
+    fn held(global: OwnedSemaphorePermit, conn: OwnedSemaphorePermit, len: usize) -> Charge {
+        HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
+        Charge {
+            _global: global,
+            _conn: conn,
+            bytes: len as u64,
+        }
+    }
+}
+
 impl Drop for Charge {
     fn drop(&mut self) {
         HELD_BYTES.fetch_sub(self.bytes, Ordering::Relaxed);
@@ -146,26 +158,24 @@ impl DownloadBudget {
     /// Charge `len` bytes to this connection and the server. A download larger than a budget
     /// takes all of it (so it is served alone, never refused forever).
     pub fn charge(&self, len: usize) -> Result<Charge, Busy> {
-        let want = units(len as u64);
-        let conn_units = want.min(self.limits.per_connection_units) as u32;
-        let conn = self
-            .conn
+        let conn = self.charge_connection(len)?;
+        let global = self
+            .limits
+            .global
+            .try_take(units(len as u64))
+            .ok_or(Busy { scope: "server" })?;
+        Ok(Charge::held(global, conn, len))
+    }
+
+    /// This connection's share of a charge of `len` bytes (at most its whole budget).
+    fn charge_connection(&self, len: usize) -> Result<OwnedSemaphorePermit, Busy> {
+        let conn_units = units(len as u64).min(self.limits.per_connection_units) as u32;
+        self.conn
             .clone()
             .try_acquire_many_owned(conn_units)
             .map_err(|_| Busy {
                 scope: "connection",
-            })?;
-        let global = self
-            .limits
-            .global
-            .try_take(want)
-            .ok_or(Busy { scope: "server" })?;
-        HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
-        Ok(Charge {
-            _global: global,
-            _conn: conn,
-            bytes: len as u64,
-        })
+            })
     }
 
     /// [`DownloadBudget::charge`], but when the server's budget is short while renders hold
@@ -177,27 +187,14 @@ impl DownloadBudget {
             Err(b) if b.scope == "server" && self.limits.global.renders_active() => b,
             other => return other,
         };
-        let want = units(len as u64);
-        let conn_units = want.min(self.limits.per_connection_units) as u32;
-        let conn = self
-            .conn
-            .clone()
-            .try_acquire_many_owned(conn_units)
-            .map_err(|_| Busy {
-                scope: "connection",
-            })?;
+        let conn = self.charge_connection(len)?;
         let global = self
             .limits
             .global
-            .take(want, crate::jobs::render_memory::RENDER_WAIT)
+            .take(units(len as u64), crate::jobs::render_memory::RENDER_WAIT)
             .await
             .ok_or(busy)?;
-        HELD_BYTES.fetch_add(len as u64, Ordering::Relaxed);
-        Ok(Charge {
-            _global: global,
-            _conn: conn,
-            bytes: len as u64,
-        })
+        Ok(Charge::held(global, conn, len))
     }
 
     /// The pace a client of this connection must keep on an event stream: the write timeout
