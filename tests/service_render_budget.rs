@@ -18,32 +18,19 @@ use willow::mesh::generate;
 use willow::mesh::io::Format;
 use willow_service::api::conn::ConnLimits;
 use willow_service::api::download::held_bytes;
-use willow_service::api::server::{serve_with, AppOptions, ServeOptions};
+use willow_service::api::server::{AppOptions, ServeOptions};
 use willow_service::jobs::render_memory::{peak_in_use, rendering_bytes, reset_peak};
-use willow_service::jobs::{Caller, Config, Jobs};
+use willow_service::jobs::{Caller, Jobs};
 
 /// The server's download budget under test: room for several streamed downloads (256 KiB
 /// each), less than one render of the result (its estimate is about 4 MB), which therefore
 /// takes all of it and renders alone.
 const BUDGET: u64 = 3 << 19;
 
-/// The real server on a loopback listener whose accepted sockets have a small send buffer, so
-/// a client that does not read blocks the server's writes after a few KiB.
+/// The real server with a small send buffer per socket
+/// ([`service_http_support::slow_socket`]) and a download budget of [`BUDGET`].
 async fn start() -> (String, tokio::sync::oneshot::Sender<()>, Jobs) {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = Config::new(dir.path());
-    config.workers = 1;
-    let (jobs, core) = Jobs::start(config).await.expect("job core starts");
-    let socket = TcpSocket::new_v4().expect("socket");
-    socket.set_send_buffer_size(16 << 10).expect("SO_SNDBUF");
-    socket
-        .bind("127.0.0.1:0".parse().expect("address"))
-        .expect("bind loopback");
-    let listener = socket.listen(1024).expect("listen");
-    let addr = listener.local_addr().expect("local addr").to_string();
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let handle = jobs.clone();
-    let options = ServeOptions {
+    service_http_support::slow_socket::start(ServeOptions {
         app: AppOptions::default(),
         conn: ConnLimits {
             // A hanging reader keeps its download for the whole test.
@@ -53,23 +40,8 @@ async fn start() -> (String, tokio::sync::oneshot::Sender<()>, Jobs) {
             download_memory_per_connection: 64 << 20,
             ..ConnLimits::default()
         },
-    };
-    tokio::spawn(async move {
-        let _dir = dir;
-        let shutdown = async move {
-            let _ = rx.await;
-        };
-        serve_with(
-            listener,
-            jobs,
-            core,
-            shutdown,
-            Duration::from_secs(2),
-            options,
-        )
-        .await
-    });
-    (addr, tx, handle)
+    })
+    .await
 }
 
 /// What a download answered: its bytes, or a refusal's problem and `Retry-After`.

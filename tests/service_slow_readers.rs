@@ -10,6 +10,7 @@
 
 mod service_http_support;
 
+use service_http_support::slow_socket::start;
 use service_http_support::{obj_text, obj_vertices, poll_until};
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -17,8 +18,7 @@ use tokio::net::{TcpSocket, TcpStream};
 use willow::mesh::generate;
 use willow_service::api::conn::ConnLimits;
 use willow_service::api::download::{held_bytes, STORED_HOLD_BYTES};
-use willow_service::api::server::{serve_with, AppOptions, ServeOptions};
-use willow_service::jobs::{Config, Jobs};
+use willow_service::api::server::{AppOptions, ServeOptions};
 
 /// The write timeout under test (the default is 30 s).
 const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
@@ -81,41 +81,6 @@ async fn drain(s: &mut TcpStream, patience: Duration) -> (usize, bool) {
     };
     let ended = tokio::time::timeout(patience, reading).await.is_ok();
     (total, ended)
-}
-
-/// The real server on a loopback listener whose accepted sockets have a small, fixed send
-/// buffer (Linux: accepted sockets inherit it). With the kernel's autotuning a loopback socket
-/// absorbs up to 4 MiB, and the results a test can afford to compute are smaller than that.
-async fn start(options: ServeOptions) -> (String, tokio::sync::oneshot::Sender<()>, Jobs) {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = Config::new(dir.path());
-    config.workers = 1;
-    let (jobs, core) = Jobs::start(config).await.expect("job core starts");
-    let socket = TcpSocket::new_v4().expect("socket");
-    socket.set_send_buffer_size(16 << 10).expect("SO_SNDBUF");
-    socket
-        .bind("127.0.0.1:0".parse().expect("address"))
-        .expect("bind loopback");
-    let listener = socket.listen(1024).expect("listen");
-    let addr = listener.local_addr().expect("local addr").to_string();
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let handle = jobs.clone();
-    tokio::spawn(async move {
-        let _dir = dir;
-        let shutdown = async move {
-            let _ = rx.await;
-        };
-        serve_with(
-            listener,
-            jobs,
-            core,
-            shutdown,
-            Duration::from_secs(2),
-            options,
-        )
-        .await
-    });
-    (addr, tx, handle)
 }
 
 async fn succeeded_job(client: &reqwest::Client, base: &str, obj: &str) -> String {

@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod rendered;
+pub mod slow_socket;
 
 use futures::StreamExt;
 use std::time::{Duration, Instant};
