@@ -207,8 +207,11 @@ async fn a_job_that_keeps_killing_the_server_fails_as_redelivered() {
         "steps=400&until_converged=false",
     )
     .await;
+    // Past its first steps, not only `running`: a worker marks the job running before it
+    // counts the delivery (`JobStore::delivered`), and a kill between the two is a delivery
+    // that never ran the job, so it rightly does not count.
     poll_until(&client, &base, &id, JOB_TIMEOUT, |v| {
-        v["state"] == "running"
+        v["state"] == "running" && v["progress"]["step"].as_u64().unwrap_or(0) >= 2
     })
     .await;
     server.kill().expect("SIGKILL");
@@ -219,6 +222,12 @@ async fn a_job_that_keeps_killing_the_server_fails_as_redelivered() {
     let _ = server.wait();
     assert_eq!(v["state"], "failed", "{v}");
     assert_eq!(v["error_code"], "redelivered", "{v}");
+    assert!(
+        v["error"].as_str().is_some_and(
+            |m| m.contains("delivered 2 times in a row without reaching a new checkpoint")
+        ),
+        "{v}"
+    );
 }
 
 /// `--max-deliveries` counts only deliveries that made no progress (issue 25 item 4), on the
