@@ -116,38 +116,6 @@ pub const MEAN_SLACK: f64 = 0.005;
 /// of the nearest costs at most 1% of tightness, and the query skips the boxes in the thin
 /// shell just inside the nearest distance, most of what it opens far from the surface.
 const BOUND_SLACK: f64 = 0.01;
-/// Steps of the greedy walk over face neighbours that improves a query's starting face.
-const WALK_STEPS: usize = 8;
-
-/// A face near `p` and its squared distance: walk from `face` to the edge neighbour nearest
-/// to `p` while that gets nearer (at most [`WALK_STEPS`] steps). The face's distance is an
-/// upper bound of `p`'s distance to the surface; a starting point for an exact query, which
-/// then opens fewer boxes.
-fn walk_down(
-    p: [f64; 3],
-    face: usize,
-    neighbours: &[[u32; 3]],
-    positions: &[[f64; 3]],
-    triangles: &[[usize; 3]],
-) -> (usize, f64) {
-    let mut best = (face, triangle_d2(p, face, positions, triangles));
-    for _ in 0..WALK_STEPS {
-        let here = best.0;
-        for &g in &neighbours[here] {
-            if g != u32::MAX {
-                let d2 = triangle_d2(p, g as usize, positions, triangles);
-                if d2 < best.1 {
-                    best = (g as usize, d2);
-                }
-            }
-        }
-        if best.0 == here {
-            break;
-        }
-    }
-    best
-}
-
 #[inline]
 fn triangle_d2(p: [f64; 3], f: usize, positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> f64 {
     let t = triangles[f];
@@ -189,6 +157,13 @@ impl Memory {
 /// surface to measure against.
 struct Side<'a> {
     samples: &'a [[f64; 3]],
+    /// The same samples on the other surface (same connectivity): `|p − q|` bounds a
+    /// sample's distance from above for free, since `q` lies on the other surface.
+    counterparts: &'a [[f64; 3]],
+    /// Per node of this side's tree, the largest `|p − q|` of its samples: the most any
+    /// vertex of its triangles moved, which bounds every sample on them (each is a convex
+    /// combination of its triangle's corners, on both surfaces alike).
+    node_moved: &'a [f64],
     weights: &'a [f64],
     /// This surface (its samples lie in its tree's boxes).
     own: &'a Bvh,
@@ -198,7 +173,6 @@ struct Side<'a> {
     other_positions: &'a [[f64; 3]],
     triangles: &'a [[usize; 3]],
     face_edges: &'a [[usize; 3]],
-    neighbours: &'a [[u32; 3]],
     /// This frame's number, for [`Memory::settled`].
     frame: u32,
     /// Samples per side above which the mean takes its distances within [`MEAN_SLACK`]
@@ -211,16 +185,6 @@ impl Side<'_> {
         self.other
             .nearest(self.other_positions, self.triangles, p, Some(hint))
             .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
-    }
-
-    fn walk(&self, p: [f64; 3], face: usize) -> (usize, f64) {
-        walk_down(
-            p,
-            face,
-            self.neighbours,
-            self.other_positions,
-            self.triangles,
-        )
     }
 
     /// The weighted mean distance, estimated over strata to [`MEAN_ACCURACY`]
@@ -238,8 +202,7 @@ impl Side<'_> {
         let mut last = usize::MAX;
         strata.estimate(self.weights, MEAN_ACCURACY, slack, |i| {
             let p = self.samples[i];
-            let hint = self.nearer(p, memory.nearest[i] as usize, last);
-            let (start, _) = self.walk(p, hint);
+            let start = self.nearer(p, memory.nearest[i] as usize, last);
             let (face, d) = self
                 .other
                 .nearest_within(self.other_positions, self.triangles, p, Some(start), slack)
@@ -291,6 +254,11 @@ impl Side<'_> {
         stack.clear();
         stack.push((0, memory.nearest[nv + ne]));
         while let Some((index, parent_face)) = stack.pop() {
+            // Nothing under this node moved further than the max: settled without a query
+            // (most of a surface after a small step).
+            if self.node_moved[index as usize] <= max {
+                continue;
+            }
             let node = self.own.nodes[index as usize];
             let radius = 0.5 * dist2(node.max, node.min).sqrt();
             if radius > max && node.count == 0 {
@@ -337,6 +305,9 @@ impl Side<'_> {
                     }
                     memory.settled[i] = self.frame;
                     let p = self.samples[i];
+                    if dist2(p, self.counterparts[i]) <= max * max {
+                        continue;
+                    }
                     let hint = self.nearer(p, face, memory.nearest[i] as usize);
                     let (near, u) = self.bound(p, hint, max);
                     memory.nearest[i] = near as u32;
@@ -421,8 +392,6 @@ impl Side<'_> {
 /// changes how fast, never what, it measures (up to that slack).
 pub struct Deviation {
     plan: SamplePlan,
-    /// Per face, the faces across its edges (`u32::MAX` across a boundary edge).
-    neighbours: Vec<[u32; 3]>,
     input_positions: Vec<[f64; 3]>,
     input_bvh: Bvh,
     input_samples: Vec<[f64; 3]>,
@@ -430,6 +399,11 @@ pub struct Deviation {
     current_bvh: Bvh,
     samples: Vec<[f64; 3]>,
     weights: Vec<f64>,
+    /// Per vertex, how far it moved from the input; per node of the current and the input
+    /// tree, the most any of its vertices moved ([`Side::node_moved`]).
+    moved: Vec<f64>,
+    out_moved: Vec<f64>,
+    back_moved: Vec<f64>,
     /// The current surface's samples against the input, and the input's against it.
     out_memory: Memory,
     back_memory: Memory,
@@ -460,27 +434,6 @@ impl Deviation {
         plan.points_into(positions, triangles, &mut input_samples);
         plan.weights_into(triangles, face_areas, &mut input_weights);
         let input_bvh = Bvh::new(positions, triangles);
-        let neighbours = topology
-            .face_edges
-            .iter()
-            .enumerate()
-            .map(|(f, edges)| {
-                edges.map(|e| {
-                    match topology.edge_faces[e] {
-                        [Some(a), Some(b)] => {
-                            if a == f {
-                                b
-                            } else {
-                                a
-                            }
-                        }
-                        _ => usize::MAX,
-                    }
-                    .try_into()
-                    .unwrap_or(u32::MAX)
-                })
-            })
-            .collect();
         let memory = Memory::new(&plan.hints, input_bvh.nodes.len());
         let strata = Strata::new(&plan.hints, &input_bvh.order);
         let back_strata = Strata::new(&plan.hints, &input_bvh.order);
@@ -495,11 +448,13 @@ impl Deviation {
             input_bvh,
             input_samples,
             input_weights,
+            moved: vec![0.0; positions.len()],
+            out_moved: Vec::new(),
+            back_moved: Vec::new(),
             out_memory: memory.clone(),
             back_memory: memory,
             frame: 0,
             plan,
-            neighbours,
             stack: Vec::new(),
             exact_mean_samples: EXACT_MEAN_SAMPLES,
             profile: [
@@ -542,6 +497,18 @@ impl Deviation {
         self.plan
             .weights_into(triangles, face_areas, &mut self.weights);
         self.current_bvh.refit(positions, triangles);
+        for ((m, p), q) in self
+            .moved
+            .iter_mut()
+            .zip(positions)
+            .zip(&self.input_positions)
+        {
+            *m = dist2(*p, *q).sqrt();
+        }
+        self.current_bvh
+            .max_per_node(triangles, &self.moved, &mut self.out_moved);
+        self.input_bvh
+            .max_per_node(triangles, &self.moved, &mut self.back_moved);
         self.frame = self.frame.wrapping_add(1);
         if self.frame == 0 {
             self.out_memory.settled.fill(0);
@@ -554,6 +521,8 @@ impl Deviation {
             .resize(self.current_bvh.nodes.len(), u32::MAX);
         let out = Side {
             samples: &self.samples,
+            counterparts: &self.input_samples,
+            node_moved: &self.out_moved,
             weights: &self.weights,
             own: &self.current_bvh,
             own_positions: positions,
@@ -561,12 +530,13 @@ impl Deviation {
             other_positions: &self.input_positions,
             triangles,
             face_edges: &self.plan.face_edges,
-            neighbours: &self.neighbours,
             frame: self.frame,
             exact_mean_samples: self.exact_mean_samples,
         };
         let back = Side {
             samples: &self.input_samples,
+            counterparts: &self.samples,
+            node_moved: &self.back_moved,
             weights: &self.input_weights,
             own: &self.input_bvh,
             own_positions: &self.input_positions,
@@ -574,7 +544,6 @@ impl Deviation {
             other_positions: positions,
             triangles,
             face_edges: &self.plan.face_edges,
-            neighbours: &self.neighbours,
             frame: self.frame,
             exact_mean_samples: self.exact_mean_samples,
         };

@@ -55,6 +55,9 @@ pub(crate) struct Strata {
     order: Vec<u32>,
     /// Scratch: `cumulative[j]` is the weight of `order[..j]`.
     cumulative: Vec<f64>,
+    /// Scratch: per stratum boundary `k·total/STRATA`, the index into `order` of the sample
+    /// whose weight interval holds it: a draw in stratum k searches only between two of these.
+    edges: Vec<usize>,
     /// Per stratum: draws so far, their sum and sum of squares, its variance contribution.
     draws: Vec<u32>,
     sum: Vec<f64>,
@@ -89,6 +92,7 @@ impl Strata {
         Strata {
             order,
             cumulative: vec![0.0; n + 1],
+            edges: vec![0; STRATA + 1],
             draws: vec![0; STRATA],
             sum: vec![0.0; STRATA],
             sum2: vec![0.0; STRATA],
@@ -125,13 +129,24 @@ impl Strata {
             self.sum.fill(0.0);
             self.sum2.fill(0.0);
             let width = total / STRATA as f64;
+            // One sweep finds every stratum's edges (the boundaries increase with k).
+            let mut at = 0;
+            for (k, edge) in self.edges.iter_mut().enumerate() {
+                let u = width * k as f64;
+                while at + 1 < n && self.cumulative[at + 1] <= u {
+                    at += 1;
+                }
+                *edge = at;
+            }
             let mut goal = vec![FIRST_SAMPLES as u32; STRATA];
             for _ in 0..=ROUNDS {
                 for k in 0..STRATA {
                     for j in self.draws[k]..goal[k] {
                         let u = width * (k as f64 + uniform(k, j as usize));
                         // The sample whose weight interval holds u (probability ∝ weight).
-                        let at = self.cumulative[1..].partition_point(|&c| c <= u).min(n - 1);
+                        let (lo, hi) = (self.edges[k], (self.edges[k + 1] + 1).min(n));
+                        let at = (lo + self.cumulative[lo + 1..=hi].partition_point(|&c| c <= u))
+                            .min(n - 1);
                         let d = distance(self.order[at] as usize);
                         max_seen = max_seen.max(d);
                         measured += 1;
