@@ -19,7 +19,7 @@
 
 use super::bvh::dist2;
 pub use super::bvh::{closest_point_on_triangle, Bvh};
-use super::stratified::{MeanEstimate, Strata, STRATA};
+use super::stratified::{estimate_pair, Strata, STRATA};
 use super::vec3::{add, scale};
 use crate::mesh::topology::Topology;
 
@@ -160,11 +160,6 @@ struct Side<'a> {
     /// The same samples on the other surface (same connectivity): `|p − q|` bounds a
     /// sample's distance from above for free, since `q` lies on the other surface.
     counterparts: &'a [[f64; 3]],
-    /// Per node of this side's tree, the largest `|p − q|` of its samples: the most any
-    /// vertex of its triangles moved, which bounds every sample on them (each is a convex
-    /// combination of its triangle's corners, on both surfaces alike).
-    node_moved: &'a [f64],
-    weights: &'a [f64],
     /// This surface (its samples lie in its tree's boxes).
     own: &'a Bvh,
     own_positions: &'a [[f64; 3]],
@@ -187,20 +182,28 @@ impl Side<'_> {
             .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
     }
 
-    /// The weighted mean distance, estimated over strata to [`MEAN_ACCURACY`]
-    /// ([`super::stratified`]), each distance a query within the slack (exact on small
-    /// meshes).
-    fn mean(&self, memory: &mut Memory, strata: &mut Strata) -> MeanEstimate {
-        let slack = if self.samples.len() > self.exact_mean_samples {
+    /// The slack of the mean's queries: 0 on small meshes (every distance exact), else
+    /// [`MEAN_SLACK`] ([`Deviation::with_exact_mean_samples`]).
+    fn mean_slack(&self) -> f64 {
+        if self.samples.len() > self.exact_mean_samples {
             MEAN_SLACK
         } else {
             0.0
-        };
+        }
+    }
+
+    /// The mean's query ([`super::stratified`] draws the samples): sample i's distance to
+    /// the other surface, within `slack` above the exact one.
+    fn mean_query<'m>(
+        &'m self,
+        memory: &'m mut Memory,
+        slack: f64,
+    ) -> impl FnMut(usize) -> f64 + 'm {
         // The draws come stratum by stratum, each stratum a patch: the last draw's nearest
         // face is a near start for a sample not drawn last frame (the draws move with the
         // weights), whose own remembered face may be its initial hint, far off.
         let mut last = usize::MAX;
-        strata.estimate(self.weights, MEAN_ACCURACY, slack, |i| {
+        move |i| {
             let p = self.samples[i];
             let start = self.nearer(p, memory.nearest[i] as usize, last);
             let (face, d) = self
@@ -213,7 +216,7 @@ impl Side<'_> {
                 memory.settled[i] = self.frame;
             }
             d
-        })
+        }
     }
 
     /// The exact distance of the sample that set the last frame's max (0 if none): a lower
@@ -243,7 +246,20 @@ impl Side<'_> {
     ///   edge length of the samples' own distances, where the Lipschitz bound is a whole
     ///   leaf's size above them);
     /// - a sample: its distance to the face a query within the slack finds.
-    fn settle_max(&self, mut max: f64, memory: &mut Memory, stack: &mut Vec<(u32, u32)>) -> f64 {
+    ///
+    /// Before any query, a node or sample none of whose vertices moved further than the max
+    /// is settled: `|p − q|` bounds a sample's distance (q is its counterpart on the other
+    /// surface) and, each sample being a convex combination of its triangle's corners on both
+    /// surfaces alike, the corners' largest displacement bounds every sample on them.
+    /// `node_moved` holds that largest displacement per node of this side's tree (empty: not
+    /// computed this frame).
+    fn settle_max(
+        &self,
+        mut max: f64,
+        node_moved: &[f64],
+        memory: &mut Memory,
+        stack: &mut Vec<(u32, u32)>,
+    ) -> f64 {
         if self.own.nodes.is_empty() {
             return max;
         }
@@ -256,7 +272,7 @@ impl Side<'_> {
         while let Some((index, parent_face)) = stack.pop() {
             // Nothing under this node moved further than the max: settled without a query
             // (most of a surface after a small step).
-            if self.node_moved[index as usize] <= max {
+            if node_moved.get(index as usize).is_some_and(|&m| m <= max) {
                 continue;
             }
             let node = self.own.nodes[index as usize];
@@ -412,12 +428,14 @@ pub struct Deviation {
     back_strata: Strata,
     /// The stated error bound of the last mean ([`Deviation::mean_bound`]).
     mean_bound: f64,
+    /// The nearest-point queries the last mean made, both sides ([`Deviation::mean_queries`]).
+    mean_queries: usize,
     frame: u32,
     stack: Vec<(u32, u32)>,
     /// See [`Deviation::with_exact_mean_samples`].
     exact_mean_samples: usize,
     /// Where the last [`Deviation::measure`] spent its time ([`Deviation::profile`]).
-    profile: [(&'static str, f64); 4],
+    profile: [(&'static str, f64); 3],
 }
 
 impl Deviation {
@@ -435,12 +453,14 @@ impl Deviation {
         plan.weights_into(triangles, face_areas, &mut input_weights);
         let input_bvh = Bvh::new(positions, triangles);
         let memory = Memory::new(&plan.hints, input_bvh.nodes.len());
-        let strata = Strata::new(&plan.hints, &input_bvh.order);
-        let back_strata = Strata::new(&plan.hints, &input_bvh.order);
+        // One pseudo-random stream per side: their errors are independent.
+        let strata = Strata::new(&plan.hints, &input_bvh.order, 0);
+        let back_strata = Strata::new(&plan.hints, &input_bvh.order, 1);
         Deviation {
             out_strata: strata,
             back_strata,
             mean_bound: 0.0,
+            mean_queries: 0,
             current_bvh: input_bvh.clone(),
             samples: input_samples.clone(),
             weights: input_weights.clone(),
@@ -457,12 +477,7 @@ impl Deviation {
             plan,
             stack: Vec::new(),
             exact_mean_samples: EXACT_MEAN_SAMPLES,
-            profile: [
-                ("samples", 0.0),
-                ("mean out", 0.0),
-                ("mean in", 0.0),
-                ("max", 0.0),
-            ],
+            profile: [("samples", 0.0), ("mean", 0.0), ("max", 0.0)],
         }
     }
 
@@ -487,7 +502,7 @@ impl Deviation {
             return (0.0, 0.0);
         }
         let mut clock = std::time::Instant::now();
-        let mut lap = |profile: &mut [(&'static str, f64); 4], k: usize| {
+        let mut lap = |profile: &mut [(&'static str, f64); 3], k: usize| {
             let now = std::time::Instant::now();
             profile[k].1 = (now - clock).as_secs_f64() * 1e3;
             clock = now;
@@ -497,18 +512,6 @@ impl Deviation {
         self.plan
             .weights_into(triangles, face_areas, &mut self.weights);
         self.current_bvh.refit(positions, triangles);
-        for ((m, p), q) in self
-            .moved
-            .iter_mut()
-            .zip(positions)
-            .zip(&self.input_positions)
-        {
-            *m = dist2(*p, *q).sqrt();
-        }
-        self.current_bvh
-            .max_per_node(triangles, &self.moved, &mut self.out_moved);
-        self.input_bvh
-            .max_per_node(triangles, &self.moved, &mut self.back_moved);
         self.frame = self.frame.wrapping_add(1);
         if self.frame == 0 {
             self.out_memory.settled.fill(0);
@@ -522,8 +525,6 @@ impl Deviation {
         let out = Side {
             samples: &self.samples,
             counterparts: &self.input_samples,
-            node_moved: &self.out_moved,
-            weights: &self.weights,
             own: &self.current_bvh,
             own_positions: positions,
             other: &self.input_bvh,
@@ -536,8 +537,6 @@ impl Deviation {
         let back = Side {
             samples: &self.input_samples,
             counterparts: &self.samples,
-            node_moved: &self.back_moved,
-            weights: &self.input_weights,
             own: &self.input_bvh,
             own_positions: &self.input_positions,
             other: &self.current_bvh,
@@ -548,33 +547,73 @@ impl Deviation {
             exact_mean_samples: self.exact_mean_samples,
         };
         lap(&mut self.profile, 0);
-        let mean_out = out.mean(&mut self.out_memory, &mut self.out_strata);
+        let slack = out.mean_slack();
+        let ([mean_out, mean_in], mean_bound) = estimate_pair(
+            [&mut self.out_strata, &mut self.back_strata],
+            [&self.weights, &self.input_weights],
+            MEAN_ACCURACY,
+            slack,
+            out.mean_query(&mut self.out_memory, slack),
+            back.mean_query(&mut self.back_memory, slack),
+        );
+        self.mean_bound = mean_bound;
+        self.mean_queries = mean_out.measured + mean_in.measured;
         lap(&mut self.profile, 1);
-        let mean_in = back.mean(&mut self.back_memory, &mut self.back_strata);
-        lap(&mut self.profile, 2);
         let (max_out, max_in) = (mean_out.max_seen, mean_in.max_seen);
-        self.mean_bound = 0.5 * (mean_out.bound + mean_in.bound);
         let max_out = max_out.max(out.last_argmax(&mut self.out_memory));
         let max_in = max_in.max(back.last_argmax(&mut self.back_memory));
         // Both sides' distances so far bound the max below before either settles it, so the
         // side with the smaller distances mostly has nothing left to check.
-        let max = back.settle_max(max_out.max(max_in), &mut self.back_memory, &mut self.stack);
-        let max = out.settle_max(max, &mut self.out_memory, &mut self.stack);
-        lap(&mut self.profile, 3);
+        let max = max_out.max(max_in);
+        // The per-node displacement bounds cost a pass over each tree; they pay off only
+        // where much of the surface moved less than the max (small steps).
+        let mut still = 0;
+        for ((m, p), q) in self
+            .moved
+            .iter_mut()
+            .zip(positions)
+            .zip(&self.input_positions)
+        {
+            *m = dist2(*p, *q).sqrt();
+            still += usize::from(*m <= max);
+        }
+        if 4 * still >= self.moved.len() {
+            self.current_bvh
+                .max_per_node(triangles, &self.moved, &mut self.out_moved);
+            self.input_bvh
+                .max_per_node(triangles, &self.moved, &mut self.back_moved);
+        } else {
+            self.out_moved.clear();
+            self.back_moved.clear();
+        }
+        let max = back.settle_max(
+            max,
+            &self.back_moved,
+            &mut self.back_memory,
+            &mut self.stack,
+        );
+        let max = out.settle_max(max, &self.out_moved, &mut self.out_memory, &mut self.stack);
+        lap(&mut self.profile, 2);
         (max, 0.5 * (mean_out.mean + mean_in.mean))
     }
 
     /// Where the last [`Deviation::measure`] spent its time, in ms: the samples and the
-    /// current tree's refit, each side's mean, the max (both sides).
+    /// current tree's refit, the mean (both sides), the max (both sides).
     pub fn profile(&self) -> &[(&'static str, f64)] {
         &self.profile
     }
 
     /// The stated error bound of the last [`Deviation::measure`]'s mean: the mean over every
     /// sample is within `mean ± mean_bound` ([`super::stratified`]: three standard errors of
-    /// the stratified estimate plus the queries' slack; 0 where every sample was measured
-    /// exactly). At most [`MEAN_ACCURACY`] times the mean, unless every sample was measured.
+    /// the two sides' stratified average, their independent errors added in quadrature, plus
+    /// the queries' slack; 0 where every sample was measured exactly). At most [`MEAN_ACCURACY`] times the mean, unless every sample was measured.
     pub fn mean_bound(&self) -> f64 {
         self.mean_bound
+    }
+
+    /// How many nearest-point queries the last [`Deviation::measure`]'s mean made (both
+    /// sides; a sample drawn twice counts twice): what its cost scales with.
+    pub fn mean_queries(&self) -> usize {
+        self.mean_queries
     }
 }
