@@ -592,6 +592,10 @@ impl FrameDeviation {
                 .profile()
                 .iter()
                 .map(|&(name, v)| (format!("{name} ms"), v))
+                .chain([(
+                    "mean's queries".to_string(),
+                    self.deviation.mean_queries() as f64,
+                )])
                 .collect();
         }
         self.frame_ms.push(ms);

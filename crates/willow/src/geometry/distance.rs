@@ -325,13 +325,17 @@ impl Side<'_> {
                         continue;
                     }
                     let hint = self.nearer(p, face, memory.nearest[i] as usize);
-                    let (near, u) = self.bound(p, hint, max);
-                    memory.nearest[i] = near as u32;
-                    if u <= max {
+                    // Exact (no slack), stopping at the first face within the max: either
+                    // the sample is settled, or the search ran to the end and `d` is its
+                    // exact distance, a new max. (A bound within a slack first, then an
+                    // exact query for the samples it left above the max, queried every
+                    // sample near the max twice: 300 exact queries of ~17 µs on one of
+                    // nefertiti's frames.)
+                    let (nearest, d) = self.within(p, hint, max);
+                    memory.nearest[i] = nearest as u32;
+                    if d <= max {
                         continue;
                     }
-                    let (nearest, d) = self.exact(p, near);
-                    memory.nearest[i] = nearest as u32;
                     if d > max {
                         max = d;
                         memory.argmax = i;
@@ -340,6 +344,21 @@ impl Side<'_> {
             }
         }
         max
+    }
+
+    /// A face of the other surface within `max` of `p` (the first found) and its distance,
+    /// else the nearest face and `p`'s exact distance, above `max`.
+    fn within(&self, p: [f64; 3], hint: usize, max: f64) -> (usize, f64) {
+        self.other
+            .nearest_until(
+                self.other_positions,
+                self.triangles,
+                p,
+                Some(hint),
+                0.0,
+                max * max,
+            )
+            .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
     }
 
     /// Of two faces of the other surface, the one nearer to `p` (`b` may be out of range:
@@ -565,8 +584,9 @@ impl Deviation {
         // Both sides' distances so far bound the max below before either settles it, so the
         // side with the smaller distances mostly has nothing left to check.
         let max = max_out.max(max_in);
-        // The per-node displacement bounds cost a pass over each tree; they pay off only
-        // where much of the surface moved less than the max (small steps).
+        // The per-node displacement bounds cost a pass over each tree (2-3 ms at 100k
+        // triangles); they pay off only where most of the surface moved less than the max
+        // (small steps), and settle nothing after a large one.
         let mut still = 0;
         for ((m, p), q) in self
             .moved
@@ -577,7 +597,7 @@ impl Deviation {
             *m = dist2(*p, *q).sqrt();
             still += usize::from(*m <= max);
         }
-        if 4 * still >= self.moved.len() {
+        if 4 * still >= 3 * self.moved.len() {
             self.current_bvh
                 .max_per_node(triangles, &self.moved, &mut self.out_moved);
             self.input_bvh
