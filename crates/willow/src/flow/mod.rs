@@ -267,11 +267,10 @@ pub struct FlowParams {
     /// within it ([`stopping::Run`]). `None`: no bound.
     pub max_deviation: Option<f64>,
     /// Report each step's distance from the input (`StepMetrics::deviation_max` and
-    /// `deviation_mean`). Off by default: at 100k triangles it costs a fifth to a half of a
-    /// conformal try (nefertiti at τ 0.5, whose first step already moves it ~40 edge lengths:
-    /// 21–24% after step 1, 39–41% after step 5, slowest frame 47–68%; issue 29 asks for
-    /// ≤ 10%; `willow bench` prints it, docs/performance.md). `max_deviation` turns it on (and keeps the surface near the
-    /// input).
+    /// `deviation_mean`). Off by default: at 100k triangles it costs 15–25% of a conformal
+    /// try (nefertiti at τ 0.5, whose first step already moves it ~40 edge lengths, and at
+    /// τ 0.01; issue 29 asks for ≤ 10%; `willow bench` prints it, docs/performance.md).
+    /// `max_deviation` turns it on (and keeps the surface near the input).
     pub measure_deviation: bool,
     /// Remove the detail smaller than this length (model units) and keep the shape above it
     /// ([`feature`]): the conformal flow with the spectral filter's crossover at this size
