@@ -576,6 +576,18 @@ mod tests {
     use super::*;
     use crate::mesh::generate::bumpy_sphere;
 
+    /// A twist about z that grows with height, and a stretch: a smooth deformation for a
+    /// tree to be refitted to.
+    fn twisted(positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        positions
+            .iter()
+            .map(|p| {
+                let (s, c) = (0.8 * p[2]).sin_cos();
+                [c * p[0] - s * p[1], s * p[0] + c * p[1], 1.3 * p[2]]
+            })
+            .collect()
+    }
+
     /// The three Voronoi regions of each kind give the expected nearest point.
     #[test]
     fn closest_points_on_a_right_triangle() {
@@ -646,15 +658,7 @@ mod tests {
             }
         };
         check(&bvh, &mesh.positions);
-        // A twist about z grows with height: a smooth deformation, refitted.
-        let twisted: Vec<[f64; 3]> = mesh
-            .positions
-            .iter()
-            .map(|p| {
-                let (s, c) = (0.8 * p[2]).sin_cos();
-                [c * p[0] - s * p[1], s * p[0] + c * p[1], 1.3 * p[2]]
-            })
-            .collect();
+        let twisted = twisted(&mesh.positions);
         bvh.refit(&twisted, &mesh.triangles);
         check(&bvh, &twisted);
     }
@@ -722,14 +726,7 @@ mod tests {
             );
         };
         check(&bvh, &mesh.positions);
-        let twisted: Vec<[f64; 3]> = mesh
-            .positions
-            .iter()
-            .map(|p| {
-                let (s, c) = (0.8 * p[2]).sin_cos();
-                [c * p[0] - s * p[1], s * p[0] + c * p[1], 1.3 * p[2]]
-            })
-            .collect();
+        let twisted = twisted(&mesh.positions);
         bvh.refit(&twisted, &mesh.triangles);
         check(&bvh, &twisted);
     }
