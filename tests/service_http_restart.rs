@@ -58,19 +58,6 @@ fn spawn_server_with(data_dir: &std::path::Path, extra: &[&str]) -> (Child, Stri
     (child, base)
 }
 
-async fn submit(client: &reqwest::Client, base: &str, obj: &str, query: &str) -> String {
-    let res = client
-        .post(format!("{base}/v1/jobs?{query}"))
-        .header("content-type", "model/obj")
-        .body(obj.to_string())
-        .send()
-        .await
-        .expect("POST");
-    assert_eq!(res.status(), 202);
-    let v: serde_json::Value = res.json().await.expect("json");
-    v["id"].as_str().expect("id").to_string()
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
     let dir = tempfile::tempdir().expect("dir");
@@ -78,19 +65,19 @@ async fn sigkill_mid_job_then_restart_completes_every_accepted_job() {
     let (mut server, base) = spawn_server(dir.path());
 
     // A finished job before the crash keeps its result.
-    let finished = submit(&client, &base, &small_obj(), "steps=2").await;
+    let finished = submit_obj_to(&client, &base, "steps=2", &small_obj()).await;
     poll_until(&client, &base, &finished, JOB_TIMEOUT, is_terminal).await;
     // One job running when the process dies, two waiting behind it.
-    let running = submit(
+    let running = submit_obj_to(
         &client,
         &base,
-        &slow_obj(),
         "steps=40&frame_interval=10&until_converged=false",
+        &slow_obj(),
     )
     .await;
     let queued: Vec<String> = vec![
-        submit(&client, &base, &small_obj(), "steps=3").await,
-        submit(&client, &base, &small_obj(), "steps=4").await,
+        submit_obj_to(&client, &base, "steps=3", &small_obj()).await,
+        submit_obj_to(&client, &base, "steps=4", &small_obj()).await,
     ];
     // Past its first checkpoints (every 3 steps) when the process dies.
     let before = poll_until(&client, &base, &running, JOB_TIMEOUT, |v| {
@@ -200,11 +187,11 @@ async fn a_job_that_keeps_killing_the_server_fails_as_redelivered() {
     // No checkpoint in the job's life: the run the kill ends made no progress that lasts.
     let flags = ["--max-deliveries", "1", "--checkpoint-steps", "100000"];
     let (mut server, base) = spawn_server_with(dir.path(), &flags);
-    let id = submit(
+    let id = submit_obj_to(
         &client,
         &base,
-        &slow_obj(),
         "steps=400&until_converged=false",
+        &slow_obj(),
     )
     .await;
     // Past its first steps, not only `running`: a worker marks the job running before it
@@ -241,11 +228,11 @@ async fn a_job_killed_with_its_server_after_progress_is_not_failed_redelivered()
     let client = reqwest::Client::new();
     let flags = ["--max-deliveries", "1", "--checkpoint-steps", "5"];
     let (mut server, mut base) = spawn_server_with(dir.path(), &flags);
-    let id = submit(
+    let id = submit_obj_to(
         &client,
         &base,
-        &slow_obj(),
         &format!("steps={N}&frame_interval=50&until_converged=false"),
+        &slow_obj(),
     )
     .await;
     let mut resumed_at = 0;

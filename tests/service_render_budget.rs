@@ -8,7 +8,7 @@
 
 mod service_http_support;
 
-use service_http_support::{obj_text, poll_until};
+use service_http_support::{obj_text, poll_until, submit_obj_to};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -94,16 +94,7 @@ async fn first_renders_are_held_within_the_download_budget() {
     let client = reqwest::Client::new();
     let (addr, stop, jobs) = start().await;
     let base = format!("http://{addr}");
-    let res = client
-        .post(format!("{base}/v1/jobs?steps=1"))
-        .header("content-type", "model/obj")
-        .body(obj)
-        .send()
-        .await
-        .expect("POST /v1/jobs");
-    assert_eq!(res.status(), 202);
-    let job: serde_json::Value = res.json().await.expect("job json");
-    let id = job["id"].as_str().expect("job id").to_string();
+    let id = submit_obj_to(&client, &base, "steps=1", &obj).await;
     let done = poll_until(&client, &base, &id, Duration::from_secs(120), |v| {
         v["state"] != "queued" && v["state"] != "running"
     })

@@ -11,7 +11,7 @@
 mod service_http_support;
 
 use service_http_support::slow_socket::start;
-use service_http_support::{obj_text, obj_vertices, poll_until};
+use service_http_support::{obj_text, obj_vertices, poll_until, submit_obj_to};
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpSocket, TcpStream};
@@ -344,18 +344,8 @@ async fn http2_streams_with_a_zero_window_are_bounded_and_released() {
 /// positions), once it runs.
 async fn running_job(client: &reqwest::Client, base: &str) -> String {
     let obj = obj_text(&generate::bumpy_sphere(4, 0.1));
-    let res = client
-        .post(format!(
-            "{base}/v1/jobs?steps=5000&until_converged=false&frame_interval=1"
-        ))
-        .header("content-type", "model/obj")
-        .body(obj)
-        .send()
-        .await
-        .expect("POST /v1/jobs");
-    assert_eq!(res.status(), 202);
-    let job: serde_json::Value = res.json().await.expect("job json");
-    let id = job["id"].as_str().expect("job id").to_string();
+    let query = "steps=5000&until_converged=false&frame_interval=1";
+    let id = submit_obj_to(client, base, query, &obj).await;
     let running = poll_until(client, base, &id, Duration::from_secs(120), |v| {
         v["state"] != "queued"
     })

@@ -10,7 +10,7 @@
 
 mod service_http_support;
 
-use service_http_support::{obj_text, obj_vertices, poll_until};
+use service_http_support::{obj_text, obj_vertices, poll_until, submit_obj_to};
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -115,16 +115,7 @@ async fn sixty_clients_that_never_read_a_large_result_leave_the_servers_memory_b
     let client = reqwest::Client::new();
     // 40 962 vertices: about 4 MB of OBJ.
     let obj = obj_text(&generate::bumpy_sphere(6, 0.1));
-    let res = client
-        .post(format!("{}/v1/jobs?steps=1", server.base))
-        .header("content-type", "model/obj")
-        .body(obj)
-        .send()
-        .await
-        .expect("POST /v1/jobs");
-    assert_eq!(res.status(), 202);
-    let job: serde_json::Value = res.json().await.expect("job json");
-    let id = job["id"].as_str().expect("job id").to_string();
+    let id = submit_obj_to(&client, &server.base, "steps=1", &obj).await;
     let done = poll_until(&client, &server.base, &id, Duration::from_secs(180), |v| {
         v["state"] != "queued" && v["state"] != "running"
     })

@@ -298,6 +298,21 @@ impl TestServer {
     }
 }
 
+/// POST an OBJ to `{base}/v1/jobs?{query}` (a server started out of process, or on a raw
+/// address), expect 202, and return the job's id.
+pub async fn submit_obj_to(client: &reqwest::Client, base: &str, query: &str, obj: &str) -> String {
+    let res = client
+        .post(format!("{base}/v1/jobs?{query}"))
+        .header("content-type", "model/obj")
+        .body(obj.to_string())
+        .send()
+        .await
+        .expect("POST /v1/jobs");
+    assert_eq!(res.status(), 202);
+    let job: serde_json::Value = res.json().await.expect("job json");
+    job["id"].as_str().expect("job id").to_string()
+}
+
 pub async fn poll_until(
     client: &reqwest::Client,
     base: &str,
