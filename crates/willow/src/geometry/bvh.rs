@@ -109,6 +109,56 @@ pub struct Bvh {
     pub(crate) order: Vec<u32>,
     /// Summed surface area of the boxes right after the last build.
     built_box_area: f64,
+    /// What a refit reads per leaf ([`Leaves`]).
+    leaves: Leaves,
+}
+
+/// Each leaf's distinct vertices, listed once at build: a refit reads a leaf's 6-10 distinct
+/// positions through one contiguous index run, instead of its triangles' 24 corners through
+/// two scattered lookups each (`order`, then `triangles`), which were most of its cost.
+#[derive(Clone, Debug, Default)]
+struct Leaves {
+    /// Per node, its run in `vertices` (`[start, end)`; empty for inner nodes).
+    runs: Vec<[u32; 2]>,
+    /// The leaves' distinct vertices, leaf after leaf.
+    vertices: Vec<u32>,
+    /// Per entry of `Bvh::order`, its triangle's corners as positions in its leaf's run.
+    corners: Vec<[u8; 3]>,
+}
+
+impl Leaves {
+    fn new(nodes: &[Node], order: &[u32], triangles: &[[usize; 3]]) -> Self {
+        let mut leaves = Leaves {
+            runs: vec![[0, 0]; nodes.len()],
+            vertices: Vec::with_capacity(order.len()),
+            corners: vec![[0; 3]; order.len()],
+        };
+        for (node, run) in nodes.iter().zip(&mut leaves.runs) {
+            if node.count == 0 {
+                continue;
+            }
+            let first = leaves.vertices.len();
+            let s = node.start as usize;
+            for (k, &f) in order[s..s + node.count as usize].iter().enumerate() {
+                for (c, &v) in triangles[f as usize].iter().enumerate() {
+                    let at = match leaves.vertices[first..]
+                        .iter()
+                        .position(|&w| w as usize == v)
+                    {
+                        Some(at) => at,
+                        None => {
+                            leaves.vertices.push(v as u32);
+                            leaves.vertices.len() - 1 - first
+                        }
+                    };
+                    // At most 3 · LEAF_SIZE = 24 distinct vertices, so a u8 holds it.
+                    leaves.corners[s + k][c] = at as u8;
+                }
+            }
+            *run = [first as u32, leaves.vertices.len() as u32];
+        }
+        leaves
+    }
 }
 
 impl Bvh {
@@ -119,6 +169,7 @@ impl Bvh {
             nodes: Vec::with_capacity(2 * triangles.len().div_ceil(LEAF_SIZE)),
             order: (0..triangles.len() as u32).collect(),
             built_box_area: 0.0,
+            leaves: Leaves::default(),
         };
         bvh.build(positions, triangles);
         bvh
@@ -196,6 +247,7 @@ impl Bvh {
             pending.push((start, mid, None));
         }
         self.built_box_area = self.box_area();
+        self.leaves = Leaves::new(&self.nodes, &self.order, triangles);
     }
 
     /// Refill every box and disc after the vertices moved (children before parents: reverse
@@ -206,10 +258,11 @@ impl Bvh {
             let node = self.nodes[i];
             let (min, max, disc) = if node.count > 0 {
                 let s = node.start as usize;
+                let [a, b] = self.leaves.runs[i].map(|x| x as usize);
                 leaf_fit(
                     positions,
-                    triangles,
-                    &self.order[s..s + node.count as usize],
+                    &self.leaves.vertices[a..b],
+                    &self.leaves.corners[s..s + node.count as usize],
                 )
             } else {
                 let (l, r) = (&self.nodes[i + 1], &self.nodes[node.start as usize]);
@@ -237,21 +290,15 @@ impl Bvh {
 
     /// Per node, the largest of `values` (one per vertex) over its triangles' corners, into
     /// `out` (children before parents, like a refit).
-    pub(crate) fn max_per_node(
-        &self,
-        triangles: &[[usize; 3]],
-        values: &[f64],
-        out: &mut Vec<f64>,
-    ) {
+    pub(crate) fn max_per_node(&self, values: &[f64], out: &mut Vec<f64>) {
         out.resize(self.nodes.len(), 0.0);
         for i in (0..self.nodes.len()).rev() {
             let node = &self.nodes[i];
             out[i] = if node.count > 0 {
-                let s = node.start as usize;
-                self.order[s..s + node.count as usize]
+                let [a, b] = self.leaves.runs[i].map(|x| x as usize);
+                self.leaves.vertices[a..b]
                     .iter()
-                    .flat_map(|&f| triangles[f as usize])
-                    .map(|v| values[v])
+                    .map(|&v| values[v as usize])
                     .fold(0.0, f64::max)
             } else {
                 out[i + 1].max(out[node.start as usize])
@@ -496,42 +543,43 @@ impl Disc {
     }
 }
 
-/// A leaf's box and disc, its triangles' corners read once (a refit's cost is mostly these
-/// reads, scattered over the vertex array).
+/// A leaf's box and disc from its distinct vertices ([`Leaves`]), each position read once:
+/// the box and the disc's slab and radius are extremes over the vertices, the disc's normal
+/// and centre the same area-weighted normal and corner mean as [`Disc::fit`]'s.
 fn leaf_fit(
     positions: &[[f64; 3]],
-    triangles: &[[usize; 3]],
-    faces: &[u32],
+    vertices: &[u32],
+    corners: &[[u8; 3]],
 ) -> ([f64; 3], [f64; 3], Disc) {
-    let mut corners = [[[0.0; 3]; 3]; LEAF_SIZE];
-    let n = faces.len().min(LEAF_SIZE);
-    for (c, &f) in corners.iter_mut().zip(&faces[..n]) {
-        *c = triangles[f as usize].map(|v| positions[v]);
+    let mut local = [[0.0; 3]; 3 * LEAF_SIZE];
+    let n = vertices.len().min(local.len());
+    for (x, &v) in local.iter_mut().zip(&vertices[..n]) {
+        *x = positions[v as usize];
     }
-    let corners = &corners[..n];
+    let local = &local[..n];
     let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    let (mut normal, mut centre) = ([0.0; 3], [0.0; 3]);
-    for &[a, b, c] in corners {
-        normal = add(normal, cross(sub(b, a), sub(c, a)));
-        centre = add(add(centre, a), add(b, c));
-        for p in [a, b, c] {
-            for k in 0..3 {
-                min[k] = min[k].min(p[k]);
-                max[k] = max[k].max(p[k]);
-            }
+    for p in local {
+        for k in 0..3 {
+            min[k] = min[k].min(p[k]);
+            max[k] = max[k].max(p[k]);
         }
     }
+    let (mut normal, mut centre) = ([0.0; 3], [0.0; 3]);
+    for c in corners {
+        let [a, b, c] = c.map(|k| local.get(usize::from(k)).copied().unwrap_or([f64::NAN; 3]));
+        normal = add(normal, cross(sub(b, a), sub(c, a)));
+        centre = add(add(centre, a), add(b, c));
+    }
     let length = dot(normal, normal).sqrt();
-    if !(length > 0.0 && length.is_finite()) || faces.len() > LEAF_SIZE {
-        let (min, max) = bounds(positions, triangles, faces);
-        return (min, max, Disc::fit(positions, triangles, faces));
+    if !(length > 0.0 && length.is_finite()) {
+        return (min, max, Disc::NONE);
     }
     let (normal, centre) = (
         scale(normal, 1.0 / length),
-        scale(centre, 1.0 / (3 * n) as f64),
+        scale(centre, 1.0 / (3 * corners.len()) as f64),
     );
     let (mut lo, mut hi, mut r2) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
-    for p in corners.iter().flatten() {
+    for p in local {
         let x = sub(*p, centre);
         let h = dot(x, normal);
         lo = lo.min(h);
