@@ -78,21 +78,28 @@ impl SamplePlan {
         }
     }
 
-    fn weights_into(&self, triangles: &[[usize; 3]], face_areas: &[f64], out: &mut [f64]) {
+    /// Per face, the samples of its seven rule points: its corners, its edge midpoints, its
+    /// centroid (the order of [`super::stratified::RULE`]).
+    fn face_samples(&self, triangles: &[[usize; 3]]) -> Vec<[u32; 7]> {
         let nv = self.len() - self.edges.len() - triangles.len();
         let ne = self.edges.len();
-        out.fill(0.0);
-        for ((t, es), &a) in triangles.iter().zip(&self.face_edges).zip(face_areas) {
-            for &v in t {
-                out[v] += VERTEX_WEIGHT * a;
-            }
-            for &e in es {
-                out[nv + e] += EDGE_WEIGHT * a;
-            }
-        }
-        for (o, &a) in out[nv + ne..].iter_mut().zip(face_areas) {
-            *o = CENTROID_WEIGHT * a;
-        }
+        triangles
+            .iter()
+            .zip(&self.face_edges)
+            .enumerate()
+            .map(|(f, (t, es))| {
+                [
+                    t[0],
+                    t[1],
+                    t[2],
+                    nv + es[0],
+                    nv + es[1],
+                    nv + es[2],
+                    nv + ne + f,
+                ]
+                .map(|i| i as u32)
+            })
+            .collect()
     }
 }
 
@@ -430,10 +437,9 @@ pub struct Deviation {
     input_positions: Vec<[f64; 3]>,
     input_bvh: Bvh,
     input_samples: Vec<[f64; 3]>,
-    input_weights: Vec<f64>,
+    input_face_areas: Vec<f64>,
     current_bvh: Bvh,
     samples: Vec<[f64; 3]>,
-    weights: Vec<f64>,
     /// Per vertex, how far it moved from the input; per node of the current and the input
     /// tree, the most any of its vertices moved ([`Side::node_moved`]).
     moved: Vec<f64>,
@@ -467,14 +473,14 @@ impl Deviation {
     ) -> Self {
         let plan = SamplePlan::new(positions.len(), triangles, topology);
         let mut input_samples = vec![[0.0; 3]; plan.len()];
-        let mut input_weights = vec![0.0; plan.len()];
         plan.points_into(positions, triangles, &mut input_samples);
-        plan.weights_into(triangles, face_areas, &mut input_weights);
         let input_bvh = Bvh::new(positions, triangles);
         let memory = Memory::new(&plan.hints, input_bvh.nodes.len());
-        // One pseudo-random stream per side: their errors are independent.
-        let strata = Strata::new(&plan.hints, &input_bvh.order, 0);
-        let back_strata = Strata::new(&plan.hints, &input_bvh.order, 1);
+        // One pseudo-random stream per side: their errors are independent. The input's
+        // areas never change.
+        let face_samples = plan.face_samples(triangles);
+        let strata = Strata::new(&input_bvh.order, face_samples.clone(), plan.len(), false, 0);
+        let back_strata = Strata::new(&input_bvh.order, face_samples, plan.len(), true, 1);
         Deviation {
             out_strata: strata,
             back_strata,
@@ -482,11 +488,10 @@ impl Deviation {
             mean_queries: 0,
             current_bvh: input_bvh.clone(),
             samples: input_samples.clone(),
-            weights: input_weights.clone(),
             input_positions: positions.to_vec(),
             input_bvh,
             input_samples,
-            input_weights,
+            input_face_areas: face_areas.to_vec(),
             moved: vec![0.0; positions.len()],
             out_moved: Vec::new(),
             back_moved: Vec::new(),
@@ -528,8 +533,6 @@ impl Deviation {
         };
         self.plan
             .points_into(positions, triangles, &mut self.samples);
-        self.plan
-            .weights_into(triangles, face_areas, &mut self.weights);
         self.current_bvh.refit(positions, triangles);
         self.frame = self.frame.wrapping_add(1);
         if self.frame == 0 {
@@ -569,7 +572,7 @@ impl Deviation {
         let slack = out.mean_slack();
         let ([mean_out, mean_in], mean_bound) = estimate_pair(
             [&mut self.out_strata, &mut self.back_strata],
-            [&self.weights, &self.input_weights],
+            [face_areas, &self.input_face_areas],
             MEAN_ACCURACY,
             slack,
             out.mean_query(&mut self.out_memory, slack),
@@ -599,9 +602,9 @@ impl Deviation {
         }
         if 4 * still >= 3 * self.moved.len() {
             self.current_bvh
-                .max_per_node(triangles, &self.moved, &mut self.out_moved);
+                .max_per_node(&self.moved, &mut self.out_moved);
             self.input_bvh
-                .max_per_node(triangles, &self.moved, &mut self.back_moved);
+                .max_per_node(&self.moved, &mut self.back_moved);
         } else {
             self.out_moved.clear();
             self.back_moved.clear();

@@ -1,15 +1,21 @@
 //! A stratified estimate of the two-sided area-weighted mean distance with its error bound
 //! (used by [`super::distance::Deviation`] for `deviation_mean`).
 //!
-//! The mean needs 1% accuracy (issue 29), not every sample. Each side's samples are laid out
-//! in a fixed, spatially coherent order (the faces they lie on, along the input tree's leaves)
-//! and cut each frame into [`STRATA`] runs of equal weight (area): each stratum is a patch of
-//! the surface over which the distance, a 1-Lipschitz function, varies little. Each stratum
-//! draws samples with probability proportional to their weight (with replacement), so its
-//! draws' plain mean estimates its weighted mean without bias, and the strata's estimates
-//! average to the side's (stratified sampling with probabilities proportional to size:
-//! Cochran, *Sampling Techniques*, 3rd ed., §5.3 and §9A.3). The variance comes from the
-//! draws' own spread, `Var = Σ_k s_k² / m_k / S²`.
+//! The mean needs 1% accuracy (issue 29), not every sample. A side's weighted mean is a sum
+//! over (face, rule point) pairs: each face's area times the 7-point rule's weight of the
+//! point ([`super::distance`]), times the distance of that point's sample. The faces are laid
+//! out in a fixed, spatially coherent order (the input tree's leaves) and cut each frame into
+//! [`STRATA`] runs of equal area: each stratum is a patch of the surface over which the
+//! distance, a 1-Lipschitz function, varies little. Each stratum draws a face with
+//! probability proportional to its area and then one of its seven points with its rule weight
+//! (one uniform number does both: where it falls inside the face's interval picks the point),
+//! with replacement, so a sample comes with probability proportional to its weight and the
+//! draws' plain mean estimates the stratum's weighted mean without bias; the strata's
+//! estimates average to the side's (stratified sampling with probabilities proportional to
+//! size: Cochran, *Sampling Techniques*, 3rd ed., §5.3 and §9A.3). The variance comes from the
+//! draws' own spread, `Var = Σ_k s_k² / m_k / S²`. Drawing faces rather than samples keeps
+//! the per-frame work to one running sum over the faces (a third of the samples), over the
+//! face areas the flow computes anyway.
 //!
 //! `deviation_mean` is the average of the two sides' means, and their draws are independent
 //! (each side its own pseudo-random stream), so its variance is `(Var_out + Var_in) / 4`: the
@@ -56,16 +62,37 @@ pub struct MeanEstimate {
     pub measured: usize,
 }
 
-/// A side's strata (module docs): the samples in a fixed spatially coherent order, cut each
-/// frame into [`STRATA`] runs of equal weight.
+/// The 7-point rule's weights as fractions of a face's area, in the order of a face's
+/// points in [`Strata::new`]'s `face_samples`: its corners, its edge midpoints, its centroid.
+pub(crate) const RULE: [f64; 7] = [
+    1.0 / 20.0,
+    1.0 / 20.0,
+    1.0 / 20.0,
+    2.0 / 15.0,
+    2.0 / 15.0,
+    2.0 / 15.0,
+    9.0 / 20.0,
+];
+
+/// A side's strata (module docs): the faces in a fixed spatially coherent order, cut each
+/// frame into [`STRATA`] runs of equal area.
 pub(crate) struct Strata {
-    /// Sample indices, in the order of the faces they lie on along a tree's leaves.
+    /// Face indices, along a tree's leaves.
     order: Vec<u32>,
-    /// Scratch: `cumulative[j]` is the weight of `order[..j]`.
+    /// Per face, the samples of its seven rule points ([`RULE`]'s order).
+    face_samples: Vec<[u32; 7]>,
+    /// Samples of the side (some shared between faces: corners and edge midpoints).
+    samples: usize,
+    /// Whether the areas never change between frames (the input's side): the running sum and
+    /// the strata's edges are then computed once.
+    fixed: bool,
+    /// Scratch: `cumulative[j]` is the area of `order[..j]`.
     cumulative: Vec<f64>,
-    /// Scratch: per stratum boundary `k·total/STRATA`, the index into `order` of the sample
-    /// whose weight interval holds it: a draw in stratum k searches only between two of these.
+    /// Scratch: per stratum boundary `k·total/STRATA`, the index into `order` of the face
+    /// whose area interval holds it: a draw in stratum k searches only between two of these.
     edges: Vec<usize>,
+    /// Scratch for [`Strata::measure_all`]: per sample, its weight.
+    weights: Vec<f64>,
     /// Per stratum: draws so far, their sum and sum of squares, its variance contribution.
     draws: Vec<u32>,
     sum: Vec<f64>,
@@ -73,8 +100,8 @@ pub(crate) struct Strata {
     contribution: Vec<f64>,
     /// Per stratum, the draws the next round brings it to.
     goal: Vec<u32>,
-    /// This frame's total weight.
-    total: f64,
+    /// This frame's total area (`None`: not computed yet).
+    total: Option<f64>,
     /// This side's pseudo-random stream ([`uniform`]).
     seed: u64,
     /// This frame's largest value and number of queries so far.
@@ -100,26 +127,30 @@ fn uniform(seed: u64, k: usize, j: usize) -> f64 {
 }
 
 impl Strata {
-    /// `owner[i]`: a face sample i lies on; `face_order`: the faces in a spatially coherent
-    /// order (a tree's leaf order).
-    pub(crate) fn new(owner: &[u32], face_order: &[u32], seed: u64) -> Self {
-        let n = owner.len();
-        let mut rank = vec![0u32; face_order.len()];
-        for (r, &f) in face_order.iter().enumerate() {
-            rank[f as usize] = r as u32;
-        }
-        let mut order: Vec<u32> = (0..n as u32).collect();
-        order.sort_by_key(|&i| (rank[owner[i as usize] as usize], i));
+    /// `face_order`: the faces in a spatially coherent order (a tree's leaf order);
+    /// `face_samples`: per face, its seven rule points' samples, among `samples`; `fixed`:
+    /// whether every frame brings the same areas.
+    pub(crate) fn new(
+        face_order: &[u32],
+        face_samples: Vec<[u32; 7]>,
+        samples: usize,
+        fixed: bool,
+        seed: u64,
+    ) -> Self {
         Strata {
-            order,
-            cumulative: vec![0.0; n + 1],
+            order: face_order.to_vec(),
+            face_samples,
+            samples,
+            fixed,
+            cumulative: vec![0.0; face_order.len() + 1],
             edges: vec![0; STRATA + 1],
+            weights: Vec::new(),
             draws: vec![0; STRATA],
             sum: vec![0.0; STRATA],
             sum2: vec![0.0; STRATA],
             contribution: vec![0.0; STRATA],
             goal: vec![0; STRATA],
-            total: 0.0,
+            total: None,
             seed,
             max_seen: 0.0,
             measured: 0,
@@ -127,16 +158,9 @@ impl Strata {
         }
     }
 
-    /// Start a frame: the weights' running sums and the strata's edges; no draw yet.
-    fn begin(&mut self, weights: &[f64]) {
-        let n = self.order.len();
-        let mut total = 0.0;
-        for (j, &i) in self.order.iter().enumerate() {
-            self.cumulative[j] = total;
-            total += weights[i as usize];
-        }
-        self.cumulative[n] = total;
-        self.total = total;
+    /// Start a frame: the areas' running sums and the strata's edges (once, if fixed); no
+    /// draw yet.
+    fn begin(&mut self, face_areas: &[f64]) {
         self.draws.fill(0);
         self.goal.fill(FIRST_SAMPLES as u32);
         self.sum.fill(0.0);
@@ -145,11 +169,26 @@ impl Strata {
         self.max_seen = 0.0;
         self.measured = 0;
         self.exact = None;
-        if n <= FIRST_SAMPLES * STRATA || total <= 0.0 {
+        let total = match self.total {
+            Some(total) if self.fixed => total,
+            _ => self.sweep(face_areas),
+        };
+        if self.samples <= FIRST_SAMPLES * STRATA || total <= 0.0 {
             // Too few samples to sample: measure them all.
             self.exact = Some(0.0);
-            return;
         }
+    }
+
+    /// The running sum of the areas along the order and the strata's edges; the total.
+    fn sweep(&mut self, face_areas: &[f64]) -> f64 {
+        let n = self.order.len();
+        let mut total = 0.0;
+        for (j, &f) in self.order.iter().enumerate() {
+            self.cumulative[j] = total;
+            total += face_areas[f as usize];
+        }
+        self.cumulative[n] = total;
+        self.total = Some(total);
         // One sweep finds every stratum's edges (the boundaries increase with k).
         let width = total / STRATA as f64;
         let mut at = 0;
@@ -160,6 +199,7 @@ impl Strata {
             }
             *edge = at;
         }
+        total
     }
 
     /// Draw what the strata's goals ask for (each value divided by `centre`, the middle of
@@ -169,15 +209,26 @@ impl Strata {
             return;
         }
         let n = self.order.len();
-        let width = self.total / STRATA as f64;
+        let width = self.total.unwrap_or(0.0) / STRATA as f64;
         for k in 0..STRATA {
             for j in self.draws[k]..self.goal[k] {
                 let u = width * (k as f64 + uniform(self.seed, k, j as usize));
-                // The sample whose weight interval holds u (probability ∝ weight).
+                // The face whose area interval holds u (probability ∝ area), then the rule
+                // point whose share of that interval holds it (probability ∝ its weight).
                 let (lo, hi) = (self.edges[k], (self.edges[k + 1] + 1).min(n));
                 let at =
                     (lo + self.cumulative[lo + 1..=hi].partition_point(|&c| c <= u)).min(n - 1);
-                let d = distance(self.order[at] as usize);
+                let (start, span) = (
+                    self.cumulative[at],
+                    self.cumulative[at + 1] - self.cumulative[at],
+                );
+                let mut within = if span > 0.0 { (u - start) / span } else { 0.0 };
+                let mut point = 0;
+                while point < RULE.len() - 1 && within >= RULE[point] {
+                    within -= RULE[point];
+                    point += 1;
+                }
+                let d = distance(self.face_samples[self.order[at] as usize][point] as usize);
                 self.max_seen = self.max_seen.max(d);
                 self.measured += 1;
                 let d = d / centre;
@@ -212,28 +263,32 @@ impl Strata {
     /// Every sample, exact up to the slack: the side's weighted mean, from then on its value.
     fn measure_all(
         &mut self,
-        weights: &[f64],
+        face_areas: &[f64],
         centre: f64,
         distance: &mut impl FnMut(usize) -> f64,
     ) {
+        self.weights.clear();
+        self.weights.resize(self.samples, 0.0);
+        for (points, &area) in self.face_samples.iter().zip(face_areas) {
+            for (&i, rule) in points.iter().zip(RULE) {
+                self.weights[i as usize] += rule * area;
+            }
+        }
         let (mut sum, mut max) = (0.0, 0.0f64);
-        for (i, &w) in weights.iter().enumerate() {
+        for (i, &w) in self.weights.iter().enumerate() {
             let d = distance(i);
             max = max.max(d);
             sum += w * d / centre;
         }
-        self.measured += weights.len();
+        self.measured += self.samples;
         self.max_seen = self.max_seen.max(max);
-        self.exact = Some(if self.total > 0.0 {
-            sum / self.total
-        } else {
-            0.0
-        });
+        let total = self.total.unwrap_or(0.0);
+        self.exact = Some(if total > 0.0 { sum / total } else { 0.0 });
     }
 
     /// Whether sampling is no longer worth it after `round` refinements.
     fn exhausted(&self, round: usize) -> bool {
-        self.exact.is_none() && (round > ROUNDS || self.measured > self.order.len() / 4)
+        self.exact.is_none() && (round > ROUNDS || self.measured > self.samples / 4)
     }
 
     fn estimate(&self, mean: f64, variance: f64, slack: f64) -> MeanEstimate {
@@ -252,7 +307,7 @@ impl Strata {
 /// value between the exact distance of a side's sample and `1 + slack` times it.
 pub(crate) fn estimate_pair(
     sides: [&mut Strata; 2],
-    weights: [&[f64]; 2],
+    face_areas: [&[f64]; 2],
     accuracy: f64,
     slack: f64,
     mut distance_out: impl FnMut(usize) -> f64,
@@ -262,13 +317,13 @@ pub(crate) fn estimate_pair(
     // A queried value is within [d, (1 + slack) d]; divided by 1 + slack/2 it is within
     // slack/2 of d either way.
     let centre = 1.0 + 0.5 * slack;
-    out.begin(weights[0]);
-    back.begin(weights[1]);
+    out.begin(face_areas[0]);
+    back.begin(face_areas[1]);
     if out.exact.is_some() {
-        out.measure_all(weights[0], centre, &mut distance_out);
+        out.measure_all(face_areas[0], centre, &mut distance_out);
     }
     if back.exact.is_some() {
-        back.measure_all(weights[1], centre, &mut distance_in);
+        back.measure_all(face_areas[1], centre, &mut distance_in);
     }
     let mut round = 0;
     loop {
@@ -288,10 +343,10 @@ pub(crate) fn estimate_pair(
         // A side whose draws got past a quarter of its samples (or past the rounds) has them
         // all measured instead.
         if out.exhausted(round) {
-            out.measure_all(weights[0], centre, &mut distance_out);
+            out.measure_all(face_areas[0], centre, &mut distance_out);
         }
         if back.exhausted(round) {
-            back.measure_all(weights[1], centre, &mut distance_in);
+            back.measure_all(face_areas[1], centre, &mut distance_in);
         }
         // Double the draws where the variance is, over both sides' strata (Neyman
         // allocation, roughly): each stratum's share of the average's variance.
