@@ -534,7 +534,7 @@ impl Disc {
         let x = sub(p, self.centre);
         let h = dot(x, self.normal);
         let across2 = dot(x, x) - h * h;
-        let up = (h - self.hi).max(self.lo - h).max(0.0);
+        let up = larger(larger(h - self.hi, self.lo - h), 0.0);
         if across2 <= self.radius * self.radius {
             return up * up;
         }
@@ -613,10 +613,22 @@ fn bounds(positions: &[[f64; 3]], triangles: &[[usize; 3]], faces: &[u32]) -> ([
 fn box_d2(node: &Node, p: [f64; 3]) -> f64 {
     let mut d2 = 0.0;
     for k in 0..3 {
-        let d = (node.min[k] - p[k]).max(p[k] - node.max[k]).max(0.0);
+        let d = larger(larger(node.min[k] - p[k], p[k] - node.max[k]), 0.0);
         d2 += d * d;
     }
     d2
+}
+
+/// The larger of two numbers, without `f64::max`'s care for NaN (one compare and select:
+/// the bounds of a query cost mostly these, and a tree is built from validated, finite
+/// positions).
+#[inline(always)]
+fn larger(a: f64, b: f64) -> f64 {
+    if a > b {
+        a
+    } else {
+        b
+    }
 }
 
 #[cfg(test)]
