@@ -124,6 +124,8 @@ struct Leaves {
     vertices: Vec<u32>,
     /// Per entry of `Bvh::order`, its triangle's corners as positions in its leaf's run.
     corners: Vec<[u8; 3]>,
+    /// Scratch of a refit: the positions of `vertices`.
+    positions: Vec<[f64; 3]>,
 }
 
 impl Leaves {
@@ -132,6 +134,7 @@ impl Leaves {
             runs: vec![[0, 0]; nodes.len()],
             vertices: Vec::with_capacity(order.len()),
             corners: vec![[0; 3]; order.len()],
+            positions: Vec::new(),
         };
         for (node, run) in nodes.iter().zip(&mut leaves.runs) {
             if node.count == 0 {
@@ -254,14 +257,19 @@ impl Bvh {
     /// pre-order), and rebuild when the refitted boxes got much looser than a fresh build's
     /// (twice as loose, by their summed surface area).
     pub fn refit(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]]) {
+        // The scattered reads first, in one loop whose iterations do not wait on each other
+        // (the processor keeps many loads in flight), then the fits over contiguous copies:
+        // fitting while gathering left each leaf's arithmetic waiting on its loads.
+        let gathered = &mut self.leaves.positions;
+        gathered.clear();
+        gathered.extend(self.leaves.vertices.iter().map(|&v| positions[v as usize]));
         for i in (0..self.nodes.len()).rev() {
             let node = self.nodes[i];
             let (min, max, disc) = if node.count > 0 {
                 let s = node.start as usize;
                 let [a, b] = self.leaves.runs[i].map(|x| x as usize);
                 leaf_fit(
-                    positions,
-                    &self.leaves.vertices[a..b],
+                    &self.leaves.positions[a..b],
                     &self.leaves.corners[s..s + node.count as usize],
                 )
             } else {
@@ -543,20 +551,10 @@ impl Disc {
     }
 }
 
-/// A leaf's box and disc from its distinct vertices ([`Leaves`]), each position read once:
+/// A leaf's box and disc from the positions of its distinct vertices ([`Leaves`]):
 /// the box and the disc's slab and radius are extremes over the vertices, the disc's normal
 /// and centre the same area-weighted normal and corner mean as [`Disc::fit`]'s.
-fn leaf_fit(
-    positions: &[[f64; 3]],
-    vertices: &[u32],
-    corners: &[[u8; 3]],
-) -> ([f64; 3], [f64; 3], Disc) {
-    let mut local = [[0.0; 3]; 3 * LEAF_SIZE];
-    let n = vertices.len().min(local.len());
-    for (x, &v) in local.iter_mut().zip(&vertices[..n]) {
-        *x = positions[v as usize];
-    }
-    let local = &local[..n];
+fn leaf_fit(local: &[[f64; 3]], corners: &[[u8; 3]]) -> ([f64; 3], [f64; 3], Disc) {
     let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for p in local {
         for k in 0..3 {
