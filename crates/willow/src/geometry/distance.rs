@@ -103,6 +103,48 @@ impl SamplePlan {
     }
 }
 
+/// Where a side's sample points come from: stored (the input's, computed once) or computed
+/// when asked from the current positions (a frame asks for a few thousand of the 300k at
+/// 100k triangles; writing them all cost ~1 ms a frame).
+#[derive(Clone, Copy)]
+enum Points<'a> {
+    Stored(&'a [[f64; 3]]),
+    Computed {
+        positions: &'a [[f64; 3]],
+        edges: &'a [[usize; 2]],
+        triangles: &'a [[usize; 3]],
+    },
+}
+
+impl Points<'_> {
+    /// Sample `i` (the order of [`SamplePlan`]).
+    #[inline]
+    fn at(&self, i: usize) -> [f64; 3] {
+        match *self {
+            Points::Stored(points) => points[i],
+            Points::Computed {
+                positions,
+                edges,
+                triangles,
+            } => {
+                let (nv, ne) = (positions.len(), edges.len());
+                if i < nv {
+                    positions[i]
+                } else if i < nv + ne {
+                    let [a, b] = edges[i - nv];
+                    scale(add(positions[a], positions[b]), 0.5)
+                } else {
+                    let t = triangles[i - nv - ne];
+                    scale(
+                        add(add(positions[t[0]], positions[t[1]]), positions[t[2]]),
+                        1.0 / 3.0,
+                    )
+                }
+            }
+        }
+    }
+}
+
 /// Samples per side the mean measures first (two per stratum, [`super::stratified`]); a side
 /// with at most this many has every sample measured. A query costs about the number of boxes
 /// within the distance of the sample (hundreds once the surface moved tens of edge lengths,
@@ -163,10 +205,12 @@ impl Memory {
 /// One surface's side of the measure: its samples, their weights, its tree, and the other
 /// surface to measure against.
 struct Side<'a> {
-    samples: &'a [[f64; 3]],
+    samples: Points<'a>,
+    /// Samples per side.
+    sample_count: usize,
     /// The same samples on the other surface (same connectivity): `|p − q|` bounds a
     /// sample's distance from above for free, since `q` lies on the other surface.
-    counterparts: &'a [[f64; 3]],
+    counterparts: Points<'a>,
     /// This surface (its samples lie in its tree's boxes).
     own: &'a Bvh,
     own_positions: &'a [[f64; 3]],
@@ -192,7 +236,7 @@ impl Side<'_> {
     /// The slack of the mean's queries: 0 on small meshes (every distance exact), else
     /// [`MEAN_SLACK`] ([`Deviation::with_exact_mean_samples`]).
     fn mean_slack(&self) -> f64 {
-        if self.samples.len() > self.exact_mean_samples {
+        if self.sample_count > self.exact_mean_samples {
             MEAN_SLACK
         } else {
             0.0
@@ -211,7 +255,7 @@ impl Side<'_> {
         // weights), whose own remembered face may be its initial hint, far off.
         let mut last = usize::MAX;
         move |i| {
-            let p = self.samples[i];
+            let p = self.samples.at(i);
             let start = self.nearer(p, memory.nearest[i] as usize, last);
             let (face, d) = self
                 .other
@@ -230,10 +274,10 @@ impl Side<'_> {
     /// bound of this frame's max, near it while the surface moves a little per frame.
     fn last_argmax(&self, memory: &mut Memory) -> f64 {
         let i = memory.argmax;
-        if i >= self.samples.len() {
+        if i >= self.sample_count {
             return 0.0;
         }
-        let (face, d) = self.exact(self.samples[i], memory.nearest[i] as usize);
+        let (face, d) = self.exact(self.samples.at(i), memory.nearest[i] as usize);
         memory.nearest[i] = face as u32;
         d
     }
@@ -272,7 +316,7 @@ impl Side<'_> {
         }
         let (nv, ne) = (
             self.own_positions.len(),
-            self.samples.len() - self.own_positions.len() - self.triangles.len(),
+            self.sample_count - self.own_positions.len() - self.triangles.len(),
         );
         stack.clear();
         stack.push((0, memory.nearest[nv + ne]));
@@ -327,8 +371,8 @@ impl Side<'_> {
                         continue;
                     }
                     memory.settled[i] = self.frame;
-                    let p = self.samples[i];
-                    if dist2(p, self.counterparts[i]) <= max * max {
+                    let p = self.samples.at(i);
+                    if dist2(p, self.counterparts.at(i)) <= max * max {
                         continue;
                     }
                     let hint = self.nearer(p, face, memory.nearest[i] as usize);
@@ -439,7 +483,6 @@ pub struct Deviation {
     input_samples: Vec<[f64; 3]>,
     input_face_areas: Vec<f64>,
     current_bvh: Bvh,
-    samples: Vec<[f64; 3]>,
     /// Per vertex, how far it moved from the input; per node of the current and the input
     /// tree, the most any of its vertices moved ([`Side::node_moved`]).
     moved: Vec<f64>,
@@ -487,7 +530,6 @@ impl Deviation {
             mean_bound: 0.0,
             mean_queries: 0,
             current_bvh: input_bvh.clone(),
-            samples: input_samples.clone(),
             input_positions: positions.to_vec(),
             input_bvh,
             input_samples,
@@ -531,8 +573,6 @@ impl Deviation {
             profile[k].1 = (now - clock).as_secs_f64() * 1e3;
             clock = now;
         };
-        self.plan
-            .points_into(positions, triangles, &mut self.samples);
         self.current_bvh.refit(positions, triangles);
         self.frame = self.frame.wrapping_add(1);
         if self.frame == 0 {
@@ -544,9 +584,15 @@ impl Deviation {
         self.out_memory
             .node_face
             .resize(self.current_bvh.nodes.len(), u32::MAX);
+        let current = Points::Computed {
+            positions,
+            edges: &self.plan.edges,
+            triangles,
+        };
         let out = Side {
-            samples: &self.samples,
-            counterparts: &self.input_samples,
+            samples: current,
+            sample_count: self.input_samples.len(),
+            counterparts: Points::Stored(&self.input_samples),
             own: &self.current_bvh,
             own_positions: positions,
             other: &self.input_bvh,
@@ -557,8 +603,9 @@ impl Deviation {
             exact_mean_samples: self.exact_mean_samples,
         };
         let back = Side {
-            samples: &self.input_samples,
-            counterparts: &self.samples,
+            samples: Points::Stored(&self.input_samples),
+            sample_count: self.input_samples.len(),
+            counterparts: current,
             own: &self.input_bvh,
             own_positions: &self.input_positions,
             other: &self.current_bvh,
