@@ -257,6 +257,11 @@ impl Bvh {
         }
         self.built_box_area = self.box_area();
         self.leaves = Leaves::new(&self.nodes, &self.order, triangles);
+        // A refit's scratch, filled once here so that the first refit of a flow (its first
+        // frame) does not pay for fresh pages.
+        self.leaves.positions = (self.leaves.vertices.iter())
+            .map(|&v| positions[v as usize])
+            .collect();
         self.wide.clear();
         if !self.nodes.is_empty() {
             Wide::collapse(&self.nodes, 0, &mut self.wide);
