@@ -152,7 +152,8 @@ impl Points<'_> {
 /// queries) would cost several conformal steps.
 pub const MEAN_SAMPLES: usize = 2 * STRATA;
 /// The relative accuracy the mean is measured to (issue 29): its stated error bound
-/// ([`Deviation::mean_bound`]) is at most this fraction of it, or every sample was measured.
+/// ([`Deviation::mean_bound`], a 95% interval) is at most this fraction of it, or every
+/// sample was measured.
 pub const MEAN_ACCURACY: f64 = 0.01;
 /// Samples per side above which the mean's distances are taken within [`MEAN_SLACK`]
 /// rather than exactly (see [`Deviation`]).
@@ -556,6 +557,15 @@ impl Deviation {
         self
     }
 
+    /// The same measure drawing the mean's samples from another pseudo-random stream (the
+    /// default is stream 0; each side draws from its own): the stated bound of the mean is a
+    /// statement about these draws, and a test checks it over many streams.
+    pub fn with_seed(mut self, seed: u64) -> Self {
+        self.out_strata.reseed(2 * seed);
+        self.back_strata.reseed(2 * seed + 1);
+        self
+    }
+
     /// `(deviation_max, deviation_mean)` of the surface at `positions` (whose face areas are
     /// `face_areas`) against the input: see the module docs for exactly what is measured.
     pub fn measure(
@@ -674,9 +684,10 @@ impl Deviation {
     }
 
     /// The stated error bound of the last [`Deviation::measure`]'s mean: the mean over every
-    /// sample is within `mean ± mean_bound` ([`super::stratified`]: three standard errors of
-    /// the two sides' stratified average, their independent errors added in quadrature, plus
-    /// the queries' slack; 0 where every sample was measured exactly). At most [`MEAN_ACCURACY`] times the mean, unless every sample was measured.
+    /// sample is within `mean ± mean_bound` with 95% confidence ([`super::stratified`]: two
+    /// standard errors of the two sides' stratified average, their independent errors added
+    /// in quadrature, plus half the queries' slack; 0 where every sample was measured
+    /// exactly). At most [`MEAN_ACCURACY`] times the mean, unless every sample was measured.
     pub fn mean_bound(&self) -> f64 {
         self.mean_bound
     }
