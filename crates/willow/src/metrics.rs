@@ -66,8 +66,10 @@ pub struct StepMetrics {
     /// `max_deviation`): see `FlowParams::measure_deviation` for its cost.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub deviation_max: Option<f64>,
-    /// Mean of the two one-sided area-weighted mean distances to the input. 0 for step 0;
-    /// `None` where not measured, as `deviation_max`.
+    /// Mean of the two one-sided area-weighted mean distances to the input: within 1% at 95%
+    /// confidence on large meshes (a stratified estimate), exact over every sample on small
+    /// ones (`Deviation::mean_bound`). 0 for step 0; `None` where not measured, as
+    /// `deviation_max`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub deviation_mean: Option<f64>,
     /// `Σ_i |(L f)_i|² / (4 A_i)`: the Willmore energy of the whole mean-curvature *vector*
