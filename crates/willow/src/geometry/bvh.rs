@@ -386,7 +386,72 @@ impl Bvh {
         if self.wide.is_empty() {
             return None;
         }
-        self.nearest_wide(positions, triangles, p, hint, slack, enough)
+        let grow = (1.0 + slack) * (1.0 + slack);
+        let triangle_d2 = |f: usize| {
+            let t = triangles[f];
+            dist2(
+                p,
+                closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
+            )
+        };
+        let mut best = match hint {
+            Some(f) if f < triangles.len() => (f, triangle_d2(f)),
+            _ => (usize::MAX, f64::INFINITY),
+        };
+        // Entries: (wide node or leaf start, leaf count or 0, bound).
+        let mut stack = [(0u32, 0u32, 0.0f64); 3 * STACK];
+        let mut top = 1usize;
+        while top > 0 && best.1 > enough {
+            top -= 1;
+            let (index, count, bound) = stack[top];
+            if bound >= best.1 {
+                continue;
+            }
+            if count > 0 {
+                let s = index as usize;
+                for &f in &self.order[s..s + count as usize] {
+                    let d2 = triangle_d2(f as usize);
+                    if d2 < best.1 {
+                        best = (f as usize, d2);
+                    }
+                }
+                continue;
+            }
+            let w = &self.wide[index as usize];
+            let mut b = [0.0f64; 4];
+            for (lane, b) in b.iter_mut().enumerate() {
+                let mut d2 = 0.0;
+                for k in 0..3 {
+                    let d = larger(larger(w.min[k][lane] - p[k], p[k] - w.max[k][lane]), 0.0);
+                    d2 += d * d;
+                }
+                *b = grow * d2;
+            }
+            let mut order = [0usize; 4];
+            let mut n = 0;
+            for lane in 0..4 {
+                if b[lane] < best.1 {
+                    b[lane] = larger(b[lane], grow * w.disc[lane].d2(p));
+                    if b[lane] < best.1 {
+                        // Insertion by decreasing bound: the nearest is pushed last.
+                        let mut at = n;
+                        while at > 0 && b[order[at - 1]] < b[lane] {
+                            order[at] = order[at - 1];
+                            at -= 1;
+                        }
+                        order[at] = lane;
+                        n += 1;
+                    }
+                }
+            }
+            for &lane in &order[..n] {
+                if top < stack.len() {
+                    stack[top] = (w.child[lane], w.count[lane], b[lane]);
+                    top += 1;
+                }
+            }
+        }
+        (best.0 != usize::MAX).then_some(best)
     }
 }
 
@@ -466,85 +531,6 @@ impl Wide {
             }
             self.disc[lane] = n.disc;
         }
-    }
-}
-
-impl Bvh {
-    fn nearest_wide(
-        &self,
-        positions: &[[f64; 3]],
-        triangles: &[[usize; 3]],
-        p: [f64; 3],
-        hint: Option<usize>,
-        slack: f64,
-        enough: f64,
-    ) -> Option<(usize, f64)> {
-        let grow = (1.0 + slack) * (1.0 + slack);
-        let triangle_d2 = |f: usize| {
-            let t = triangles[f];
-            dist2(
-                p,
-                closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
-            )
-        };
-        let mut best = match hint {
-            Some(f) if f < triangles.len() => (f, triangle_d2(f)),
-            _ => (usize::MAX, f64::INFINITY),
-        };
-        // Entries: (wide node or leaf start, leaf count or 0, bound).
-        let mut stack = [(0u32, 0u32, 0.0f64); 3 * STACK];
-        let mut top = 1usize;
-        while top > 0 && best.1 > enough {
-            top -= 1;
-            let (index, count, bound) = stack[top];
-            if bound >= best.1 {
-                continue;
-            }
-            if count > 0 {
-                let s = index as usize;
-                for &f in &self.order[s..s + count as usize] {
-                    let d2 = triangle_d2(f as usize);
-                    if d2 < best.1 {
-                        best = (f as usize, d2);
-                    }
-                }
-                continue;
-            }
-            let w = &self.wide[index as usize];
-            let mut b = [0.0f64; 4];
-            for (lane, b) in b.iter_mut().enumerate() {
-                let mut d2 = 0.0;
-                for k in 0..3 {
-                    let d = larger(larger(w.min[k][lane] - p[k], p[k] - w.max[k][lane]), 0.0);
-                    d2 += d * d;
-                }
-                *b = grow * d2;
-            }
-            let mut order = [0usize; 4];
-            let mut n = 0;
-            for lane in 0..4 {
-                if b[lane] < best.1 {
-                    b[lane] = larger(b[lane], grow * w.disc[lane].d2(p));
-                    if b[lane] < best.1 {
-                        // Insertion by decreasing bound: the nearest is pushed last.
-                        let mut at = n;
-                        while at > 0 && b[order[at - 1]] < b[lane] {
-                            order[at] = order[at - 1];
-                            at -= 1;
-                        }
-                        order[at] = lane;
-                        n += 1;
-                    }
-                }
-            }
-            for &lane in &order[..n] {
-                if top < stack.len() {
-                    stack[top] = (w.child[lane], w.count[lane], b[lane]);
-                    top += 1;
-                }
-            }
-        }
-        (best.0 != usize::MAX).then_some(best)
     }
 }
 

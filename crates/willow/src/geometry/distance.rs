@@ -78,29 +78,37 @@ impl SamplePlan {
         }
     }
 
-    /// Per face, the samples of its seven rule points: its corners, its edge midpoints, its
-    /// centroid (the order of [`super::stratified::RULE`]).
+    /// Per face, the samples of its seven rule points ([`rule_points`]).
     fn face_samples(&self, triangles: &[[usize; 3]]) -> Vec<[u32; 7]> {
-        let nv = self.len() - self.edges.len() - triangles.len();
-        let ne = self.edges.len();
-        triangles
-            .iter()
-            .zip(&self.face_edges)
-            .enumerate()
-            .map(|(f, (t, es))| {
-                [
-                    t[0],
-                    t[1],
-                    t[2],
-                    nv + es[0],
-                    nv + es[1],
-                    nv + es[2],
-                    nv + ne + f,
-                ]
-                .map(|i| i as u32)
-            })
+        let (nv, ne) = (
+            self.len() - self.edges.len() - triangles.len(),
+            self.edges.len(),
+        );
+        (0..triangles.len())
+            .map(|f| rule_points(f, triangles, &self.face_edges, nv, ne).map(|i| i as u32))
             .collect()
     }
+}
+
+/// The samples of face `f`'s seven rule points, in the order of [`super::stratified::RULE`]:
+/// its corners, its edge midpoints, its centroid (`nv` vertices, `ne` edges).
+fn rule_points(
+    f: usize,
+    triangles: &[[usize; 3]],
+    face_edges: &[[usize; 3]],
+    nv: usize,
+    ne: usize,
+) -> [usize; 7] {
+    let (t, es) = (triangles[f], face_edges[f]);
+    [
+        t[0],
+        t[1],
+        t[2],
+        nv + es[0],
+        nv + es[1],
+        nv + es[2],
+        nv + ne + f,
+    ]
 }
 
 /// Where a side's sample points come from: stored (the input's, computed once) or computed
@@ -356,18 +364,7 @@ impl Side<'_> {
                 continue;
             }
             for &f in leaf {
-                let f = f as usize;
-                let t = self.triangles[f];
-                let es = self.face_edges[f];
-                for i in [
-                    t[0],
-                    t[1],
-                    t[2],
-                    nv + es[0],
-                    nv + es[1],
-                    nv + es[2],
-                    nv + ne + f,
-                ] {
+                for i in rule_points(f as usize, self.triangles, self.face_edges, nv, ne) {
                     if memory.settled[i] == self.frame {
                         continue;
                     }
