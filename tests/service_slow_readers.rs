@@ -84,16 +84,7 @@ async fn drain(s: &mut TcpStream, patience: Duration) -> (usize, bool) {
 }
 
 async fn succeeded_job(client: &reqwest::Client, base: &str, obj: &str) -> String {
-    let res = client
-        .post(format!("{base}/v1/jobs?steps=1"))
-        .header("content-type", "model/obj")
-        .body(obj.to_string())
-        .send()
-        .await
-        .expect("POST /v1/jobs");
-    assert_eq!(res.status(), 202);
-    let job: serde_json::Value = res.json().await.expect("job json");
-    let id = job["id"].as_str().expect("job id").to_string();
+    let id = submit_obj_to(client, base, "steps=1", obj).await;
     let done = poll_until(client, base, &id, Duration::from_secs(120), |v| {
         v["state"] != "queued" && v["state"] != "running"
     })
