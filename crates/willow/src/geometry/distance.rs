@@ -211,7 +211,7 @@ impl Memory {
     }
 }
 
-/// One surface's side of the measure: its samples, their weights, its tree, and the other
+/// One surface's side of the measure: its samples, its tree, and the other
 /// surface to measure against.
 struct Side<'a> {
     samples: Points<'a>,
@@ -467,9 +467,9 @@ impl Side<'_> {
 ///
 /// The maximum is exact over every sample. The mean is exact over every sample up to
 /// [`MEAN_SAMPLES`] per side; above that it is a stratified estimate
-/// ([`super::stratified`]: samples drawn with probability ∝ weight in equal-weight strata
-/// along the input tree's leaves) whose stated error bound ([`Deviation::mean_bound`]) is at
-/// most [`MEAN_ACCURACY`] of it: the cost of exact nearest points grows with how far the
+/// ([`super::stratified`]: samples drawn with probability ∝ weight in equal-area strata
+/// along the input tree's leaves) whose stated error bound ([`Deviation::mean_bound`], a 95%
+/// interval) is at most [`MEAN_ACCURACY`] of it: the cost of exact nearest points grows with how far the
 /// surface moved, and the mean, unlike the max, does not need every sample. Above
 /// [`EXACT_MEAN_SAMPLES`] per side, each of those distances is within [`MEAN_SLACK`] above
 /// the exact one (half of it enters the bound). What a side remembers from the last frame

@@ -32,6 +32,7 @@
 //!
 //! Which samples are measured depends only on the weights, the fixed pseudo-random draws and
 //! the distances measured, never on what was remembered from the last frame.
+use super::distance::{CENTROID_WEIGHT, EDGE_WEIGHT, VERTEX_WEIGHT};
 
 /// Strata per side: with [`FIRST_SAMPLES`] each, 1,536 queries per side on a large mesh. On
 /// nefertiti's frames at τ 0.5 (100k triangles, moved 2 to 50 edge lengths) the pair states
@@ -76,13 +77,13 @@ pub struct MeanEstimate {
 /// The 7-point rule's weights as fractions of a face's area, in the order of a face's
 /// points in [`Strata::new`]'s `face_samples`: its corners, its edge midpoints, its centroid.
 pub(crate) const RULE: [f64; 7] = [
-    1.0 / 20.0,
-    1.0 / 20.0,
-    1.0 / 20.0,
-    2.0 / 15.0,
-    2.0 / 15.0,
-    2.0 / 15.0,
-    9.0 / 20.0,
+    VERTEX_WEIGHT,
+    VERTEX_WEIGHT,
+    VERTEX_WEIGHT,
+    EDGE_WEIGHT,
+    EDGE_WEIGHT,
+    EDGE_WEIGHT,
+    CENTROID_WEIGHT,
 ];
 
 /// A side's strata (module docs): the faces in a fixed spatially coherent order, cut each
