@@ -128,7 +128,8 @@ struct Figures {
     /// Where the region flow's last step went, as `profile` for the whole mesh.
     region_profile: Vec<(String, f64)>,
     /// The distance from the input (`deviation_max`, `deviation_mean`) measured on every frame
-    /// of the conformal flow, as a job measures it (one `Deviation`, frame after frame), in ms
+    /// of the conformal flow, as a job measures it (one `Deviation`, frame after frame, on the
+    /// flow's threads), in ms
     /// and over the median try (issue 29: at most 10% at 100k triangles, in every phase): after
     /// the first step (the surface near the input), after the last (moved far from it), and
     /// the slowest frame.
@@ -413,7 +414,7 @@ fn measure(name: &str, mesh: &Mesh, args: &BenchArgs) -> Result<Figures, String>
     }
     let peak = peak_rss_mb();
     // Built after the peak is read, so the flow's own memory stays comparable with earlier runs.
-    let mut deviation = FrameDeviation::new(mesh);
+    let mut deviation = FrameDeviation::new(mesh, args.threads);
     if args.steps > 0 {
         deviation.time(flow.positions());
     }
@@ -556,7 +557,8 @@ struct FrameDeviation {
 }
 
 impl FrameDeviation {
-    fn new(mesh: &Mesh) -> Self {
+    /// `threads`: the flow's, as a job passes its own ([`FlowParams::deviation_threads`]).
+    fn new(mesh: &Mesh, threads: usize) -> Self {
         let topology = willow::mesh::topology::Topology::new(mesh);
         let mut areas = vec![0.0; mesh.face_count()];
         face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
@@ -565,7 +567,8 @@ impl FrameDeviation {
             &mesh.triangles,
             &topology,
             &areas,
-        );
+        )
+        .with_threads(threads);
         FrameDeviation {
             triangles: mesh.triangles.clone(),
             areas,

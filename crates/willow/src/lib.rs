@@ -21,6 +21,9 @@
 //! - [`metrics`]: what each step reports ([`metrics::StepMetrics`]): Willmore energy,
 //!   quasi-conformal error Q, closure residual, enclosed volume, distance from the input.
 //!
+//! Beside them, `parallel` runs two pieces of work on two threads when a flow's `threads`
+//! allows (the factorizations, the distance measure's two sides).
+//!
 //! ```
 //! use willow::flow::{new_flow, FlowParams};
 //! use willow::mesh::io::{Asset, Format, Limits};
@@ -55,6 +58,7 @@ pub mod geometry;
 pub mod linalg;
 pub mod mesh;
 pub mod metrics;
+mod parallel;
 
 // The README's library example compiles as a doctest of this crate.
 #[cfg(doctest)]

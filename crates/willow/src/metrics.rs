@@ -231,13 +231,14 @@ pub struct StepReporter {
 }
 
 impl StepReporter {
-    /// `measure_deviation`: whether each step reports its distance from the input (see
-    /// [`StepMetrics::deviation_max`]).
+    /// `deviation_threads`: whether each step reports its distance from the input (see
+    /// [`StepMetrics::deviation_max`]), measured on how many threads
+    /// ([`Deviation::with_threads`]).
     pub fn new(
         positions: &[[f64; 3]],
         triangles: &[[usize; 3]],
         topology: &Topology,
-        measure_deviation: bool,
+        deviation_threads: Option<usize>,
     ) -> Self {
         let volume_apex: Vec<Option<usize>> = topology
             .components
@@ -254,8 +255,9 @@ impl StepReporter {
         StepReporter {
             input_shares,
             log_ratios: Vec::with_capacity(triangles.len()),
-            deviation: measure_deviation
-                .then(|| Deviation::new(positions, triangles, topology, &face_areas)),
+            deviation: deviation_threads.map(|threads| {
+                Deviation::new(positions, triangles, topology, &face_areas).with_threads(threads)
+            }),
             reference: ConformalReference::new(positions, triangles),
             q: vec![1.0; triangles.len()],
             scratch: vec![1.0; triangles.len()],

@@ -472,6 +472,56 @@ fn the_large_mesh_estimate_holds_over_consecutive_frames() {
     }
 }
 
+/// Measured on two threads (a flow whose `threads` allows: each side on its own, and the
+/// current tree's two halves refitted side by side), every frame gives bitwise what one
+/// thread gives: the max, the mean, its stated bound and the queries it made, frame after
+/// frame (so what each side remembers is the same too). On a mesh whose mean is estimated
+/// (strata, distances within the slack) and on one small enough for every sample.
+#[test]
+fn two_threads_measure_bitwise_what_one_measures() {
+    let moved = |p: P, s: f64| -> P {
+        let (sn, c) = (0.5 * s * p[2]).sin_cos();
+        let g = 1.0 + 0.1 * s * (1.7 * p[0]).sin();
+        [
+            g * (c * p[0] - sn * p[1]) + 0.3 * s,
+            g * (sn * p[0] + c * p[1]),
+            g * p[2] + 0.1 * s * p[0] * p[0],
+        ]
+    };
+    let threshold = 4 * willow::geometry::distance::MEAN_SAMPLES;
+    for (mesh, estimated) in [
+        (bumpy_sphere(4, 0.15), true),
+        (bumpy_sphere(2, 0.15), false),
+    ] {
+        let topology = Topology::new(&mesh);
+        let mut areas = vec![0.0; mesh.face_count()];
+        face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
+        let build = |threads: usize| {
+            Deviation::new(&mesh.positions, &mesh.triangles, &topology, &areas)
+                .with_exact_mean_samples(threshold)
+                .with_threads(threads)
+        };
+        let (mut one, mut two) = (build(1), build(2));
+        for (k, s) in [0.05, 0.5, 1.6, 0.1].into_iter().enumerate() {
+            let current: Vec<P> = mesh.positions.iter().map(|&p| moved(p, s)).collect();
+            let mut current_areas = vec![0.0; mesh.face_count()];
+            face_areas_into(&current, &mesh.triangles, &mut current_areas);
+            let a = one.measure(&current, &mesh.triangles, &current_areas);
+            let b = two.measure(&current, &mesh.triangles, &current_areas);
+            assert!(a.0 > 0.0 && a.1 > 0.0, "frame {k}: moved ({a:?})");
+            assert_eq!(
+                (a.0.to_bits(), a.1.to_bits()),
+                (b.0.to_bits(), b.1.to_bits()),
+                "frame {k}: one thread {a:?}, two {b:?}"
+            );
+            assert_eq!(one.mean_bound().to_bits(), two.mean_bound().to_bits());
+            assert_eq!(one.mean_queries(), two.mean_queries(), "frame {k}");
+            // The estimated mesh draws; the small one measures every sample (no bound).
+            assert_eq!(one.mean_bound() > 0.0, estimated, "frame {k}");
+        }
+    }
+}
+
 /// What the mean's stated bound means (`Deviation::mean_bound`, two standard errors of the
 /// stratified estimate, a 95% interval): over 60 independent pseudo-random streams on a
 /// surface moved far and one moved near, the brute-force mean falls outside the stated bound

@@ -58,7 +58,7 @@ impl ImplicitMeanCurvatureFlow {
                 mesh,
                 &topology,
                 Some(params.preserve),
-                params.measures_deviation(),
+                params.deviation_threads(),
             ),
             tau: params.tau,
             values: vec![0.0; pattern.nnz()],
@@ -146,12 +146,13 @@ struct ClassicSurface {
 
 impl ClassicSurface {
     /// `preserve`: the scale policy to apply after every step, `None` for none at all;
-    /// `measure_deviation`: whether steps report their distance from the input.
+    /// `deviation_threads`: whether steps report their distance from the input, measured on
+    /// how many threads ([`FlowParams::deviation_threads`]).
     fn new(
         mesh: &Mesh,
         topology: &Topology,
         preserve: Option<Preserve>,
-        measure_deviation: bool,
+        deviation_threads: Option<usize>,
     ) -> Self {
         let geometry = GeometryCache::new(&mesh.positions, &mesh.triangles);
         let scale = preserve.map(|preserve| {
@@ -167,7 +168,7 @@ impl ClassicSurface {
             &mesh.positions,
             &mesh.triangles,
             topology,
-            measure_deviation,
+            deviation_threads,
         );
         let initial = reporter.initial(&mesh.positions, &mesh.triangles, &geometry);
         ClassicSurface {
@@ -301,7 +302,7 @@ impl ConformalizedMeanCurvatureFlow {
             mesh,
             &topology,
             Some(params.preserve),
-            params.measures_deviation(),
+            params.deviation_threads(),
         );
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let cholesky = laplacian_solver(&pattern, params)?;
@@ -404,7 +405,7 @@ impl ImplicitBilaplacianFlow {
             mesh,
             &topology,
             Some(params.preserve),
-            params.measures_deviation(),
+            params.deviation_threads(),
         );
         let pattern = BlockPattern::new(n, &mesh.triangles, 1);
         let one_ring = pattern.symbolic.as_ref();
@@ -559,21 +560,21 @@ impl TaubinSmoothing {
             });
         }
         let mu = -lambda / (1.0 - TAUBIN_PASS_BAND * lambda);
-        Self::build(mesh, lambda, mu, params.measures_deviation())
+        Self::build(mesh, lambda, mu, params.deviation_threads())
     }
 
     /// Explicit factors: `λ > 0`, `μ < −λ` (Taubin's condition for a positive pass band), and
     /// `(1 − 2λ)(1 − 2μ) ≥ −1` so the highest uniform-Laplacian frequency (k = 2) is not
     /// amplified.
     pub fn with_factors(mesh: &Mesh, lambda: f64, mu: f64) -> Result<Self, FlowError> {
-        Self::build(mesh, lambda, mu, false)
+        Self::build(mesh, lambda, mu, None)
     }
 
     fn build(
         mesh: &Mesh,
         lambda: f64,
         mu: f64,
-        measure_deviation: bool,
+        deviation_threads: Option<usize>,
     ) -> Result<Self, FlowError> {
         if !(lambda.is_finite() && lambda > 0.0) {
             return Err(FlowError::InvalidParameter {
@@ -619,7 +620,7 @@ impl TaubinSmoothing {
             fill[b] += 1;
         }
         Ok(TaubinSmoothing {
-            surface: ClassicSurface::new(mesh, &topology, None, measure_deviation),
+            surface: ClassicSurface::new(mesh, &topology, None, deviation_threads),
             lambda,
             mu,
             neighbour_ptr,

@@ -290,6 +290,13 @@ impl FlowParams {
     pub fn measures_deviation(&self) -> bool {
         self.measure_deviation || self.max_deviation.is_some()
     }
+
+    /// The threads the distance from the input is measured on, if it is measured: the flow's
+    /// own [`FlowParams::threads`], so that a job given idle cores measures it faster too
+    /// ([`crate::geometry::distance::Deviation::with_threads`]).
+    pub fn deviation_threads(&self) -> Option<usize> {
+        self.measures_deviation().then_some(self.threads)
+    }
 }
 
 impl FlowParams {

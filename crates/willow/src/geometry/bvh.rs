@@ -18,6 +18,7 @@
 //!   and the distance's top-down max keep using).
 
 use super::vec3::{add, cross, dot, scale, sub};
+use crate::parallel::join;
 
 /// Closest point to `p` on the triangle `(a, b, c)` (Ericson §5.1.5). Exact in exact
 /// arithmetic for any triangle; a degenerate one (a segment or a point) gives the nearest
@@ -272,39 +273,74 @@ impl Bvh {
     /// pre-order), and rebuild when the refitted boxes got much looser than a fresh build's
     /// (twice as loose, by their summed surface area).
     pub fn refit(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]]) {
-        // The scattered reads first, in one loop whose iterations do not wait on each other
-        // (the processor keeps many loads in flight), then the fits over contiguous copies:
-        // fitting while gathering left each leaf's arithmetic waiting on its loads.
-        let gathered = &mut self.leaves.positions;
-        gathered.clear();
-        gathered.extend(self.leaves.vertices.iter().map(|&v| positions[v as usize]));
-        for i in (0..self.nodes.len()).rev() {
-            let node = self.nodes[i];
-            let (min, max, disc) = if node.count > 0 {
-                let s = node.start as usize;
-                let [a, b] = self.leaves.runs[i].map(|x| x as usize);
-                leaf_fit(
-                    &self.leaves.positions[a..b],
-                    &self.leaves.corners[s..s + node.count as usize],
-                )
-            } else {
-                let (l, r) = (&self.nodes[i + 1], &self.nodes[node.start as usize]);
-                (
-                    [
-                        l.min[0].min(r.min[0]),
-                        l.min[1].min(r.min[1]),
-                        l.min[2].min(r.min[2]),
-                    ],
-                    [
-                        l.max[0].max(r.max[0]),
-                        l.max[1].max(r.max[1]),
-                        l.max[2].max(r.max[2]),
-                    ],
-                    Disc::merge(&l.disc, &r.disc),
-                )
-            };
-            let n = &mut self.nodes[i];
-            (n.min, n.max, n.disc) = (min, max, disc);
+        self.refit_with(positions, triangles, false);
+    }
+
+    /// [`Bvh::refit`], the root's two subtrees on two threads when `parallel` (the same
+    /// result: each node is fitted from the same inputs either way).
+    pub fn refit_with(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]], parallel: bool) {
+        let Some(root) = self.nodes.first().copied() else {
+            return;
+        };
+        let Leaves {
+            runs,
+            vertices,
+            corners,
+            positions: gathered,
+        } = &mut self.leaves;
+        gathered.resize(vertices.len(), [0.0; 3]);
+        if root.count > 0 || !parallel {
+            fit_subtree(
+                &mut self.nodes,
+                0,
+                positions,
+                runs,
+                vertices,
+                corners,
+                gathered,
+            );
+        } else {
+            // Pre-order: the left subtree is nodes 1..right, the right one right..; their
+            // leaves' vertex runs are in the same order, so both split where the right
+            // subtree's first leaf run starts.
+            let right = root.start as usize;
+            let split = runs[right..]
+                .iter()
+                .zip(&self.nodes[right..])
+                .find(|(_, n)| n.count > 0)
+                .map_or(vertices.len(), |(r, _)| r[0] as usize);
+            let (top, rest) = self.nodes.split_at_mut(1);
+            let (left_nodes, right_nodes) = rest.split_at_mut(right - 1);
+            let (left_gathered, right_gathered) = gathered.split_at_mut(split);
+            let (runs, vertices, corners) = (&*runs, &*vertices, &*corners);
+            join(
+                true,
+                || {
+                    fit_subtree(
+                        left_nodes,
+                        1,
+                        positions,
+                        runs,
+                        vertices,
+                        corners,
+                        left_gathered,
+                    )
+                },
+                || {
+                    fit_subtree(
+                        right_nodes,
+                        right,
+                        positions,
+                        runs,
+                        &vertices[split..],
+                        corners,
+                        right_gathered,
+                    )
+                },
+            );
+            let (l, r) = (&left_nodes[0], &right_nodes[0]);
+            let (min, max, disc) = merged(l, r);
+            (top[0].min, top[0].max, top[0].disc) = (min, max, disc);
         }
         if self.box_area() > REBUILD_GROWTH * self.built_box_area {
             self.build(positions, triangles);
@@ -647,6 +683,61 @@ impl Disc {
     }
 }
 
+/// Fit the subtree whose nodes are `nodes` (the tree's nodes from index `offset` on, a whole
+/// subtree in pre-order), children before parents. `gathered` receives the positions of
+/// `vertices` (the subtree's leaves' vertex runs, from where its first run starts): the
+/// scattered reads first, in one loop whose iterations do not wait on each other (the
+/// processor keeps many loads in flight), then the fits over contiguous copies: fitting
+/// while gathering left each leaf's arithmetic waiting on its loads.
+fn fit_subtree(
+    nodes: &mut [Node],
+    offset: usize,
+    positions: &[[f64; 3]],
+    runs: &[[u32; 2]],
+    vertices: &[u32],
+    corners: &[[u8; 3]],
+    gathered: &mut [[f64; 3]],
+) {
+    for (g, &v) in gathered.iter_mut().zip(vertices) {
+        *g = positions[v as usize];
+    }
+    let gathered = &*gathered;
+    // Where this subtree's gathered copy starts among all the leaves' runs.
+    let first = (offset..offset + nodes.len())
+        .find(|&i| nodes[i - offset].count > 0)
+        .map_or(0, |i| runs[i][0] as usize);
+    for i in (0..nodes.len()).rev() {
+        let node = nodes[i];
+        let (min, max, disc) = if node.count > 0 {
+            let s = node.start as usize;
+            let [a, b] = runs[offset + i].map(|x| x as usize - first);
+            leaf_fit(&gathered[a..b], &corners[s..s + node.count as usize])
+        } else {
+            merged(&nodes[i + 1], &nodes[node.start as usize - offset])
+        };
+        let n = &mut nodes[i];
+        (n.min, n.max, n.disc) = (min, max, disc);
+    }
+}
+
+/// An inner node's box and disc from its children's.
+#[inline(always)]
+fn merged(l: &Node, r: &Node) -> ([f64; 3], [f64; 3], Disc) {
+    (
+        [
+            l.min[0].min(r.min[0]),
+            l.min[1].min(r.min[1]),
+            l.min[2].min(r.min[2]),
+        ],
+        [
+            l.max[0].max(r.max[0]),
+            l.max[1].max(r.max[1]),
+            l.max[2].max(r.max[2]),
+        ],
+        Disc::merge(&l.disc, &r.disc),
+    )
+}
+
 /// A leaf's box and disc from the positions of its distinct vertices ([`Leaves`]):
 /// the box and the disc's slab and radius are extremes over the vertices, the disc's normal
 /// and centre the same area-weighted normal and corner mean as [`Disc::fit`]'s.
@@ -790,6 +881,43 @@ mod tests {
     }
 
     /// The three Voronoi regions of each kind give the expected nearest point.
+    /// The root's two subtrees refitted on two threads give bitwise the tree one thread
+    /// gives: every node's box and disc, and the wide copy's lanes.
+    #[test]
+    fn a_parallel_refit_is_the_sequential_one() {
+        let mesh = bumpy_sphere(3, 0.2);
+        let mut one = Bvh::new(&mesh.positions, &mesh.triangles);
+        let mut two = one.clone();
+        let moved = twisted(&mesh.positions);
+        one.refit_with(&moved, &mesh.triangles, false);
+        two.refit_with(&moved, &mesh.triangles, true);
+        assert!(one.nodes.len() > 100);
+        let bits = |b: &Bvh| -> Vec<u64> {
+            b.nodes
+                .iter()
+                .flat_map(|n| {
+                    let d = &n.disc;
+                    n.min
+                        .into_iter()
+                        .chain(n.max)
+                        .chain(d.centre)
+                        .chain(d.normal)
+                        .chain([d.lo, d.hi, d.radius])
+                })
+                .chain(
+                    b.wide
+                        .iter()
+                        .flat_map(|w| w.min.into_iter().chain(w.max).flatten()),
+                )
+                .map(f64::to_bits)
+                .collect()
+        };
+        assert_eq!(bits(&one), bits(&two));
+        // And the refit did move the boxes (the comparison is not of two untouched trees).
+        let fresh = Bvh::new(&mesh.positions, &mesh.triangles);
+        assert_ne!(bits(&one), bits(&fresh));
+    }
+
     #[test]
     fn closest_points_on_a_right_triangle() {
         let (a, b, c) = ([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]);

@@ -22,6 +22,7 @@ pub use super::bvh::{closest_point_on_triangle, Bvh};
 use super::stratified::{estimate_pair, Strata, STRATA};
 use super::vec3::{add, scale};
 use crate::mesh::topology::Topology;
+use crate::parallel::join;
 
 /// 7-point rule weights (module docs), as fractions of a face's area: each of its corners,
 /// each of its edge midpoints, its centroid. 3/20 + 6/15 + 9/20 = 1.
@@ -497,7 +498,10 @@ pub struct Deviation {
     /// The nearest-point queries the last mean made, both sides ([`Deviation::mean_queries`]).
     mean_queries: usize,
     frame: u32,
-    stack: Vec<(u32, u32)>,
+    /// Each side's traversal stack for its max (the input's side, the current surface's).
+    stacks: [Vec<(u32, u32)>; 2],
+    /// Whether the two sides are measured on two threads ([`Deviation::with_threads`]).
+    parallel: bool,
     /// See [`Deviation::with_exact_mean_samples`].
     exact_mean_samples: usize,
     /// Where the last [`Deviation::measure`] spent its time ([`Deviation::profile`]).
@@ -539,7 +543,8 @@ impl Deviation {
             back_memory: memory,
             frame: 0,
             plan,
-            stack: Vec::new(),
+            stacks: [Vec::new(), Vec::new()],
+            parallel: false,
             exact_mean_samples: EXACT_MEAN_SAMPLES,
             profile: [("samples", 0.0), ("mean", 0.0), ("max", 0.0)],
         }
@@ -551,6 +556,16 @@ impl Deviation {
     /// after frame, on a mesh small enough for one.
     pub fn with_exact_mean_samples(mut self, samples: usize) -> Self {
         self.exact_mean_samples = samples;
+        self
+    }
+
+    /// The same measure with its two sides (the current surface against the input, the
+    /// input against the current surface) on two threads when `threads` > 1: a flow passes
+    /// its own [`crate::flow::FlowParams::threads`], so that a job the service gives idle
+    /// cores measures its distance as much faster as its step. Each side's draws, queries and
+    /// memory are its own, so the result is bitwise the same for any count.
+    pub fn with_threads(mut self, threads: usize) -> Self {
+        self.parallel = threads > 1;
         self
     }
 
@@ -580,7 +595,8 @@ impl Deviation {
             profile[k].1 = (now - clock).as_secs_f64() * 1e3;
             clock = now;
         };
-        self.current_bvh.refit(positions, triangles);
+        self.current_bvh
+            .refit_with(positions, triangles, self.parallel);
         self.frame = self.frame.wrapping_add(1);
         if self.frame == 0 {
             self.out_memory.settled.fill(0);
@@ -631,6 +647,7 @@ impl Deviation {
             slack,
             out.mean_query(&mut self.out_memory, slack),
             back.mean_query(&mut self.back_memory, slack),
+            self.parallel,
         );
         self.mean_bound = mean_bound;
         self.mean_queries = mean_out.measured + mean_in.measured;
@@ -663,13 +680,16 @@ impl Deviation {
             self.out_moved.clear();
             self.back_moved.clear();
         }
-        let max = back.settle_max(
-            max,
-            &self.back_moved,
-            &mut self.back_memory,
-            &mut self.stack,
+        // Each side settles its own max from the same lower bound (on two threads when
+        // allowed; either way alike, so what the sides remember, and with it every later
+        // frame, does not depend on the threads).
+        let [back_stack, out_stack] = &mut self.stacks;
+        let (max_in, max_out) = join(
+            self.parallel,
+            || back.settle_max(max, &self.back_moved, &mut self.back_memory, back_stack),
+            || out.settle_max(max, &self.out_moved, &mut self.out_memory, out_stack),
         );
-        let max = out.settle_max(max, &self.out_moved, &mut self.out_memory, &mut self.stack);
+        let max = max_in.max(max_out);
         lap(&mut self.profile, 2);
         (max, 0.5 * (mean_out.mean + mean_in.mean))
     }

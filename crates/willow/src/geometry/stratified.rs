@@ -33,6 +33,7 @@
 //! Which samples are measured depends only on the weights, the fixed pseudo-random draws and
 //! the distances measured, never on what was remembered from the last frame.
 use super::distance::{CENTROID_WEIGHT, EDGE_WEIGHT, VERTEX_WEIGHT};
+use crate::parallel::join;
 
 /// Strata per side: with [`FIRST_SAMPLES`] each, 1,536 queries per side on a large mesh. On
 /// nefertiti's frames at τ 0.5 (100k triangles, moved 2 to 50 edge lengths) the pair states
@@ -321,14 +322,18 @@ impl Strata {
 /// The two sides' means (each side's own [`MeanEstimate`]) and the stated error bound of
 /// their average, `deviation_mean` (module docs): within `accuracy` of it, or every sample
 /// of a side whose draws passed a quarter of its samples was measured. `distance_*` return a
-/// value between the exact distance of a side's sample and `1 + slack` times it.
+/// value between the exact distance of a side's sample and `1 + slack` times it. With
+/// `parallel`, the two sides draw on two threads (each side's draws and queries are its own:
+/// the result is the same either way).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn estimate_pair(
     sides: [&mut Strata; 2],
     face_areas: [&[f64]; 2],
     accuracy: f64,
     slack: f64,
-    mut distance_out: impl FnMut(usize) -> f64,
-    mut distance_in: impl FnMut(usize) -> f64,
+    mut distance_out: impl FnMut(usize) -> f64 + Send,
+    mut distance_in: impl FnMut(usize) -> f64 + Send,
+    parallel: bool,
 ) -> ([MeanEstimate; 2], f64) {
     let [out, back] = sides;
     // A queried value is within [d, (1 + slack) d]; divided by 1 + slack/2 it is within
@@ -336,16 +341,26 @@ pub(crate) fn estimate_pair(
     let centre = 1.0 + 0.5 * slack;
     out.begin(face_areas[0]);
     back.begin(face_areas[1]);
-    if out.exact.is_some() {
-        out.measure_all(face_areas[0], centre, &mut distance_out);
-    }
-    if back.exact.is_some() {
-        back.measure_all(face_areas[1], centre, &mut distance_in);
-    }
+    join(
+        parallel && out.exact.is_some() && back.exact.is_some(),
+        || {
+            if out.exact.is_some() {
+                out.measure_all(face_areas[0], centre, &mut distance_out);
+            }
+        },
+        || {
+            if back.exact.is_some() {
+                back.measure_all(face_areas[1], centre, &mut distance_in);
+            }
+        },
+    );
     let mut round = 0;
     loop {
-        out.draw(centre, &mut distance_out);
-        back.draw(centre, &mut distance_in);
+        join(
+            parallel && out.exact.is_none() && back.exact.is_none(),
+            || out.draw(centre, &mut distance_out),
+            || back.draw(centre, &mut distance_in),
+        );
         let ((m_out, v_out), (m_in, v_in)) = (out.summary(), back.summary());
         let mean = 0.5 * (m_out + m_in);
         let bound = CONFIDENCE_Z * (0.25 * (v_out + v_in)).sqrt() + 0.5 * slack * mean;
@@ -359,12 +374,20 @@ pub(crate) fn estimate_pair(
         round += 1;
         // A side whose draws got past a quarter of its samples (or past the rounds) has them
         // all measured instead.
-        if out.exhausted(round) {
-            out.measure_all(face_areas[0], centre, &mut distance_out);
-        }
-        if back.exhausted(round) {
-            back.measure_all(face_areas[1], centre, &mut distance_in);
-        }
+        let exhausted = [out.exhausted(round), back.exhausted(round)];
+        join(
+            parallel && exhausted[0] && exhausted[1],
+            || {
+                if exhausted[0] {
+                    out.measure_all(face_areas[0], centre, &mut distance_out);
+                }
+            },
+            || {
+                if exhausted[1] {
+                    back.measure_all(face_areas[1], centre, &mut distance_in);
+                }
+            },
+        );
         // More draws in every stratum alike, as many as the projected variance needs (it
         // falls as 1/draws) to meet [`REFINE_MARGIN`] of what the accuracy allows. Alike,
         // not where the first draws looked spread (Neyman allocation): a stratum whose two

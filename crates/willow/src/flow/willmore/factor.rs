@@ -79,26 +79,6 @@ impl DiracFactor {
     }
 }
 
-/// `(a(), b())`, on two threads when `parallel` (a panic in either is re-raised here, as it
-/// would be sequentially).
-pub(super) fn join<A: Send, B: Send>(
-    parallel: bool,
-    a: impl FnOnce() -> A + Send,
-    b: impl FnOnce() -> B + Send,
-) -> (A, B) {
-    if !parallel {
-        return (a(), b());
-    }
-    std::thread::scope(|scope| {
-        let first = scope.spawn(a);
-        let second = b();
-        match first.join() {
-            Ok(first) => (first, second),
-            Err(panic) => std::panic::resume_unwind(panic),
-        }
-    })
-}
-
 /// Whether X is factored in single precision ([`Mixed`]) on a surface of `n` vertices.
 pub(super) fn mixed_precision_for(n: usize, precision: Precision) -> bool {
     match precision {

@@ -31,6 +31,7 @@ use crate::linalg::solver::{BlockPattern, Cholesky, Mixed, SolverError};
 use crate::mesh::topology::Topology;
 use crate::mesh::Mesh;
 use crate::metrics::{StepMetrics, StepReporter};
+use crate::parallel::join;
 use faer::c64;
 use std::time::Instant;
 
@@ -308,7 +309,7 @@ impl ConformalFlow {
             &mesh.positions,
             &mesh.triangles,
             &topology,
-            params.measures_deviation(),
+            params.deviation_threads(),
         );
         let mut scale = ScalePolicy::new(
             feature::scale_policy(params.preserve, params.feature_size),
