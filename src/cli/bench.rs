@@ -50,7 +50,8 @@ pub struct BenchArgs {
     #[arg(long)]
     pub no_overhead: bool,
     /// Threads for the factorizations of every flow measured (the conformal flow and the MCF
-    /// yardstick alike, so the ratio compares equals).
+    /// yardstick alike, so the ratio compares equals), and for the distance measure, as a job
+    /// given that many threads measures it.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
     /// The conformal flow's Dirac factor: auto (single precision with conjugate gradients

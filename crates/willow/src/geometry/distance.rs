@@ -167,9 +167,39 @@ pub const MEAN_ACCURACY: f64 = 0.01;
 /// Samples per side above which the mean's distances are taken within [`MEAN_SLACK`]
 /// rather than exactly (see [`Deviation`]).
 pub const EXACT_MEAN_SAMPLES: usize = 16 * MEAN_SAMPLES;
-/// Relative slack of the mean's nearest-point queries on large meshes: each distance is
-/// between the exact one and `1 + MEAN_SLACK` times it, so the mean is too.
+/// The largest relative slack of the mean's nearest-point queries on large meshes: each
+/// distance is between the exact one and `1 + slack` times it, so the mean is too, and half
+/// the slack enters the stated bound beside the sampling error. A frame's slack is what the
+/// last frame's sampling error leaves of [`MEAN_ACCURACY`] ([`next_slack`]), between this and
+/// [`MEAN_SLACK_MIN`]: a query within 0.5% costs ~10% less than one within 0.1% (it skips
+/// the boxes in a thicker shell just inside the nearest distance), which is what a surface
+/// moved far (sampling error small) gains.
 pub const MEAN_SLACK: f64 = 0.005;
+/// The smallest slack of the mean's queries, and the first frame's: where the sampling error
+/// takes most of the accuracy (a surface a few edge lengths from the input: nefertiti's first
+/// frame at τ 0.01), a slack of 0.5% left too little of it and cost a refinement round
+/// (4,915 queries, 28 ms), where 0.1% needs none (3,072 queries, 19 ms).
+pub const MEAN_SLACK_MIN: f64 = 0.001;
+/// [`next_slack`] aims the next frame's bound at this fraction of [`MEAN_ACCURACY`], with the
+/// sampling error taken [`SLACK_SAFETY`] times as large as this frame's (frames differ).
+const SLACK_AIM: f64 = 0.95;
+const SLACK_SAFETY: f64 = 1.0;
+
+/// The next frame's slack for the mean's queries: twice what this frame's sampling error,
+/// scaled to the first round's draws (it falls as one over their square root), leaves of the
+/// accuracy aimed at (half the slack enters the bound), between [`MEAN_SLACK_MIN`] and
+/// [`MEAN_SLACK`]. `bound` and `mean` are this frame's, measured with `slack` in `queries`
+/// queries. The slack only moves each distance within its interval, so this changes how much
+/// a frame costs, not whether its bound holds.
+fn next_slack(bound: f64, mean: f64, slack: f64, queries: usize) -> f64 {
+    if !(mean > 0.0) || queries == 0 {
+        return MEAN_SLACK_MIN;
+    }
+    let first_round = (2 * MEAN_SAMPLES) as f64;
+    let sampling = (bound - 0.5 * slack * mean).max(0.0) / mean
+        * (queries as f64 / first_round).max(1.0).sqrt();
+    (2.0 * (SLACK_AIM * MEAN_ACCURACY - SLACK_SAFETY * sampling)).clamp(MEAN_SLACK_MIN, MEAN_SLACK)
+}
 /// Relative slack of the queries that only bound a distance from above for the max (the
 /// max itself is exact): the bound a face gives is its own distance, so a face within 1%
 /// of the nearest costs at most 1% of tightness, and the query skips the boxes in the thin
@@ -244,10 +274,10 @@ impl Side<'_> {
     }
 
     /// The slack of the mean's queries: 0 on small meshes (every distance exact), else
-    /// [`MEAN_SLACK`] ([`Deviation::with_exact_mean_samples`]).
-    fn mean_slack(&self) -> f64 {
+    /// `large` ([`Deviation::with_exact_mean_samples`], [`next_slack`]).
+    fn mean_slack(&self, large: f64) -> f64 {
         if self.sample_count > self.exact_mean_samples {
-            MEAN_SLACK
+            large
         } else {
             0.0
         }
@@ -472,9 +502,10 @@ impl Side<'_> {
 /// along the input tree's leaves) whose stated error bound ([`Deviation::mean_bound`], a 95%
 /// interval) is at most [`MEAN_ACCURACY`] of it: the cost of exact nearest points grows with how far the
 /// surface moved, and the mean, unlike the max, does not need every sample. Above
-/// [`EXACT_MEAN_SAMPLES`] per side, each of those distances is within [`MEAN_SLACK`] above
-/// the exact one (half of it enters the bound). What a side remembers from the last frame
-/// changes how fast, never what, it measures (up to that slack).
+/// [`EXACT_MEAN_SAMPLES`] per side, each of those distances is within a slack above the exact
+/// one (half of it enters the bound): between [`MEAN_SLACK_MIN`] and [`MEAN_SLACK`], what the
+/// last frame's sampling error left of the accuracy ([`next_slack`]). What a side remembers
+/// from the last frame changes how fast, never what, it measures (up to that slack).
 pub struct Deviation {
     plan: SamplePlan,
     input_positions: Vec<[f64; 3]>,
@@ -502,6 +533,8 @@ pub struct Deviation {
     stacks: [Vec<(u32, u32)>; 2],
     /// Whether the two sides are measured on two threads ([`Deviation::with_threads`]).
     parallel: bool,
+    /// This frame's slack for the mean's queries on a large mesh ([`next_slack`]).
+    slack: f64,
     /// See [`Deviation::with_exact_mean_samples`].
     exact_mean_samples: usize,
     /// Where the last [`Deviation::measure`] spent its time ([`Deviation::profile`]).
@@ -545,6 +578,7 @@ impl Deviation {
             plan,
             stacks: [Vec::new(), Vec::new()],
             parallel: false,
+            slack: MEAN_SLACK_MIN,
             exact_mean_samples: EXACT_MEAN_SAMPLES,
             profile: [("samples", 0.0), ("mean", 0.0), ("max", 0.0)],
         }
@@ -639,7 +673,7 @@ impl Deviation {
             exact_mean_samples: self.exact_mean_samples,
         };
         lap(&mut self.profile, 0);
-        let slack = out.mean_slack();
+        let slack = out.mean_slack(self.slack);
         let ([mean_out, mean_in], mean_bound) = estimate_pair(
             [&mut self.out_strata, &mut self.back_strata],
             [face_areas, &self.input_face_areas],
@@ -651,6 +685,10 @@ impl Deviation {
         );
         self.mean_bound = mean_bound;
         self.mean_queries = mean_out.measured + mean_in.measured;
+        if slack > 0.0 {
+            let mean = 0.5 * (mean_out.mean + mean_in.mean);
+            self.slack = next_slack(mean_bound, mean, slack, self.mean_queries);
+        }
         lap(&mut self.profile, 1);
         let (max_out, max_in) = (mean_out.max_seen, mean_in.max_seen);
         let max_out = max_out.max(out.last_argmax(&mut self.out_memory));
@@ -713,5 +751,39 @@ impl Deviation {
     /// sides; a sample drawn twice counts twice): what its cost scales with.
     pub fn mean_queries(&self) -> usize {
         self.mean_queries
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The next frame's slack is what the sampling error leaves of the accuracy aimed at:
+    /// the largest when it leaves a lot, the smallest when it leaves nothing, twice the
+    /// remainder in between; a frame that needed more draws than the first round had a
+    /// larger first-round error, scaled by the square root of the draws.
+    #[test]
+    fn the_slack_is_what_the_sampling_error_leaves() {
+        let first = 2 * MEAN_SAMPLES;
+        let mean = 10.0;
+        // Sampling error 0.3% of the mean (the bound minus half the slack): room for 0.5%.
+        let slack = 0.002;
+        let bound = mean * (0.003 + 0.5 * slack);
+        assert_eq!(next_slack(bound, mean, slack, first), MEAN_SLACK);
+        // Sampling error 0.93%: less than the smallest left at 95% of the accuracy.
+        let bound = mean * (0.0093 + 0.5 * slack);
+        assert_eq!(next_slack(bound, mean, slack, first), MEAN_SLACK_MIN);
+        // 0.8%: 2 · (0.95% − 0.8%) = 0.3%.
+        let bound = mean * (0.008 + 0.5 * slack);
+        let next = next_slack(bound, mean, slack, first);
+        assert!((next - 0.003).abs() < 1e-12, "{next}");
+        // The same bound reached with twice the first round's draws: the first round alone
+        // would have had √2 · 0.6% ≈ 0.85%, leaving 2 · (0.95% − 0.85%) = 0.2%.
+        let bound = mean * (0.006 + 0.5 * slack);
+        let next = next_slack(bound, mean, slack, 2 * first);
+        let expected = 2.0 * (0.0095 - 0.006 * 2f64.sqrt());
+        assert!((next - expected).abs() < 1e-12, "{next} vs {expected}");
+        // Nothing measured (a zero mean): the smallest, as on the first frame.
+        assert_eq!(next_slack(0.0, 0.0, slack, first), MEAN_SLACK_MIN);
     }
 }
