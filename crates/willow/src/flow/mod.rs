@@ -267,11 +267,10 @@ pub struct FlowParams {
     /// within it ([`stopping::Run`]). `None`: no bound.
     pub max_deviation: Option<f64>,
     /// Report each step's distance from the input (`StepMetrics::deviation_max` and
-    /// `deviation_mean`, the mean within 1% at 95% confidence). Off by default: at 100k
-    /// triangles it costs 8–11% of a conformal try at τ 0.5 (nefertiti, whose first step
-    /// already moves it ~40 edge lengths), but 16–21% on the first frame at τ 0.01 (a surface
-    /// moved a few edge lengths: the queries cost more and the mean needs more of them);
-    /// issue 29 asks for ≤ 10%; `willow bench` prints it, docs/performance.md.
+    /// `deviation_mean`, the mean within 1% at 95% confidence), on the flow's `threads`. Off
+    /// by default: at 100k triangles (nefertiti) its slowest frame costs 12% of a conformal
+    /// try at τ 0.5 and 14% at τ 0.01 on one thread, 10–11% on two; issue 29 asks for ≤ 10%;
+    /// `willow bench` prints it, docs/performance.md.
     /// `max_deviation` turns it on (and keeps the surface near the input).
     pub measure_deviation: bool,
     /// Remove the detail smaller than this length (model units) and keep the shape above it

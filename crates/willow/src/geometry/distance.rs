@@ -192,7 +192,7 @@ const SLACK_SAFETY: f64 = 1.0;
 /// queries. The slack only moves each distance within its interval, so this changes how much
 /// a frame costs, not whether its bound holds.
 fn next_slack(bound: f64, mean: f64, slack: f64, queries: usize) -> f64 {
-    if !(mean > 0.0) || queries == 0 {
+    if mean.is_nan() || mean <= 0.0 || queries == 0 {
         return MEAN_SLACK_MIN;
     }
     let first_round = (2 * MEAN_SAMPLES) as f64;
