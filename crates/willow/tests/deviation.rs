@@ -362,6 +362,18 @@ fn hints_from_previous_frames_give_the_cold_answer() {
     }
 }
 
+/// A twist about z growing with height, a wavy scale and a shift, all growing with `s`: a
+/// smooth deformation whose distance from the input grows with `s`.
+fn swirled(p: P, s: f64) -> P {
+    let (sn, c) = (0.5 * s * p[2]).sin_cos();
+    let g = 1.0 + 0.1 * s * (1.7 * p[0]).sin();
+    [
+        g * (c * p[0] - sn * p[1]) + 0.3 * s,
+        g * (sn * p[0] + c * p[1]),
+        g * p[2] + 0.1 * s * p[0] * p[0],
+    ]
+}
+
 /// The estimated mean is within 1% of the brute-force mean over every sample, and states a
 /// bound (`Deviation::mean_bound`, a 95% interval: what it covers is checked over many
 /// streams below) of at most 1%, on a surface moved far (several edge lengths) and on one
@@ -434,15 +446,6 @@ fn the_large_mesh_estimate_holds_over_consecutive_frames() {
     let samples_per_side = mesh.vertex_count() + 3 * mesh.face_count() / 2 + mesh.face_count();
     let threshold = 4 * willow::geometry::distance::MEAN_SAMPLES;
     assert!(samples_per_side > threshold);
-    let moved = |p: P, s: f64| -> P {
-        let (sn, c) = (0.5 * s * p[2]).sin_cos();
-        let g = 1.0 + 0.1 * s * (1.7 * p[0]).sin();
-        [
-            g * (c * p[0] - sn * p[1]) + 0.3 * s,
-            g * (sn * p[0] + c * p[1]),
-            g * p[2] + 0.1 * s * p[0] * p[0],
-        ]
-    };
     let topology = Topology::new(&mesh);
     let mut areas = vec![0.0; mesh.face_count()];
     face_areas_into(&mesh.positions, &mesh.triangles, &mut areas);
@@ -450,7 +453,7 @@ fn the_large_mesh_estimate_holds_over_consecutive_frames() {
         .with_exact_mean_samples(threshold);
     let mut previous = 0.0;
     for (k, s) in [0.05, 0.2, 0.5, 1.0, 1.6, 0.1].into_iter().enumerate() {
-        let current: Vec<P> = mesh.positions.iter().map(|&p| moved(p, s)).collect();
+        let current: Vec<P> = mesh.positions.iter().map(|&p| swirled(p, s)).collect();
         face_areas_into(&current, &mesh.triangles, &mut areas);
         let (max, mean) = deviation.measure(&current, &mesh.triangles, &areas);
         let bound = deviation.mean_bound();
@@ -479,15 +482,6 @@ fn the_large_mesh_estimate_holds_over_consecutive_frames() {
 /// (strata, distances within the slack) and on one small enough for every sample.
 #[test]
 fn two_threads_measure_bitwise_what_one_measures() {
-    let moved = |p: P, s: f64| -> P {
-        let (sn, c) = (0.5 * s * p[2]).sin_cos();
-        let g = 1.0 + 0.1 * s * (1.7 * p[0]).sin();
-        [
-            g * (c * p[0] - sn * p[1]) + 0.3 * s,
-            g * (sn * p[0] + c * p[1]),
-            g * p[2] + 0.1 * s * p[0] * p[0],
-        ]
-    };
     let threshold = 4 * willow::geometry::distance::MEAN_SAMPLES;
     for (mesh, estimated) in [
         (bumpy_sphere(4, 0.15), true),
@@ -503,7 +497,7 @@ fn two_threads_measure_bitwise_what_one_measures() {
         };
         let (mut one, mut two) = (build(1), build(2));
         for (k, s) in [0.05, 0.5, 1.6, 0.1].into_iter().enumerate() {
-            let current: Vec<P> = mesh.positions.iter().map(|&p| moved(p, s)).collect();
+            let current: Vec<P> = mesh.positions.iter().map(|&p| swirled(p, s)).collect();
             let mut current_areas = vec![0.0; mesh.face_count()];
             face_areas_into(&current, &mesh.triangles, &mut current_areas);
             let a = one.measure(&current, &mesh.triangles, &current_areas);
