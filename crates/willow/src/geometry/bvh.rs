@@ -880,7 +880,6 @@ mod tests {
             .collect()
     }
 
-    /// The three Voronoi regions of each kind give the expected nearest point.
     /// The root's two subtrees refitted on two threads give bitwise the tree one thread
     /// gives: every node's box and disc, and the wide copy's lanes.
     #[test]
@@ -918,6 +917,7 @@ mod tests {
         assert_ne!(bits(&one), bits(&fresh));
     }
 
+    /// The three Voronoi regions of each kind give the expected nearest point.
     #[test]
     fn closest_points_on_a_right_triangle() {
         let (a, b, c) = ([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]);
