@@ -74,6 +74,21 @@ pub fn closest_point_on_triangle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64;
     add(a, add(scale(ab, v), scale(ac, w)))
 }
 
+/// The squared distance from `p` to triangle `f`.
+#[inline]
+pub(crate) fn triangle_d2(
+    positions: &[[f64; 3]],
+    triangles: &[[usize; 3]],
+    p: [f64; 3],
+    f: usize,
+) -> f64 {
+    let t = triangles[f];
+    dist2(
+        p,
+        closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
+    )
+}
+
 #[inline]
 pub(crate) fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
     let d = sub(a, b);
@@ -419,21 +434,29 @@ impl Bvh {
         slack: f64,
         enough: f64,
     ) -> Option<(usize, f64)> {
+        let start = match hint {
+            Some(f) if f < triangles.len() => (f, triangle_d2(positions, triangles, p, f)),
+            _ => (usize::MAX, f64::INFINITY),
+        };
+        self.nearest_from(positions, triangles, p, start, slack, enough)
+    }
+
+    /// [`Bvh::nearest_until`] started from a triangle and its squared distance, already known
+    /// (`(usize::MAX, ∞)`: none).
+    pub(crate) fn nearest_from(
+        &self,
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+        p: [f64; 3],
+        start: (usize, f64),
+        slack: f64,
+        enough: f64,
+    ) -> Option<(usize, f64)> {
         if self.wide.is_empty() {
             return None;
         }
         let grow = (1.0 + slack) * (1.0 + slack);
-        let triangle_d2 = |f: usize| {
-            let t = triangles[f];
-            dist2(
-                p,
-                closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
-            )
-        };
-        let mut best = match hint {
-            Some(f) if f < triangles.len() => (f, triangle_d2(f)),
-            _ => (usize::MAX, f64::INFINITY),
-        };
+        let mut best = start;
         // Entries: (wide node or leaf start, leaf count or 0, bound).
         let mut stack = [(0u32, 0u32, 0.0f64); 3 * STACK];
         let mut top = 1usize;
@@ -446,7 +469,7 @@ impl Bvh {
             if count > 0 {
                 let s = index as usize;
                 for &f in &self.order[s..s + count as usize] {
-                    let d2 = triangle_d2(f as usize);
+                    let d2 = triangle_d2(positions, triangles, p, f as usize);
                     if d2 < best.1 {
                         best = (f as usize, d2);
                     }

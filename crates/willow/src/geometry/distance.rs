@@ -17,8 +17,8 @@
 //! The weights are the 7-point triangle rule (vertices 1/20, edge midpoints 2/15, centroid 9/20 of each incident face's area;
 //! exact for cubic integrands), so a one-sided mean approximates `∫ d(x, B) dA / A`.
 
-use super::bvh::dist2;
 pub use super::bvh::{closest_point_on_triangle, Bvh};
+use super::bvh::{dist2, triangle_d2};
 use super::stratified::{estimate_pair, Strata, STRATA};
 use super::vec3::{add, scale};
 use crate::mesh::topology::Topology;
@@ -205,15 +205,6 @@ fn next_slack(bound: f64, mean: f64, slack: f64, queries: usize) -> f64 {
 /// of the nearest costs at most 1% of tightness, and the query skips the boxes in the thin
 /// shell just inside the nearest distance, most of what it opens far from the surface.
 const BOUND_SLACK: f64 = 0.01;
-#[inline]
-fn triangle_d2(p: [f64; 3], f: usize, positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> f64 {
-    let t = triangles[f];
-    dist2(
-        p,
-        closest_point_on_triangle(p, positions[t[0]], positions[t[1]], positions[t[2]]),
-    )
-}
-
 /// What one side keeps from frame to frame (a flow moves the surface a little per step, so
 /// last frame's answers are this frame's best starting points; only the speed depends on
 /// them, never the result).
@@ -229,6 +220,9 @@ struct Memory {
     /// The sample whose exact distance set the last max (`usize::MAX`: none): measured
     /// first, it bounds this frame's max from below before anything is pruned.
     argmax: usize,
+    /// Scratch of [`Side::mean_query`]: a round's sample points, remembered faces and
+    /// their squared distances.
+    points: Vec<([f64; 3], usize, f64)>,
 }
 
 impl Memory {
@@ -238,6 +232,7 @@ impl Memory {
             node_face: vec![u32::MAX; nodes],
             settled: vec![0; hints.len()],
             argmax: usize::MAX,
+            points: Vec::new(),
         }
     }
 }
@@ -283,30 +278,56 @@ impl Side<'_> {
         }
     }
 
-    /// The mean's query ([`super::stratified`] draws the samples): sample i's distance to
-    /// the other surface, within `slack` above the exact one.
+    /// The mean's queries ([`super::stratified`] draws the samples): each listed sample's
+    /// distance to the other surface, within `slack` above the exact one.
     fn mean_query<'m>(
         &'m self,
         memory: &'m mut Memory,
         slack: f64,
-    ) -> impl FnMut(usize) -> f64 + 'm {
+    ) -> impl FnMut(&[u32], &mut [f64]) + 'm {
         // The draws come stratum by stratum, each stratum a patch: the last draw's nearest
         // face is a near start for a sample not drawn last frame (the draws move with the
         // weights), whose own remembered face may be its initial hint, far off.
         let mut last = usize::MAX;
-        move |i| {
-            let p = self.samples.at(i);
-            let start = self.nearer(p, memory.nearest[i] as usize, last);
-            let (face, d) = self
-                .other
-                .nearest_within(self.other_positions, self.triangles, p, Some(start), slack)
-                .map_or((start, 0.0), |(f, d2)| (f, d2.sqrt()));
-            memory.nearest[i] = face as u32;
-            last = face;
-            if slack == 0.0 {
-                memory.settled[i] = self.frame;
+        move |samples, out| {
+            // The points, their remembered faces and those faces' distances first, in one
+            // loop whose lookups (all scattered) do not wait on each other; then the
+            // queries, in order, each from the nearer of its remembered face and the last
+            // draw's.
+            let mut points = std::mem::take(&mut memory.points);
+            points.clear();
+            points.extend(samples.iter().map(|&i| {
+                let p = self.samples.at(i as usize);
+                let remembered = memory.nearest[i as usize] as usize;
+                (p, remembered, self.face_d2(p, remembered))
+            }));
+            for ((&i, &(p, remembered, d2)), out) in samples.iter().zip(&points).zip(out) {
+                let i = i as usize;
+                // A sample drawn twice in a round starts its second query where its first
+                // ended, as it would one at a time.
+                let (remembered, d2) = match memory.nearest[i] as usize {
+                    now if now != remembered => (now, self.face_d2(p, now)),
+                    _ => (remembered, d2),
+                };
+                let mut start = (remembered, d2);
+                if last != remembered && last < self.triangles.len() {
+                    let other = triangle_d2(self.other_positions, self.triangles, p, last);
+                    if other < d2 {
+                        start = (last, other);
+                    }
+                }
+                let (face, d) = self
+                    .other
+                    .nearest_from(self.other_positions, self.triangles, p, start, slack, -1.0)
+                    .map_or((start.0, 0.0), |(f, d2)| (f, d2.sqrt()));
+                memory.nearest[i] = face as u32;
+                last = face;
+                if slack == 0.0 {
+                    memory.settled[i] = self.frame;
+                }
+                *out = d;
             }
-            d
+            memory.points = points;
         }
     }
 
@@ -441,14 +462,23 @@ impl Side<'_> {
             .map_or((hint, 0.0), |(f, d2)| (f, d2.sqrt()))
     }
 
+    /// The squared distance from `p` to face `f` of the other surface (∞ if out of range).
+    fn face_d2(&self, p: [f64; 3], f: usize) -> f64 {
+        if f < self.triangles.len() {
+            triangle_d2(self.other_positions, self.triangles, p, f)
+        } else {
+            f64::INFINITY
+        }
+    }
+
     /// Of two faces of the other surface, the one nearer to `p` (`b` may be out of range:
     /// none).
     fn nearer(&self, p: [f64; 3], a: usize, b: usize) -> usize {
         if b >= self.triangles.len() || b == a {
             return a;
         }
-        let da = triangle_d2(p, a, self.other_positions, self.triangles);
-        let db = triangle_d2(p, b, self.other_positions, self.triangles);
+        let da = triangle_d2(self.other_positions, self.triangles, p, a);
+        let db = triangle_d2(self.other_positions, self.triangles, p, b);
         if db < da {
             b
         } else {
@@ -480,10 +510,10 @@ impl Side<'_> {
         for &f in faces {
             for v in self.triangles[f as usize] {
                 d2 = d2.max(triangle_d2(
-                    self.own_positions[v],
-                    face,
                     self.other_positions,
                     self.triangles,
+                    self.own_positions[v],
+                    face,
                 ));
             }
         }

@@ -106,6 +106,11 @@ pub(crate) struct Strata {
     edges: Vec<usize>,
     /// Scratch for [`Strata::measure_all`]: per sample, its weight.
     weights: Vec<f64>,
+    /// Scratch for [`Strata::draw`] and [`Strata::measure_all`]: the samples to measure (with
+    /// their strata) and their distances.
+    pending_strata: Vec<u32>,
+    pending_samples: Vec<u32>,
+    values: Vec<f64>,
     /// Per stratum: draws so far, their sum and sum of squares, its variance contribution.
     draws: Vec<u32>,
     sum: Vec<f64>,
@@ -158,6 +163,9 @@ impl Strata {
             cumulative: vec![0.0; face_order.len() + 1],
             edges: vec![0; STRATA + 1],
             weights: Vec::new(),
+            pending_strata: Vec::new(),
+            pending_samples: Vec::new(),
+            values: Vec::new(),
             draws: vec![0; STRATA],
             sum: vec![0.0; STRATA],
             sum2: vec![0.0; STRATA],
@@ -221,13 +229,18 @@ impl Strata {
     }
 
     /// Draw what the strata's goals ask for (each value divided by `centre`, the middle of
-    /// its slack interval).
-    fn draw(&mut self, centre: f64, distance: &mut impl FnMut(usize) -> f64) {
+    /// its slack interval). Which samples are drawn is listed first, in one loop whose
+    /// iterations do not wait on each other, and only then measured: interleaved with the
+    /// queries, each draw's lookups (running sums, faces, their samples: all scattered over
+    /// megabytes) waited on memory alone.
+    fn draw(&mut self, centre: f64, distances: &mut impl FnMut(&[u32], &mut [f64])) {
         if self.exact.is_some() {
             return;
         }
         let n = self.order.len();
         let width = self.total.unwrap_or(0.0) / STRATA as f64;
+        self.pending_strata.clear();
+        self.pending_samples.clear();
         for k in 0..STRATA {
             for j in self.draws[k]..self.goal[k] {
                 let u = width * (k as f64 + uniform(self.seed, k, j as usize));
@@ -246,14 +259,20 @@ impl Strata {
                     within -= RULE[point];
                     point += 1;
                 }
-                let d = distance(self.face_samples[self.order[at] as usize][point] as usize);
-                self.max_seen = self.max_seen.max(d);
-                self.measured += 1;
-                let d = d / centre;
-                self.sum[k] += d;
-                self.sum2[k] += d * d;
+                self.pending_strata.push(k as u32);
+                self.pending_samples
+                    .push(self.face_samples[self.order[at] as usize][point]);
             }
             self.draws[k] = self.goal[k].max(self.draws[k]);
+        }
+        self.values.resize(self.pending_samples.len(), 0.0);
+        distances(&self.pending_samples, &mut self.values);
+        for (&k, &d) in self.pending_strata.iter().zip(&self.values) {
+            self.max_seen = self.max_seen.max(d);
+            self.measured += 1;
+            let d = d / centre;
+            self.sum[k as usize] += d;
+            self.sum2[k as usize] += d * d;
         }
     }
 
@@ -283,7 +302,7 @@ impl Strata {
         &mut self,
         face_areas: &[f64],
         centre: f64,
-        distance: &mut impl FnMut(usize) -> f64,
+        distances: &mut impl FnMut(&[u32], &mut [f64]),
     ) {
         self.weights.clear();
         self.weights.resize(self.samples, 0.0);
@@ -292,9 +311,12 @@ impl Strata {
                 self.weights[i as usize] += rule * area;
             }
         }
+        self.pending_samples.clear();
+        self.pending_samples.extend(0..self.samples as u32);
+        self.values.resize(self.samples, 0.0);
+        distances(&self.pending_samples, &mut self.values);
         let (mut sum, mut max) = (0.0, 0.0f64);
-        for (i, &w) in self.weights.iter().enumerate() {
-            let d = distance(i);
+        for (&w, &d) in self.weights.iter().zip(&self.values) {
             max = max.max(d);
             sum += w * d / centre;
         }
@@ -321,8 +343,10 @@ impl Strata {
 
 /// The two sides' means (each side's own [`MeanEstimate`]) and the stated error bound of
 /// their average, `deviation_mean` (module docs): within `accuracy` of it, or every sample
-/// of a side whose draws passed a quarter of its samples was measured. `distance_*` return a
-/// value between the exact distance of a side's sample and `1 + slack` times it. With
+/// of a side whose draws passed a quarter of its samples was measured. `distance_*` write, for
+/// each listed sample of a side, a value between its exact distance and `1 + slack` times it
+/// (a round's samples come in one list, so that their lookups need not wait on the queries in
+/// between). With
 /// `parallel`, the two sides draw on two threads (each side's draws and queries are its own:
 /// the result is the same either way).
 #[allow(clippy::too_many_arguments)]
@@ -331,8 +355,8 @@ pub(crate) fn estimate_pair(
     face_areas: [&[f64]; 2],
     accuracy: f64,
     slack: f64,
-    mut distance_out: impl FnMut(usize) -> f64 + Send,
-    mut distance_in: impl FnMut(usize) -> f64 + Send,
+    mut distance_out: impl FnMut(&[u32], &mut [f64]) + Send,
+    mut distance_in: impl FnMut(&[u32], &mut [f64]) + Send,
     parallel: bool,
 ) -> ([MeanEstimate; 2], f64) {
     let [out, back] = sides;
