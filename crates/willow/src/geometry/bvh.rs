@@ -128,6 +128,10 @@ pub struct Bvh {
     pub(crate) order: Vec<u32>,
     /// Summed surface area of the boxes right after the last build.
     built_box_area: f64,
+    /// Which build made this tree's nodes and order (unique per build; a clone keeps it, a
+    /// rebuild on refit takes a new one): two trees with the same layout group the same
+    /// triangles into the same nodes ([`Bvh::same_layout`]).
+    layout: u64,
     /// What a refit reads per leaf ([`Leaves`]).
     leaves: Leaves,
     /// The same tree with four children a node, for queries ([`Wide`]).
@@ -193,6 +197,7 @@ impl Bvh {
             nodes: Vec::with_capacity(2 * triangles.len().div_ceil(LEAF_SIZE)),
             order: (0..triangles.len() as u32).collect(),
             built_box_area: 0.0,
+            layout: 0,
             leaves: Leaves::default(),
             wide: Vec::new(),
         };
@@ -201,6 +206,8 @@ impl Bvh {
     }
 
     fn build(&mut self, positions: &[[f64; 3]], triangles: &[[usize; 3]]) {
+        static BUILDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        self.layout = BUILDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         self.nodes.clear();
         for (k, o) in self.order.iter_mut().enumerate() {
             *o = k as u32;
@@ -367,7 +374,7 @@ impl Bvh {
     }
 
     /// Per node, the largest of `values` (one per vertex) over its triangles' corners, into
-    /// `out` (children before parents, like a refit).
+    /// `out` (children before parents, like a refit; 0 for a node whose values are all NaN).
     pub(crate) fn max_per_node(&self, values: &[f64], out: &mut Vec<f64>) {
         out.resize(self.nodes.len(), 0.0);
         for i in (0..self.nodes.len()).rev() {
@@ -376,12 +383,18 @@ impl Bvh {
                 let [a, b] = self.leaves.runs[i].map(|x| x as usize);
                 self.leaves.vertices[a..b]
                     .iter()
-                    .map(|&v| values[v as usize])
-                    .fold(0.0, f64::max)
+                    .fold(0.0, |m, &v| larger(values[v as usize], m))
             } else {
-                out[i + 1].max(out[node.start as usize])
+                larger(out[i + 1], out[node.start as usize])
             };
         }
+    }
+
+    /// Whether `other` groups the same triangles into the same nodes (one was cloned from the
+    /// other, and neither was rebuilt since): per-node values over vertices are then the
+    /// same for both.
+    pub(crate) fn same_layout(&self, other: &Bvh) -> bool {
+        self.layout == other.layout
     }
 
     fn box_area(&self) -> f64 {
@@ -679,14 +692,17 @@ impl Disc {
         let (mut lo, mut hi, mut radius) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
         for d in [a, b] {
             let cos = dot(normal, d.normal).clamp(-1.0, 1.0);
-            let sin = (1.0 - cos * cos).max(0.0).sqrt();
+            let sin = larger(1.0 - cos * cos, 0.0).sqrt();
             let x = sub(d.centre, centre);
             let base = dot(x, normal);
             let (h0, h1) = (d.lo * cos, d.hi * cos);
-            lo = lo.min(base + h0.min(h1) - d.radius * sin);
-            hi = hi.max(base + h0.max(h1) + d.radius * sin);
-            let across = (dot(x, x) - base * base).max(0.0).sqrt();
-            radius = radius.max(across + d.lo.abs().max(d.hi.abs()) * sin + d.radius);
+            lo = smaller(base + smaller(h0, h1) - d.radius * sin, lo);
+            hi = larger(base + larger(h0, h1) + d.radius * sin, hi);
+            let across = larger(dot(x, x) - base * base, 0.0).sqrt();
+            radius = larger(
+                across + larger(d.lo.abs(), d.hi.abs()) * sin + d.radius,
+                radius,
+            );
         }
         Disc::padded(centre, normal, lo, hi, radius)
     }
@@ -748,14 +764,14 @@ fn fit_subtree(
 fn merged(l: &Node, r: &Node) -> ([f64; 3], [f64; 3], Disc) {
     (
         [
-            l.min[0].min(r.min[0]),
-            l.min[1].min(r.min[1]),
-            l.min[2].min(r.min[2]),
+            smaller(r.min[0], l.min[0]),
+            smaller(r.min[1], l.min[1]),
+            smaller(r.min[2], l.min[2]),
         ],
         [
-            l.max[0].max(r.max[0]),
-            l.max[1].max(r.max[1]),
-            l.max[2].max(r.max[2]),
+            larger(r.max[0], l.max[0]),
+            larger(r.max[1], l.max[1]),
+            larger(r.max[2], l.max[2]),
         ],
         Disc::merge(&l.disc, &r.disc),
     )
@@ -768,8 +784,8 @@ fn leaf_fit(local: &[[f64; 3]], corners: &[[u8; 3]]) -> ([f64; 3], [f64; 3], Dis
     let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for p in local {
         for k in 0..3 {
-            min[k] = min[k].min(p[k]);
-            max[k] = max[k].max(p[k]);
+            min[k] = smaller(p[k], min[k]);
+            max[k] = larger(p[k], max[k]);
         }
     }
     let (mut normal, mut centre) = ([0.0; 3], [0.0; 3]);
@@ -790,14 +806,14 @@ fn leaf_fit(local: &[[f64; 3]], corners: &[[u8; 3]]) -> ([f64; 3], [f64; 3], Dis
     for p in local {
         let x = sub(*p, centre);
         let h = dot(x, normal);
-        lo = lo.min(h);
-        hi = hi.max(h);
-        r2 = r2.max(dot(x, x) - h * h);
+        lo = smaller(h, lo);
+        hi = larger(h, hi);
+        r2 = larger(dot(x, x) - h * h, r2);
     }
     (
         min,
         max,
-        Disc::padded(centre, normal, lo, hi, r2.max(0.0).sqrt()),
+        Disc::padded(centre, normal, lo, hi, larger(r2, 0.0).sqrt()),
     )
 }
 
@@ -816,9 +832,19 @@ fn bounds(positions: &[[f64; 3]], triangles: &[[usize; 3]], faces: &[u32]) -> ([
     (min, max)
 }
 
-/// The larger of two numbers, without `f64::max`'s care for NaN (one compare and select:
-/// the bounds of a query cost mostly these, and a tree is built from validated, finite
-/// positions).
+/// The smaller of `a` and `b`, `b` where either is NaN: one compare and select, without
+/// `f64::min`'s care for NaN (the bounds of a query and the fits of a refit cost mostly
+/// these). Accumulators pass the new value as `a`, so a NaN value leaves them as they were.
+#[inline(always)]
+fn smaller(a: f64, b: f64) -> f64 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+/// The larger of `a` and `b`, `b` where either is NaN (as [`smaller`]).
 #[inline(always)]
 fn larger(a: f64, b: f64) -> f64 {
     if a > b {
@@ -1013,6 +1039,34 @@ mod tests {
         let twisted = twisted(&mesh.positions);
         bvh.refit(&twisted, &mesh.triangles);
         check(&bvh, &twisted);
+    }
+
+    /// A clone shares its tree's layout, and with it every per-node value over vertices,
+    /// through refits that keep the grouping; a refit that rebuilds (the vertices scrambled,
+    /// every box as big as the mesh) takes a layout of its own, as any other build does.
+    #[test]
+    fn a_tree_keeps_its_layout_until_it_is_rebuilt() {
+        let mesh = bumpy_sphere(3, 0.2);
+        let input = Bvh::new(&mesh.positions, &mesh.triangles);
+        let mut current = input.clone();
+        let twisted = twisted(&mesh.positions);
+        current.refit(&twisted, &mesh.triangles);
+        assert!(current.same_layout(&input));
+        let values: Vec<f64> = (0..mesh.positions.len())
+            .map(|v| ((v * 7919) % 101) as f64)
+            .collect();
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        input.max_per_node(&values, &mut a);
+        current.max_per_node(&values, &mut b);
+        assert_eq!(a, b);
+        assert!(!Bvh::new(&mesh.positions, &mesh.triangles).same_layout(&input));
+        let n = mesh.positions.len();
+        let scrambled: Vec<[f64; 3]> = (0..n).map(|v| mesh.positions[(v * 7919) % n]).collect();
+        current.refit(&scrambled, &mesh.triangles);
+        assert!(
+            !current.same_layout(&input),
+            "a scrambled surface is rebuilt"
+        );
     }
 
     /// Every node's disc bounds the distance to its triangles from below, on the built tree

@@ -739,11 +739,18 @@ impl Deviation {
             *m = dist2(*p, *q).sqrt();
             still += usize::from(*m <= max);
         }
+        // The current tree starts as a copy of the input's: until a refit rebuilds it, both
+        // group the same vertices into the same nodes, and one pass serves both sides.
+        let shared = self.current_bvh.same_layout(&self.input_bvh);
         if 4 * still >= 3 * self.moved.len() {
             self.current_bvh
                 .max_per_node(&self.moved, &mut self.out_moved);
-            self.input_bvh
-                .max_per_node(&self.moved, &mut self.back_moved);
+            if shared {
+                self.back_moved.clear();
+            } else {
+                self.input_bvh
+                    .max_per_node(&self.moved, &mut self.back_moved);
+            }
         } else {
             self.out_moved.clear();
             self.back_moved.clear();
@@ -752,9 +759,14 @@ impl Deviation {
         // allowed; either way alike, so what the sides remember, and with it every later
         // frame, does not depend on the threads).
         let [back_stack, out_stack] = &mut self.stacks;
+        let back_moved = if shared {
+            &self.out_moved
+        } else {
+            &self.back_moved
+        };
         let (max_in, max_out) = join(
             self.parallel,
-            || back.settle_max(max, &self.back_moved, &mut self.back_memory, back_stack),
+            || back.settle_max(max, back_moved, &mut self.back_memory, back_stack),
             || out.settle_max(max, &self.out_moved, &mut self.out_memory, out_stack),
         );
         let max = max_in.max(max_out);
