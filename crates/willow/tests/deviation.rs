@@ -524,7 +524,10 @@ fn two_threads_measure_bitwise_what_one_measures() {
 /// about 9%). A variance estimated too small fails it: refining only the strata whose first
 /// two draws looked spread (Neyman allocation) stated a standard error 1.5 times too small
 /// on the near surface; one standard error stated as two misses a third of the time. One
-/// estimated far too large would state a spread the streams do not show.
+/// estimated far too large would state a spread the streams do not show. In both regimes:
+/// every distance exact, and the large-mesh one (distances within `MEAN_SLACK` of 5%,
+/// corrected by an exact subsample: without the correction, the far surface's estimates
+/// spread 3.6 times their stated standard error).
 #[test]
 fn the_stated_bound_covers_the_mean_as_a_95_percent_interval() {
     let mesh = bumpy_sphere(4, 0.15);
@@ -545,7 +548,11 @@ fn the_stated_bound_covers_the_mean_as_a_95_percent_interval() {
     let mut input_areas = vec![0.0; mesh.face_count()];
     face_areas_into(&mesh.positions, &mesh.triangles, &mut input_areas);
     let (mut outside, mut estimates) = (0, 0);
-    for (name, moved) in deformations {
+    let regimes = [("exact distances", usize::MAX), ("within the slack", 0)];
+    for ((name, moved), (regime, threshold)) in deformations
+        .into_iter()
+        .flat_map(|d| regimes.map(|r| (d, r)))
+    {
         let current: Vec<P> = mesh.positions.iter().map(|&p| moved(p)).collect();
         let mut areas = vec![0.0; mesh.face_count()];
         face_areas_into(&current, &mesh.triangles, &mut areas);
@@ -554,15 +561,19 @@ fn the_stated_bound_covers_the_mean_as_a_95_percent_interval() {
         for seed in 0..60 {
             let mut deviation =
                 Deviation::new(&mesh.positions, &mesh.triangles, &topology, &input_areas)
-                    .with_seed(seed);
+                    .with_seed(seed)
+                    .with_exact_mean_samples(threshold);
             let (_, mean) = deviation.measure(&current, &mesh.triangles, &areas);
             let bound = deviation.mean_bound();
-            assert!(bound > 0.0 && bound <= 0.01 * mean, "{name}: bound {bound}");
+            assert!(
+                bound > 0.0 && bound <= 0.01 * mean,
+                "{name}, {regime}: bound {bound}"
+            );
             outside += usize::from((mean - bmean).abs() > bound);
             estimates += 1;
             errors.push(mean - bmean);
-            // Below the slack threshold every distance is exact: the bound is two standard
-            // errors and nothing else.
+            // The bound is two standard errors and nothing else (the slack's correction is
+            // an estimate with a standard error of its own, inside those).
             stated.push(bound / willow::geometry::stratified::CONFIDENCE_Z);
         }
         let n = errors.len() as f64;
@@ -571,13 +582,13 @@ fn the_stated_bound_covers_the_mean_as_a_95_percent_interval() {
         let ratio = spread / standard;
         assert!(
             (0.7..=1.35).contains(&ratio),
-            "{name}: the estimates spread {spread:.3e} around the brute force, \
+            "{name}, {regime}: the estimates spread {spread:.3e} around the brute force, \
              their stated standard error is {standard:.3e}"
         );
     }
-    // 120 estimates, 5% expected outside: 6 (a binomial's standard deviation 2.4).
+    // 240 estimates, 5% expected outside: 12 (a binomial's standard deviation 3.4).
     assert!(
-        outside <= 15,
+        outside <= 25,
         "{outside} of {estimates} estimates outside their stated bound"
     );
 }

@@ -21,10 +21,15 @@
 //! (each side its own pseudo-random stream), so its variance is `(Var_out + Var_in) / 4`: the
 //! two sides' errors add in quadrature, not in sum, and with equal variances the pair needs
 //! half the draws that two separate 1% estimates would. The stated bound is [`CONFIDENCE_Z`]
-//! standard errors of that average plus half the nearest-point queries' slack (each value is
-//! re-centred in its slack interval); while it is wider than the accuracy asked, every stratum
+//! standard errors of that average; while it is wider than the accuracy asked, every stratum
 //! of both sides gets more draws alike, as many as the projected variance needs, and a side
-//! past a quarter of its samples has every sample measured (exact up to the slack).
+//! past a quarter of its samples has every sample measured exactly.
+//!
+//! On a large mesh the draws' distances are taken within a slack of a few percent above the
+//! exact ones (a query that may stop at any face that near costs much less). What the slack
+//! added is not bounded by its worst case but measured: one draw in sixteen of the first
+//! round is measured again exactly, the mean of the differences is subtracted, and its
+//! variance added (double sampling with a difference estimator, [`Strata::correct`]).
 //!
 //! Equal-weight strata and weight-proportional draws matter: a flow can shrink or grow face
 //! areas by orders of magnitude (nefertiti at τ 0.5), and equal-count strata sampled
@@ -60,6 +65,11 @@ const GROWTH_MIN: f64 = 1.05;
 const ROUNDING_STREAM: u64 = 0x0005_EED0_F0A1_D000;
 /// Refinement rounds before every sample is measured ([`estimate_pair`]).
 const ROUNDS: usize = 6;
+/// One stratum in this many has its first draw measured again exactly ([`Strata::correct`]):
+/// 96 exact queries per side.
+const CORRECTION_STEP: usize = 8;
+/// Mixed into a side's seed to pick which strata [`Strata::correct`] measures again.
+const CORRECTION_STREAM: u64 = 0x00C0_44EC_7104_0000;
 
 /// One side's mean and what it knows about its error.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -69,7 +79,8 @@ pub struct MeanEstimate {
     /// The side's own stated error bound: its true mean is within `mean ± bound` (module
     /// docs; `deviation_mean`'s bound combines both sides').
     pub bound: f64,
-    /// The largest distance measured, divided by `1 + slack`: a lower bound of the max.
+    /// The largest distance measured exactly, or measured within the slack and divided by
+    /// `1 + slack`: a lower bound of the max.
     pub max_seen: f64,
     /// Queries made (a sample drawn twice counts twice).
     pub measured: usize,
@@ -109,6 +120,7 @@ pub(crate) struct Strata {
     /// Scratch for [`Strata::draw`] and [`Strata::measure_all`]: the samples to measure (with
     /// their strata) and their distances.
     pending_strata: Vec<u32>,
+    pending_draws: Vec<u32>,
     pending_samples: Vec<u32>,
     values: Vec<f64>,
     /// Per stratum: draws so far, their sum and sum of squares, its variance contribution.
@@ -127,6 +139,12 @@ pub(crate) struct Strata {
     measured: usize,
     /// This frame's mean once every sample was measured (sampling no longer applies).
     exact: Option<f64>,
+    /// Per stratum, its first round's draws' samples and values ([`Strata::correct`]).
+    first_samples: Vec<[u32; FIRST_SAMPLES]>,
+    first_values: Vec<[f64; FIRST_SAMPLES]>,
+    /// The differences between the first draws' values and their exact distances, over the
+    /// strata [`Strata::correct`] measured again: count, sum, sum of squares.
+    correction: (usize, f64, f64),
 }
 
 /// A number in [0, 1) from a seed and two integers: splitmix64 of their combination
@@ -164,6 +182,7 @@ impl Strata {
             edges: vec![0; STRATA + 1],
             weights: Vec::new(),
             pending_strata: Vec::new(),
+            pending_draws: Vec::new(),
             pending_samples: Vec::new(),
             values: Vec::new(),
             draws: vec![0; STRATA],
@@ -176,6 +195,9 @@ impl Strata {
             max_seen: 0.0,
             measured: 0,
             exact: None,
+            first_samples: vec![[0; FIRST_SAMPLES]; STRATA],
+            first_values: vec![[0.0; FIRST_SAMPLES]; STRATA],
+            correction: (0, 0.0, 0.0),
         }
     }
 
@@ -195,6 +217,7 @@ impl Strata {
         self.max_seen = 0.0;
         self.measured = 0;
         self.exact = None;
+        self.correction = (0, 0.0, 0.0);
         let total = match self.total {
             Some(total) if self.fixed => total,
             _ => self.sweep(face_areas),
@@ -228,18 +251,19 @@ impl Strata {
         total
     }
 
-    /// Draw what the strata's goals ask for (each value divided by `centre`, the middle of
-    /// its slack interval). Which samples are drawn is listed first, in one loop whose
-    /// iterations do not wait on each other, and only then measured: interleaved with the
-    /// queries, each draw's lookups (running sums, faces, their samples: all scattered over
-    /// megabytes) waited on memory alone.
-    fn draw(&mut self, centre: f64, distances: &mut impl FnMut(&[u32], &mut [f64])) {
+    /// Draw what the strata's goals ask for, each value within `slack` above the exact
+    /// distance. Which samples are drawn is listed first, in one loop whose iterations do not
+    /// wait on each other, and only then measured: interleaved with the queries, each draw's
+    /// lookups (running sums, faces, their samples: all scattered over megabytes) waited on
+    /// memory alone.
+    fn draw(&mut self, slack: f64, distances: &mut impl FnMut(&[u32], f64, &mut [f64])) {
         if self.exact.is_some() {
             return;
         }
         let n = self.order.len();
         let width = self.total.unwrap_or(0.0) / STRATA as f64;
         self.pending_strata.clear();
+        self.pending_draws.clear();
         self.pending_samples.clear();
         for k in 0..STRATA {
             for j in self.draws[k]..self.goal[k] {
@@ -259,25 +283,92 @@ impl Strata {
                     within -= RULE[point];
                     point += 1;
                 }
+                let sample = self.face_samples[self.order[at] as usize][point];
+                if let Some(first) = self.first_samples[k].get_mut(j as usize) {
+                    *first = sample;
+                }
                 self.pending_strata.push(k as u32);
-                self.pending_samples
-                    .push(self.face_samples[self.order[at] as usize][point]);
+                self.pending_draws.push(j);
+                self.pending_samples.push(sample);
             }
             self.draws[k] = self.goal[k].max(self.draws[k]);
         }
         self.values.resize(self.pending_samples.len(), 0.0);
-        distances(&self.pending_samples, &mut self.values);
-        for (&k, &d) in self.pending_strata.iter().zip(&self.values) {
-            self.max_seen = self.max_seen.max(d);
+        distances(&self.pending_samples, slack, &mut self.values);
+        for ((&k, &j), &d) in (self.pending_strata.iter())
+            .zip(&self.pending_draws)
+            .zip(&self.values)
+        {
+            let k = k as usize;
+            if let Some(first) = self.first_values[k].get_mut(j as usize) {
+                *first = d;
+            }
+            self.max_seen = self.max_seen.max(d / (1.0 + slack));
             self.measured += 1;
-            let d = d / centre;
-            self.sum[k as usize] += d;
-            self.sum2[k as usize] += d * d;
+            self.sum[k] += d;
+            self.sum2[k] += d * d;
         }
     }
 
-    /// The side's mean and the variance of it, from the draws so far (0 variance once every
-    /// sample was measured).
+    /// Measure again, exactly, one of the first round's draws in one stratum in
+    /// [`CORRECTION_STEP`] (which strata and which draw, from this side's seed alone: every
+    /// draw alike likely, since a stratum's later draws start their queries nearer their
+    /// answers and stop within the slack at a different place), and keep the differences from
+    /// the values drawn within the slack: a subsample whose mean estimates what the slack
+    /// added to the draws' mean (double sampling with a difference estimator: Cochran, *Sampling
+    /// Techniques*, 3rd ed., §12.7). The mean is then taken as the draws' less that
+    /// estimate, and its variance adds the estimate's ([`Strata::summary`]). Queries within
+    /// a slack of several percent cost half as much as within 0.1% on a surface moved far
+    /// (a third less near it), and a hundred exact ones pay for the correction.
+    fn correct(&mut self, distances: &mut impl FnMut(&[u32], f64, &mut [f64])) {
+        let offset = (uniform(self.seed ^ CORRECTION_STREAM, 0, 0) * CORRECTION_STEP as f64)
+            as usize
+            % CORRECTION_STEP;
+        self.pending_strata.clear();
+        self.pending_samples.clear();
+        self.pending_draws.clear();
+        for k in (offset..STRATA).step_by(CORRECTION_STEP) {
+            let drawn = (self.draws[k] as usize).min(FIRST_SAMPLES);
+            if drawn > 0 {
+                let j = (uniform(self.seed ^ CORRECTION_STREAM, k, 1) * drawn as f64) as usize;
+                let j = j.min(drawn - 1);
+                self.pending_strata.push(k as u32);
+                self.pending_draws.push(j as u32);
+                self.pending_samples.push(self.first_samples[k][j]);
+            }
+        }
+        self.values.resize(self.pending_samples.len(), 0.0);
+        distances(&self.pending_samples, 0.0, &mut self.values);
+        let (mut n, mut sum, mut sum2) = (0, 0.0, 0.0);
+        for ((&k, &j), &d) in (self.pending_strata.iter())
+            .zip(&self.pending_draws)
+            .zip(&self.values)
+        {
+            let difference = self.first_values[k as usize][j as usize] - d;
+            self.max_seen = self.max_seen.max(d);
+            self.measured += 1;
+            n += 1;
+            sum += difference;
+            sum2 += difference * difference;
+        }
+        self.correction = (n, sum, sum2);
+    }
+
+    /// The correction's mean (subtracted from the draws') and variance ([`Strata::correct`]);
+    /// zero if it was not made.
+    fn correction(&self) -> (f64, f64) {
+        let (n, sum, sum2) = self.correction;
+        if n < 2 {
+            return (0.0, 0.0);
+        }
+        let n = n as f64;
+        let mean = sum / n;
+        let variance = ((sum2 - n * mean * mean) / (n - 1.0)).max(0.0) / n;
+        (mean, variance)
+    }
+
+    /// The side's mean and the variance of it, from the draws so far and the correction for
+    /// their slack ([`Strata::correct`]; 0 variance once every sample was measured exactly).
     fn summary(&mut self) -> (f64, f64) {
         if let Some(mean) = self.exact {
             return (mean, 0.0);
@@ -294,15 +385,18 @@ impl Strata {
             variance += self.contribution[k];
         }
         let strata = STRATA as f64;
-        (mean / strata, variance / (strata * strata))
+        let (shift, shift_variance) = self.correction();
+        (
+            mean / strata - shift,
+            variance / (strata * strata) + shift_variance,
+        )
     }
 
-    /// Every sample, exact up to the slack: the side's weighted mean, from then on its value.
+    /// Every sample, exactly: the side's weighted mean, from then on its value.
     fn measure_all(
         &mut self,
         face_areas: &[f64],
-        centre: f64,
-        distances: &mut impl FnMut(&[u32], &mut [f64]),
+        distances: &mut impl FnMut(&[u32], f64, &mut [f64]),
     ) {
         self.weights.clear();
         self.weights.resize(self.samples, 0.0);
@@ -314,11 +408,11 @@ impl Strata {
         self.pending_samples.clear();
         self.pending_samples.extend(0..self.samples as u32);
         self.values.resize(self.samples, 0.0);
-        distances(&self.pending_samples, &mut self.values);
+        distances(&self.pending_samples, 0.0, &mut self.values);
         let (mut sum, mut max) = (0.0, 0.0f64);
         for (&w, &d) in self.weights.iter().zip(&self.values) {
             max = max.max(d);
-            sum += w * d / centre;
+            sum += w * d;
         }
         self.measured += self.samples;
         self.max_seen = self.max_seen.max(max);
@@ -331,11 +425,11 @@ impl Strata {
         self.exact.is_none() && (round > ROUNDS || self.measured > self.samples / 4)
     }
 
-    fn estimate(&self, mean: f64, variance: f64, slack: f64) -> MeanEstimate {
+    fn estimate(&self, mean: f64, variance: f64) -> MeanEstimate {
         MeanEstimate {
             mean,
-            bound: CONFIDENCE_Z * variance.sqrt() + 0.5 * slack * mean,
-            max_seen: self.max_seen / (1.0 + slack),
+            bound: CONFIDENCE_Z * variance.sqrt(),
+            max_seen: self.max_seen,
             measured: self.measured,
         }
     }
@@ -343,56 +437,61 @@ impl Strata {
 
 /// The two sides' means (each side's own [`MeanEstimate`]) and the stated error bound of
 /// their average, `deviation_mean` (module docs): within `accuracy` of it, or every sample
-/// of a side whose draws passed a quarter of its samples was measured. `distance_*` write, for
-/// each listed sample of a side, a value between its exact distance and `1 + slack` times it
-/// (a round's samples come in one list, so that their lookups need not wait on the queries in
-/// between). With
+/// of a side whose draws passed a quarter of its samples was measured exactly.
+/// `distance_*(samples, slack, out)` write, for each listed sample of a side, a value between
+/// its exact distance and `1 + slack` times it (a round's samples come in one list, so that
+/// their lookups need not wait on the queries in between). The draws take `slack`; with a
+/// slack, the first round's are corrected by an exact subsample ([`Strata::correct`]). With
 /// `parallel`, the two sides draw on two threads (each side's draws and queries are its own:
 /// the result is the same either way).
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn estimate_pair(
     sides: [&mut Strata; 2],
     face_areas: [&[f64]; 2],
     accuracy: f64,
     slack: f64,
-    mut distance_out: impl FnMut(&[u32], &mut [f64]) + Send,
-    mut distance_in: impl FnMut(&[u32], &mut [f64]) + Send,
+    mut distance_out: impl FnMut(&[u32], f64, &mut [f64]) + Send,
+    mut distance_in: impl FnMut(&[u32], f64, &mut [f64]) + Send,
     parallel: bool,
 ) -> ([MeanEstimate; 2], f64) {
     let [out, back] = sides;
-    // A queried value is within [d, (1 + slack) d]; divided by 1 + slack/2 it is within
-    // slack/2 of d either way.
-    let centre = 1.0 + 0.5 * slack;
     out.begin(face_areas[0]);
     back.begin(face_areas[1]);
     join(
         parallel && out.exact.is_some() && back.exact.is_some(),
         || {
             if out.exact.is_some() {
-                out.measure_all(face_areas[0], centre, &mut distance_out);
+                out.measure_all(face_areas[0], &mut distance_out);
             }
         },
         || {
             if back.exact.is_some() {
-                back.measure_all(face_areas[1], centre, &mut distance_in);
+                back.measure_all(face_areas[1], &mut distance_in);
             }
         },
     );
     let mut round = 0;
     loop {
+        let sampling = out.exact.is_none() && back.exact.is_none();
         join(
-            parallel && out.exact.is_none() && back.exact.is_none(),
-            || out.draw(centre, &mut distance_out),
-            || back.draw(centre, &mut distance_in),
+            parallel && sampling,
+            || {
+                out.draw(slack, &mut distance_out);
+                if round == 0 && slack > 0.0 && out.exact.is_none() {
+                    out.correct(&mut distance_out);
+                }
+            },
+            || {
+                back.draw(slack, &mut distance_in);
+                if round == 0 && slack > 0.0 && back.exact.is_none() {
+                    back.correct(&mut distance_in);
+                }
+            },
         );
         let ((m_out, v_out), (m_in, v_in)) = (out.summary(), back.summary());
         let mean = 0.5 * (m_out + m_in);
-        let bound = CONFIDENCE_Z * (0.25 * (v_out + v_in)).sqrt() + 0.5 * slack * mean;
+        let bound = CONFIDENCE_Z * (0.25 * (v_out + v_in)).sqrt();
         if bound <= accuracy * mean || (out.exact.is_some() && back.exact.is_some()) {
-            let estimates = [
-                out.estimate(m_out, v_out, slack),
-                back.estimate(m_in, v_in, slack),
-            ];
+            let estimates = [out.estimate(m_out, v_out), back.estimate(m_in, v_in)];
             return (estimates, bound);
         }
         round += 1;
@@ -403,12 +502,12 @@ pub(crate) fn estimate_pair(
             parallel && exhausted[0] && exhausted[1],
             || {
                 if exhausted[0] {
-                    out.measure_all(face_areas[0], centre, &mut distance_out);
+                    out.measure_all(face_areas[0], &mut distance_out);
                 }
             },
             || {
                 if exhausted[1] {
-                    back.measure_all(face_areas[1], centre, &mut distance_in);
+                    back.measure_all(face_areas[1], &mut distance_in);
                 }
             },
         );
@@ -418,8 +517,7 @@ pub(crate) fn estimate_pair(
         // draws happened to agree would keep its too-small variance while the spread ones
         // were corrected down, and the stated bound came out about 1.5 times too narrow (the
         // coverage test in tests/deviation.rs caught it).
-        let allowed =
-            REFINE_MARGIN * 4.0 * ((accuracy - 0.5 * slack).max(0.0) * mean / CONFIDENCE_Z).powi(2);
+        let allowed = REFINE_MARGIN * 4.0 * (accuracy * mean / CONFIDENCE_Z).powi(2);
         let factor = if allowed > 0.0 {
             ((v_out + v_in) / allowed).clamp(GROWTH_MIN, GROWTH)
         } else {
