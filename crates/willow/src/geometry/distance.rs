@@ -19,7 +19,7 @@
 
 pub use super::bvh::{closest_point_on_triangle, Bvh};
 use super::bvh::{dist2, triangle_d2};
-use super::stratified::{estimate_pair, Strata, STRATA};
+use super::stratified::{estimate_pair, Strata, FIRST_SAMPLES, STRATA, STRATA_MIN};
 use super::vec3::{add, scale};
 use crate::mesh::topology::Topology;
 use crate::parallel::join;
@@ -176,6 +176,37 @@ pub const EXACT_MEAN_SAMPLES: usize = 16 * MEAN_SAMPLES;
 /// first frame, 6.1 against 12.7 ms on τ 0.5's), where the worst case took a quarter of the
 /// accuracy at 0.5%.
 pub const MEAN_SLACK: f64 = 0.05;
+/// The sampling error, as a fraction of the mean, that [`next_strata`] picks the next frame's
+/// number of strata for: below [`MEAN_ACCURACY`] by enough that a frame whose error came out
+/// a little larger than the last one's still needs no second round.
+const STRATA_AIM: f64 = 0.0085;
+
+/// The next frame's number of strata for the mean, from this frame's: `bound` and `mean` as
+/// measured with `strata` strata in `queries` queries (`exact`: a side was measured whole).
+/// The bound scaled to the first round's draws (it falls as one over their square root) is
+/// what two draws a stratum gave; at two draws a stratum it grows as one over the number of
+/// strata (fewer, larger patches, whose distances differ more within: nefertiti's frames at
+/// τ 0.5 gave 1.49 times the error with 512 strata as with 768). The next frame takes the
+/// fewest, at least [`STRATA_MIN`] and at most [`STRATA`], whose predicted error is
+/// [`STRATA_AIM`]: a surface moved far from the input, whose distances vary little relative
+/// to their mean, is measured with fewer queries. A frame that says nothing of the sampling
+/// error (a side measured whole, nothing measured) starts the next afresh. The choice never
+/// changes whether a frame's bound holds (each frame's comes from its own draws), only what
+/// the frame costs; a frame predicted too well takes a second round.
+fn next_strata(bound: f64, mean: f64, exact: bool, strata: usize, queries: usize) -> usize {
+    if exact || mean.is_nan() || mean <= 0.0 || queries == 0 || strata == 0 {
+        return STRATA;
+    }
+    let first_round = (2 * FIRST_SAMPLES * strata) as f64;
+    let sampling = bound / mean * (queries as f64 / first_round).max(1.0).sqrt();
+    let wanted = (strata as f64 * sampling / STRATA_AIM).ceil();
+    if wanted.is_finite() {
+        (wanted as usize).clamp(STRATA_MIN, STRATA)
+    } else {
+        STRATA
+    }
+}
+
 /// Relative slack of the queries that only bound a distance from above for the max (the
 /// max itself is exact): the bound a face gives is its own distance, so a face within 1%
 /// of the nearest costs at most 1% of tightness, and the query skips the boxes in the thin
@@ -538,6 +569,8 @@ pub struct Deviation {
     stacks: [Vec<(u32, u32)>; 2],
     /// Whether the two sides are measured on two threads ([`Deviation::with_threads`]).
     parallel: bool,
+    /// The next frame's number of strata for the mean ([`next_strata`]).
+    strata: usize,
     /// See [`Deviation::with_exact_mean_samples`].
     exact_mean_samples: usize,
     /// Where the last [`Deviation::measure`] spent its time ([`Deviation::profile`]).
@@ -581,6 +614,7 @@ impl Deviation {
             plan,
             stacks: [Vec::new(), Vec::new()],
             parallel: false,
+            strata: STRATA,
             exact_mean_samples: EXACT_MEAN_SAMPLES,
             profile: [("samples", 0.0), ("mean", 0.0), ("max", 0.0)],
         }
@@ -593,6 +627,20 @@ impl Deviation {
     pub fn with_exact_mean_samples(mut self, samples: usize) -> Self {
         self.exact_mean_samples = samples;
         self
+    }
+
+    /// The same measure with its next frame's mean drawn from `strata` strata (clamped to
+    /// [`STRATA_MIN`]..=[`STRATA`]) instead of [`STRATA`]; later frames take what
+    /// [`next_strata`] says, as always. With [`Deviation::strata`], a test measures a frame
+    /// afresh as a measure that saw the frames before it would.
+    pub fn with_strata(mut self, strata: usize) -> Self {
+        self.strata = strata.clamp(STRATA_MIN, STRATA);
+        self
+    }
+
+    /// How many strata the next frame's mean draws from ([`next_strata`]).
+    pub fn strata(&self) -> usize {
+        self.strata
     }
 
     /// The same measure with its two sides (the current surface against the input, the
@@ -680,6 +728,7 @@ impl Deviation {
             [&mut self.out_strata, &mut self.back_strata],
             [face_areas, &self.input_face_areas],
             MEAN_ACCURACY,
+            self.strata,
             slack,
             out.mean_query(&mut self.out_memory),
             back.mean_query(&mut self.back_memory),
@@ -687,6 +736,13 @@ impl Deviation {
         );
         self.mean_bound = mean_bound;
         self.mean_queries = mean_out.measured + mean_in.measured;
+        self.strata = next_strata(
+            mean_bound,
+            0.5 * (mean_out.mean + mean_in.mean),
+            mean_out.exact || mean_in.exact,
+            self.strata,
+            self.mean_queries,
+        );
         lap(&mut self.profile, 1);
         let (max_out, max_in) = (mean_out.max_seen, mean_in.max_seen);
         let max_out = max_out.max(out.last_argmax(&mut self.out_memory));
@@ -761,5 +817,42 @@ impl Deviation {
     /// sides; a sample drawn twice counts twice): what its cost scales with.
     pub fn mean_queries(&self) -> usize {
         self.mean_queries
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The next frame takes as many strata as this frame's error, scaled to two draws a
+    /// stratum and to one over the strata, says reach [`STRATA_AIM`]: fewer where the error
+    /// left room (never below [`STRATA_MIN`]), all of them where it did not or says nothing.
+    #[test]
+    fn the_strata_are_what_the_last_error_asks() {
+        let mean = 10.0;
+        let first = 2 * FIRST_SAMPLES * STRATA;
+        // Half the aim at every stratum: half the strata, the fewest allowed.
+        let bound = mean * 0.5 * STRATA_AIM;
+        assert_eq!(next_strata(bound, mean, false, STRATA, first), STRATA_MIN);
+        // 0.6% at 768 strata: 768 · 0.6 / 0.85 = 542.1, rounded up.
+        assert_eq!(next_strata(mean * 0.006, mean, false, STRATA, first), 543);
+        // 0.4% reached with twice the first round's draws: √2 · 0.4% at two draws a stratum,
+        // 768 · 0.566 / 0.85 = 511.1.
+        let next = next_strata(mean * 0.004, mean, false, STRATA, 2 * first);
+        assert_eq!(next, 512);
+        // From 600 strata (a first round of 2,400 queries), 0.5%: 600 · 0.5 / 0.85 = 352.9,
+        // below the fewest.
+        let from = 2 * FIRST_SAMPLES * 600;
+        assert_eq!(
+            next_strata(mean * 0.005, mean, false, 600, from),
+            STRATA_MIN
+        );
+        // An error above the aim, a side measured whole, nothing measured: all the strata.
+        assert_eq!(
+            next_strata(mean * 0.009, mean, false, STRATA, first),
+            STRATA
+        );
+        assert_eq!(next_strata(0.0, mean, true, 400, first), STRATA);
+        assert_eq!(next_strata(0.0, 0.0, false, 400, 0), STRATA);
     }
 }

@@ -5,8 +5,9 @@
 //! over (face, rule point) pairs: each face's area times the 7-point rule's weight of the
 //! point ([`super::distance`]), times the distance of that point's sample. The faces are laid
 //! out in a fixed, spatially coherent order (the input tree's leaves) and cut each frame into
-//! [`STRATA`] runs of equal area: each stratum is a patch of the surface over which the
-//! distance, a 1-Lipschitz function, varies little. Each stratum draws a face with
+//! runs of equal area ([`STRATA`] on a first frame, fewer where the last frame's error left
+//! room: [`super::distance`]'s `next_strata`): each stratum is a patch of the surface over
+//! which the distance, a 1-Lipschitz function, varies little. Each stratum draws a face with
 //! probability proportional to its area and then one of its seven points with its rule weight
 //! (one uniform number does both: where it falls inside the face's interval picks the point),
 //! with replacement, so a sample comes with probability proportional to its weight and the
@@ -47,8 +48,11 @@ use crate::parallel::join;
 /// strata: fewer strata needed second rounds of more than they saved (their patches are
 /// coarser, so each draw says less), more strata a first round larger than needed.
 pub const STRATA: usize = 768;
+/// The fewest strata a later frame takes ([`estimate_pair`]'s `strata`): a first round of
+/// 768 queries per side.
+pub const STRATA_MIN: usize = 384;
 /// Samples measured first in each stratum: two, the fewest that give a variance.
-const FIRST_SAMPLES: usize = 2;
+pub(crate) const FIRST_SAMPLES: usize = 2;
 /// Standard errors in the stated bound: 2, the coverage factor of an expanded uncertainty
 /// (JCGM 100:2008, the *Guide to the expression of uncertainty in measurement*, §6.3: a
 /// two-sided normal interval of about 95%; the estimate is a sum over hundreds of strata,
@@ -84,6 +88,8 @@ pub struct MeanEstimate {
     pub max_seen: f64,
     /// Queries made (a sample drawn twice counts twice).
     pub measured: usize,
+    /// Whether every sample was measured (no sampling error).
+    pub exact: bool,
 }
 
 /// The 7-point rule's weights as fractions of a face's area, in the order of a face's
@@ -103,6 +109,9 @@ pub(crate) const RULE: [f64; 7] = [
 pub(crate) struct Strata {
     /// Face indices, along a tree's leaves.
     order: Vec<u32>,
+    /// This frame's number of strata (at most [`STRATA`]: the per-stratum arrays hold that
+    /// many, and the first `count` are used).
+    count: usize,
     /// Per face, the samples of its seven rule points ([`RULE`]'s order).
     face_samples: Vec<[u32; 7]>,
     /// Samples of the side (some shared between faces: corners and edge midpoints).
@@ -112,7 +121,7 @@ pub(crate) struct Strata {
     fixed: bool,
     /// Scratch: `cumulative[j]` is the area of `order[..j]`.
     cumulative: Vec<f64>,
-    /// Scratch: per stratum boundary `k·total/STRATA`, the index into `order` of the face
+    /// Scratch: per stratum boundary `k·total/count`, the index into `order` of the face
     /// whose area interval holds it: a draw in stratum k searches only between two of these.
     edges: Vec<usize>,
     /// Scratch for [`Strata::measure_all`]: per sample, its weight.
@@ -175,6 +184,7 @@ impl Strata {
     ) -> Self {
         Strata {
             order: face_order.to_vec(),
+            count: STRATA,
             face_samples,
             samples,
             fixed,
@@ -208,7 +218,10 @@ impl Strata {
 
     /// Start a frame: the areas' running sums and the strata's edges (once, if fixed); no
     /// draw yet.
-    fn begin(&mut self, face_areas: &[f64]) {
+    fn begin(&mut self, face_areas: &[f64], count: usize) {
+        let count = count.clamp(1, STRATA);
+        let recount = count != self.count;
+        self.count = count;
         self.draws.fill(0);
         self.goal.fill(FIRST_SAMPLES as u32);
         self.sum.fill(0.0);
@@ -219,7 +232,7 @@ impl Strata {
         self.exact = None;
         self.correction = (0, 0.0, 0.0);
         let total = match self.total {
-            Some(total) if self.fixed => total,
+            Some(total) if self.fixed && !recount => total,
             _ => self.sweep(face_areas),
         };
         if self.samples <= FIRST_SAMPLES * STRATA || total <= 0.0 {
@@ -239,9 +252,9 @@ impl Strata {
         self.cumulative[n] = total;
         self.total = Some(total);
         // One sweep finds every stratum's edges (the boundaries increase with k).
-        let width = total / STRATA as f64;
+        let width = total / self.count as f64;
         let mut at = 0;
-        for (k, edge) in self.edges.iter_mut().enumerate() {
+        for (k, edge) in self.edges[..=self.count].iter_mut().enumerate() {
             let u = width * k as f64;
             while at + 1 < n && self.cumulative[at + 1] <= u {
                 at += 1;
@@ -261,11 +274,11 @@ impl Strata {
             return;
         }
         let n = self.order.len();
-        let width = self.total.unwrap_or(0.0) / STRATA as f64;
+        let width = self.total.unwrap_or(0.0) / self.count as f64;
         self.pending_strata.clear();
         self.pending_draws.clear();
         self.pending_samples.clear();
-        for k in 0..STRATA {
+        for k in 0..self.count {
             for j in self.draws[k]..self.goal[k] {
                 let u = width * (k as f64 + uniform(self.seed, k, j as usize));
                 // The face whose area interval holds u (probability ∝ area), then the rule
@@ -327,7 +340,7 @@ impl Strata {
         self.pending_strata.clear();
         self.pending_samples.clear();
         self.pending_draws.clear();
-        for k in (offset..STRATA).step_by(CORRECTION_STEP) {
+        for k in (offset..self.count).step_by(CORRECTION_STEP) {
             let drawn = (self.draws[k] as usize).min(FIRST_SAMPLES);
             if drawn > 0 {
                 let j = (uniform(self.seed ^ CORRECTION_STREAM, k, 1) * drawn as f64) as usize;
@@ -376,7 +389,7 @@ impl Strata {
         // Stratified sampling with replacement, probability ∝ weight within each of the
         // equal-weight strata: mean = Σ_k d̄_k / S, Var = Σ_k s_k² / m_k / S².
         let (mut mean, mut variance) = (0.0, 0.0);
-        for k in 0..STRATA {
+        for k in 0..self.count {
             let m = f64::from(self.draws[k]);
             let dk = self.sum[k] / m;
             let s2 = ((self.sum2[k] - m * dk * dk) / (m - 1.0)).max(0.0);
@@ -384,7 +397,7 @@ impl Strata {
             mean += dk;
             variance += self.contribution[k];
         }
-        let strata = STRATA as f64;
+        let strata = self.count as f64;
         let (shift, shift_variance) = self.correction();
         (
             mean / strata - shift,
@@ -431,6 +444,7 @@ impl Strata {
             bound: CONFIDENCE_Z * variance.sqrt(),
             max_seen: self.max_seen,
             measured: self.measured,
+            exact: self.exact.is_some(),
         }
     }
 }
@@ -441,21 +455,24 @@ impl Strata {
 /// `distance_*(samples, slack, out)` write, for each listed sample of a side, a value between
 /// its exact distance and `1 + slack` times it (a round's samples come in one list, so that
 /// their lookups need not wait on the queries in between). The draws take `slack`; with a
-/// slack, the first round's are corrected by an exact subsample ([`Strata::correct`]). With
+/// slack, the first round's are corrected by an exact subsample ([`Strata::correct`]). Each
+/// side is cut into `strata` strata (at most [`STRATA`]). With
 /// `parallel`, the two sides draw on two threads (each side's draws and queries are its own:
 /// the result is the same either way).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn estimate_pair(
     sides: [&mut Strata; 2],
     face_areas: [&[f64]; 2],
     accuracy: f64,
+    strata: usize,
     slack: f64,
     mut distance_out: impl FnMut(&[u32], f64, &mut [f64]) + Send,
     mut distance_in: impl FnMut(&[u32], f64, &mut [f64]) + Send,
     parallel: bool,
 ) -> ([MeanEstimate; 2], f64) {
     let [out, back] = sides;
-    out.begin(face_areas[0]);
-    back.begin(face_areas[1]);
+    out.begin(face_areas[0], strata);
+    back.begin(face_areas[1], strata);
     join(
         parallel && out.exact.is_some() && back.exact.is_some(),
         || {
@@ -528,7 +545,7 @@ pub(crate) fn estimate_pair(
         // grows by the factor without a whole draw more in every stratum.
         for side in [&mut *out, &mut *back] {
             if side.exact.is_none() {
-                for k in 0..STRATA {
+                for k in 0..side.count {
                     let target = f64::from(side.draws[k]) * factor;
                     let up = uniform(side.seed ^ ROUNDING_STREAM, k, round) < target.fract();
                     side.goal[k] = target.floor() as u32 + u32::from(up);
