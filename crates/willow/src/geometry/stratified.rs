@@ -28,8 +28,8 @@
 //!
 //! On a large mesh the draws' distances are taken within a slack of a few percent above the
 //! exact ones (a query that may stop at any face that near costs much less). What the slack
-//! added is not bounded by its worst case but measured: one draw in thirty-two of the first
-//! round is measured again exactly, the mean of the differences is subtracted, and its
+//! added is not bounded by its worst case but measured: [`CORRECTIONS`] of a side's first
+//! round's draws are measured again exactly, the mean of the differences is subtracted, and its
 //! variance added (double sampling with a difference estimator, [`Strata::correct`]).
 //!
 //! Equal-weight strata and weight-proportional draws matter: a flow can shrink or grow face
@@ -69,11 +69,13 @@ const GROWTH_MIN: f64 = 1.05;
 const ROUNDING_STREAM: u64 = 0x0005_EED0_F0A1_D000;
 /// Refinement rounds before every sample is measured ([`estimate_pair`]).
 const ROUNDS: usize = 6;
-/// One stratum in this many has one of its first draws measured again exactly
-/// ([`Strata::correct`]): 48 exact queries per side on a first frame. The correction's own
-/// variance is then a few percent of the sampling's on nefertiti's frames; one in eight
-/// (96) cost 0.5-1 ms more a frame for less than that.
-const CORRECTION_STEP: usize = 16;
+/// Draws per side measured again exactly ([`Strata::correct`]), one in every
+/// `strata / CORRECTIONS` strata: the correction's own variance is then a few percent of the
+/// sampling's on nefertiti's frames, and 96 cost 0.5-1 ms more a frame for less than that.
+/// Fewer are not enough: most draws' values are exact and a few are up to the slack above,
+/// so the mean of a small subsample is skewed, and with 24 (a frame drawing from 384 strata)
+/// the large-mesh test's near frame came out 2.5 standard errors off.
+const CORRECTIONS: usize = 48;
 /// Mixed into a side's seed to pick which strata [`Strata::correct`] measures again.
 const CORRECTION_STREAM: u64 = 0x00C0_44EC_7104_0000;
 
@@ -325,8 +327,8 @@ impl Strata {
         }
     }
 
-    /// Measure again, exactly, one of the first round's draws in one stratum in
-    /// [`CORRECTION_STEP`] (which strata and which draw, from this side's seed alone: every
+    /// Measure again, exactly, one of the first round's draws in [`CORRECTIONS`] strata evenly
+    /// spread (which strata and which draw, from this side's seed alone: every
     /// draw alike likely, since a stratum's later draws start their queries nearer their
     /// answers and stop within the slack at a different place), and keep the differences from
     /// the values drawn within the slack: a subsample whose mean estimates what the slack
@@ -336,13 +338,12 @@ impl Strata {
     /// a slack of several percent cost half as much as within 0.1% on a surface moved far
     /// (a third less near it), and fifty exact ones pay for the correction.
     fn correct(&mut self, distances: &mut impl FnMut(&[u32], f64, &mut [f64])) {
-        let offset = (uniform(self.seed ^ CORRECTION_STREAM, 0, 0) * CORRECTION_STEP as f64)
-            as usize
-            % CORRECTION_STEP;
+        let step = (self.count / CORRECTIONS).max(1);
+        let offset = (uniform(self.seed ^ CORRECTION_STREAM, 0, 0) * step as f64) as usize % step;
         self.pending_strata.clear();
         self.pending_samples.clear();
         self.pending_draws.clear();
-        for k in (offset..self.count).step_by(CORRECTION_STEP) {
+        for k in (offset..self.count).step_by(step) {
             let drawn = (self.draws[k] as usize).min(FIRST_SAMPLES);
             if drawn > 0 {
                 let j = (uniform(self.seed ^ CORRECTION_STREAM, k, 1) * drawn as f64) as usize;
