@@ -267,11 +267,13 @@ pub struct FlowParams {
     /// within it ([`stopping::Run`]). `None`: no bound.
     pub max_deviation: Option<f64>,
     /// Report each step's distance from the input (`StepMetrics::deviation_max` and
-    /// `deviation_mean`, the mean within 1% at 95% confidence), on the flow's `threads`. Off
-    /// by default: at 100k triangles (nefertiti) its slowest frame costs 12% of a conformal
-    /// try at τ 0.5 and 14% at τ 0.01 on one thread, 10–11% on two; issue 29 asks for ≤ 10%;
-    /// `willow bench` prints it, docs/performance.md.
-    /// `max_deviation` turns it on (and keeps the surface near the input).
+    /// `deviation_mean`, the mean within 1% at 95% confidence), on the flow's `threads`. At
+    /// 100k triangles (nefertiti) its slowest frame costs 7.3% of a conformal try at τ 0.5
+    /// and 9.7% at τ 0.01 on one thread, 6–8.5% on two (issue 29 asks for ≤ 10%; `willow
+    /// bench` prints it, docs/performance.md). Off by default all the same: a frame costs
+    /// about 3,000 nearest-point queries whatever the mesh's size, which on a mesh of a few
+    /// thousand triangles is as much as its millisecond step or more (spot 75% of a try, bob
+    /// three times). `max_deviation` turns it on (and keeps the surface near the input).
     pub measure_deviation: bool,
     /// Remove the detail smaller than this length (model units) and keep the shape above it
     /// ([`feature`]): the conformal flow with the spectral filter's crossover at this size
