@@ -36,17 +36,19 @@
 //! areas by orders of magnitude (nefertiti at τ 0.5), and equal-count strata sampled
 //! uniformly then have a standard error of several percent at 2,000 draws.
 //!
-//! Which samples are measured depends only on the weights, the fixed pseudo-random draws and
-//! the distances measured, never on what was remembered from the last frame.
+//! Which samples are measured depends only on the weights, the fixed pseudo-random draws, the
+//! number of strata and the distances measured; what a side remembers from the last frame
+//! (where its queries start) changes only where within the slack a query stops.
 use super::distance::{CENTROID_WEIGHT, EDGE_WEIGHT, VERTEX_WEIGHT};
 use crate::parallel::join;
 
-/// Strata per side: with [`FIRST_SAMPLES`] each, 1,536 queries per side on a large mesh. On
-/// nefertiti's frames at τ 0.5 (100k triangles, moved 2 to 50 edge lengths) the pair states
-/// 0.81-0.96% after that first round (3,072 queries in all); frames that moved less than an
-/// edge length need a second round (3,800-4,900 queries). Measured against 512, 640 and 1024
-/// strata: fewer strata needed second rounds of more than they saved (their patches are
-/// coarser, so each draw says less), more strata a first round larger than needed.
+/// Strata per side on a frame that knows nothing of the last (the first): with
+/// [`FIRST_SAMPLES`] each, 1,536 queries per side on a large mesh. On nefertiti's first frames
+/// (100k triangles; τ 0.5 and 0.01) the pair states 0.77-0.95% after that first round. Measured
+/// against 512, 640 and 1024 strata on such frames: fewer strata needed second rounds of more
+/// than they saved (their patches are coarser, so each draw says less), more strata a first
+/// round larger than needed. Later frames take as many as the last frame's error asks, down
+/// to [`STRATA_MIN`].
 pub const STRATA: usize = 768;
 /// The fewest strata a later frame takes ([`estimate_pair`]'s `strata`): a first round of
 /// 768 queries per side.
