@@ -53,6 +53,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod curve;
+pub mod denoise;
 pub mod flow;
 pub mod geometry;
 pub mod linalg;

@@ -132,23 +132,23 @@ retry_on_surface!(
 
 /// What the classic flows below share: the moving surface, its cached geometry, the scale
 /// policy and the per-step metrics, so every method reports exactly the same quantities.
-struct ClassicSurface {
+pub(super) struct ClassicSurface {
     triangles: Vec<[usize; 3]>,
-    positions: Vec<[f64; 3]>,
-    step: usize,
+    pub(super) positions: Vec<[f64; 3]>,
+    pub(super) step: usize,
     geometry: GeometryCache,
     reporter: StepReporter,
     /// `None` for Taubin smoothing: not shrinking is its whole point, so rescaling it would
     /// hide what the comparison is meant to show.
     scale: Option<ScalePolicy>,
-    initial: StepMetrics,
+    pub(super) initial: StepMetrics,
 }
 
 impl ClassicSurface {
     /// `preserve`: the scale policy to apply after every step, `None` for none at all;
     /// `deviation_threads`: whether steps report their distance from the input, measured on
     /// how many threads ([`FlowParams::deviation_threads`]).
-    fn new(
+    pub(super) fn new(
         mesh: &Mesh,
         topology: &Topology,
         preserve: Option<Preserve>,
@@ -207,7 +207,11 @@ impl ClassicSurface {
 
     /// After the positions moved: refuse non-finite results, apply the scale policy, refresh
     /// the geometry and report the metrics of the new surface.
-    fn finish_step(&mut self, start: Instant, method: &str) -> Result<StepMetrics, FlowError> {
+    pub(super) fn finish_step(
+        &mut self,
+        start: Instant,
+        method: &str,
+    ) -> Result<StepMetrics, FlowError> {
         if self
             .positions
             .iter()
@@ -240,7 +244,7 @@ impl ClassicSurface {
     }
 
     /// [`Retry::restore`] for every classic flow.
-    fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
+    pub(super) fn restore(&mut self, positions: &[[f64; 3]], step: usize) {
         self.positions.copy_from_slice(positions);
         self.geometry.refresh(&self.positions, &self.triangles);
         self.step = step;

@@ -6,6 +6,7 @@
 
 pub mod classic;
 pub mod constraints;
+pub mod denoise;
 pub mod dirac;
 pub mod dirichlet;
 pub mod exactness;
@@ -38,17 +39,23 @@ pub enum Method {
     Bilaplacian,
     /// Taubin λ|μ smoothing (Taubin 1995), explicit.
     Taubin,
+    /// Feature-preserving denoising: guided mesh normal filtering (Zhang et al. 2015) with the
+    /// vertex update of Sun et al. 2007 ([`crate::denoise`], [`denoise::DenoiseFlow`]); its
+    /// iteration count and whether there is noise at all are read off the mesh. What the
+    /// service and the CLI run when no method is named.
+    Denoise,
 }
 
 impl Method {
     /// Every method, in the order forms and errors list them. The match in [`Method::name`]
     /// makes a new method a compile error until it is named (and so listed here).
-    pub const ALL: [Method; 5] = [
+    pub const ALL: [Method; 6] = [
         Method::Conformal,
         Method::Mcf,
         Method::Cmcf,
         Method::Bilaplacian,
         Method::Taubin,
+        Method::Denoise,
     ];
 
     /// The one name of a method, on every transport: JSON, query strings, the CLI, and (upper
@@ -60,6 +67,7 @@ impl Method {
             Method::Cmcf => "cmcf",
             Method::Bilaplacian => "bilaplacian",
             Method::Taubin => "taubin",
+            Method::Denoise => "denoise",
         }
     }
 
@@ -284,6 +292,9 @@ pub struct FlowParams {
     /// Width (model units) over which a region's motion blends to zero toward its border
     /// ([`region`]); `None`: no blend. Needs a region.
     pub falloff: Option<f64>,
+    /// The filter of [`Method::Denoise`] ([`crate::denoise::DenoiseParams`]); its default
+    /// reads the iteration count off the mesh. Other methods refuse anything else.
+    pub denoise: crate::denoise::DenoiseParams,
 }
 
 impl FlowParams {
@@ -412,6 +423,28 @@ impl FlowParams {
                 ),
             ));
         }
+        self.denoise
+            .validate()
+            .map_err(|(name, reason)| invalid(name, reason))?;
+        if self.method != Method::Denoise
+            && self.denoise != crate::denoise::DenoiseParams::default()
+        {
+            return Err(invalid(
+                "denoise",
+                format!(
+                    "sets the filter of method `denoise`, not of `{}`",
+                    self.method.name()
+                ),
+            ));
+        }
+        if self.method == Method::Denoise && self.preserve == Preserve::Volume {
+            return Err(invalid(
+                "preserve",
+                "`volume` does not apply to method `denoise`: the filter never rescales \
+                 (its vertices move along the filtered normals only); use `area` or `none`"
+                    .into(),
+            ));
+        }
         if self.falloff.is_some() && self.regions.is_empty() {
             return Err(invalid(
                 "falloff",
@@ -468,6 +501,7 @@ impl Default for FlowParams {
             measure_deviation: false,
             feature_size: None,
             falloff: None,
+            denoise: crate::denoise::DenoiseParams::default(),
         }
     }
 }
@@ -535,6 +569,13 @@ pub trait Flow: Send {
     /// at, `⟨ρ, ρ_req⟩_M / |ρ_req|²_M` over the free vertices (1: nothing absorbed, ≤ 0: the
     /// absorbed change cancels or reverses the request); `None` for any other flow.
     fn kept_share(&self) -> Option<f64> {
+        None
+    }
+    /// For a flow with an end of its own (the denoiser's iteration count): why it has taken
+    /// its last step, once it has. A run then ends `completed` with this reason, or
+    /// `already_fair` if it ends before any step ([`stopping::Run`]). `None`: not yet, or
+    /// the flow goes on as long as it is stepped.
+    fn finished(&self) -> Option<String> {
         None
     }
     /// What a later [`Flow::resume`] needs to go on from here: the surface, its metrics, the
@@ -687,5 +728,8 @@ pub fn new_flow(mesh: &Mesh, params: &FlowParams) -> Result<Box<dyn Flow>, FlowE
             params,
         ),
         Method::Taubin => guard(classic::TaubinSmoothing::new(mesh, params)?, mesh, params),
+        // Not safeguarded: it never raises its step, and a fold the filter makes is one the
+        // normals asked for (a crease), not a step to retry smaller.
+        Method::Denoise => Box::new(denoise::DenoiseFlow::new(mesh, params)?),
     })
 }

@@ -326,6 +326,14 @@ impl Run {
                 }
             }
         }
+        if let Some(reason) = self.flow.finished() {
+            let outcome = if self.last.step == 0 {
+                Outcome::AlreadyFair
+            } else {
+                Outcome::Completed
+            };
+            return Some((outcome, reason));
+        }
         (self.last.step >= self.steps)
             .then(|| (Outcome::Completed, format!("ran its {} steps", self.steps)))
     }
