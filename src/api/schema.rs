@@ -96,6 +96,10 @@ mod tests {
             fields(serde_json::to_value(spec.filter).expect("json"))
         );
         assert_eq!(
+            properties(&doc, "DenoiseSpec"),
+            fields(serde_json::to_value(spec.denoise).expect("json"))
+        );
+        assert_eq!(
             properties(&doc, "PrescribedSpec"),
             fields(serde_json::to_value(PrescribedSpec::default()).expect("json"))
         );

@@ -51,10 +51,32 @@ pub struct FairArgs {
     /// Inverse power iterations per step.
     #[arg(long, default_value_t = 1)]
     pub iterations: usize,
-    /// `conformal` (the paper), `mcf`, `cmcf` (conformalized MCF, genus 0 only),
-    /// `bilaplacian` or `taubin` (λ|μ smoothing, λ = τ).
-    #[arg(long, default_value = "conformal", value_parser = Method::parse)]
+    /// `denoise` (the default: feature-preserving denoising by guided normal filtering; a mesh
+    /// without noise is left as it is, outcome `already_fair`), `conformal` (the paper's
+    /// Willmore flow, toward the round sphere: `--method conformal` is the flow all the way),
+    /// `mcf`, `cmcf` (conformalized MCF, genus 0 only), `bilaplacian` or `taubin` (λ|μ
+    /// smoothing, λ = τ).
+    #[arg(long, default_value = "denoise", value_parser = Method::parse)]
     pub method: Method,
+    /// `--method denoise`: outer filtering iterations (1–200); default: read off the mesh
+    /// (none without noise, else until the share of flat edges settles, 4–20). Two
+    /// iterations make one step.
+    #[arg(long)]
+    pub denoise_iterations: Option<usize>,
+    /// `--method denoise`: vertex updates per outer iteration (1–200).
+    #[arg(long, default_value_t = 10)]
+    pub denoise_vertex_iterations: usize,
+    /// `--method denoise`: width of the range kernel in unit-normal difference, (0, 2]
+    /// (0.35 ≈ 20°: guidance normals further apart do not mix, so creases stay).
+    #[arg(long, default_value_t = 0.35)]
+    pub denoise_sigma_r: f64,
+    /// `--method denoise`: the filtering disc's radius in mean centroid distances, 0.5–8.
+    #[arg(long, default_value_t = 2.0)]
+    pub denoise_radius: f64,
+    /// `--method denoise`: plain bilateral range weights (Zheng et al. 2011) instead of guided
+    /// ones (Zhang et al. 2015).
+    #[arg(long)]
+    pub denoise_bilateral: bool,
     /// Repair the input first: drop degenerate faces and split non-manifold vertices and
     /// edges (one vertex per fan); what changed is printed on stderr, in file numbering.
     #[arg(long)]
@@ -322,6 +344,13 @@ pub fn run(args: FairArgs) -> ExitCode {
         region,
         seam: args.seam,
         refine: args.refine,
+        denoise: willow_service::jobs::spec::DenoiseSpec {
+            iterations: args.denoise_iterations,
+            vertex_iterations: args.denoise_vertex_iterations,
+            sigma_r: args.denoise_sigma_r,
+            radius: args.denoise_radius,
+            guided: !args.denoise_bilateral,
+        },
         ..JobSpec::default()
     };
     if let Err(e) = spec

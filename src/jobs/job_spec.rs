@@ -26,9 +26,11 @@ use willow::mesh::{Limits, MeshError};
     description = "What to run on an uploaded mesh (a job's `params`, as reported and as accepted)."
 )]
 pub struct JobSpec {
-    /// Which flow: `conformal` (the paper), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
+    /// Which flow: `denoise` (the default: feature-preserving denoising, guided normal
+    /// filtering; nothing moves on a mesh without noise), `conformal` (the paper's Willmore
+    /// flow, toward the round sphere), `mcf` (the yardstick), `cmcf`, `bilaplacian` or
     /// `taubin`.
-    #[schema(value_type = String, example = "conformal")]
+    #[schema(value_type = String, example = "denoise")]
     pub method: Method,
     /// Number of flow steps to take (step 0 is the input).
     #[schema(minimum = 1)]
@@ -112,13 +114,17 @@ pub struct JobSpec {
     /// secret), retried with backoff until answered 2xx. `https` to a public address only,
     /// unless the server runs with `--allow-insecure-callbacks`.
     pub callback_url: Option<String>,
+    /// The filter of method `denoise`; other methods refuse anything but its defaults.
+    pub denoise: spec::DenoiseSpec,
 }
 
 impl Default for JobSpec {
     fn default() -> Self {
         let flow = FlowParams::default();
         JobSpec {
-            method: flow.method,
+            // The library's default is the paper's flow; an upload with no parameters is
+            // denoised, which never makes a mesh worse (issue 39).
+            method: Method::Denoise,
             steps: 20,
             tau: flow.tau,
             iterations: flow.iterations,
@@ -142,6 +148,7 @@ impl Default for JobSpec {
             repair: false,
             refine: false,
             callback_url: None,
+            denoise: spec::DenoiseSpec::from_flow(flow.denoise),
         }
     }
 }
@@ -340,6 +347,7 @@ impl JobSpec {
             measure_deviation: self.measure_deviation,
             feature_size: self.feature_size,
             falloff: self.falloff,
+            denoise: self.denoise.to_flow(),
         }
     }
 

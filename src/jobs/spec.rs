@@ -40,6 +40,57 @@ impl FilterSpec {
     }
 }
 
+/// The filter of method `denoise` (guided mesh normal filtering, Zhang et al. 2015, with the
+/// vertex update of Sun et al. 2007). Every field has a default; the defaults read the
+/// iteration count off the mesh.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct DenoiseSpec {
+    /// Outer iterations (1–200), each one guided filtering pass of the face normals and the
+    /// vertex updates; null (the default): read off the mesh — none on a mesh with no noise,
+    /// otherwise until the share of flat edges settles (4–20).
+    pub iterations: Option<usize>,
+    /// Vertex updates per outer iteration (1–200); default 10.
+    pub vertex_iterations: usize,
+    /// Width of the range kernel in unit-normal difference, (0, 2]; default 0.35 (≈ 20°):
+    /// neighbours whose guidance normals differ by much more do not mix, so creases stay.
+    pub sigma_r: f64,
+    /// Radius of each face's filtering disc in mean distances between adjacent face
+    /// centroids, 0.5–8; default 2.
+    pub radius: f64,
+    /// Guided range weights (default true); false is Zheng et al.'s bilateral normal filter.
+    pub guided: bool,
+}
+
+impl Default for DenoiseSpec {
+    fn default() -> Self {
+        DenoiseSpec::from_flow(willow::denoise::DenoiseParams::default())
+    }
+}
+
+impl DenoiseSpec {
+    pub fn from_flow(p: willow::denoise::DenoiseParams) -> Self {
+        DenoiseSpec {
+            iterations: p.iterations,
+            vertex_iterations: p.vertex_iterations,
+            sigma_r: p.sigma_r,
+            radius: p.radius,
+            guided: p.guided,
+        }
+    }
+
+    /// The library's filter parameters.
+    pub fn to_flow(self) -> willow::denoise::DenoiseParams {
+        willow::denoise::DenoiseParams {
+            iterations: self.iterations,
+            vertex_iterations: self.vertex_iterations,
+            sigma_r: self.sigma_r,
+            radius: self.radius,
+            guided: self.guided,
+        }
+    }
+}
+
 /// Boundary condition for surfaces with boundary (§6.3); closed surfaces ignore it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]

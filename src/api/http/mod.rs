@@ -111,7 +111,7 @@ pub fn probe_routes(state: AppState) -> Router {
     info(title = "Willow fairing service", description = "Mesh fairing by conformal Willmore flow: submit a mesh, watch frames, fetch the result. Errors are RFC 9457 problem details."),
     paths(jobs::create_job, jobs::list_jobs, jobs::get_job, jobs::cancel_job, jobs::delete_job, events::job_events, jobs::list_frames, jobs::frame_mesh, jobs::job_result, curves::fair_curve, probes::healthz, probes::readyz, probes::metrics, super::auth::mint_stream_token),
     modifiers(&SecurityAddon),
-    components(schemas(super::auth::StreamToken, JobView, JobList, crate::jobs::JobSpec, crate::jobs::spec::FilterSpec, crate::jobs::spec::BoundarySpec, crate::jobs::spec::PrescribedSpec, crate::jobs::spec::AxisSpec, crate::jobs::spec::AnglesSpec, super::schema::RegionSchema, super::schema::SeamSchema, super::schema::PreserveSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
+    components(schemas(super::auth::StreamToken, JobView, JobList, crate::jobs::JobSpec, crate::jobs::spec::FilterSpec, crate::jobs::spec::DenoiseSpec, crate::jobs::spec::BoundarySpec, crate::jobs::spec::PrescribedSpec, crate::jobs::spec::AxisSpec, crate::jobs::spec::AnglesSpec, super::schema::RegionSchema, super::schema::SeamSchema, super::schema::PreserveSchema, FrameList, FrameEvent, Problem, Progress, LatestMetrics, Links, CurveResult, CurveBody, CurveFrameView, CurveParamsView)),
     tags((name = "jobs", description = "Fairing jobs"), (name = "curves", description = "Curve fairing (paper §5), synchronous"), (name = "ops", description = "Probes and metrics"))
 )]
 pub struct ApiDoc;

@@ -65,6 +65,13 @@ pub(super) fn params_pb(spec: &JobSpec) -> v1::JobParams {
         repair: Some(spec.repair),
         refine: Some(spec.refine),
         callback_url: spec.callback_url.clone(),
+        denoise: Some(v1::DenoiseParams {
+            iterations: spec.denoise.iterations.map(count),
+            vertex_iterations: Some(count(spec.denoise.vertex_iterations)),
+            sigma_r: Some(spec.denoise.sigma_r),
+            radius: Some(spec.denoise.radius),
+            guided: Some(spec.denoise.guided),
+        }),
     }
 }
 

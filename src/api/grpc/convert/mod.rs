@@ -208,6 +208,23 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
         spec.refine = v;
     }
     spec.callback_url = p.callback_url.filter(|u| !u.is_empty());
+    if let Some(d) = p.denoise {
+        if let Some(n) = d.iterations {
+            spec.denoise.iterations = Some(n as usize);
+        }
+        if let Some(n) = d.vertex_iterations {
+            spec.denoise.vertex_iterations = n as usize;
+        }
+        if let Some(v) = d.sigma_r {
+            spec.denoise.sigma_r = v;
+        }
+        if let Some(v) = d.radius {
+            spec.denoise.radius = v;
+        }
+        if let Some(v) = d.guided {
+            spec.denoise.guided = v;
+        }
+    }
     Ok(spec)
 }
 
@@ -415,6 +432,7 @@ mod tests {
             Method::Cmcf,
             Method::Bilaplacian,
             Method::Taubin,
+            Method::Denoise,
         ] {
             let wire = method_pb(m);
             assert_ne!(wire, v1::Method::Unspecified, "{m:?} has no proto value");
