@@ -387,10 +387,7 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
         .submit(
             &me(),
             obj(small_obj()),
-            JobSpec {
-                steps: 1,
-                ..JobSpec::default()
-            },
+            first_release_request(),
             Some("before-upgrade".into()),
         )
         .await
@@ -460,6 +457,7 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
     assert_eq!(
         status.spec,
         JobSpec {
+            method: willow::flow::Method::Conformal,
             steps: 1,
             ..JobSpec::default()
         },
@@ -471,10 +469,7 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
         .submit(
             &me(),
             obj(small_obj()),
-            JobSpec {
-                steps: 1,
-                ..JobSpec::default()
-            },
+            first_release_request(),
             Some("before-upgrade".into()),
         )
         .await
@@ -539,4 +534,15 @@ async fn a_dropped_curve_request_frees_its_slot() {
         started.elapsed()
     );
     core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// The request `steps=1` as the first release read it: the conformal flow, no repair (the
+/// defaults before issue 39). Sent again after the upgrade it must hash as it did then.
+fn first_release_request() -> JobSpec {
+    JobSpec {
+        method: willow::flow::Method::Conformal,
+        repair: false,
+        steps: 1,
+        ..JobSpec::default()
+    }
 }

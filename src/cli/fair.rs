@@ -14,7 +14,7 @@
 //! the result is the last sound surface), `already_fair` (the mesh is too coarse to fair)).
 //!
 //! Exit codes: 0 done (any outcome but `no_progress`); 2 input refused; 1 failure while
-//! running (no output written); 3 the safeguard found no acceptable step
+//! running (the output holds the last sound surface, and stderr names its step); 3 the safeguard found no acceptable step
 //! (`FlowError::NoProgress`): the output holds the last accepted surface and stderr says why
 //! the flow stopped.
 
@@ -56,7 +56,8 @@ pub struct FairArgs {
     /// Willmore flow, toward the round sphere: `--method conformal` is the flow all the way),
     /// `mcf`, `cmcf` (conformalized MCF, genus 0 only), `bilaplacian` or `taubin` (λ|μ
     /// smoothing, λ = τ).
-    #[arg(long, default_value = "denoise", value_parser = Method::parse)]
+    /// Given twice, the last one counts (a script's own choice after a wrapper's).
+    #[arg(long, default_value = "denoise", value_parser = Method::parse, overrides_with = "method")]
     pub method: Method,
     /// `--method denoise`: outer filtering iterations (1–200); default: read off the mesh
     /// (none without noise, else until the share of flat edges settles, 4–20). Two
@@ -78,9 +79,13 @@ pub struct FairArgs {
     #[arg(long)]
     pub denoise_bilateral: bool,
     /// Repair the input first: drop degenerate faces and split non-manifold vertices and
-    /// edges (one vertex per fan); what changed is printed on stderr, in file numbering.
-    #[arg(long)]
+    /// edges (one vertex per fan); what changed is printed on stderr, in file numbering. The
+    /// default (a file that needs no repair reads as it is); kept for scripts that pass it.
+    #[arg(long, conflicts_with = "no_repair")]
     pub repair: bool,
+    /// Refuse a file that needs repair instead, naming its vertex and face numbers.
+    #[arg(long)]
+    pub no_repair: bool,
     /// Loop-subdivide the input toward a target edge length before the flow (UVs
     /// interpolated per corner): for coarse tessellations (a CAD part) that end
     /// `already_fair`. The output has the refined connectivity: the file's vertices first,
@@ -259,10 +264,10 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(f) => f,
         Err(e) => return fail(EXIT_BAD_INPUT, e),
     };
-    let read = if args.repair {
-        Asset::read_repaired
-    } else {
+    let read = if args.no_repair {
         Asset::read
+    } else {
+        Asset::read_repaired
     };
     let asset = match read(&bytes, input_format, &Limits::default()) {
         Ok(a) => a,
@@ -343,6 +348,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         safeguard: !args.no_safeguard,
         region,
         seam: args.seam,
+        repair: !args.no_repair,
         refine: args.refine,
         denoise: willow_service::jobs::spec::DenoiseSpec {
             iterations: args.denoise_iterations,
@@ -434,14 +440,37 @@ pub fn run(args: FairArgs) -> ExitCode {
             .and_then(|_| out.flush())
             .map_err(|_| ExitCode::from(EXIT_FAILURE))
     };
+    // The last surface a step ended on: a numerical failure part-way through a step leaves
+    // the flow's own positions undefined, and the output gets this one instead (issue 39).
+    let mut sound = run.flow().positions().to_vec();
+    let mut sound_step = 0;
     let (outcome, reason) = loop {
         let metrics = match run.advance() {
             Ok(Event::Step(m)) => m,
             // The flow is on its result (for `no_progress`, the last accepted surface):
             // write it below, then say why it stopped.
             Ok(Event::Stopped { outcome, reason }) => break (outcome, reason),
-            Err(e) => return fail(EXIT_FAILURE, e),
+            Err(e) => {
+                if let Some(bar) = &progress {
+                    bar.abandon();
+                }
+                return match write_mesh(&asset, &sound, output_format, &args.output) {
+                    Ok(()) => fail(
+                        EXIT_FAILURE,
+                        format!(
+                            "{e}; {} holds the last sound surface (step {sound_step})",
+                            args.output.display()
+                        ),
+                    ),
+                    Err(w) => fail(
+                        EXIT_FAILURE,
+                        format!("{e}; writing the last sound surface: {w}"),
+                    ),
+                };
+            }
         };
+        sound.copy_from_slice(run.flow().positions());
+        sound_step = metrics.step;
         if args.json {
             let line = match serde_json::to_string(&metrics) {
                 Ok(l) => l,

@@ -43,7 +43,7 @@ const FIRST_RELEASE_FIELDS: [&str; 7] = [
 /// [`JobSpec::validate`] refuses every non-finite number before a request is hashed.
 fn hashed_spec(spec: &JobSpec) -> serde_json::Result<Vec<u8>> {
     let json = serde_json::to_string(spec)?;
-    let default_json = serde_json::to_string(&JobSpec::default())?;
+    let default_json = serde_json::to_string(&hash_baseline())?;
     let entries: Entries = serde_json::from_str(&json)?;
     let defaults: Entries = serde_json::from_str(&default_json)?;
     let mut out = Vec::with_capacity(json.len());
@@ -65,6 +65,18 @@ fn hashed_spec(spec: &JobSpec) -> serde_json::Result<Vec<u8>> {
     }
     out.push(b'}');
     Ok(out)
+}
+
+/// What "at its default" means for [`hashed_spec`]: each later field at the default it had
+/// when it was added, not at today's. A default that changes must not change the hash of a
+/// stored request that held the old one: `repair` was false until issue 39 made it true
+/// (the first-release field `method` changed its default then too, to `denoise`, but first-
+/// release fields are always hashed as they are).
+fn hash_baseline() -> JobSpec {
+    JobSpec {
+        repair: false,
+        ..JobSpec::default()
+    }
 }
 
 /// A JSON object's top-level entries in the order they were written, each value as its exact
@@ -457,22 +469,42 @@ mod tests {
         h.update([0]);
         h.update(b"mesh");
         let old: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
-        let spec = JobSpec::default();
+        let spec = first_release_default();
         assert_eq!(request_hash(b"mesh", Format::Obj, &spec), old);
+        // Today's default (method `denoise`, repair on) is another request.
+        assert_ne!(request_hash(b"mesh", Format::Obj, &JobSpec::default()), old);
         let cmc = JobSpec {
             boundary: crate::jobs::spec::BoundarySpec::Cmc,
-            ..JobSpec::default()
+            ..first_release_default()
         };
         assert_ne!(request_hash(b"mesh", Format::Obj, &cmc), old);
         let unguarded = JobSpec {
             safeguard: false,
-            ..JobSpec::default()
+            ..first_release_default()
         };
         assert_ne!(request_hash(b"mesh", Format::Obj, &unguarded), old);
-        // And an old stored spec (without the new fields) still loads, with their defaults.
+        // And an old stored spec (without the new fields) still loads, with their defaults
+        // (`repair` on: the file of a job accepted without repair needs none, and reads the
+        // same either way).
         let stored: JobSpec =
             serde_json::from_slice(first_release).expect("a first-release spec loads");
-        assert_eq!(stored, spec);
+        assert_eq!(
+            stored,
+            JobSpec {
+                repair: true,
+                ..spec
+            }
+        );
+    }
+
+    /// The spec a request with no parameters made before issue 39 changed the defaults:
+    /// the conformal flow, no repair. The pinned hashes below were made from it.
+    fn first_release_default() -> JobSpec {
+        JobSpec {
+            method: willow::flow::Method::Conformal,
+            repair: false,
+            ..JobSpec::default()
+        }
     }
 
     /// Specs with every later field in turn off its default, and a few together.
@@ -480,7 +512,7 @@ mod tests {
         use crate::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
         use willow::flow::region::{Region, Seam};
         use willow::flow::{Method, Preserve};
-        let d = JobSpec::default;
+        let d = first_release_default;
         vec![
             ("default", d()),
             (

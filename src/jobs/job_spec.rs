@@ -98,8 +98,10 @@ pub struct JobSpec {
     pub falloff: Option<f64>,
     // `Asset::read_repaired`.
     /// Repair the upload before the flow: drop degenerate faces and split non-manifold
-    /// vertices and edges; the submission's answer has `repairs`. Default false: such a file
-    /// is refused, naming its own vertex and face numbers.
+    /// vertices and edges; the submission's answer has `repairs` (what changed, in the file's
+    /// numbering). Default true: raw scans come with a few bowties, and a file that needs no
+    /// repair reads exactly as it is. False refuses such a file, naming its own vertex and
+    /// face numbers.
     pub repair: bool,
     /// Loop-subdivide the upload toward ~16k triangles before the flow (UVs interpolated per
     /// corner), for tessellations too coarse to fair (`already_fair`). Frames then carry the
@@ -145,7 +147,7 @@ impl Default for JobSpec {
             measure_deviation: flow.measure_deviation,
             feature_size: flow.feature_size,
             falloff: flow.falloff,
-            repair: false,
+            repair: true,
             refine: false,
             callback_url: None,
             denoise: spec::DenoiseSpec::from_flow(flow.denoise),

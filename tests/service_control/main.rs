@@ -18,6 +18,12 @@ fn bumpy() -> Mesh {
 
 /// Submits `obj` with `params` as the multipart JSON part.
 async fn submit_json(srv: &TestServer, obj: &str, params: &serde_json::Value) -> reqwest::Response {
+    // These tests drive the conformal flow: a params object that names no method asks for it
+    // (the default method, `denoise`, has tests of its own).
+    let mut params = params.clone();
+    if let Some(map) = params.as_object_mut() {
+        map.entry("method").or_insert_with(|| "conformal".into());
+    }
     let form = reqwest::multipart::Form::new()
         .part(
             "mesh",
@@ -362,15 +368,15 @@ async fn a_group_region_and_a_feature_size_reach_the_flow() {
     srv.stop().await;
 }
 
-/// A non-manifold upload is refused naming the file's own vertex; with `repair` it is split,
-/// the answer says what changed, and the job runs. What changed is stored with the job: a
+/// A non-manifold upload with `repair=false` is refused naming the file's own vertex; by
+/// default (and with `repair`) it is split, the answer says what changed, and the job runs. What changed is stored with the job: a
 /// poll, and a poll after a restart, report it too; so are a glTF's notes (dropped morph
 /// targets).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn repair_splits_a_bowtie_and_says_so() {
     let srv = start(|_| {}).await;
     let obj = bowtie_obj();
-    let (st, _, p) = srv.submit_obj(&obj, "steps=2").await;
+    let (st, _, p) = srv.submit_obj(&obj, "steps=2&repair=false").await;
     assert_eq!(st, 422, "{p}");
     assert!(
         p["detail"].as_str().is_some_and(|d| d.contains("line 1")),
@@ -387,7 +393,11 @@ async fn repair_splits_a_bowtie_and_says_so() {
     assert_eq!(done["state"], "succeeded", "{done}");
     assert_eq!(done["repairs"], *repairs, "{done}");
     assert!(done.get("notes").is_none(), "{done}");
-    // A job without `repair` reports none.
+    // Repair is the default (issue 39: a scan with a few bowties is repaired with a note).
+    let (st, _, by_default) = srv.submit_obj(&obj, "steps=2").await;
+    assert_eq!(st, 202, "{by_default}");
+    assert_eq!(by_default["repairs"], *repairs, "{by_default}");
+    // A job whose file needs no repair reports none.
     let (_, _, plain) = srv.submit_obj(&small_obj(), "steps=1").await;
     assert!(plain.get("repairs").is_none(), "{plain}");
     let plain_id = plain["id"].as_str().expect("id").to_string();

@@ -52,18 +52,38 @@ impl FeatureDetail {
 /// A feature size must be one the mesh can hold: at least [`MIN_EDGES_PER_FEATURE`] mean
 /// edge lengths. Below that the filter's crossover lies past the mesh's highest frequency,
 /// so the flow would pass on nothing and the request would silently do nothing.
+/// The limit itself passes, and the message states it rounded *up* (six significant digits),
+/// so that the figure it prints is one the check accepts (issue 39: "0.234378 is below … about
+/// 0.234378 across" refused the number it had printed).
 pub fn check_resolution(length: f64, mean_edge: f64) -> Result<(), FlowError> {
-    if length < MIN_EDGES_PER_FEATURE * mean_edge {
+    let limit = MIN_EDGES_PER_FEATURE * mean_edge;
+    if length < limit {
         return Err(FlowError::InvalidParameter {
             name: "feature_size",
             reason: format!(
                 "{length} is below the mesh's resolution: its mean edge is {mean_edge:.6}, \
-                 so the smallest detail it holds is about {:.6} across",
-                MIN_EDGES_PER_FEATURE * mean_edge
+                 so the smallest feature_size it can hold is {} ({MIN_EDGES_PER_FEATURE} mean \
+                 edges)",
+                round_up(limit)
             ),
         });
     }
     Ok(())
+}
+
+/// `x` > 0 rounded up to six significant digits.
+fn round_up(x: f64) -> f64 {
+    if !(x.is_finite() && x > 0.0) {
+        return x;
+    }
+    let scale = 10f64.powi(5 - x.log10().floor() as i32);
+    let up = (x * scale).ceil() / scale;
+    // Division can land a hair below `x`; step to the next representable value if so.
+    if up < x {
+        f64::from_bits(up.to_bits() + 1)
+    } else {
+        up
+    }
 }
 
 /// The smallest feature size, in mean edge lengths: a bump needs about two edges across to
@@ -135,6 +155,36 @@ pub fn remove_low_frequency(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod resolution_tests {
+    use super::*;
+
+    #[test]
+    fn the_limit_passes_and_the_figure_the_message_prints_passes_too() {
+        for mean_edge in [0.117189, 1.0, 3.3e-4, 12345.678] {
+            let limit = MIN_EDGES_PER_FEATURE * mean_edge;
+            assert!(check_resolution(limit, mean_edge).is_ok());
+            let Err(FlowError::InvalidParameter { name, reason }) =
+                check_resolution(0.999 * limit, mean_edge)
+            else {
+                panic!("below the limit is refused");
+            };
+            assert_eq!(name, "feature_size");
+            let printed: f64 = reason
+                .split("can hold is ")
+                .nth(1)
+                .and_then(|rest| rest.split(' ').next())
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("a number in {reason}"));
+            assert!(
+                printed >= limit && printed <= limit * (1.0 + 1e-5),
+                "{printed} vs {limit}"
+            );
+            assert!(check_resolution(printed, mean_edge).is_ok(), "{reason}");
+        }
+    }
 }
 
 #[cfg(test)]

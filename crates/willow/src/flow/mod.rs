@@ -298,6 +298,16 @@ pub struct FlowParams {
 }
 
 impl FlowParams {
+    /// What an error about a conformal-only parameter adds under method `denoise`, the
+    /// service's and the CLI's default: a caller who named no method learns why.
+    fn default_method_hint(method: Method) -> &'static str {
+        if method == Method::Denoise {
+            " (`denoise` is the default method: ask for method `conformal`)"
+        } else {
+            ""
+        }
+    }
+
     /// Whether the flow measures its distance from the input each step.
     pub fn measures_deviation(&self) -> bool {
         self.measure_deviation || self.max_deviation.is_some()
@@ -351,8 +361,9 @@ impl FlowParams {
                 return Err(invalid(
                     name,
                     format!(
-                        "applies only to method `conformal`, got `{}`",
-                        self.method.name()
+                        "applies only to method `conformal`, got `{}`{}",
+                        self.method.name(),
+                        Self::default_method_hint(self.method)
                     ),
                 ));
             }
@@ -418,8 +429,9 @@ impl FlowParams {
             return Err(invalid(
                 "feature_size",
                 format!(
-                    "is built on the conformal flow's spectral filter (§4), not on `{}`",
-                    self.method.name()
+                    "is built on the conformal flow's spectral filter (§4), not on `{}`{}",
+                    self.method.name(),
+                    Self::default_method_hint(self.method)
                 ),
             ));
         }

@@ -124,6 +124,12 @@ impl Source {
         }
     }
 
+    /// Whether the file's vertex records are its split vertices one for one, in file order
+    /// (PLY and OFF): a result in another indexed format then keeps that numbering.
+    fn numbers_split_vertices(&self) -> bool {
+        matches!(self, Source::Ply(_) | Source::Off(_))
+    }
+
     /// Per file vertex, its stored position, where file vertices are not split vertices.
     fn stored_positions(&self) -> Option<Vec<[f64; 3]>> {
         match self {
@@ -458,6 +464,23 @@ impl Asset {
             (_, Format::Ply) => ply::write_new(self, positions),
             (_, Format::Off) => Ok(off::write_new(self, positions)),
         }
+    }
+
+    /// For a PLY or OFF asset: every split vertex in file order (the file's records, then the
+    /// copies a repair made) at its position in `positions` (welded), or at its stored
+    /// position for a record no face uses. `None` for other sources, whose results number
+    /// vertices as their own writers do. What keeps a PLY's numbering in an OBJ (issue 39).
+    pub(crate) fn split_vertex_positions(&self, positions: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
+        if !self.source.numbers_split_vertices() {
+            return None;
+        }
+        Some(
+            self.to_welded
+                .iter()
+                .zip(&self.file.local)
+                .map(|(&w, stored)| if w == UNWELDED { *stored } else { positions[w] })
+                .collect(),
+        )
     }
 
     /// The number of the file's own vertices, in the user's numbering.

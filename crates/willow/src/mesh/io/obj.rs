@@ -558,13 +558,21 @@ pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Vec<u8> {
     let _ = writeln!(out, "# Written by Willow (conformal Willmore flow fairing)");
     // A refined asset writes the file's vertices then the new ones (refined.rs); any other
     // its welded vertices.
+    // A PLY or OFF keeps its vertex numbering: its records are the split vertices.
     let refined = asset.refined_vertices(positions);
-    for p in refined.as_ref().map_or(positions, |(v, _)| v.as_slice()) {
+    let split = asset.split_vertex_positions(positions);
+    let written = match (&refined, &split) {
+        (Some((v, _)), _) => v.as_slice(),
+        (None, Some(v)) => v.as_slice(),
+        (None, None) => positions,
+    };
+    for p in written {
         let _ = writeln!(out, "v {}", triple(*p));
     }
-    let v_of = |sv: usize, welded: usize| match &refined {
-        Some((_, v_of_split)) => v_of_split.get(sv).copied().unwrap_or(welded),
-        None => welded,
+    let v_of = |sv: usize, welded: usize| match (&refined, &split) {
+        (Some((_, v_of_split)), _) => v_of_split.get(sv).copied().unwrap_or(welded),
+        (None, Some(_)) => sv,
+        (None, None) => welded,
     };
     let mut next = 0;
     let vt_of: Vec<Option<usize>> = match &asset.file.uvs {

@@ -227,11 +227,15 @@ pub(crate) fn write_kept(asset: &Asset, src: &OffSource, positions: &[[f64; 3]])
 /// like the oriented surface.
 pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Vec<u8> {
     let mut out = String::from("OFF\n# Willow: faired by conformal Willmore flow\n");
-    // A refined asset writes the file's vertices then the new ones (refined.rs); any other
-    // its welded vertices.
-    let (points, triangles) = match asset.refined_vertices(positions) {
-        Some((points, _)) => (points, asset.file_triangles()),
-        None => (positions.to_vec(), asset.surface.triangles.clone()),
+    // A refined asset writes the file's vertices then the new ones (refined.rs); a PLY its
+    // own records in file order (its numbering kept); any other its welded vertices.
+    let (points, triangles) = match (
+        asset.refined_vertices(positions),
+        asset.split_vertex_positions(positions),
+    ) {
+        (Some((points, _)), _) => (points, asset.file_triangles()),
+        (None, Some(points)) => (points, asset.oriented_split_triangles()),
+        (None, None) => (positions.to_vec(), asset.surface.triangles.clone()),
     };
     let _ = writeln!(out, "{} {} 0", points.len(), triangles.len());
     for p in &points {
