@@ -40,6 +40,12 @@ pub struct BenchArgs {
     /// size (issue 4); MESH defaults to botijo_genus5_irregular from ../shared/meshes.
     #[arg(long, conflicts_with = "json")]
     pub genus: bool,
+    /// Instead: the denoising benchmark (issue 39) on every `<Name>_Noisy.obj` /
+    /// `<Name>_Original.obj` pair in DIR (e.g. ../shared/meshes/denoise): θ and Dv of the
+    /// noisy input, of Willow's defaults and of Taubin-10 measured in the same run, with
+    /// their times and ratios.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["json", "genus"])]
+    pub denoise: Option<PathBuf>,
     /// Generated meshes to measure as well, built in code so anyone can reproduce a figure
     /// without a file: `icosphere:N` is the bumpy sphere on an N-times subdivided icosahedron
     /// (20·4^N triangles: 8 gives 1.3M).
@@ -151,6 +157,9 @@ struct Figures {
 const REGION_SHARE: f64 = 0.05;
 
 pub fn run(args: BenchArgs) -> ExitCode {
+    if let Some(dir) = &args.denoise {
+        return super::bench_denoise::run(dir);
+    }
     if args.genus {
         return super::bench_genus::run(args.meshes.first().map(PathBuf::as_path), args.steps);
     }

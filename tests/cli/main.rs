@@ -1,9 +1,11 @@
 //! The `willow` command-line contract: formats by extension, JSON lines, frames, exit codes.
-//! One file a theme: `io` (formats, JSON lines, exit codes, repair), `bench`, `options` (the
+//! One file a theme: `io` (formats, JSON lines, exit codes, repair), `bench`, `denoise` (the
+//! default method on the shared noisy/clean pairs, scans, clean meshes), `options` (the
 //! paper's options, boundaries, the safeguard, stopping rules), `regions` (regions, feature
 //! size, groups and falloff). The shared meshes and JSON-line readers live here.
 
 mod bench;
+mod denoise;
 mod io;
 mod options;
 mod regions;

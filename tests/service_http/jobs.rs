@@ -572,3 +572,51 @@ async fn a_rewritten_frame_is_rendered_again() {
     }
     srv.stop().await;
 }
+
+/// Issue 39: a job with no parameters is denoised. A noisy upload comes back smoother, in
+/// frames, with the method reported; a clean one is left exactly as it is (`already_fair`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_with_no_parameters_denoises_and_leaves_a_clean_mesh_alone() {
+    let srv = start(|_| {}).await;
+    let post = |obj: String| {
+        let (client, url) = (srv.client.clone(), srv.url("/v1/jobs"));
+        async move {
+            let res = client
+                .post(url)
+                .header("content-type", "model/obj")
+                .body(obj)
+                .send()
+                .await
+                .expect("POST /v1/jobs");
+            assert_eq!(res.status(), 202);
+            let job: serde_json::Value = res.json().await.expect("json");
+            job["id"].as_str().expect("id").to_string()
+        }
+    };
+    let clean = willow::mesh::generate::icosphere(4);
+    let noisy = willow::mesh::generate::with_noise(clean.clone(), 0.3, 9);
+    for (mesh, outcome) in [(&noisy, "completed"), (&clean, "already_fair")] {
+        let id = post(obj_text(mesh)).await;
+        let done = srv
+            .poll_until(&id, Duration::from_secs(60), is_terminal)
+            .await;
+        assert_eq!(done["state"], "succeeded", "{done}");
+        assert_eq!(done["outcome"], outcome, "{done}");
+        assert_eq!(done["params"]["method"], "denoise", "{done}");
+        let result = srv.get(&format!("/v1/jobs/{id}/result?format=obj")).await;
+        assert_eq!(result.status(), 200);
+        let out = obj_vertices(&result.text().await.expect("body"));
+        let theta =
+            willow::denoise::score::mean_normal_angle(&out, &clean.positions, &clean.triangles);
+        let before = willow::denoise::score::mean_normal_angle(
+            &mesh.positions,
+            &clean.positions,
+            &clean.triangles,
+        );
+        if outcome == "completed" {
+            assert!(theta < before / 3.0, "θ {before} → {theta}");
+        } else {
+            assert!(theta < 1e-4, "a clean mesh came back changed: θ {theta}");
+        }
+    }
+}

@@ -69,6 +69,25 @@ pub fn mean_distance_to_surface(
     sum / points.len() as f64
 }
 
+/// θ and Dv of one result against its clean original (same connectivity).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Score {
+    /// Mean angle between corresponding face normals, degrees.
+    pub theta: f64,
+    /// Mean distance from the result's vertices to the clean surface, per mille of the clean
+    /// mesh's bounding-box diagonal.
+    pub distance: f64,
+}
+
+/// [`Score`] of `result` against `clean` on `triangles`.
+pub fn score(result: &[[f64; 3]], clean: &[[f64; 3]], triangles: &[[usize; 3]]) -> Score {
+    let diagonal = bounding_diagonal(clean).max(f64::MIN_POSITIVE);
+    Score {
+        theta: mean_normal_angle(result, clean, triangles),
+        distance: 1e3 * mean_distance_to_surface(result, clean, triangles) / diagonal,
+    }
+}
+
 /// The length of the diagonal of the bounding box of `positions`.
 pub fn bounding_diagonal(positions: &[[f64; 3]]) -> f64 {
     let mut lo = [f64::INFINITY; 3];
