@@ -33,7 +33,7 @@ async fn a_thousand_submissions_from_fifty_clients_see_only_202_and_429_and_lose
     for client_no in 0..CLIENTS {
         // Each client its own connection pool, as 50 separate programs would have.
         let client = reqwest::Client::new();
-        let url = server.url("/v1/jobs?steps=2");
+        let url = server.url("/v1/jobs?steps=2&method=conformal");
         let body = body.clone();
         tasks.push(tokio::spawn(async move {
             let mut seen = Vec::new();

@@ -70,7 +70,10 @@ async fn serve(jobs: Jobs, core: willow_service::jobs::Shutdown) -> String {
 
 async fn submit(client: &reqwest::Client, base: &str, obj: &str, query: &str) -> Submitted {
     let res = client
-        .post(format!("{base}/v1/jobs?{query}"))
+        .post(format!(
+            "{base}/v1/jobs?{}",
+            service_http_support::conformal_unless_named(query)
+        ))
         .header("content-type", "model/obj")
         .body(obj.to_string())
         .send()

@@ -29,7 +29,10 @@ async fn problem(res: reqwest::Response) -> (u16, serde_json::Value) {
 
 async fn post_obj(srv: &TestServer, query: &str, body: String) -> reqwest::Response {
     srv.client
-        .post(srv.url(&format!("/v1/jobs?{query}")))
+        .post(srv.url(&format!(
+            "/v1/jobs?{}",
+            service_http_support::conformal_unless_named(query)
+        )))
         .header("content-type", "model/obj")
         .body(body)
         .send()

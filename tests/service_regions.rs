@@ -75,7 +75,10 @@ async fn a_region_in_the_query_or_the_json_moves_only_its_vertices() {
     );
     let res = srv
         .client
-        .post(srv.url(&format!("/v1/jobs?{query}")))
+        .post(srv.url(&format!(
+            "/v1/jobs?{}",
+            service_http_support::conformal_unless_named(&query)
+        )))
         .header("content-type", "model/obj")
         .body(obj.clone())
         .send()

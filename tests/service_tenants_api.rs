@@ -112,7 +112,10 @@ impl Server {
         let (status, v) = self
             .call(
                 reqwest::Method::POST,
-                &format!("/v1/jobs?{query}"),
+                &format!(
+                    "/v1/jobs?{}",
+                    service_http_support::conformal_unless_named(query)
+                ),
                 key,
                 Some((mesh, idem)),
             )

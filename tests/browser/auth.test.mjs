@@ -90,6 +90,8 @@ test('with --auth keys: the page asks for a key, then runs a job with streamed f
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
   await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  // These tests drive the conformal flow (the page's default method is `denoise`).
+  await page.selectOption('select[name=method]', 'conformal');
   await page.click('#submit');
   await page.waitForFunction(() => /^#job=/.test(location.hash));
   const id = await page.evaluate(() => location.hash.slice(5));

@@ -49,6 +49,8 @@ async function uploadSpot(params = {}) {
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
   // The parameters' defaults come from the server before the form is used.
   await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  // These tests drive the conformal flow (the page's default method is `denoise`).
+  await page.selectOption('select[name=method]', 'conformal');
   for (const [name, value] of Object.entries(params)) await page.fill(`[name="${name}"]`, String(value));
 }
 

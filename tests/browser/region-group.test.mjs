@@ -65,6 +65,8 @@ test('a group of the uploaded OBJ is picked from its names, tinted, sent as {gro
   await page.setInputFiles('#files', [file]);
   await page.waitForFunction(() => /spot_groups\.obj/.test(document.getElementById('file-info').textContent));
   await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  // These tests drive the conformal flow (the page's default method is `denoise`).
+  await page.selectOption('select[name=method]', 'conformal');
   await page.fill('[name="steps"]', '3');
   assert.equal(await page.locator('[name="region"] option[value="group"]').isDisabled(), false);
   await page.selectOption('[name="region"]', 'group');

@@ -82,6 +82,8 @@ test('a sphere region picked by mouse on the view moves only what it holds; befo
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
   await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  // These tests drive the conformal flow (the page's default method is `denoise`).
+  await page.selectOption('select[name=method]', 'conformal');
   await page.fill('[name="steps"]', '4');
 
   // Pick: press at the middle of the canvas (spot's body faces the camera there) and drag
@@ -292,6 +294,8 @@ test('a region picked on a glTF with a scaled node is in world space: the server
   await page.setInputFiles('#files', [duck]);
   await page.waitForFunction(() => /texture \(embedded\)/.test(document.getElementById('file-info').textContent));
   await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  // These tests drive the conformal flow (the page's default method is `denoise`).
+  await page.selectOption('select[name=method]', 'conformal');
   await page.fill('[name="steps"]', '3');
   await page.click('#region-pick');
   const box = await page.locator('#canvas').boundingBox();
@@ -346,6 +350,8 @@ test('shape and stopping controls: each is sent only once set, the detail size i
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
   await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  // These tests drive the conformal flow (the page's default method is `denoise`).
+  await page.selectOption('select[name=method]', 'conformal');
   // Typed, not picked: the numbers are the form's to edit.
   await page.selectOption('[name="region"]', 'sphere');
   await page.fill('[name="region.sphere.center"]', '0.1, 0.2, 0');

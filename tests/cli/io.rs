@@ -8,7 +8,7 @@ fn fair_writes_json_lines_frames_and_output() {
     let out = dir.path().join("spot.glb");
     let frames = dir.path().join("frames");
     let run = willow()
-        .args(["fair", &spot(), "-o"])
+        .args(["fair", "--method", "conformal", &spot(), "-o"])
         .arg(&out)
         .args(["--steps", "3", "--tau", "0.5", "--json", "--frames-dir"])
         .arg(&frames)
@@ -59,7 +59,7 @@ fn fair_obj_to_obj_keeps_uv_lines() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("spot.obj");
     let run = willow()
-        .args(["fair", &spot(), "-o"])
+        .args(["fair", "--method", "conformal", &spot(), "-o"])
         .arg(&out)
         .args(["--steps", "1", "--method", "mcf", "--tau", "0.01"])
         .output()
@@ -110,7 +110,7 @@ fn bad_input_exits_nonzero_with_the_reason() {
     assert!(String::from_utf8_lossy(&run.stderr).contains("cannot read"));
 
     let run = willow()
-        .args(["fair", &spot(), "-o"])
+        .args(["fair", "--method", "conformal", &spot(), "-o"])
         .arg(dir.path().join("o.obj"))
         .arg("--tau=-1")
         .output()
@@ -138,7 +138,7 @@ fn fair_reads_and_writes_stl_ply_and_off_in_kind() {
         std::fs::write(&input, &bytes).expect("write input");
         let out = dir.path().join(output);
         let run = willow()
-            .arg("fair")
+            .args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(&out)
@@ -176,14 +176,12 @@ fn repair_flag_splits_a_bowtie_and_reports_it() {
     let out = dir.path().join("out.ply");
     let run = |repair: bool| {
         let mut c = willow();
-        c.arg("fair")
+        c.args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(&out)
             .args(["--steps", "2"]);
-        if repair {
-            c.arg("--repair");
-        }
+        c.arg(if repair { "--repair" } else { "--no-repair" });
         c.output().expect("run willow")
     };
     let refused = run(false);
@@ -235,7 +233,7 @@ fn refine_flag_subdivides_a_coarse_cylinder_that_is_otherwise_already_fair() {
     let out = dir.path().join("out.obj");
     let run = |extra: &[&str]| {
         willow()
-            .arg("fair")
+            .args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(&out)
@@ -272,4 +270,51 @@ fn refine_flag_subdivides_a_coarse_cylinder_that_is_otherwise_already_fair() {
     let stderr = String::from_utf8_lossy(&bad.stderr);
     assert_eq!(bad.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("refine"), "{stderr}");
+}
+
+#[test]
+fn a_numerical_failure_still_writes_the_last_sound_surface() {
+    // The implicit bi-Laplacian flow at an absurd step, unguarded: its system stops being
+    // numerically positive definite at step 3 on spot.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let run = |steps: &str, out: &std::path::Path| {
+        willow()
+            .args(["fair", "--method", "conformal"])
+            .arg(spot())
+            .arg("-o")
+            .arg(out)
+            .args([
+                "--method",
+                "bilaplacian",
+                "--tau",
+                "1e6",
+                "--no-safeguard",
+                "--all-steps",
+            ])
+            .args(["--steps", steps])
+            .output()
+            .expect("run willow")
+    };
+    let failed_out = dir.path().join("failed.obj");
+    let failed = run("20", &failed_out);
+    let stderr = String::from_utf8_lossy(&failed.stderr);
+    assert_eq!(failed.status.code(), Some(1), "{stderr}");
+    let step = stderr
+        .split("holds the last sound surface (step ")
+        .nth(1)
+        .and_then(|rest| rest.split(')').next())
+        .unwrap_or_else(|| panic!("stderr names the surface written: {stderr}"));
+    // The same surface as a run that stops there by itself.
+    let kept_out = dir.path().join("kept.obj");
+    let kept = run(step, &kept_out);
+    assert_eq!(
+        kept.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&kept.stderr)
+    );
+    assert_eq!(
+        std::fs::read(&failed_out).expect("written on failure"),
+        std::fs::read(&kept_out).expect("written")
+    );
 }

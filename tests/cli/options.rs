@@ -8,7 +8,7 @@ fn paper_options_reach_the_flow() {
     let dir = tempfile::tempdir().expect("tempdir");
     let run = |extra: &[&str]| {
         willow()
-            .args(["fair", &spot(), "-o"])
+            .args(["fair", "--method", "conformal", &spot(), "-o"])
             .arg(dir.path().join("o.obj"))
             .args(["--steps", "1", "--json"])
             .args(extra)
@@ -48,7 +48,7 @@ fn prescribed_and_cmc_boundaries_from_the_command_line() {
     std::fs::write(&input, tube_obj()).expect("write tube");
     let run = |extra: &[&str]| {
         willow()
-            .arg("fair")
+            .args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(dir.path().join("o.obj"))
@@ -109,7 +109,7 @@ fn json_lines_report_tau_and_rejected_tries_with_and_without_the_safeguard() {
     std::fs::write(&input, bumpy_obj()).expect("write mesh");
     for extra in [&[][..], &["--no-safeguard"][..]] {
         let out = willow()
-            .arg("fair")
+            .args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(dir.path().join("o.obj"))
@@ -143,7 +143,7 @@ fn no_progress_writes_the_last_good_mesh_and_exits_3() {
     let output = dir.path().join("out.obj");
     let frames = dir.path().join("frames");
     let out = willow()
-        .arg("fair")
+        .args(["fair", "--method", "conformal"])
         .arg(&input)
         .arg("-o")
         .arg(&output)
@@ -194,7 +194,7 @@ fn fair_stops_on_its_rules_and_names_a_bad_flag() {
     std::fs::write(&input, bumpy_obj()).expect("write mesh");
     let run = |extra: &[&str]| {
         willow()
-            .arg("fair")
+            .args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(dir.path().join("o.obj"))

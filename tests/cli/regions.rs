@@ -41,7 +41,7 @@ fn fair_moves_only_the_named_region() {
         ],
     ] {
         let run = willow()
-            .args(["fair", &spot(), "-o"])
+            .args(["fair", "--method", "conformal", &spot(), "-o"])
             .arg(&out)
             .args(["--steps", "3", "--json"])
             .args(&region)
@@ -73,7 +73,7 @@ fn fair_moves_only_the_named_region() {
         (vec!["--region-sphere", "100,0,0,0.1"], "region"),
     ] {
         let run = willow()
-            .args(["fair", &spot(), "-o"])
+            .args(["fair", "--method", "conformal", &spot(), "-o"])
             .arg(&out)
             .args(&flags)
             .output()
@@ -108,7 +108,7 @@ fn fair_removes_detail_below_the_feature_size() {
     let output = dir.path().join("out.obj");
     let run = |extra: &[&str]| {
         willow()
-            .arg("fair")
+            .args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(&output)
@@ -194,7 +194,7 @@ fn fair_a_named_group_with_a_falloff() {
     let output = dir.path().join("out.obj");
     let run = |extra: &[&str]| {
         willow()
-            .arg("fair")
+            .args(["fair", "--method", "conformal"])
             .arg(&input)
             .arg("-o")
             .arg(&output)

@@ -575,7 +575,10 @@ impl Node {
     ) {
         let mut req = self
             .client
-            .post(self.url(&format!("/v1/jobs?{query}")))
+            .post(self.url(&format!(
+                "/v1/jobs?{}",
+                crate::service_http_support::conformal_unless_named(query)
+            )))
             .header("content-type", "model/obj")
             .body(obj.to_string());
         if let Some(key) = idempotency_key {

@@ -77,7 +77,7 @@ impl Server {
     async fn submit(&self, auth: Option<&str>) -> reqwest::Response {
         let mut req = self
             .client
-            .post(self.url("/v1/jobs?steps=2"))
+            .post(self.url("/v1/jobs?steps=2&method=conformal"))
             .header("content-type", "model/obj")
             .body(small_obj());
         if let Some(a) = auth {

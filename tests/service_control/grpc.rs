@@ -81,6 +81,7 @@ async fn controls_are_fields_and_the_job_reports_its_outcome() {
     // Two steps: this wide fixed-seam cap reaches what its held border allows a conformal
     // flow at the third (flow/willmore/pinned.rs), and the job would end `converged`.
     let params = v1::JobParams {
+        method: v1::Method::Conformal as i32,
         steps: Some(2),
         region: vec![region.clone()],
         seam: v1::Seam::Fixed as i32,

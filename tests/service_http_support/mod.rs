@@ -248,7 +248,8 @@ impl TestServer {
         std::mem::replace(&mut self.dir, dir)
     }
 
-    /// POST a raw OBJ with query parameters; returns (status, headers, json).
+    /// POST a raw OBJ with query parameters; returns (status, headers, json). A query that
+    /// names no method runs the conformal flow ([`conformal_unless_named`]).
     pub async fn submit_obj(
         &self,
         obj: &str,
@@ -258,6 +259,7 @@ impl TestServer {
         reqwest::header::HeaderMap,
         serde_json::Value,
     ) {
+        let query = conformal_unless_named(query);
         let res = self
             .client
             .post(self.url(&format!("/v1/jobs?{query}")))
@@ -301,6 +303,7 @@ impl TestServer {
 /// POST an OBJ to `{base}/v1/jobs?{query}` (a server started out of process, or on a raw
 /// address), expect 202, and return the job's id.
 pub async fn submit_obj_to(client: &reqwest::Client, base: &str, query: &str, obj: &str) -> String {
+    let query = conformal_unless_named(query);
     let res = client
         .post(format!("{base}/v1/jobs?{query}"))
         .header("content-type", "model/obj")
@@ -460,9 +463,24 @@ pub fn obj(text: String) -> willow_service::jobs::UploadRef {
     }
 }
 
-/// The default spec with `steps` steps.
+/// The service's tests drive the conformal flow, whose steps they count and whose metrics
+/// they read; the default method (`denoise`, which leaves a clean test mesh alone) has tests
+/// of its own (tests/service_http/jobs.rs, tests/cli/denoise.rs). A query that names a
+/// method keeps it.
+pub fn conformal_unless_named(query: &str) -> String {
+    if query.split('&').any(|kv| kv.starts_with("method=")) {
+        query.to_string()
+    } else if query.is_empty() {
+        "method=conformal".to_string()
+    } else {
+        format!("method=conformal&{query}")
+    }
+}
+
+/// The conformal flow's spec with `steps` steps (see [`conformal_unless_named`]).
 pub fn spec(steps: usize) -> willow_service::jobs::JobSpec {
     willow_service::jobs::JobSpec {
+        method: willow::flow::Method::Conformal,
         steps,
         // The core's tests count steps: every job runs all of its own.
         until_converged: false,

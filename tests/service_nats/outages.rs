@@ -40,7 +40,7 @@ fn sample_requests(
                 (
                     "submit",
                     client
-                        .post(format!("{base}/v1/jobs?steps=1"))
+                        .post(format!("{base}/v1/jobs?steps=1&method=conformal"))
                         .header("content-type", "model/obj")
                         .body(small.clone()),
                 ),

@@ -3,7 +3,7 @@
 //! Each test asserts a number the math predicts: `d1 d0 = 0` exactly, `d0ᵀ ⋆1 d0 = L`, the
 //! first Betti number of each surface, closedness, co-closedness, ⋆1-orthonormality, periods
 //! around the generating loops of a torus, and the Gram system of the vector fields. The shared
-//! genus-2 and genus-5 meshes are skipped with a note when `/work/shared/meshes` is absent.
+//! genus-2 and genus-5 meshes fail the test, saying where they were looked for, when the shared meshes are absent.
 
 mod mesh_support;
 use mesh_support::shared_surface;

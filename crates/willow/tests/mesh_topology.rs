@@ -1,5 +1,5 @@
 //! Topology: edges, boundary loops, components, χ and genus, on generated surfaces and on the
-//! shared real meshes (skipped with a note when /work/shared/meshes is absent).
+//! shared real meshes (the test fails, saying where it looked, when they are absent).
 
 mod mesh_support;
 

@@ -115,7 +115,9 @@ pub fn consistently_wound(t: &[[usize; 3]]) -> bool {
 }
 
 /// Where the shared test meshes live: `$WILLOW_SHARED_MESHES`, else `../shared/meshes` beside
-/// the checkout, else `/work/shared/meshes`; `None` (with a note) when this machine has none.
+/// the checkout, else `/work/shared/meshes`. A test that needs one fails when it is missing,
+/// saying where it looked: it never passes having checked nothing (issue 41). `Some` always;
+/// the `Option` keeps the callers' `let … else` shape.
 pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
     let candidates = match std::env::var_os("WILLOW_SHARED_MESHES") {
         Some(dir) => vec![std::path::PathBuf::from(dir)],
@@ -128,10 +130,13 @@ pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
         .iter()
         .map(|dir| dir.join(name))
         .find(|path| path.is_file());
-    if found.is_none() {
-        eprintln!("note: {name} not found in {candidates:?}; skipping this check");
+    match found {
+        Some(path) => Some(path),
+        None => panic!(
+            "{name} is needed by this test and is not in {candidates:?}; set \
+             WILLOW_SHARED_MESHES to the shared meshes' folder"
+        ),
     }
-    found
 }
 
 /// One of the shared OBJ meshes as a validated surface, or `None` as [`shared_mesh`] says.
