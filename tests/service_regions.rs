@@ -89,6 +89,7 @@ async fn a_region_in_the_query_or_the_json_moves_only_its_vertices() {
     // JSON params part: the same vertices named by their `v` lines, fixed seam.
     let lines: Vec<usize> = (0..input.len()).filter(|&k| in_ear(input[k])).collect();
     let params = serde_json::json!({
+        "method": "conformal",
         "steps": 2,
         "include_positions": false,
         "region": {"vertices": lines},
@@ -167,7 +168,7 @@ async fn a_region_holding_a_whole_component_fairs_it_and_keeps_the_other() {
     let res = srv
         .client
         .post(srv.url(&format!(
-            "/v1/jobs?steps=4&include_positions=false&region.vertices={}",
+            "/v1/jobs?method=conformal&steps=4&include_positions=false&region.vertices={}",
             lines.join(",")
         )))
         .header("content-type", "model/obj")

@@ -71,7 +71,7 @@ pub struct FairArgs {
     /// (0.35 ≈ 20°: guidance normals further apart do not mix, so creases stay).
     #[arg(long, default_value_t = 0.35)]
     pub denoise_sigma_r: f64,
-    /// `--method denoise`: the filtering disc's radius in mean centroid distances, 0.5–8.
+    /// `--method denoise`: the filtering disc's radius in mean centroid distances, 0.5–4.
     #[arg(long, default_value_t = 2.0)]
     pub denoise_radius: f64,
     /// `--method denoise`: plain bilateral range weights (Zheng et al. 2011) instead of guided

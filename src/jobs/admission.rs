@@ -116,7 +116,10 @@ impl Jobs {
                     limit: limits.max_faces as u64,
                 });
             }
-            let repairs = parse_spec.repair.then(|| asset.repairs().clone());
+            // Only what changed: repair is the default, and a file that needed none says
+            // nothing about it.
+            let repairs =
+                Some(asset.repairs().clone()).filter(|r| parse_spec.repair && !r.is_empty());
             Ok((
                 asset.file_vertex_count(),
                 surface.face_count(),

@@ -146,8 +146,8 @@ pub struct JobStatus {
     pub finished_at: Option<u64>,
     /// When a finished job's results are deleted (then every call answers [`JobError::Gone`](super::JobError::Gone)).
     pub expires_at: Option<u64>,
-    /// What `repair` changed in the upload, in the file's numbering (`None` without
-    /// `repair`). Stored with the job, so every read reports it; records from before it was
+    /// What `repair` changed in the upload, in the file's numbering (`None` when nothing
+    /// was repaired, or without `repair`). Stored with the job, so every read reports it; records from before it was
     /// stored read as `None`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub repairs: Option<willow::mesh::io::Repairs>,

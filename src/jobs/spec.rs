@@ -56,7 +56,7 @@ pub struct DenoiseSpec {
     /// neighbours whose guidance normals differ by much more do not mix, so creases stay.
     pub sigma_r: f64,
     /// Radius of each face's filtering disc in mean distances between adjacent face
-    /// centroids, 0.5–8; default 2.
+    /// centroids, 0.5–4; default 2.
     pub radius: f64,
     /// Guided range weights (default true); false is Zheng et al.'s bilateral normal filter.
     pub guided: bool,

@@ -115,6 +115,7 @@ async fn controls_are_fields_and_the_job_reports_its_outcome() {
     // until_willmore and preserve: the run ends target_reached, stopped_early says so.
     let target = 4.0 * std::f64::consts::PI * 1.05;
     let params = v1::JobParams {
+        method: v1::Method::Conformal as i32,
         steps: Some(40),
         preserve: v1::Preserve::Volume as i32,
         until_willmore: Some(target),

@@ -30,11 +30,21 @@ async fn every_bad_input_gets_its_status_and_detail() {
     ] {
         assert_bad_field(create(&mut client, mesh, mcf(1), "").await, field);
     }
-    // Two triangles sharing an edge with a third: non-manifold, refused with its rule named.
+    // Two triangles sharing an edge with a third: non-manifold, refused with its rule named
+    // when repair is off (by default it is split).
     let fin = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nf 1 2 3\nf 2 1 4\nf 1 2 5\n".to_vec();
-    let status = create(&mut client, inline(v1::MeshFormat::Obj, fin), mcf(1), "")
-        .await
-        .expect_err("non-manifold mesh");
+    let unrepaired = v1::JobParams {
+        repair: Some(false),
+        ..mcf(1)
+    };
+    let status = create(
+        &mut client,
+        inline(v1::MeshFormat::Obj, fin),
+        unrepaired,
+        "",
+    )
+    .await
+    .expect_err("non-manifold mesh");
     assert_eq!(status.code(), Code::InvalidArgument);
     assert_eq!(violations(&status), vec!["inline_mesh.data".to_string()]);
     let reason = status

@@ -193,7 +193,8 @@ async fn every_bad_input_gets_its_specific_problem() {
     // Parameters: each names its field.
     for (query, field) in [
         ("steps=0", "steps"),
-        ("tau=1.5", "tau"),
+        // τ ≥ 1 is unstable for the conformal flow (§4); the default method has no τ.
+        ("tau=1.5&method=conformal", "tau"),
         ("tau=-1", "tau"),
         ("iterations=0", "iterations"),
         ("frame_interval=0", "frame_interval"),

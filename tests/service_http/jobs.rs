@@ -232,7 +232,10 @@ async fn multipart_glb_upload_with_params_part_runs() {
                 .mime_str("model/gltf-binary")
                 .expect("mime"),
         )
-        .text("params", r#"{"steps": 3, "include_positions": false}"#);
+        .text(
+            "params",
+            r#"{"method": "conformal", "steps": 3, "include_positions": false}"#,
+        );
     let res = srv
         .client
         .post(srv.url("/v1/jobs"))
@@ -471,7 +474,7 @@ async fn textured_upload_keeps_uvs_in_the_validated_result() {
     let srv = start(|_| {}).await;
     let res = srv
         .client
-        .post(srv.url("/v1/jobs?steps=1&include_positions=false"))
+        .post(srv.url("/v1/jobs?steps=1&include_positions=false&method=conformal"))
         .header("content-type", "model/obj")
         .body(input)
         .send()

@@ -427,12 +427,17 @@ async fn bad_flow_options_are_refused_with_the_field_named() {
         (r#"{"boundary": "clamped"}"#, "boundary"),
         ("[1, 2]", "params"),
     ] {
+        // The conformal flow's options, asked of the conformal flow (not the default method).
+        let params = match params.strip_prefix('{') {
+            Some(rest) => format!(r#"{{"method": "conformal", {rest}"#),
+            None => params.to_string(),
+        };
         let form = reqwest::multipart::Form::new()
             .part(
                 "mesh",
                 reqwest::multipart::Part::text(cap.clone()).file_name("cap.obj"),
             )
-            .text("params", params.to_string());
+            .text("params", params.clone());
         let res = srv
             .client
             .post(srv.url("/v1/jobs"))

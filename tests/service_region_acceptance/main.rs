@@ -241,6 +241,7 @@ async fn over_http(srv: &TestServer, case: &Case<'_>) -> Files {
 
 async fn over_http_steps(srv: &TestServer, case: &Case<'_>, steps: u32) -> Files {
     let mut params = serde_json::json!({
+        "method": "conformal",
         "steps": steps,
         "include_positions": false,
         "region": case.region.json(),

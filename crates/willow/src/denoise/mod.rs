@@ -70,6 +70,11 @@ impl Default for DenoiseParams {
 
 /// Largest outer and vertex iteration counts accepted (beyond them nothing changes but time).
 pub const MAX_ITERATIONS: usize = 200;
+/// The widest filtering disc, in mean centroid distances `s`: a disc of radius `r·s` holds
+/// about 2.4·r² faces (π r² s² over a face's 1.3 s² on a regular mesh), and the discs are
+/// kept for the whole run, so at the upload limit (2M faces) radius 8 would hold 2.5 GB of
+/// indices before any work; 4 holds a quarter of that.
+pub const MAX_RADIUS: f64 = 4.0;
 /// The fewest outer iterations [`DenoiseParams::iterations`]' automatic count takes.
 pub const MIN_AUTO_ITERATIONS: usize = 4;
 /// The most outer iterations the automatic count takes.
@@ -109,11 +114,11 @@ impl DenoiseParams {
                 ),
             ));
         }
-        if !(self.radius.is_finite() && self.radius >= 0.5 && self.radius <= 8.0) {
+        if !(self.radius.is_finite() && self.radius >= 0.5 && self.radius <= MAX_RADIUS) {
             return Err((
                 "denoise.radius",
                 format!(
-                    "must be between 0.5 and 8 (mean centroid distances), got {}",
+                    "must be between 0.5 and {MAX_RADIUS} (mean centroid distances), got {}",
                     self.radius
                 ),
             ));
