@@ -217,6 +217,9 @@ test('a dropped connection and a reload mid-run resume the stream; cancel the jo
 
 test('a textured GLB shows its embedded texture and flows', { skip: !duck && 'Duck.glb is not on this machine' }, async () => {
   await page.goto(BASE + '/');
+  await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
+  // The conformal flow's frames (the default method leaves the clean duck alone).
+  await page.selectOption('select[name=method]', 'conformal');
   await page.setInputFiles('#files', [duck]);
   await page.waitForFunction(() => /texture \(embedded\)/.test(document.getElementById('file-info').textContent));
   const s = await stats(page);
