@@ -430,6 +430,8 @@ fn create_request(mesh: v1::create_job_request::Mesh, request_id: &str) -> v1::C
     v1::CreateJobRequest {
         mesh: Some(mesh),
         params: Some(v1::JobParams {
+            // The conformal flow: the default method leaves the clean test mesh alone at once.
+            method: v1::Method::Conformal as i32,
             steps: Some(2),
             ..Default::default()
         }),
