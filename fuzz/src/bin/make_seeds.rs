@@ -129,6 +129,13 @@ fn make_seeds() -> Result<(), Error> {
                 callback_url: Some("https://hooks.example/willow".into()),
                 repair: Some(true),
                 refine: Some(true),
+                denoise: Some(v1::DenoiseParams {
+                    iterations: Some(6),
+                    vertex_iterations: Some(5),
+                    sigma_r: Some(0.3),
+                    radius: Some(1.5),
+                    guided: Some(false),
+                }),
             }),
             request_id: "3f2504e0-4f89-41d3-9a0c-0305e82c3301".into(),
         },
