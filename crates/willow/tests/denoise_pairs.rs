@@ -3,7 +3,7 @@
 //! same run) in θ and Dv on every pair, keeps fandisk's creases, and uses `max_deviation` as a
 //! tolerance. A missing pair fails the test (it never passes having checked nothing).
 
-use willow::denoise::score::{dihedral_angles, score, Score};
+use willow::denoise::score::{crowded_share, dihedral_angles, score, Score};
 use willow::flow::classic::TaubinSmoothing;
 use willow::flow::stopping::{Event, Outcome, Run};
 use willow::flow::{new_flow, Flow, FlowParams, Method};
@@ -232,34 +232,6 @@ fn nefertiti_at_the_defaults_neither_stalls_nor_crowds() {
         !matches!(outcome, Outcome::Stalled | Outcome::NoProgress),
         "{outcome:?}: {reason}"
     );
-    let areas = |p: &[[f64; 3]]| -> Vec<f64> {
-        mesh.triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|v| p[v]);
-                let (u, w) = (
-                    [0, 1, 2].map(|k| b[k] - a[k]),
-                    [0, 1, 2].map(|k| c[k] - a[k]),
-                );
-                let n = [
-                    u[1] * w[2] - u[2] * w[1],
-                    u[2] * w[0] - u[0] * w[2],
-                    u[0] * w[1] - u[1] * w[0],
-                ];
-                0.5 * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt()
-            })
-            .collect()
-    };
-    let (a0, a1) = (areas(&mesh.positions), areas(&out));
-    let (s0, s1): (f64, f64) = (a0.iter().sum(), a1.iter().sum());
-    let crowded = a0
-        .iter()
-        .zip(&a1)
-        .filter(|(x, y)| **y / s1 < 1e-3 * **x / s0)
-        .count();
-    assert!(
-        (crowded as f64) < 0.005 * a0.len() as f64,
-        "{crowded} of {} crowded",
-        a0.len()
-    );
+    let crowded = crowded_share(&mesh.positions, &out, &mesh.triangles);
+    assert!(crowded < 0.005, "{crowded} of the faces crowded");
 }

@@ -4,6 +4,7 @@
 
 use super::normals::angle_degrees;
 use crate::geometry::bvh::Bvh;
+use crate::geometry::operators::face_areas_into;
 use crate::geometry::vec3::{cross, norm, scale, sub};
 
 fn unit_normal(p: &[[f64; 3]], t: [usize; 3]) -> [f64; 3] {
@@ -88,6 +89,26 @@ pub fn score(result: &[[f64; 3]], clean: &[[f64; 3]], triangles: &[[usize; 3]]) 
     }
 }
 
+/// The share of faces crowded on `after` against `before` (one connectivity): faces whose
+/// share of the total area fell below `1e-3` of their share on `before` — the crumpling a
+/// user sees, which Q (angles only) does not.
+pub fn crowded_share(before: &[[f64; 3]], after: &[[f64; 3]], triangles: &[[usize; 3]]) -> f64 {
+    if triangles.is_empty() {
+        return 0.0;
+    }
+    let mut a0 = vec![0.0; triangles.len()];
+    let mut a1 = vec![0.0; triangles.len()];
+    face_areas_into(before, triangles, &mut a0);
+    face_areas_into(after, triangles, &mut a1);
+    let (s0, s1): (f64, f64) = (a0.iter().sum(), a1.iter().sum());
+    let crowded = a0
+        .iter()
+        .zip(&a1)
+        .filter(|(x, y)| **y / s1 < 1e-3 * **x / s0)
+        .count();
+    crowded as f64 / triangles.len() as f64
+}
+
 /// The length of the diagonal of the bounding box of `positions`.
 pub fn bounding_diagonal(positions: &[[f64; 3]]) -> f64 {
     let mut lo = [f64::INFINITY; 3];
@@ -134,6 +155,20 @@ mod tests {
         let d = mean_distance_to_surface(&out, &m.positions, &m.triangles);
         assert!((d - 0.1).abs() < 0.002, "{d}");
         assert!(mean_distance_to_surface(&m.positions, &m.positions, &m.triangles) < 1e-12);
+    }
+
+    #[test]
+    fn a_face_squashed_a_million_fold_is_crowded_and_a_scaled_mesh_is_not() {
+        let m = icosphere(2);
+        let scaled: Vec<[f64; 3]> = m.positions.iter().map(|p| scale(*p, 3.0)).collect();
+        assert_eq!(crowded_share(&m.positions, &scaled, &m.triangles), 0.0);
+        // Move one vertex of face 0 onto the midpoint of its other two: that face (and only
+        // faces around that vertex) loses its area.
+        let mut squashed = m.positions.clone();
+        let [a, b, c] = m.triangles[0];
+        squashed[a] = [0, 1, 2].map(|k| 0.5 * (m.positions[b][k] + m.positions[c][k]));
+        let share = crowded_share(&m.positions, &squashed, &m.triangles);
+        assert!(share > 0.0 && share < 0.05, "{share}");
     }
 
     #[test]
