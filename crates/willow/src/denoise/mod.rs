@@ -184,11 +184,7 @@ impl Denoiser {
         );
         let spacing =
             neighbourhood::mean_adjacent_centroid_distance(&centroids, &topology.edge_faces);
-        let discs = if params.guided || params.radius > 0.0 {
-            neighbourhood::centroid_discs(&centroids, &rings, params.radius * spacing)
-        } else {
-            rings.clone()
-        };
+        let discs = neighbourhood::centroid_discs(&centroids, &rings, params.radius * spacing);
         let mut denoiser = Denoiser {
             params,
             triangles: mesh.triangles.clone(),
@@ -221,7 +217,8 @@ impl Denoiser {
             denoiser.filter_and_move(&mut first);
             let after = noise::median_dihedral(&first, &mesh.triangles, &topology.edge_faces);
             denoiser.clean = !noise::is_noisy(before, after);
-            denoiser.pilot = Some(first);
+            // A clean mesh takes no iteration: the copy is only kept for the first one.
+            denoiser.pilot = (!denoiser.clean).then_some(first);
         }
         denoiser
     }
