@@ -15,8 +15,9 @@ use crate::mesh::Mesh;
 use crate::metrics::StepMetrics;
 use std::time::Instant;
 
-/// Outer iterations per step: the automatic count takes up to 20, so a run of the service's
-/// default 10 steps sees the whole stage.
+/// Outer iterations per step: the automatic count takes up to 20, so a run of the CLI's
+/// default 10 steps (the service's is 20) sees the whole stage. A forced count above twice
+/// the steps is cut off where the run ends (`completed`, "ran its N steps").
 pub const ITERATIONS_PER_STEP: usize = 2;
 
 /// Feature-preserving denoising, one step at a time ([`crate::denoise::Denoiser`]).
