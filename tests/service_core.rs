@@ -536,12 +536,13 @@ async fn a_dropped_curve_request_frees_its_slot() {
     core.shutdown(Duration::from_secs(1)).await;
 }
 
-/// The request `steps=1` as the first release read it: the conformal flow, no repair (the
-/// defaults before issue 39). Sent again after the upgrade it must hash as it did then.
+/// The request `steps=1` as the first release read it: the conformal flow, no repair, a free
+/// boundary (the defaults before issue 39). Sent again after the upgrade it must hash as it did then.
 fn first_release_request() -> JobSpec {
     JobSpec {
         method: willow::flow::Method::Conformal,
         repair: false,
+        boundary: willow_service::jobs::spec::BoundarySpec::Free,
         steps: 1,
         ..JobSpec::default()
     }

@@ -129,7 +129,7 @@ pub struct FairArgs {
     #[arg(long, requires = "filter_sigma")]
     pub filter_k: Option<u32>,
     /// Boundary condition for surfaces with boundary (§6.3).
-    #[arg(long, value_enum, default_value_t = BoundaryArg::Free)]
+    #[arg(long, value_enum, default_value_t = BoundaryArg::Auto)]
     pub boundary: BoundaryArg,
     /// With --boundary prescribed: V = cos φ·B + sin φ·N, φ in radians, |φ| ≤ 1.5 (§6.3.1).
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
@@ -214,7 +214,10 @@ fn parse_axis(text: &str) -> Result<AxisSpec, String> {
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
 pub enum BoundaryArg {
-    /// The boundary moves freely.
+    /// The border stays where it is: held under the conformal flow (`fixed`), free under the
+    /// other methods and with regions, which keep it themselves.
+    Auto,
+    /// The boundary moves freely (§6.2): an open scan may shrink away from its border.
     Free,
     /// Boundary vertices stay exactly where they are.
     Fixed,
@@ -301,6 +304,7 @@ pub fn run(args: FairArgs) -> ExitCode {
     };
     // The CLI maps onto the same job spec as HTTP and gRPC, and is checked by the same rules.
     let boundary = match args.boundary {
+        BoundaryArg::Auto => BoundarySpec::Auto,
         BoundaryArg::Free => BoundarySpec::Free,
         BoundaryArg::Fixed => BoundarySpec::Fixed,
         BoundaryArg::Cmc => BoundarySpec::Cmc,
@@ -382,8 +386,11 @@ pub fn run(args: FairArgs) -> ExitCode {
         Ok(g) => g,
         Err(e) => return fail(EXIT_BAD_INPUT, format!("--region-group: {e}")),
     };
+    let regions: Vec<Region> = base.regions.iter().cloned().chain(groups).collect();
     let params = willow::flow::FlowParams {
-        regions: base.regions.iter().cloned().chain(groups).collect(),
+        // `auto` resolved again: a group is a region too, and a region holds its own border.
+        boundary: spec.boundary.to_flow(spec.method, !regions.is_empty()),
+        regions,
         threads: match args.threads {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
             n => n,

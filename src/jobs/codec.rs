@@ -69,12 +69,13 @@ fn hashed_spec(spec: &JobSpec) -> serde_json::Result<Vec<u8>> {
 
 /// What "at its default" means for [`hashed_spec`]: each later field at the default it had
 /// when it was added, not at today's. A default that changes must not change the hash of a
-/// stored request that held the old one: `repair` was false until issue 39 made it true
-/// (the first-release field `method` changed its default then too, to `denoise`, but first-
-/// release fields are always hashed as they are).
+/// stored request that held the old one: `repair` was false and `boundary` free until issue
+/// 39 made them true and `auto` (the first-release field `method` changed its default then
+/// too, to `denoise`, but first-release fields are always hashed as they are).
 fn hash_baseline() -> JobSpec {
     JobSpec {
         repair: false,
+        boundary: crate::jobs::spec::BoundarySpec::Free,
         ..JobSpec::default()
     }
 }
@@ -483,26 +484,30 @@ mod tests {
             ..first_release_default()
         };
         assert_ne!(request_hash(b"mesh", Format::Obj, &unguarded), old);
-        // And an old stored spec (without the new fields) still loads, with their defaults
+        // And an old stored spec (without the new fields) still loads, with today's defaults
         // (`repair` on: the file of a job accepted without repair needs none, and reads the
-        // same either way).
+        // same either way; `boundary` auto: a first-release job on an open mesh resumed after
+        // the upgrade keeps its border from then on).
         let stored: JobSpec =
             serde_json::from_slice(first_release).expect("a first-release spec loads");
         assert_eq!(
             stored,
             JobSpec {
                 repair: true,
+                boundary: crate::jobs::spec::BoundarySpec::Auto,
                 ..spec
             }
         );
     }
 
     /// The spec a request with no parameters made before issue 39 changed the defaults:
-    /// the conformal flow, no repair. The pinned hashes below were made from it.
+    /// the conformal flow, no repair, a free boundary. The pinned hashes below were made from
+    /// it.
     fn first_release_default() -> JobSpec {
         JobSpec {
             method: willow::flow::Method::Conformal,
             repair: false,
+            boundary: crate::jobs::spec::BoundarySpec::Free,
             ..JobSpec::default()
         }
     }

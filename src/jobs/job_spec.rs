@@ -53,7 +53,8 @@ pub struct JobSpec {
     pub mobius_balancing: bool,
     /// Spectral filter of the flow direction (§4); null is the paper's plain flow.
     pub filter: Option<spec::FilterSpec>,
-    /// Boundary condition (§6.3); anything but `free` is for the conformal flow only.
+    /// Boundary condition (§6.3): `auto` (the default) holds an open surface's border under the
+    /// conformal flow; anything but `auto` or `free` is for the conformal flow only.
     pub boundary: spec::BoundarySpec,
     // See `willow::flow::safeguard`.
     /// Safeguarded steps: a step that raises W or damages the mesh is retried at a smaller τ.
@@ -136,7 +137,7 @@ impl Default for JobSpec {
             exactness: flow.exactness,
             mobius_balancing: flow.mobius_balancing,
             filter: None,
-            boundary: spec::BoundarySpec::Free,
+            boundary: spec::BoundarySpec::Auto,
             safeguard: flow.safeguard,
             region: Vec::new(),
             seam: flow.seam,
@@ -335,7 +336,7 @@ impl JobSpec {
             exactness: self.exactness,
             mobius_balancing: self.mobius_balancing,
             filter: self.filter.map(spec::FilterSpec::to_flow),
-            boundary: self.boundary.to_flow(),
+            boundary: self.boundary.to_flow(self.method, !self.region.is_empty()),
             safeguard: self.safeguard,
             // Not the client's to choose: the worker pool sets it (`worker::thread_budget`).
             threads: 1,

@@ -13,7 +13,7 @@
 use serde::{Deserialize, Serialize};
 use willow::flow::filter::SpectralFilter;
 use willow::flow::{
-    Boundary, BoundaryAngles, FlowError, FlowParams, PrescribedVectors, RotationAxis,
+    Boundary, BoundaryAngles, FlowError, FlowParams, Method, PrescribedVectors, RotationAxis,
 };
 
 /// Largest filter order: the library's `FilterSolver` builds `L (M⁻¹L)^{k−1}` for k ≤ 3.
@@ -95,8 +95,14 @@ impl DenoiseSpec {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum BoundarySpec {
-    /// The boundary moves freely (§6.2).
+    /// The default: the border stays where it is. The conformal flow holds it (`fixed`):
+    /// free, the boundary of an open scan is not elliptic (§6.2, Bohle and Pinkall 2013) and
+    /// a raw rabbit scan crumpled into a fan moved 360‰ of its diagonal (issue 39). Free
+    /// where the flow keeps the border itself: the other methods move boundary vertices like
+    /// any other, and a region holds its own surroundings.
     #[default]
+    Auto,
+    /// The boundary moves freely (§6.2): an open surface may shrink away from its border.
     Free,
     /// Boundary vertices stay exactly where they are (§6.3.2).
     Fixed,
@@ -107,14 +113,12 @@ pub enum BoundarySpec {
 }
 
 impl BoundarySpec {
-    pub fn is_free(&self) -> bool {
-        *self == BoundarySpec::Free
-    }
-
-    /// The library's boundary condition.
-    pub fn to_flow(&self) -> Boundary {
+    /// The library's boundary condition for a flow of `method`, with regions or not
+    /// ([`BoundarySpec::Auto`] resolves here).
+    pub fn to_flow(&self, method: Method, regions: bool) -> Boundary {
         match self {
-            BoundarySpec::Free => Boundary::Free,
+            BoundarySpec::Auto if method == Method::Conformal && !regions => Boundary::Fixed,
+            BoundarySpec::Auto | BoundarySpec::Free => Boundary::Free,
             BoundarySpec::Fixed => Boundary::Fixed,
             BoundarySpec::Cmc => Boundary::Cmc,
             BoundarySpec::Prescribed(p) => Boundary::Prescribed(p.to_flow()),
@@ -292,7 +296,8 @@ mod tests {
         ];
         for spec in cases {
             let ours = serde_json::to_value(&spec).expect("serializes");
-            let library = serde_json::to_value(spec.to_flow()).expect("serializes");
+            let library =
+                serde_json::to_value(spec.to_flow(Method::Conformal, false)).expect("serializes");
             assert_eq!(ours, library);
             let back: BoundarySpec = serde_json::from_value(library).expect("reads back");
             assert_eq!(back, spec);

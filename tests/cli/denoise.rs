@@ -174,6 +174,40 @@ fn an_open_noisy_scan_with_a_bowtie_is_repaired_and_keeps_its_border() {
     );
 }
 
+/// Issue 39: the conformal flow on an open scan keeps its border where it is unless asked
+/// for `free` (where the border shrinks inward: what made a raw rabbit scan a crumpled fan).
+#[test]
+fn the_conformal_flow_holds_an_open_scans_border_unless_asked_free() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (text, n, _) = scan_obj();
+    let input = dir.path().join("scan.obj");
+    std::fs::write(&input, text).expect("write");
+    let before = read(&input);
+    let topology = willow::mesh::topology::Topology::new(&before);
+    let border = topology.boundary_vertex_mask(before.vertex_count());
+    let worst_border_move = |extra: &[&str]| {
+        let output = dir.path().join("out.obj");
+        let mut args = vec!["--method", "conformal", "--steps", "3"];
+        args.extend_from_slice(extra);
+        let run = fair(&input, &output, &args);
+        let end = outcome(&run);
+        assert_eq!(end["outcome"], "completed", "{extra:?}: {end}");
+        let after = read(&output);
+        (0..n)
+            .filter(|&i| border[i])
+            .map(|i| {
+                let (a, b) = (before.positions[i], after.positions[i]);
+                ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+            })
+            .fold(0.0, f64::max)
+    };
+    assert_eq!(worst_border_move(&[]), 0.0, "the default holds the border");
+    assert_eq!(worst_border_move(&["--boundary", "auto"]), 0.0);
+    let edge = willow::mesh::generate::mean_edge_length(&before);
+    let free = worst_border_move(&["--boundary", "free"]);
+    assert!(free > edge, "free: the border moved {free} (edge {edge})");
+}
+
 #[test]
 fn a_ply_keeps_its_vertex_numbering_in_every_output_format() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -71,7 +71,7 @@ async fn flow_options_are_reported_back_refused_by_field_and_run() {
         Some(&options.boundary)
     );
 
-    // Unset fields report their defaults; an empty Boundary is free.
+    // Unset fields report their defaults; an empty Boundary is the default, `auto`.
     let op = create(
         &mut client,
         sphere(),
@@ -91,7 +91,7 @@ async fn flow_options_are_reported_back_refused_by_field_and_run() {
     assert_eq!(p.exactness, Some(true));
     assert_eq!(p.mobius_balancing, Some(false));
     assert_eq!(p.filter, None);
-    assert_eq!(p.boundary, condition(Condition::Free(())));
+    assert_eq!(p.boundary, condition(Condition::Auto(())));
 
     // Taubin and a CMC boundary run to completion (CMC needs the prescribed-vectors solver).
     for (mesh, p) in [
@@ -125,7 +125,7 @@ async fn flow_options_are_reported_back_refused_by_field_and_run() {
         );
         assert_eq!(
             done.params.map(|q| q.boundary),
-            Some(p.boundary.or(condition(Condition::Free(()))))
+            Some(p.boundary.or(condition(Condition::Auto(()))))
         );
     }
 

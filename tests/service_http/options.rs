@@ -159,6 +159,27 @@ async fn every_flow_option_reaches_the_flow_and_is_reported_back() {
             changes: true,
             reported: serde_json::json!({"boundary": "fixed"}),
         },
+        // Issue 39: no boundary given, an open surface's border is held (`auto` is `fixed`
+        // under the conformal flow); `free` is the library's default, asked for.
+        Case {
+            mesh: &cap,
+            query: "steps=2",
+            params: FlowParams {
+                boundary: Boundary::Fixed,
+                ..plain.clone()
+            },
+            steps: 2,
+            changes: true,
+            reported: serde_json::json!({"boundary": "auto"}),
+        },
+        Case {
+            mesh: &cap,
+            query: "steps=2&boundary=free",
+            params: plain.clone(),
+            steps: 2,
+            changes: false,
+            reported: serde_json::json!({"boundary": "free"}),
+        },
         Case {
             mesh: &sphere,
             query: "steps=1&boundary=fixed",
@@ -256,7 +277,7 @@ async fn every_flow_option_reaches_the_flow_and_is_reported_back() {
     assert_eq!(params["exactness"], true);
     assert_eq!(params["mobius_balancing"], false);
     assert_eq!(params["filter"], serde_json::Value::Null);
-    assert_eq!(params["boundary"], "free");
+    assert_eq!(params["boundary"], "auto");
     assert_eq!(params["safeguard"], true);
     let prescribed = run_job(
         &srv,

@@ -359,6 +359,7 @@ impl Compact {
             None if !prescribed_given => None,
             None => Some(BoundarySpec::Prescribed(PrescribedSpec::default())),
             Some(name) => Some(match name.as_str() {
+                "auto" => BoundarySpec::Auto,
                 "free" => BoundarySpec::Free,
                 "fixed" => BoundarySpec::Fixed,
                 "cmc" => BoundarySpec::Cmc,
@@ -366,7 +367,10 @@ impl Compact {
                 other => {
                     return Err(bad_field(
                         "boundary",
-                        format!("expected `free`, `fixed`, `cmc` or `prescribed`, got `{other}`"),
+                        format!(
+                            "expected `auto`, `free`, `fixed`, `cmc` or `prescribed`, got \
+                             `{other}`"
+                        ),
                     ))
                 }
             }),

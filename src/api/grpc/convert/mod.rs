@@ -286,11 +286,12 @@ fn region_pb(r: &Region) -> v1::Region {
 }
 
 /// Wire boundary → [`BoundarySpec`]. Unset oneofs take the defaults the proto documents
-/// (free; tangent axis; uniform 0); the numbers are checked by [`JobSpec::validate`].
+/// (auto; tangent axis; uniform 0); the numbers are checked by [`JobSpec::validate`].
 fn boundary_from_pb(boundary: v1::Boundary) -> BoundarySpec {
     use v1::boundary::Condition;
     match boundary.condition {
-        None | Some(Condition::Free(())) => BoundarySpec::Free,
+        None | Some(Condition::Auto(())) => BoundarySpec::Auto,
+        Some(Condition::Free(())) => BoundarySpec::Free,
         Some(Condition::Fixed(())) => BoundarySpec::Fixed,
         Some(Condition::Cmc(())) => BoundarySpec::Cmc,
         Some(Condition::Prescribed(p)) => BoundarySpec::Prescribed(PrescribedSpec {
@@ -314,6 +315,7 @@ fn boundary_from_pb(boundary: v1::Boundary) -> BoundarySpec {
 fn boundary_pb(boundary: &BoundarySpec) -> v1::Boundary {
     use v1::boundary::Condition;
     let condition = match boundary {
+        BoundarySpec::Auto => Condition::Auto(()),
         BoundarySpec::Free => Condition::Free(()),
         BoundarySpec::Fixed => Condition::Fixed(()),
         BoundarySpec::Cmc => Condition::Cmc(()),
@@ -529,6 +531,7 @@ mod tests {
     #[test]
     fn boundaries_round_trip_through_the_wire() {
         for b in [
+            BoundarySpec::Auto,
             BoundarySpec::Free,
             BoundarySpec::Fixed,
             BoundarySpec::Cmc,
@@ -548,7 +551,7 @@ mod tests {
         // Empty messages take the documented defaults.
         assert_eq!(
             boundary_from_pb(v1::Boundary::default()),
-            BoundarySpec::Free
+            BoundarySpec::Auto
         );
         let bare = v1::Boundary {
             condition: Some(v1::boundary::Condition::Prescribed(
