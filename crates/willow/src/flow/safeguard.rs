@@ -322,8 +322,12 @@ fn collapsed_count(cross: &[[f64; 3]], input_shares: &[f64]) -> usize {
     cross
         .iter()
         .zip(input_shares)
-        // A NaN share compares false: collapsed.
-        .filter(|&(n, &s0)| !(length(*n) >= COLLAPSE_SHARE * s0 * total))
+        // A NaN share compares as nothing: collapsed.
+        .filter(|&(n, &s0)| {
+            use std::cmp::Ordering::{Equal, Greater};
+            let sound = length(*n).partial_cmp(&(COLLAPSE_SHARE * s0 * total));
+            !matches!(sound, Some(Greater | Equal))
+        })
         .count()
 }
 
