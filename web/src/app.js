@@ -56,6 +56,9 @@ async function loadConfig() {
   const d = cfg.defaults;
   for (const name of ['method', 'steps', 'tau', 'iterations', 'frame_interval']) form.elements[name].value = d[name];
   for (const name of ['include_positions', 'safeguard', 'exactness', 'mobius_balancing']) form.elements[name].checked = d[name];
+  // Empty means the default, shown as the placeholder (iterations: `auto`, read off the mesh).
+  for (const k of ['vertex_iterations', 'sigma_r', 'radius']) form.elements[`denoise.${k}`].placeholder = d.denoise[k];
+  form.elements['denoise.guided'].checked = d.denoise.guided;
   const L = cfg.limits;
   setRange('steps', 1, L.max_steps);
   setRange('iterations', 1, L.max_iterations);
@@ -95,6 +98,11 @@ function fillForm(p) {
     e['boundary.prescribed.angles.per_loop'].value = perLoop ? perLoop.join(',') : '';
     e['boundary.prescribed.angles.uniform'].value = perLoop ? 0 : b.angles?.uniform ?? 0;
   }
+  for (const k of ['iterations', 'vertex_iterations', 'sigma_r', 'radius']) {
+    const v = p.denoise?.[k];
+    e[`denoise.${k}`].value = v === undefined || v === null || v === config.defaults.denoise[k] ? '' : v;
+  }
+  e['denoise.guided'].checked = p.denoise?.guided ?? config.defaults.denoise.guided;
   regionControls.fill(p);
   updateFormVisibility();
 }
@@ -116,6 +124,7 @@ function updateFormVisibility() {
   e['boundary.prescribed.angles.uniform'].disabled = perLoop;
   e['boundary.prescribed.angles.per_loop'].disabled = !perLoop;
   $('conformal-only').classList.toggle('muted', e.method.value !== 'conformal');
+  $('denoise-only').classList.toggle('muted', e.method.value !== 'denoise');
 }
 
 class FieldError extends Error {
@@ -159,6 +168,14 @@ function readParams() {
     p.boundary = { prescribed: { frame_angle: num('boundary.prescribed.frame_angle') ?? 0, axis, angles } };
   } else {
     p.boundary = b;
+  }
+  // The denoising filter's knobs, under the method they belong to, each only once set.
+  if (p.method === 'denoise') {
+    const d = {};
+    for (const k of ['iterations', 'vertex_iterations', 'sigma_r', 'radius']) d[k] = num(`denoise.${k}`);
+    if (e['denoise.guided'].checked !== config.defaults.denoise.guided) d.guided = e['denoise.guided'].checked;
+    for (const k of Object.keys(d)) if (d[k] === undefined) delete d[k];
+    if (Object.keys(d).length > 0) p.denoise = d;
   }
   Object.assign(p, regionControls.params());
   for (const k of Object.keys(p)) if (p[k] === undefined) delete p[k];
