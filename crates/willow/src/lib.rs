@@ -25,7 +25,9 @@
 //!   `flow`.
 //!
 //! Beside them, `parallel` runs two pieces of work on two threads when a flow's `threads`
-//! allows (the factorizations, the distance measure's two sides).
+//! allows (the symbolic analyses, the distance measure's two sides); the factorization's
+//! subtrees and the ordering take threads of their own the same way, each joined before the
+//! call returns.
 //!
 //! ```
 //! use willow::flow::{new_flow, FlowParams};
