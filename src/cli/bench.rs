@@ -20,7 +20,24 @@ use willow::mesh::generate::bumpy_sphere;
 use willow::mesh::io::{Asset, Format, Limits};
 use willow::mesh::Mesh;
 
+/// The part of `willow bench --help` that is no one flag's: what it measures and prints.
+const BENCH_AFTER_HELP: &str = "\
+Per mesh: the median per-step time of the conformal flow (and per try: a step the safeguard
+retried counts its time over its tries) and of implicit MCF (unguarded: the yardstick's cost,
+not its quality) measured in the same run, their ratio (per try), the safeguard's overhead
+(guarded steps taken at their first try against the same conformal flow unguarded, interleaved
+too; the rejected tries are counted beside it), the conformal flow's peak RSS, and where its
+last step and its setup went, phase by phase. The flows take turns step by step, so a change
+in the machine's speed during the run moves both medians alike instead of the ratio.
+
+--denoise DIR: θ and Dv of the noisy input, of the defaults and of Taubin-10, in the same run,
+their times and ratios (docs/denoise.md). --genus [MESH]: the conformal step on a surface of
+higher genus (default botijo_genus5_irregular) with and without its exactness constraints,
+against a generated genus-0 irregular sphere of the same size, at the same τ, in one run.
+Current figures: docs/measurements.md.";
+
 #[derive(Args, Debug)]
+#[command(after_long_help = BENCH_AFTER_HELP)]
 pub struct BenchArgs {
     /// Meshes to measure. Default: cheburashka and nefertiti from ../shared/meshes when
     /// present, else generated bumpy spheres of 20k and 82k triangles.

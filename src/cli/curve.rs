@@ -12,7 +12,9 @@ use willow::curve::{Curve, CurveFlow, CurveParams};
 
 #[derive(Args, Debug)]
 pub struct CurveArgs {
-    /// Input curve (.json or .obj).
+    /// Input curve: .json, `{"points": [[x, y], ...], "closed": true}` (or a bare array of
+    /// points: open), or .obj, `v` lines and one `l` line (repeating the first index closes
+    /// it).
     pub input: PathBuf,
     /// Output curve; its extension picks the format (.json or .obj).
     #[arg(short, long)]

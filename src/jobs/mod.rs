@@ -1,10 +1,20 @@
 //! The job core: fairing jobs accepted, queued, run, streamed and kept, for every transport.
 //!
 //! HTTP (`api::http`), gRPC (`api::grpc`) and the CLI all call the same [`Jobs`] handle; nothing
-//! in here knows about axum, tonic or any wire type. What crosses the border in is a
-//! [`UploadRef`] plus a validated [`JobSpec`]; what crosses out is a [`JobStatus`], a stream of
-//! [`JobEvent`]s (each step's [`Frame`]) and result bytes. Errors are one enum, [`JobError`],
-//! which each transport maps once to its own status codes.
+//! in here knows about axum, tonic, protobuf messages or an HTTP status: no handler, request or
+//! response type of either transport. What crosses the border in is a [`UploadRef`] plus a
+//! validated [`JobSpec`]; what crosses out is a [`JobStatus`], a stream of [`JobEvent`]s (each
+//! step's [`Frame`]) and result bytes. Errors are one enum, [`JobError`], which each transport
+//! maps once to its own status codes (`api::status`).
+//!
+//! Two things here do face the wire, on purpose. The JSON form of a job's parameters is
+//! [`JobSpec`]'s own serde form, and its OpenAPI schema is derived from the declaration
+//! (`utoipa::ToSchema` on [`JobSpec`] and the option types in [`spec`], their doc comments the
+//! API's descriptions), so the API cannot describe a field the core does not take; the
+//! library's types in it are described by mirrors in `api::schema`, named in `job_spec.rs`'s
+//! schema attributes: the one path from here into `api`, and a type name only. And
+//! [`webhooks`] POSTs a job's end with hyper-util's HTTP client: an outgoing call, not a
+//! transport of the API.
 //!
 //! The pieces, one file each:
 //! - [`ports`]: the five seams to a backend (`JobStore`, `BlobStore`, `WorkQueue`, `EventBus`,

@@ -1,5 +1,5 @@
-// Mesh files in the browser, read the way the server numbers vertices (README, "Files keep the
-// user's numbering"): frames carry positions per *file vertex*, so every model here says how
+// Mesh files in the browser, read the way the server numbers vertices (docs/formats.md, "Files
+// keep the user's numbering"): frames carry positions per *file vertex*, so every model here says how
 // its render vertices map to file vertices.
 //
 // A model is
@@ -174,7 +174,7 @@ export function parseGltf(data) {
     return out;
   };
 
-  // Nodes depth first from the scene's roots; accessors numbered by first use (README).
+  // Nodes depth first from the scene's roots; accessors numbered by first use (docs/formats.md).
   const scene = (json.scenes || [])[json.scene || 0];
   const roots = scene ? scene.nodes || [] : (json.nodes || []).map((_, i) => i);
   const offsets = new Map();
@@ -247,7 +247,7 @@ export function formatOf(name) {
   return ['obj', 'glb', 'gltf', 'stl', 'ply', 'off'].includes(ext) ? ext : null;
 }
 
-// PLY and OFF have no registered media type: these are the server's (docs/api.md).
+// PLY and OFF have no registered media type: these are the server's (docs/http.md, `POST /v1/jobs`).
 export const MEDIA_TYPES = {
   obj: 'model/obj', glb: 'model/gltf-binary', gltf: 'model/gltf+json',
   stl: 'model/stl', ply: 'model/x-ply', off: 'model/x-off',

@@ -413,7 +413,7 @@ export class View {
 
   /**
    * Mean curvature per welded vertex, `H_i = −⟨(L f)_i, N_i⟩ / 2A_i` (cotan Laplacian
-   * `(L f)_i = ½ Σ_j (cot α + cot β)(f_j − f_i)`, barycentric areas; the README's convention,
+   * `(L f)_i = ½ Σ_j (cot α + cot β)(f_j − f_i)`, barycentric areas; docs/conventions.md's convention,
    * 1/r on a sphere), coloured on a fixed scale: the 5th–95th percentile of the first surface
    * shown, so colours mean the same curvature in every frame.
    */

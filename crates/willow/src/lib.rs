@@ -1,28 +1,33 @@
 //! Willow: mesh fairing by conformal Willmore flow.
 //!
 //! Crane, Pinkall and Schröder, "Robust Fairing via Conformal Curvature Flow" (SIGGRAPH 2013).
-//! The modules stack one way, each using only those above it:
+//! The modules stack one way, each using only those above it (`curve` uses none of them):
 //!
 //! - [`mesh`]: the welded triangle surface the flow sees ([`mesh::Mesh`]), its topology and
-//!   validation, and reading/writing OBJ, glTF and GLB with UVs and textures carried through
-//!   ([`mesh::io::Asset`]).
-//! - [`geometry`]: discrete operators on a `Mesh` (cotan Laplacian, vertex areas, normals,
-//!   mean curvature, enclosed volume, the Dirac-free Hodge machinery), quaternions, and the
-//!   distance between two surfaces through a bounding volume hierarchy
-//!   ([`geometry::distance`]).
+//!   validation, and reading/writing OBJ, glTF, GLB, STL, PLY and OFF with UVs, textures and
+//!   the file's own vertex numbering carried through ([`mesh::io::Asset`]).
 //! - [`linalg`]: the sparse linear algebra every flow factors with: the fixed block pattern, the
 //!   Cholesky factorization reused across steps (symbolic once, numeric per step), the
 //!   supernodal kernels and the fill-reducing orderings.
-//! - [`flow`]: one step at a time of conformal Willmore flow (Table 1, right column) and of the
-//!   classic flows it is compared with; a [`flow::Flow`] owns no threads and never blocks.
-//!   [`flow::stopping::Run`] drives one to its end and says why it stopped
-//!   ([`flow::stopping::Outcome`]).
-//! - [`curve`]: the isometric flow of planar curves (§5), a sibling of `flow`.
+//! - [`geometry`]: discrete operators on a `Mesh` (cotan Laplacian, vertex areas, normals,
+//!   mean curvature, enclosed volume, the Hodge machinery of the exactness constraints, which
+//!   factors with `linalg`), quaternions, and the distance between two surfaces through a
+//!   bounding volume hierarchy ([`geometry::distance`]).
 //! - [`metrics`]: what each step reports ([`metrics::StepMetrics`]): Willmore energy,
 //!   quasi-conformal error Q, closure residual, enclosed volume, distance from the input.
+//! - [`denoise`]: feature-preserving denoising (guided normal filtering and Sun et al.'s vertex
+//!   update), the default method's numerics.
+//! - [`flow`]: one step at a time of conformal Willmore flow (Table 1, right column), of the
+//!   denoising stage and of the classic flows it is compared with; a [`flow::Flow`] owns no
+//!   threads and never blocks. [`flow::stopping::Run`] drives one to its end and says why it
+//!   stopped ([`flow::stopping::Outcome`]).
+//! - [`curve`]: the isometric flow of planar curves (§5, Table 1, left column), a sibling of
+//!   `flow`.
 //!
 //! Beside them, `parallel` runs two pieces of work on two threads when a flow's `threads`
-//! allows (the factorizations, the distance measure's two sides).
+//! allows (the symbolic analyses, the distance measure's two sides); the factorization's
+//! subtrees and the ordering take threads of their own the same way, each joined before the
+//! call returns.
 //!
 //! ```
 //! use willow::flow::{new_flow, FlowParams};

@@ -1,6 +1,9 @@
-//! Two pieces of work on two threads, or on one: the only threading the library does itself
-//! (the factorizations' subtrees, the distance measure's two sides). A [`crate::flow::Flow`]
-//! still owns no threads between calls: each `join` scopes its thread to the call.
+//! Two pieces of work on two threads, or on one (the symbolic analyses of X and L in a flow's
+//! setup, the BVH's halves and the distance measure's two sides). The library's other
+//! threads are the factorization's subtrees (`linalg::supernodal`, a `std::thread::scope`)
+//! and the ordering that runs beside a flow's setup (`linalg::ordering::Pending`, joined
+//! before the setup returns). A [`crate::flow::Flow`] still owns no threads between calls:
+//! every thread is joined before the call that started it returns.
 
 /// `(a(), b())`, on two threads when `parallel` (a panic in either is re-raised here, as it
 /// would be sequentially).

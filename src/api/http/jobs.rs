@@ -153,7 +153,7 @@ pub struct FrameList {
 }
 
 /// The mesh media types a raw upload may carry (the canonical one of each format; the
-/// aliases [`Format::from_mime`] accepts are listed in docs/api.md).
+/// aliases [`Format::from_mime`] accepts are listed in docs/http.md, `POST /v1/jobs`).
 const MESH_MEDIA_TYPES: &str = "model/obj, model/gltf-binary, model/gltf+json, model/stl, \
                                 model/x-ply or model/x-off";
 

@@ -44,8 +44,8 @@ const FETCH_WAIT_MIN: Duration = Duration::from_millis(200);
 /// How long an idle worker sleeps between looks when nothing wakes it: a fifth of
 /// `ack_wait`, within [`FETCH_WAIT_MIN`, `FETCH_WAIT`]. Redeliveries publish nothing, so
 /// this is how late a crashed worker's job can be picked up after the server delivers it
-/// again; a fixed 5 s doubled the recovery time at `--nats-ack-wait-secs 5` (the README's
-/// part 6 figures).
+/// again; a fixed 5 s doubled the recovery time at `--nats-ack-wait-secs 5` (the load
+/// benchmark's part 6 figures, docs/measurements.md).
 fn idle_look(ack_wait: Duration) -> Duration {
     (ack_wait / 5).clamp(FETCH_WAIT_MIN, FETCH_WAIT)
 }

@@ -1,16 +1,22 @@
 //! Conformal Willmore flow in curvature space: Table 1, right column.
 //!
-//! One step, on the current surface `f` with mean curvature `H`:
-//! 1. flow direction `v = −2H` (§6.1: `μ̇ = −2μ`), projected onto the constraints (Table 1
-//!    III–IV; §6.2): normals `N^{x,y,z}` (no sphere inversions, App. D) and `1` (total
-//!    curvature, App. B), per closed component;
-//! 2. `ρ = τ·P(v) = −2τ·P(H)` (docs/algorithm.md §2: with this convention τ has the paper's §4
-//!    meaning, `u ← (1 − 2τ)u`, stable for τ < 1);
-//! 3. smallest eigenvector of `(D − ρ)λ = γλ` (Eq. 5) by inverse iteration on `X(ρ)`
-//!    (App. G), starting from `λ ≡ 1` because the previous surface is the reference;
-//! 4. new edges `ẽ = λ̄ e λ`, averaged over each face so every face closes (Table 1 VI);
-//! 5. new positions from `L f̃ = ∇·ẽ` (Eq. 6, Table 1 VII);
-//! 6. scale policy: each component's centroid and area restored.
+//! One step, on the current surface `f`, numbered as Table 1's steps (the code of each is in
+//! `step.rs`, which uses the same numbers):
+//! - I. mean curvature `H ← ½⟨N, Δf⟩` (§6.1), refilled in the geometry cache after the last
+//!   step moved the positions;
+//! - II. flow direction `v = −2H` (§6.1: `μ̇ = −2μ`), spectrally filtered when asked (§4);
+//! - III. the constraint basis (§6.2), Gram–Schmidt in the area inner product: normals
+//!   `N^{x,y,z}` (no sphere inversions, App. D) and `1` (total curvature, App. B) per closed
+//!   component, and on genus g > 0 the exactness constraints (App. C);
+//! - IV. `v` projected onto them, `P(v)` (Möbius balancing, App. E.1, is added after it);
+//! - V. the explicit Euler step `ρ = τ·P(v) = −2τ·P(H)` (docs/algorithm.md §2: with this
+//!   convention τ has the paper's §4 meaning, `u ← (1 − 2τ)u`, stable for τ < 1);
+//! - VI. recover tangents: the smallest eigenvector of `(D − ρ)λ = γλ` (Eq. 5) by inverse
+//!   iteration on `X(ρ)` (App. G), starting from `λ ≡ 1` because the previous surface is the
+//!   reference; then the new edges `ẽ = λ̄ e λ`, averaged over each face so every face closes;
+//! - VII. recover positions from `L f̃ = ∇·ẽ` (Eq. 6);
+//! - after Table 1, the scale policy: each component's centroid and area restored
+//!   (docs/algorithm.md §6).
 //!
 //! The sparsity patterns and symbolic factorizations of X and L are built once per flow;
 //! every buffer is allocated in [`ConformalFlow::new`], so the step loop does not allocate.

@@ -1,5 +1,6 @@
-//! One step of Table 1: the curvature change (I–V), λ (VI, App. G) and the new positions
-//! (VII, Eq. 6).
+//! One step of Table 1 (right column), numbered as the paper's steps: the curvature change
+//! (I–V), the tangents (VI: λ by Eq. 5 and App. G, then the new edges `λ̄ e λ`) and the new
+//! positions (VII, Eq. 6).
 
 use super::*;
 use crate::flow::dirac::{assemble_dirac_into, TriangleAssembly};
@@ -14,7 +15,10 @@ use crate::linalg::solver::{
 use faer::c64;
 
 impl ConformalFlow {
-    /// Table 1 steps I–V: `ρ = −2τ·P(H)`, plus Möbius balancing when asked.
+    /// Table 1 steps I–V: `ρ = −2τ·P(H)`, plus Möbius balancing when asked. (Step I, `H`,
+    /// is the geometry cache's, refilled after the last step; II is [`Self::flow_direction`],
+    /// III the basis built here and by [`Self::exactness_constraints`], IV the projection, V
+    /// the scaling by τ.)
     pub(super) fn curvature_change(&mut self) -> Result<(), FlowError> {
         self.constraints.clear();
         if self.free_component.iter().any(|&f| f) {
@@ -331,7 +335,9 @@ impl ConformalFlow {
         Ok(())
     }
 
-    /// Table 1 step VI: λ by inverse iteration on `X(ρ)`; returns the eigen-residual.
+    /// Table 1 step VI, first half: λ by inverse iteration on `X(ρ)` (Eq. 5, App. G); returns
+    /// the eigen-residual. The new edges `λ̄ e λ`, the rest of step VI, are made in
+    /// [`Self::integrate`].
     pub(super) fn solve_lambda(&mut self) -> Result<f64, FlowError> {
         if self.fixed.is_some() {
             return self.solve_lambda_dirichlet();
@@ -462,7 +468,8 @@ impl ConformalFlow {
             })
     }
 
-    /// Table 1 step VII: new edges, their divergence, and the Poisson solve. Returns the closure
+    /// The end of Table 1 step VI (the new edges `λ̄ e λ`, per face) and step VII (their
+    /// divergence and the Poisson solve, Eq. 6). Returns the closure
     /// residual `|d f̃ − ẽ| / |ẽ|` over all half-edges (unweighted), with `ẽ = ∫ λ̄ e λ` along
     /// the edge: the integrability of the new edges, whichever quadrature feeds the solve.
     pub(super) fn integrate(&mut self) -> Result<f64, FlowError> {
