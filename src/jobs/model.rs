@@ -162,15 +162,27 @@ impl JobStatus {
     /// How a succeeded job's run ended, by the name of [`willow::flow::stopping::Outcome`]
     /// (`completed`, `converged`, `target_reached`, `max_deviation`, `no_progress`, …), and
     /// why, for people. A run that ended before its steps keeps the two as its note
-    /// (`error_code`, `error`); one that ran them all has none. `None` unless succeeded.
+    /// (`error_code`, `error`); one that ran them all has none. A method with an end of its
+    /// own (`denoise`: its filtering settled) completes before its steps, with no note either.
+    /// `None` unless succeeded.
     pub fn outcome(&self) -> Option<(String, String)> {
+        let completed = || {
+            if self.step < self.total_steps {
+                format!(
+                    "the method ended on its own after {} of its {} steps",
+                    self.step, self.total_steps
+                )
+            } else {
+                format!("ran its {} steps", self.total_steps)
+            }
+        };
         (self.state == JobState::Succeeded).then(|| match &self.error_code {
             Some(code) => (code.clone(), self.error.clone().unwrap_or_default()),
             None => (
                 willow::flow::stopping::Outcome::Completed
                     .name()
                     .to_string(),
-                format!("ran its {} steps", self.total_steps),
+                completed(),
             ),
         })
     }
