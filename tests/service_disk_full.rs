@@ -316,10 +316,13 @@ fn fill(path: &Path) {
 async fn a_real_full_tmpfs_refuses_writes_keeps_reads_and_restarts() {
     let fs = match Tmpfs::mount(32) {
         Ok(fs) => fs,
-        Err(why) => {
-            eprintln!("SKIPPED a_real_full_tmpfs_refuses_writes_keeps_reads_and_restarts: {why}");
+        // Mounting needs root (CI has it). Elsewhere the test fails unless it is turned off
+        // by name: it never passes having filled no disk.
+        Err(why) if std::env::var("WILLOW_SKIP_TMPFS").as_deref() == Ok("1") => {
+            eprintln!("skipped (WILLOW_SKIP_TMPFS=1): {why}");
             return;
         }
+        Err(why) => panic!("a tmpfs could not be mounted ({why}); set WILLOW_SKIP_TMPFS=1 on a machine without root"),
     };
     let tweak = |c: &mut Config| c.checkpoint_steps = 5;
     let dir = tempfile::tempdir_in(&fs.0).expect("data dir on the tmpfs");

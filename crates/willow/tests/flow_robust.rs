@@ -189,9 +189,7 @@ fn noisy_genus_two_and_three_descend() {
 #[test]
 fn shared_meshes_of_higher_genus_descend() {
     for name in ["bob_small.obj", "genus2_24.obj"] {
-        let Some(mesh) = shared_surface(name) else {
-            panic!("{name} not found: the shared meshes are part of the test data");
-        };
+        let mesh = shared_surface(name);
         for tau in [0.05, 0.5] {
             let run = flow(&mesh, tau, 40);
             let last = assert_descends(name, &run, tau, 20.0);

@@ -239,9 +239,7 @@ fn quantization_step(json: &serde_json::Value) -> Option<f64> {
 
 #[test]
 fn gltfpack_meshopt_variants_read_like_their_twin_and_fair() {
-    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
-        return;
-    };
+    let obj = shared_mesh("spot_triangulated.obj");
     let dir = tempfile::tempdir().unwrap();
     let obj = obj.to_str().unwrap();
     let make = |name: &str, extra: &[&str]| -> Vec<u8> {
@@ -277,9 +275,7 @@ fn gltfpack_meshopt_variants_read_like_their_twin_and_fair() {
 
 #[test]
 fn gltf_transform_meshopt_reads_like_its_twin_and_fairs() {
-    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
-        return;
-    };
+    let obj = shared_mesh("spot_triangulated.obj");
     let dir = tempfile::tempdir().unwrap();
     let obj = obj.to_str().unwrap();
     tool(
@@ -314,9 +310,7 @@ fn gltf_transform_meshopt_reads_like_its_twin_and_fairs() {
 
 #[test]
 fn gltf_transform_draco_decodes_like_googles_decoder_and_fairs() {
-    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
-        return;
-    };
+    let obj = shared_mesh("spot_triangulated.obj");
     let dir = tempfile::tempdir().unwrap();
     let obj = obj.to_str().unwrap();
     tool(
@@ -555,9 +549,7 @@ fn world_positions_by_gltf_crate(glb: &[u8]) -> Vec<[f64; 3]> {
 /// (whose transform the node's would move) gets float32 POSITION and says so in the note.
 #[test]
 fn gltfpack_quantized_output_is_requantized_over_the_new_box() {
-    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
-        return;
-    };
+    let obj = shared_mesh("spot_triangulated.obj");
     let dir = tempfile::tempdir().unwrap();
     let obj = obj.to_str().unwrap();
     tool("gltfpack", &["-i", obj, "-o", "q.glb", "-kv"], dir.path());
@@ -677,9 +669,7 @@ fn bin_chunk_len(glb: &[u8]) -> usize {
 /// glTF (JSON) output is validator-clean too.
 #[test]
 fn gltfpack_cc_output_keeps_meshopt_and_is_smaller_than_decoded() {
-    let Some(obj) = shared_mesh("spot_triangulated.obj") else {
-        return;
-    };
+    let obj = shared_mesh("spot_triangulated.obj");
     let dir = tempfile::tempdir().unwrap();
     let obj = obj.to_str().unwrap();
     tool("gltfpack", &["-i", obj, "-o", "q.glb", "-kv"], dir.path());

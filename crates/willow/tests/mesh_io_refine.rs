@@ -538,9 +538,7 @@ fn a_refined_gltf_interpolates_colours_and_drops_skins_with_a_note() {
 /// unchanged; each child triangle's UVs are the linear subdivision of its parent's.
 #[test]
 fn the_refined_duck_keeps_its_texture() {
-    let Some(path) = mesh_support::shared_mesh("Duck.glb") else {
-        return;
-    };
+    let path = mesh_support::shared_mesh("Duck.glb");
     let glb = std::fs::read(path).expect("read Duck.glb");
     let (json, bin) = glb_parts(&glb);
     let limits = Limits::default();
@@ -661,9 +659,7 @@ fn a_refined_obj_interpolates_vertex_colours() {
 /// validator-clean GLB that reads back as the refined surface, its UVs first the input's.
 #[test]
 fn refined_quantized_and_meshopt_gltf_validate() {
-    let Some(obj) = mesh_support::shared_mesh("spot_triangulated.obj") else {
-        return;
-    };
+    let obj = mesh_support::shared_mesh("spot_triangulated.obj");
     let dir = tempfile::tempdir().expect("tempdir");
     let obj = obj.to_str().expect("path");
     let limits = Limits::default();

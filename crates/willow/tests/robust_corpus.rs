@@ -84,7 +84,7 @@ fn assert_sound(name: &str, mesh: &Mesh, r: &Result) {
 
 #[test]
 fn nefertiti_is_fair_and_sound_within_twenty_steps() {
-    let mesh = shared_surface("nefertiti.obj").expect("the shared meshes are test data");
+    let mesh = shared_surface("nefertiti.obj");
     let r = run(&mesh, 20);
     assert_sound("nefertiti", &mesh, &r);
     let last = r.frames.last().expect("steps");
@@ -104,7 +104,7 @@ fn nefertiti_is_fair_and_sound_within_twenty_steps() {
 /// (docs/cheburashka-collapse.md, "A fallback"). Before: `stalled` at W/4π 15.8.
 #[test]
 fn cheburashka_is_fair_and_sound_within_twenty_steps() {
-    let mesh = shared_surface("cheburashka.obj").expect("the shared meshes are test data");
+    let mesh = shared_surface("cheburashka.obj");
     let r = run(&mesh, 20);
     assert_sound("cheburashka", &mesh, &r);
     let last = r.frames.last().expect("steps");
@@ -185,7 +185,7 @@ fn classic_flows_on_a_noisy_genus_two_take_small_sound_steps() {
 /// A run whose W stops falling ends `converged`, not `no_progress` (issue 26 item 6).
 #[test]
 fn genus_two_at_its_minimum_ends_converged() {
-    let mesh = shared_surface("genus2_24.obj").expect("the shared meshes are test data");
+    let mesh = shared_surface("genus2_24.obj");
     let r = run(&mesh, 40);
     assert_sound("genus2_24", &mesh, &r);
     assert_eq!(r.outcome, Outcome::Converged, "{}", r.reason);

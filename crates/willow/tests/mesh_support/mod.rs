@@ -116,9 +116,8 @@ pub fn consistently_wound(t: &[[usize; 3]]) -> bool {
 
 /// Where the shared test meshes live: `$WILLOW_SHARED_MESHES`, else `../shared/meshes` beside
 /// the checkout, else `/work/shared/meshes`. A test that needs one fails when it is missing,
-/// saying where it looked: it never passes having checked nothing (issue 41). `Some` always;
-/// the `Option` keeps the callers' `let … else` shape.
-pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
+/// saying where it looked: it never passes having checked nothing (issue 41).
+pub fn shared_mesh(name: &str) -> std::path::PathBuf {
     let candidates = match std::env::var_os("WILLOW_SHARED_MESHES") {
         Some(dir) => vec![std::path::PathBuf::from(dir)],
         None => vec![
@@ -131,7 +130,7 @@ pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
         .map(|dir| dir.join(name))
         .find(|path| path.is_file());
     match found {
-        Some(path) => Some(path),
+        Some(path) => path,
         None => panic!(
             "{name} is needed by this test and is not in {candidates:?}; set \
              WILLOW_SHARED_MESHES to the shared meshes' folder"
@@ -139,13 +138,15 @@ pub fn shared_mesh(name: &str) -> Option<std::path::PathBuf> {
     }
 }
 
-/// One of the shared OBJ meshes as a validated surface, or `None` as [`shared_mesh`] says.
-pub fn shared_surface(name: &str) -> Option<willow::mesh::Mesh> {
+/// One of the shared OBJ meshes as a validated surface; fails as [`shared_mesh`] does.
+pub fn shared_surface(name: &str) -> willow::mesh::Mesh {
     use willow::mesh::io::{Asset, Format, Limits};
-    let bytes = std::fs::read(shared_mesh(name)?).ok()?;
+    let path = shared_mesh(name);
+    let bytes =
+        std::fs::read(&path).unwrap_or_else(|e| panic!("{} should read: {e}", path.display()));
     let asset = Asset::read(&bytes, Format::Obj, &Limits::default())
         .unwrap_or_else(|e| panic!("{name} should read: {e}"));
-    Some(asset.surface().clone())
+    asset.surface().clone()
 }
 
 /// A 1×1 RGBA PNG: a real image so the glTF validator accepts the embedded texture.
