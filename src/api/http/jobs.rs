@@ -481,7 +481,9 @@ pub async fn list_jobs(State(st): State<AppState>, caller: Caller, uri: Uri) -> 
         let q: ListQuery = query(&uri)?;
         let state = match q.state.as_deref() {
             None | Some("") => None,
-            Some(s) => Some(JobState::parse(s).ok_or_else(|| {
+            // Any case, as every name the API defines (`method`, `format`, `boundary`…) and
+            // as gRPC's `state=QUEUED` filter; the stored names are lower case.
+            Some(s) => Some(JobState::parse(&s.to_ascii_lowercase()).ok_or_else(|| {
                 Problem::bad_request(
                     "invalid_parameter",
                     format!("invalid parameter `state`: expected queued, running, succeeded, failed or cancelled, got `{s}`"),
