@@ -16,6 +16,7 @@
 //! - `curves`: `POST /v1/curves:fair`;
 //! - `probes`: `/healthz`, `/readyz`, `/metrics`;
 //! - `body`: the 413 and 415 policies and bounded body reading and draining;
+//! - `range`: single byte ranges on mesh downloads (206, 416);
 //! - `head`: 414 and 431 for request heads over the server's limits.
 //!
 //! The web page's routes (`api::web`) are merged beside these by `api::server::app`.
@@ -31,6 +32,7 @@ mod head;
 mod jobs;
 mod params;
 mod probes;
+mod range;
 mod spec_query;
 
 pub use super::state::AppState;
