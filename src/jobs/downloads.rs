@@ -526,8 +526,15 @@ mod tests {
     async fn a_range_gives_its_bytes_from_stored_and_whole_downloads() {
         let data: Vec<u8> = (0..100u8).collect();
         for chunk in [1, 7, 10, 64, 100] {
-            for (first, last) in [(0, 99), (0, 0), (9, 10), (10, 19), (33, 77), (99, 99), (95, 500)]
-            {
+            for (first, last) in [
+                (0, 99),
+                (0, 0),
+                (9, 10),
+                (10, 19),
+                (33, 77),
+                (99, 99),
+                (95, 500),
+            ] {
                 let pieces: Vec<Result<bytes::Bytes, JobError>> = data
                     .chunks(chunk)
                     .map(|c| Ok(bytes::Bytes::copy_from_slice(c)))

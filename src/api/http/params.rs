@@ -218,9 +218,15 @@ mod tests {
             "invalid parameter `params`: the `params` part is not valid JSON: EOF while \
              parsing an object (line 1, column 31)"
         );
-        assert_eq!((p["line"].as_u64(), p["column"].as_u64()), (Some(1), Some(31)));
+        assert_eq!(
+            (p["line"].as_u64(), p["column"].as_u64()),
+            (Some(1), Some(31))
+        );
         // A type error still names its field.
-        assert_eq!(refusal(spec_from_json(br#"{"steps": "x"}"#))["field"], "steps");
+        assert_eq!(
+            refusal(spec_from_json(br#"{"steps": "x"}"#))["field"],
+            "steps"
+        );
     }
 
     /// Issue 42: a bad integer says what was expected and echoes the value.

@@ -523,8 +523,8 @@ mod tests {
     /// Issue 42: one rule for the names the API defines, any case, booleans included.
     #[test]
     fn names_and_booleans_are_read_in_any_case() {
-        let s = spec("method=Conformal&boundary=FIXED&safeguard=True&exactness=FALSE")
-            .expect("a spec");
+        let s =
+            spec("method=Conformal&boundary=FIXED&safeguard=True&exactness=FALSE").expect("a spec");
         assert_eq!(s.method, willow::flow::Method::Conformal);
         assert_eq!(s.boundary, BoundarySpec::Fixed);
         assert!(s.safeguard && !s.exactness);
