@@ -62,7 +62,10 @@ impl MeshDownload {
                 let chunks = futures::stream::unfold(
                     (r.chunks, first, take),
                     |(mut chunks, mut skip, take)| async move {
-                        while take > 0 {
+                        if take == 0 {
+                            return None;
+                        }
+                        loop {
                             let mut c = match chunks.next().await? {
                                 Ok(c) => c,
                                 Err(e) => return Some((Err(e), (chunks, skip, 0))),
@@ -77,7 +80,6 @@ impl MeshDownload {
                             let left = take - c.len() as u64;
                             return Some((Ok(c), (chunks, 0, left)));
                         }
-                        None
                     },
                 )
                 .boxed();

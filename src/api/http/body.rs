@@ -74,7 +74,6 @@ pub async fn refuse_content_encoding(req: Request<Body>, next: axum::middleware:
         .iter()
         .flat_map(|v| {
             String::from_utf8_lossy(v.as_bytes())
-                .into_owned()
                 .split(',')
                 .map(|c| c.trim().to_ascii_lowercase())
                 .collect::<Vec<_>>()
