@@ -153,6 +153,43 @@ async fn insecure_and_private_callbacks_are_refused_naming_the_field() {
     server.stop().await;
 }
 
+/// Issue 42 item 4: IPv6 forms that embed a loopback IPv4 address, and the benchmarking range,
+/// are refused with a problem naming `callback_url` and the IPv4 address judged.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn embedded_ipv4_and_benchmarking_callbacks_are_refused_by_the_address_inside() {
+    let server = start(|c| c.webhook_secret = Some(SECRET.to_vec())).await;
+    for (url, says) in [
+        (
+            "https://[::127.0.0.1]/hook",
+            "embeds 127.0.0.1, which is in 127.0.0.0/8 (loopback)",
+        ),
+        ("https://[::ffff:0:7f00:1]/hook", "embeds 127.0.0.1"),
+        ("https://[64:ff9b::7f00:1]/hook", "(NAT64) embeds 127.0.0.1"),
+        ("https://[2002:7f00:1::]/hook", "(6to4) embeds 127.0.0.1"),
+        (
+            "https://198.18.0.1/hook",
+            "198.18.0.1 is in 198.18.0.0/15 (benchmarking)",
+        ),
+        (
+            "https://[2001:db8::1]/hook",
+            "2001:db8::/32 (documentation)",
+        ),
+    ] {
+        let (status, _, body) = server
+            .submit_obj(
+                &small_obj(),
+                &format!("steps=1&callback_url={}", query_escape(url)),
+            )
+            .await;
+        assert_eq!(status, 400, "{url}: {body}");
+        assert_eq!(body["field"], "callback_url", "{url}: {body}");
+        assert_eq!(body["code"], "invalid_parameter", "{url}: {body}");
+        let detail = body["detail"].as_str().unwrap_or_default();
+        assert!(detail.contains(says), "{url}: {detail}");
+    }
+    server.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_failed_job_sends_job_failed_with_its_error_code() {
     let (url, mut rx, _) = receiver(&[]).await;

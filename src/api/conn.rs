@@ -78,9 +78,15 @@ type BoxError = Box<dyn std::error::Error + Send + Sync>;
 /// How long an HTTP/2 keep-alive ping may go unanswered before the connection is closed.
 pub const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
 
-/// Largest header block an HTTP/2 client may send (hyper's HTTP/1 limit is of the same order:
-/// 100 headers in a 400 KiB buffer). 16 KiB is plenty for our requests.
-const MAX_HEADER_LIST_BYTES: u32 = 16 << 10;
+/// Largest header block an HTTP/2 client may send, pseudo-headers (`:path`) included: above
+/// the server's own limits on the request target and the header fields
+/// (`http::MAX_URI_BYTES` + `http::MAX_HEADER_BYTES`, 48 KiB), so that a head between the two
+/// is answered by `http::refuse_oversized_head` with a problem, not by h2 with an empty 431.
+const MAX_HEADER_LIST_BYTES: u32 = 64 << 10;
+
+/// hyper's HTTP/1 header count (its default is 100): above `http::MAX_HEADERS`, for the
+/// same reason. hyper parses a head into this many slots, ~50 bytes each.
+const MAX_H1_HEADERS: usize = 2 * super::http::MAX_HEADERS;
 
 /// Bytes h2 may queue per stream beyond what the peer's window lets it send (h2's default is
 /// ~400 KiB): with 128 streams on a connection whose client opened no window, this is what
@@ -210,6 +216,7 @@ fn builder(limits: &ConnLimits) -> auto::Builder<TokioExecutor> {
     b.http1()
         .timer(TokioTimer::new())
         .header_read_timeout(limits.header_read_timeout)
+        .max_headers(MAX_H1_HEADERS)
         .keep_alive(true);
     b.http2()
         .timer(TokioTimer::new())

@@ -433,7 +433,9 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) ->
         .layer(RequestBodyLimitLayer::new(
             body_limit.saturating_add(http::DRAIN_MAX_BYTES),
         ))
-        .layer(DefaultBodyLimit::max(body_limit));
+        .layer(DefaultBodyLimit::max(body_limit))
+        // Outside the body limits: a coded body is refused whatever its length.
+        .layer(axum::middleware::from_fn(http::refuse_content_encoding));
     let rest = if options.cors_origins.is_empty() {
         rest
     } else {
@@ -460,6 +462,9 @@ pub fn app(jobs: Jobs, streams_stop: CancellationToken, options: &AppOptions) ->
     // Authentication: one layer for REST, SSE and gRPC alike, inside the request span (so a
     // refusal is logged with its request id) and outside everything else.
     let app = auth.wrap(app);
+    // Outside authentication: a head over the limits is refused whoever sends it, and inside
+    // the request span and id, so the refusal is logged and carries its `X-Request-Id`.
+    let app = app.layer(axum::middleware::from_fn(http::refuse_oversized_head));
 
     app.layer(
         TraceLayer::new_for_http().make_span_with(|req: &Request<_>| {

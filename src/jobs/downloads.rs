@@ -39,6 +39,54 @@ impl MeshDownload {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+
+    /// Bytes `first..=last` of it (`first <= last < len`, as the caller resolved them; a
+    /// `last` past the end is cut there), for a resumed download.
+    ///
+    /// A stored download is read from its start and the bytes before `first` dropped as they
+    /// arrive: the stores hand out blobs in order only, and what a skip costs is a read, not
+    /// memory (a chunk at a time). One held whole is copied, so the range does not keep the
+    /// whole buffer alive while it waits for its client.
+    pub fn range(self, first: u64, last: u64) -> MeshDownload {
+        use futures::StreamExt;
+        let last = last.min(self.len().saturating_sub(1));
+        let take = (last + 1).saturating_sub(first);
+        match self {
+            MeshDownload::Whole(b) => {
+                let (from, to) = (first as usize, (last as usize + 1).min(b.len()));
+                MeshDownload::Whole(bytes::Bytes::copy_from_slice(
+                    b.get(from..to).unwrap_or_default(),
+                ))
+            }
+            MeshDownload::Stored(r) => {
+                let chunks = futures::stream::unfold(
+                    (r.chunks, first, take),
+                    |(mut chunks, mut skip, take)| async move {
+                        if take == 0 {
+                            return None;
+                        }
+                        loop {
+                            let mut c = match chunks.next().await? {
+                                Ok(c) => c,
+                                Err(e) => return Some((Err(e), (chunks, skip, 0))),
+                            };
+                            let n = c.len() as u64;
+                            if skip >= n {
+                                skip -= n;
+                                continue;
+                            }
+                            c = c.slice(skip as usize..);
+                            c.truncate(usize::try_from(take).unwrap_or(usize::MAX));
+                            let left = take - c.len() as u64;
+                            return Some((Ok(c), (chunks, 0, left)));
+                        }
+                    },
+                )
+                .boxed();
+                MeshDownload::Stored(BlobReader { len: take, chunks })
+            }
+        }
+    }
 }
 
 /// The stripe of [`Inner::renders`] a key renders under.
@@ -449,6 +497,61 @@ impl Jobs {
         match waited {
             Ok(Some(s)) => Ok(s),
             _ => self.get(caller, id).await,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use futures::StreamExt;
+
+    async fn collect(d: MeshDownload) -> Vec<u8> {
+        match d {
+            MeshDownload::Whole(b) => b.to_vec(),
+            MeshDownload::Stored(r) => {
+                let len = r.len;
+                let chunks: Vec<_> = r.chunks.collect().await;
+                let out: Vec<u8> = chunks
+                    .into_iter()
+                    .flat_map(|c| c.expect("chunk").to_vec())
+                    .collect();
+                assert_eq!(out.len() as u64, len, "the announced length");
+                out
+            }
+        }
+    }
+
+    /// A range of a stored download (in chunks of every size, the range starting and ending
+    /// inside, on and across chunk borders) and of one held whole gives those bytes.
+    #[tokio::test]
+    async fn a_range_gives_its_bytes_from_stored_and_whole_downloads() {
+        let data: Vec<u8> = (0..100u8).collect();
+        for chunk in [1, 7, 10, 64, 100] {
+            for (first, last) in [
+                (0, 99),
+                (0, 0),
+                (9, 10),
+                (10, 19),
+                (33, 77),
+                (99, 99),
+                (95, 500),
+            ] {
+                let pieces: Vec<Result<bytes::Bytes, JobError>> = data
+                    .chunks(chunk)
+                    .map(|c| Ok(bytes::Bytes::copy_from_slice(c)))
+                    .collect();
+                let stored = MeshDownload::Stored(BlobReader {
+                    len: 100,
+                    chunks: futures::stream::iter(pieces).boxed(),
+                });
+                let want = &data[first..=last.min(99)];
+                let got = collect(stored.range(first as u64, last as u64)).await;
+                assert_eq!(got, want, "chunks of {chunk}, {first}-{last}");
+                let whole = MeshDownload::Whole(bytes::Bytes::from(data.clone()));
+                let got = collect(whole.range(first as u64, last as u64)).await;
+                assert_eq!(got, want, "whole, {first}-{last}");
+            }
         }
     }
 }

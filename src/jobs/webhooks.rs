@@ -18,10 +18,14 @@
 //!   too. Tries back off 1 s, 2 s, 4 s, … up to [`MAX_BACKOFF`]; a restart starts the count
 //!   again. The loop stops when draining begins (with the workers' polling): a job that ends
 //!   in the grace period is delivered after the next start.
-//! - **Addresses**: `https` only, and a host that resolves to a public address only (checked
-//!   at submission, [`check_callback`], and again at each delivery by the connector's
-//!   resolver, so DNS that changes after submission cannot point the server at its own
-//!   network), unless [`Config::allow_insecure_callbacks`].
+//! - **Addresses**: `https` only, and a host that resolves to public unicast addresses only
+//!   ([`refusal`]: the IANA special-purpose ranges are refused, 198.18/15 and 2001:db8::/32
+//!   among them, and an IPv6 address that embeds an IPv4 one, `::ffff:127.0.0.1`,
+//!   `64:ff9b::7f00:1`, `2002:7f00:1::`, is judged by the IPv4 address inside). Checked at
+//!   submission, [`check_callback`], and again at each delivery (an IP literal in
+//!   [`deliver_once`], a name by the connector's resolver, so DNS that changes after
+//!   submission cannot point the server at its own network), unless
+//!   [`Config::allow_insecure_callbacks`].
 //!
 //! Nothing here knows a transport; the HTTP client is hyper-util's over rustls.
 
@@ -81,37 +85,193 @@ fn short(s: &str) -> String {
     s.chars().take(100).collect()
 }
 
-/// Whether `ip` is an address a callback may reach without
-/// [`Config::allow_insecure_callbacks`]: not loopback, private (RFC 1918, unique local
-/// fc00::/7), link-local, shared (100.64/10), unspecified, broadcast, multicast or
-/// documentation; IPv4-mapped IPv6 is judged as its IPv4.
-pub fn is_public(ip: IpAddr) -> bool {
+/// Why a callback may not reach `ip` without [`Config::allow_insecure_callbacks`], if it may
+/// not: the special-purpose range it falls in (IANA's IPv4 and IPv6 special-purpose address
+/// registries, the ranges that are not globally reachable unicast), or, for an IPv6 address
+/// that carries an IPv4 address inside it, that IPv4 address's range.
+///
+/// IPv6 forms that embed an IPv4 address are judged by the IPv4 address inside: a packet to
+/// `::ffff:127.0.0.1` is a packet to 127.0.0.1 on a dual-stack host, `64:ff9b::7f00:1` is
+/// 127.0.0.1 behind any NAT64 gateway on the path, and `2002:7f00:1::` is 6to4's relay for
+/// 127.0.0.1. Teredo (`2001::/32`) is refused outright: its client address is obfuscated
+/// and its server address is a relay's, and no callback receiver needs it.
+///
+/// Outside those forms only the global unicast space `2000::/3` is accepted (every public
+/// IPv6 address today; IANA has allocated nothing else), which refuses `::/128`, `::1`,
+/// `fc00::/7`, `fe80::/10`, `ff00::/8`, `100::/64` and the reserved space by construction;
+/// the special ranges inside `2000::/3` are listed.
+pub fn refusal(ip: IpAddr) -> Option<Refusal> {
     match ip {
-        IpAddr::V4(v4) => {
-            let [a, b, ..] = v4.octets();
-            !(v4.is_loopback()
-                || v4.is_private()
-                || v4.is_link_local()
-                || v4.is_unspecified()
-                || v4.is_broadcast()
-                || v4.is_multicast()
-                || v4.is_documentation()
-                || a == 0
-                || (a == 100 && (64..128).contains(&b))
-                || a >= 240)
-        }
+        IpAddr::V4(v4) => v4_range(v4).map(|range| Refusal {
+            ip,
+            inside: None,
+            range,
+        }),
         IpAddr::V6(v6) => {
-            if let Some(v4) = v6.to_ipv4_mapped() {
-                return is_public(IpAddr::V4(v4));
+            if let Some((form, v4)) = embedded_v4(v6) {
+                return v4_range(v4).map(|range| Refusal {
+                    ip,
+                    inside: Some((form, v4)),
+                    range,
+                });
             }
-            let first = v6.segments()[0];
-            !(v6.is_loopback()
-                || v6.is_unspecified()
-                || v6.is_multicast()
-                || (first & 0xfe00) == 0xfc00
-                || (first & 0xffc0) == 0xfe80
-                || first == 0x2001 && v6.segments()[1] == 0x0db8)
+            v6_range(v6).map(|range| Refusal {
+                ip,
+                inside: None,
+                range,
+            })
         }
+    }
+}
+
+/// Whether `ip` is an address a callback may reach without
+/// [`Config::allow_insecure_callbacks`]: see [`refusal`].
+pub fn is_public(ip: IpAddr) -> bool {
+    refusal(ip).is_none()
+}
+
+/// A special-purpose range: its prefix and what it is for, as IANA's registries name them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SpecialRange {
+    pub prefix: &'static str,
+    pub name: &'static str,
+}
+
+/// Why an address is refused (see [`refusal`]); its `Display` is the sentence clients read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Refusal {
+    /// The address refused.
+    pub ip: IpAddr,
+    /// The IPv6 form and the IPv4 address it embeds, when that IPv4 address was judged.
+    pub inside: Option<(&'static str, std::net::Ipv4Addr)>,
+    /// The range it falls in.
+    pub range: SpecialRange,
+}
+
+impl std::fmt::Display for Refusal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let SpecialRange { prefix, name } = self.range;
+        match self.inside {
+            Some((form, v4)) => write!(
+                f,
+                "{} ({form}) embeds {v4}, which is in {prefix} ({name})",
+                self.ip
+            ),
+            None => write!(f, "{} is in {prefix} ({name})", self.ip),
+        }
+    }
+}
+
+const fn range(prefix: &'static str, name: &'static str) -> SpecialRange {
+    SpecialRange { prefix, name }
+}
+
+/// The IPv4 special-purpose range `v4` is in, among those a callback may not reach: IANA's
+/// registry entries that are not globally reachable, plus multicast and the reserved 240/4.
+/// (192.0.0.9 and .10, globally reachable anycast, are refused with the rest of 192.0.0/24:
+/// no webhook receiver lives there.)
+fn v4_range(v4: std::net::Ipv4Addr) -> Option<SpecialRange> {
+    let bits = u32::from(v4);
+    const RANGES: [(u32, u32, SpecialRange); 16] = [
+        (0x0000_0000, 8, range("0.0.0.0/8", "this network")),
+        (0x0a00_0000, 8, range("10.0.0.0/8", "private")),
+        (
+            0x6440_0000,
+            10,
+            range("100.64.0.0/10", "shared address space"),
+        ),
+        (0x7f00_0000, 8, range("127.0.0.0/8", "loopback")),
+        (0xa9fe_0000, 16, range("169.254.0.0/16", "link-local")),
+        (0xac10_0000, 12, range("172.16.0.0/12", "private")),
+        (
+            0xc000_0000,
+            24,
+            range("192.0.0.0/24", "IETF protocol assignments"),
+        ),
+        (0xc000_0200, 24, range("192.0.2.0/24", "documentation")),
+        (
+            0xc058_6300,
+            24,
+            range("192.88.99.0/24", "6to4 relay anycast"),
+        ),
+        (0xc0a8_0000, 16, range("192.168.0.0/16", "private")),
+        (0xc612_0000, 15, range("198.18.0.0/15", "benchmarking")),
+        (0xc633_6400, 24, range("198.51.100.0/24", "documentation")),
+        (0xcb00_7100, 24, range("203.0.113.0/24", "documentation")),
+        (0xe000_0000, 4, range("224.0.0.0/4", "multicast")),
+        (
+            0xffff_ffff,
+            32,
+            range("255.255.255.255/32", "limited broadcast"),
+        ),
+        (0xf000_0000, 4, range("240.0.0.0/4", "reserved")),
+    ];
+    RANGES
+        .iter()
+        .find(|(net, len, _)| bits >> (32 - len) == net >> (32 - len))
+        .map(|(_, _, r)| *r)
+}
+
+/// The IPv6 special-purpose range `v6` is in, among those a callback may not reach (the
+/// embedded-IPv4 forms are [`embedded_v4`]'s).
+fn v6_range(v6: std::net::Ipv6Addr) -> Option<SpecialRange> {
+    let bits = u128::from(v6);
+    let within = |net: u128, len: u32| bits >> (128 - len) == net >> (128 - len);
+    const NAMED: [(u128, u32, SpecialRange); 12] = [
+        (0, 128, range("::/128", "unspecified")),
+        (1, 128, range("::1/128", "loopback")),
+        (0x0100 << 112, 64, range("100::/64", "discard-only")),
+        (
+            0x0064_ff9b_0001 << 80,
+            48,
+            range("64:ff9b:1::/48", "local-use IPv4/IPv6 translation"),
+        ),
+        (0xfc00 << 112, 7, range("fc00::/7", "unique local")),
+        (0xfe80 << 112, 10, range("fe80::/10", "link-local")),
+        (
+            0xfec0 << 112,
+            10,
+            range("fec0::/10", "site-local (deprecated)"),
+        ),
+        (0xff00 << 112, 8, range("ff00::/8", "multicast")),
+        (0x2001_0000 << 96, 32, range("2001::/32", "Teredo")),
+        (0x2001_0002 << 96, 48, range("2001:2::/48", "benchmarking")),
+        (
+            0x2001_0db8 << 96,
+            32,
+            range("2001:db8::/32", "documentation"),
+        ),
+        (0x3fff << 112, 20, range("3fff::/20", "documentation")),
+    ];
+    const ORCHID: [(u128, u32, SpecialRange); 2] = [
+        (
+            0x2001_0010 << 96,
+            28,
+            range("2001:10::/28", "ORCHID (deprecated)"),
+        ),
+        (0x2001_0020 << 96, 28, range("2001:20::/28", "ORCHIDv2")),
+    ];
+    if let Some((_, _, r)) = NAMED.iter().chain(&ORCHID).find(|(n, l, _)| within(*n, *l)) {
+        return Some(*r);
+    }
+    (!within(0x2000 << 112, 3)).then_some(range("outside 2000::/3", "not global unicast"))
+}
+
+/// The IPv4 address an IPv6 address carries, and the form's name: IPv4-mapped
+/// (`::ffff:0:0/96`), IPv4-translated (SIIT, `::ffff:0:0:0/96`), IPv4-compatible
+/// (`::/96`, deprecated; `::` and `::1` themselves are not), the NAT64 well-known prefix
+/// (`64:ff9b::/96`) and 6to4 (`2002::/16`, the IPv4 address in bits 16 to 48).
+fn embedded_v4(v6: std::net::Ipv6Addr) -> Option<(&'static str, std::net::Ipv4Addr)> {
+    let bits = u128::from(v6);
+    let low32 = std::net::Ipv4Addr::from(bits as u32);
+    let high96 = bits >> 32;
+    match high96 {
+        0xffff => Some(("IPv4-mapped", low32)),
+        0xffff_0000 => Some(("IPv4-translated", low32)),
+        0 if bits > 1 => Some(("IPv4-compatible", low32)),
+        0x0064_ff9b_0000_0000_0000_0000 => Some(("NAT64", low32)),
+        _ if bits >> 112 == 0x2002 => Some(("6to4", std::net::Ipv4Addr::from((bits >> 80) as u32))),
+        _ => None,
     }
 }
 
@@ -161,10 +321,16 @@ pub async fn check_callback(url: &str, config: &Config) -> Result<(), JobError> 
     if addrs.is_empty() {
         return Err(bad(format!("host `{host}` resolves to no address")));
     }
-    if let Some(a) = addrs.iter().find(|a| !is_public(a.ip())) {
+    // Every address: the connector may try any of them.
+    if let Some(r) = addrs.iter().find_map(|a| refusal(a.ip())) {
+        let what = if host.parse::<IpAddr>().is_ok() {
+            r.to_string()
+        } else {
+            format!("host `{host}` resolves to {r}")
+        };
         return Err(bad(format!(
-            "host `{host}` resolves to {}, a loopback, private or link-local address",
-            a.ip()
+            "{what}: a callback may reach public unicast addresses only \
+             (others only on a server run with --allow-insecure-callbacks)"
         )));
     }
     Ok(())
@@ -289,13 +455,18 @@ impl tower::Service<hyper_util::client::legacy::connect::dns::Name> for PublicRe
     fn call(&mut self, name: hyper_util::client::legacy::connect::dns::Name) -> Self::Future {
         let allow = self.allow_private;
         Box::pin(async move {
-            let addrs: Vec<SocketAddr> = tokio::net::lookup_host((name.as_str(), 0))
-                .await?
-                .filter(|a| allow || is_public(a.ip()))
-                .collect();
+            let (addrs, refused): (Vec<SocketAddr>, Vec<SocketAddr>) =
+                tokio::net::lookup_host((name.as_str(), 0))
+                    .await?
+                    .partition(|a| allow || is_public(a.ip()));
             if addrs.is_empty() {
+                let why = refused
+                    .first()
+                    .and_then(|a| refusal(a.ip()))
+                    .map(|r| format!(" ({r})"))
+                    .unwrap_or_default();
                 return Err(std::io::Error::other(format!(
-                    "`{}` resolves to no public address",
+                    "`{}` resolves to no public address{why}",
                     name.as_str()
                 )));
             }
@@ -349,8 +520,8 @@ async fn deliver_once(
             return Err("not https".into());
         }
         if let Some(ip) = host_port(&uri).and_then(|(h, _)| h.parse::<IpAddr>().ok()) {
-            if !is_public(ip) {
-                return Err(format!("{ip} is not a public address"));
+            if let Some(r) = refusal(ip) {
+                return Err(format!("{r}: not a public address"));
             }
         }
     }
@@ -562,6 +733,114 @@ mod tests {
         }
     }
 
+    /// One case per form and range of issue 42 item 4: the address, and the range (and for
+    /// IPv6 forms that embed IPv4, the IPv4 address) it is refused for.
+    #[test]
+    fn each_special_range_and_embedded_form_is_refused_by_name() {
+        for (ip, prefix, inside) in [
+            // IPv4-compatible, -mapped, -translated (SIIT), NAT64 and 6to4 forms of 127.0.0.1.
+            ("::127.0.0.1", "127.0.0.0/8", Some("127.0.0.1")),
+            ("::ffff:127.0.0.1", "127.0.0.0/8", Some("127.0.0.1")),
+            ("::ffff:0:7f00:1", "127.0.0.0/8", Some("127.0.0.1")),
+            ("64:ff9b::7f00:1", "127.0.0.0/8", Some("127.0.0.1")),
+            ("2002:7f00:1::", "127.0.0.0/8", Some("127.0.0.1")),
+            (
+                "2002:a9fe:a9fe::1",
+                "169.254.0.0/16",
+                Some("169.254.169.254"),
+            ),
+            ("64:ff9b::c612:1", "198.18.0.0/15", Some("198.18.0.1")),
+            ("::ffff:10.0.0.1", "10.0.0.0/8", Some("10.0.0.1")),
+            // IPv4.
+            ("0.1.2.3", "0.0.0.0/8", None),
+            ("10.1.2.3", "10.0.0.0/8", None),
+            ("100.64.0.1", "100.64.0.0/10", None),
+            ("100.127.255.255", "100.64.0.0/10", None),
+            ("127.0.0.1", "127.0.0.0/8", None),
+            ("169.254.169.254", "169.254.0.0/16", None),
+            ("172.16.0.1", "172.16.0.0/12", None),
+            ("172.31.255.255", "172.16.0.0/12", None),
+            ("192.0.0.8", "192.0.0.0/24", None),
+            ("192.0.2.1", "192.0.2.0/24", None),
+            ("192.88.99.1", "192.88.99.0/24", None),
+            ("192.168.1.1", "192.168.0.0/16", None),
+            ("198.18.0.1", "198.18.0.0/15", None),
+            ("198.19.255.255", "198.18.0.0/15", None),
+            ("198.51.100.7", "198.51.100.0/24", None),
+            ("203.0.113.9", "203.0.113.0/24", None),
+            ("224.0.0.1", "224.0.0.0/4", None),
+            ("239.255.255.250", "224.0.0.0/4", None),
+            ("240.0.0.1", "240.0.0.0/4", None),
+            ("255.255.255.255", "255.255.255.255/32", None),
+            // IPv6.
+            ("::", "::/128", None),
+            ("::1", "::1/128", None),
+            ("100::1", "100::/64", None),
+            ("64:ff9b:1::a00:1", "64:ff9b:1::/48", None),
+            ("fc00::1", "fc00::/7", None),
+            ("fd12:3456::1", "fc00::/7", None),
+            ("fe80::1", "fe80::/10", None),
+            ("fec0::1", "fec0::/10", None),
+            ("ff02::1", "ff00::/8", None),
+            ("2001::1", "2001::/32", None),
+            ("2001:2::1", "2001:2::/48", None),
+            ("2001:db8::1", "2001:db8::/32", None),
+            ("2001:10::1", "2001:10::/28", None),
+            ("2001:20::1", "2001:20::/28", None),
+            ("3fff::1", "3fff::/20", None),
+            ("4000::1", "outside 2000::/3", None),
+        ] {
+            let addr: IpAddr = ip.parse().expect(ip);
+            let r = refusal(addr).unwrap_or_else(|| panic!("{ip} must be refused"));
+            assert_eq!(r.range.prefix, prefix, "{ip}: {r}");
+            assert_eq!(
+                r.inside.map(|(_, v4)| v4.to_string()).as_deref(),
+                inside,
+                "{ip}"
+            );
+            assert!(!is_public(addr));
+        }
+        let r = refusal("::ffff:0:7f00:1".parse().expect("ip")).expect("refused");
+        assert_eq!(
+            r.to_string(),
+            "::ffff:0:7f00:1 (IPv4-translated) embeds 127.0.0.1, which is in 127.0.0.0/8 (loopback)"
+        );
+        let r = refusal("198.18.0.1".parse().expect("ip")).expect("refused");
+        assert_eq!(
+            r.to_string(),
+            "198.18.0.1 is in 198.18.0.0/15 (benchmarking)"
+        );
+    }
+
+    /// The neighbours of the refused ranges, and public addresses in every embedded form, pass.
+    #[test]
+    fn public_addresses_pass_in_every_form() {
+        for ip in [
+            "1.1.1.1",
+            "93.184.216.34",
+            "100.63.255.255",
+            "100.128.0.0",
+            "172.15.255.255",
+            "172.32.0.0",
+            "192.0.1.1",
+            "192.88.98.1",
+            "198.17.255.255",
+            "198.20.0.0",
+            "223.255.255.255",
+            "2606:4700:4700::1111",
+            "2a00:1450:4001:80b::200e",
+            "2001:4:112::1",
+            "::ffff:1.1.1.1",
+            "::ffff:0:101:101",
+            "::1.1.1.1",
+            "64:ff9b::101:101",
+            "2002:101:101::1",
+        ] {
+            let addr: IpAddr = ip.parse().expect(ip);
+            assert_eq!(refusal(addr), None, "{ip}");
+        }
+    }
+
     #[test]
     fn backoff_doubles_from_one_second_to_the_cap() {
         let secs: Vec<u64> = (1..=10).map(|a| backoff(a).as_secs()).collect();
@@ -620,6 +899,11 @@ mod tests {
             "https://127.0.0.1/",
             "https://[::1]:8443/x",
             "https://localhost/",
+            "https://[::127.0.0.1]/",
+            "https://[::ffff:0:7f00:1]/",
+            "https://[64:ff9b::7f00:1]/",
+            "https://[2002:7f00:1::]/",
+            "https://198.18.0.1/",
         ] {
             match check_callback(url, &config).await {
                 Err(JobError::InvalidSpec { field, .. }) => {

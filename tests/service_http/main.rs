@@ -1,12 +1,13 @@
 //! End-to-end tests of the HTTP API: the real router on an ephemeral loopback port, driven by
 //! reqwest over real sockets (SSE parsed from the byte stream). One file a theme: `jobs`,
-//! `errors`, `probes`, `options`, `curves`, `body`.
+//! `errors`, `details` (issue 42), `probes`, `options`, `curves`, `body`.
 
 #[path = "../service_http_support/mod.rs"]
 mod service_http_support;
 
 mod body;
 mod curves;
+mod details;
 mod errors;
 mod far;
 mod jobs;

@@ -54,6 +54,28 @@ fn obj_out_of_range_and_zero_indices_are_refused_without_panicking() {
         e.to_string(),
         "1 triangles reference vertices out of range (the mesh has 4 vertices); first: 2"
     );
+    // Issue 42: a 0 index is a syntax error of its line (QUAD_OBJ has 6), not a face number.
+    for (bad, says) in [
+        (
+            "f 0 1 2",
+            "cannot parse OBJ: line 7: OBJ indices start at 1, got 0",
+        ),
+        (
+            "f 1/0 2/1 3/1",
+            "cannot parse OBJ: line 7: OBJ vt indices start at 1, got 0",
+        ),
+        (
+            "f 1//0 2//1 3//1",
+            "cannot parse OBJ: line 7: OBJ vn indices start at 1, got 0",
+        ),
+    ] {
+        let e = refuse(format!("{QUAD_OBJ}{bad}\n").as_bytes(), Format::Obj);
+        assert_eq!(
+            (e.code(), e.to_string().as_str()),
+            ("parse_error", says),
+            "{bad}"
+        );
+    }
     for bad in [
         "f 0 1 2",
         "f 1 2 -9",

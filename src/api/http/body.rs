@@ -61,6 +61,52 @@ pub async fn problem_for_plain_413(
     out
 }
 
+/// Refuse a request body sent with a content coding: 415 naming the coding, with
+/// `Accept-Encoding: identity` (RFC 9110 §15.5.16: a 415 for a coding says which codings
+/// would have been accepted). No REST route decodes one, and before this a gzip, `br` or
+/// `deflate` body reached the mesh and JSON parsers as it was and failed there with a
+/// misleading message (a compressed OBJ is "not UTF-8 text"). `identity` is no coding and
+/// passes. Layered on the REST routes only: gRPC compresses messages with `grpc-encoding`.
+pub async fn refuse_content_encoding(req: Request<Body>, next: axum::middleware::Next) -> Response {
+    let codings: Vec<String> = req
+        .headers()
+        .get_all(header::CONTENT_ENCODING)
+        .iter()
+        .flat_map(|v| {
+            String::from_utf8_lossy(v.as_bytes())
+                .split(',')
+                .map(|c| c.trim().to_ascii_lowercase())
+                .collect::<Vec<_>>()
+        })
+        .filter(|c| !c.is_empty() && c != "identity")
+        .collect();
+    if codings.is_empty() {
+        return next.run(req).await;
+    }
+    let path = req.uri().path().to_string();
+    let list = codings.join(", ");
+    // Read (bounded) what the client is still sending, so that it gets the answer.
+    drain_refused(req.into_body()).await;
+    let mut res = Problem::new(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_content_encoding",
+        format!(
+            "request bodies are read as sent, with no content coding: `Content-Encoding: {}` \
+             is not supported (send the body uncompressed, or with `Content-Encoding: identity`)",
+            crate::api::problem::clip(&list)
+        ),
+    )
+    .with("field", "Content-Encoding")
+    .with("encoding", list)
+    .instance(path)
+    .into_response();
+    res.headers_mut().insert(
+        header::ACCEPT_ENCODING,
+        axum::http::HeaderValue::from_static("identity"),
+    );
+    res
+}
+
 /// How much of a refused oversized body the server still reads before it answers, and for
 /// how long. A server that answers 413 and closes while the client is still sending leaves
 /// that client a broken pipe instead of the answer (seen in CI: a 120 KB curve against a

@@ -3,17 +3,18 @@
 
 use super::body::{drain_refused, read_limited, MULTIPART_SLACK};
 use super::params::{parse_out_format, query, spec_from_json, FormatQuery, FramesQuery, ListQuery};
+use super::range::{self, Answer};
 use super::spec_query::JobQuery;
 use crate::api::download::{self, Download, DownloadBudget};
 use crate::api::problem::{clip, Problem};
 use crate::api::state::AppState;
 use crate::jobs::{
     format_media_type, format_name, parse_format, rfc3339, Caller, JobSpec, JobState, JobStatus,
-    UploadRef,
+    MeshDownload, UploadRef,
 };
 use axum::body::Body;
 use axum::extract::{Extension, FromRequest, Path, Request, State};
-use axum::http::{header, HeaderValue, StatusCode, Uri};
+use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde::Serialize;
@@ -203,9 +204,24 @@ fn job_response(status: StatusCode, s: JobStatus) -> Response {
     res
 }
 
-fn mesh_response(id: &str, name: &str, format: Format, download: Download) -> Response {
-    let mut res = (StatusCode::OK, download.into_body()).into_response();
+fn mesh_response(
+    id: &str,
+    name: &str,
+    format: Format,
+    download: Download,
+    content_range: Option<String>,
+) -> Response {
+    let status = if content_range.is_some() {
+        StatusCode::PARTIAL_CONTENT
+    } else {
+        StatusCode::OK
+    };
+    let mut res = (status, download.into_body()).into_response();
     let h = res.headers_mut();
+    h.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
+    if let Some(v) = content_range.and_then(|r| HeaderValue::from_str(&r).ok()) {
+        h.insert(header::CONTENT_RANGE, v);
+    }
     h.insert(
         header::CONTENT_TYPE,
         HeaderValue::from_static(format_media_type(format)),
@@ -217,6 +233,59 @@ fn mesh_response(id: &str, name: &str, format: Format, download: Download) -> Re
         h.insert(header::CONTENT_DISPOSITION, v);
     }
     res
+}
+
+/// A mesh download as the request's `Range` asks (see `range`): the whole file (200), one
+/// byte range of it (206), or 416 for a range past its end. The range is cut before the
+/// download starts, so its charge and deadline are the range's.
+async fn ranged(
+    budget: Option<&DownloadBudget>,
+    data: MeshDownload,
+    headers: &HeaderMap,
+    asked: Option<range::Asked>,
+    (id, name, format): (&str, &str, Format),
+) -> Result<Response, Problem> {
+    let len = data.len();
+    match range::answer(asked, len) {
+        Answer::Whole => {
+            let download = download::start(budget, data).await?;
+            Ok(mesh_response(id, name, format, download, None))
+        }
+        Answer::Part { first, last } => {
+            let download = download::start(budget, data.range(first, last)).await?;
+            let content_range = format!("bytes {first}-{last}/{len}");
+            Ok(mesh_response(
+                id,
+                name,
+                format,
+                download,
+                Some(content_range),
+            ))
+        }
+        Answer::Unsatisfiable => {
+            let asked = headers
+                .get(header::RANGE)
+                .map(|v| String::from_utf8_lossy(v.as_bytes()).into_owned())
+                .unwrap_or_default();
+            let mut res = Problem::new(
+                StatusCode::RANGE_NOT_SATISFIABLE,
+                "range_not_satisfiable",
+                format!(
+                    "`Range: {}` starts at or past the end of this download, which is {len} bytes",
+                    clip(&asked)
+                ),
+            )
+            .with("field", "Range")
+            .with("length", len)
+            .into_response();
+            let h = res.headers_mut();
+            h.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
+            if let Ok(v) = HeaderValue::from_str(&format!("bytes */{len}")) {
+                h.insert(header::CONTENT_RANGE, v);
+            }
+            Ok(res)
+        }
+    }
 }
 
 pub(super) fn record_job(id: &str) {
@@ -481,7 +550,9 @@ pub async fn list_jobs(State(st): State<AppState>, caller: Caller, uri: Uri) -> 
         let q: ListQuery = query(&uri)?;
         let state = match q.state.as_deref() {
             None | Some("") => None,
-            Some(s) => Some(JobState::parse(s).ok_or_else(|| {
+            // Any case, as every name the API defines (`method`, `format`, `boundary`…) and
+            // as gRPC's `state=QUEUED` filter; the stored names are lower case.
+            Some(s) => Some(JobState::parse(&s.to_ascii_lowercase()).ok_or_else(|| {
                 Problem::bad_request(
                     "invalid_parameter",
                     format!("invalid parameter `state`: expected queued, running, succeeded, failed or cancelled, got `{s}`"),
@@ -582,21 +653,26 @@ pub async fn list_frames(
 
 /// The mesh after one step (steps that kept positions: 0, every frame interval, the last).
 #[utoipa::path(get, path = "/v1/jobs/{id}/frames/{step}", tag = "jobs",
-    params(("id" = String, Path), ("step" = usize, Path), FormatQuery),
-    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
+    params(("id" = String, Path), ("step" = usize, Path), FormatQuery, ("Range" = Option<String>, Header, description = "One byte range, `bytes=first-last`, `bytes=first-` or `bytes=-suffix`, to resume a download (206); several ranges, another unit or an `If-Range` header are ignored (200, the whole file)")),
+    responses((status = 200, description = "The mesh (`Accept-Ranges: bytes`)", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
+        (status = 206, description = "One byte range of the mesh (`Range`), with `Content-Range`", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
         (status = 400, description = "Bad parameters (`format`, `step`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "Unknown job, or a step without positions", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
+        (status = 416, description = "The `Range` starts at or past the end (`range_not_satisfiable`; `Content-Range: bytes */length`)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "No room in the download memory budget (`downloads_busy`; `scope`: `connection` or `server` for downloads waiting to be read, `render` for a first render that found no room in time; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn frame_mesh(
     State(st): State<AppState>,
     caller: Caller,
     Path((id, step)): Path<(String, String)>,
     budget: Option<Extension<DownloadBudget>>,
+    method: Method,
+    headers: HeaderMap,
     uri: Uri,
 ) -> Response {
     record_job(&id);
     let run = async {
+        let asked = range::asked(&method, &headers);
         let step: usize = step.parse().map_err(|_| {
             Problem::bad_request(
                 "invalid_parameter",
@@ -618,8 +694,8 @@ pub async fn frame_mesh(
                 budget.map(DownloadBudget::memory),
             )
             .await?;
-        let download = download::start(budget, bytes).await?;
-        Ok::<_, Problem>(mesh_response(&id, &format!("step{step}"), format, download))
+        let name = format!("step{step}");
+        ranged(budget, bytes, &headers, asked, (&id, &name, format)).await
     };
     match run.await {
         Ok(r) => r,
@@ -630,22 +706,27 @@ pub async fn frame_mesh(
 /// The faired mesh, with the input's UVs, materials and textures; in the input's format unless
 /// `format` asks for another.
 #[utoipa::path(get, path = "/v1/jobs/{id}/result", tag = "jobs",
-    params(("id" = String, Path), FormatQuery),
-    responses((status = 200, description = "The mesh", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
+    params(("id" = String, Path), FormatQuery, ("Range" = Option<String>, Header, description = "One byte range, `bytes=first-last`, `bytes=first-` or `bytes=-suffix`, to resume a download (206); several ranges, another unit or an `If-Range` header are ignored (200, the whole file)")),
+    responses((status = 200, description = "The mesh (`Accept-Ranges: bytes`)", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
+        (status = 206, description = "One byte range of the mesh (`Range`), with `Content-Range`", content((Vec<u8> = "model/gltf-binary"), (Vec<u8> = "model/gltf+json"), (Vec<u8> = "model/obj"), (Vec<u8> = "model/stl"), (Vec<u8> = "model/x-ply"), (Vec<u8> = "model/x-off"))),
         (status = 400, description = "Bad parameters (`format`; the field is named)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Expired", body = Problem, content_type = "application/problem+json"),
+        (status = 416, description = "The `Range` starts at or past the end (`range_not_satisfiable`; `Content-Range: bytes */length`)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "No room in the download memory budget (`downloads_busy`; `scope`: `connection` or `server` for downloads waiting to be read, `render` for a first render that found no room in time; `Retry-After`)", body = Problem, content_type = "application/problem+json")))]
 pub async fn job_result(
     State(st): State<AppState>,
     caller: Caller,
     Path(id): Path<String>,
     budget: Option<Extension<DownloadBudget>>,
+    method: Method,
+    headers: HeaderMap,
     uri: Uri,
 ) -> Response {
     record_job(&id);
     let run = async {
+        let asked = range::asked(&method, &headers);
         let budget = budget.as_ref().map(|Extension(b)| b);
         budget.map(DownloadBudget::check).transpose()?;
         let format = match parse_out_format(&query(&uri)?)? {
@@ -656,8 +737,7 @@ pub async fn job_result(
             .jobs
             .result_download(&caller, &id, format, budget.map(DownloadBudget::memory))
             .await?;
-        let download = download::start(budget, bytes).await?;
-        Ok::<_, Problem>(mesh_response(&id, "result", format, download))
+        ranged(budget, bytes, &headers, asked, (&id, "result", format)).await
     };
     match run.await {
         Ok(r) => r,

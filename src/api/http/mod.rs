@@ -15,7 +15,9 @@
 //! - `events`: Server-Sent Events;
 //! - `curves`: `POST /v1/curves:fair`;
 //! - `probes`: `/healthz`, `/readyz`, `/metrics`;
-//! - `body`: the 413 policy and bounded body reading and draining.
+//! - `body`: the 413 and 415 policies and bounded body reading and draining;
+//! - `range`: single byte ranges on mesh downloads (206, 416);
+//! - `head`: 414 and 431 for request heads over the server's limits.
 //!
 //! The web page's routes (`api::web`) are merged beside these by `api::server::app`.
 
@@ -26,16 +28,19 @@
 mod body;
 mod curves;
 mod events;
+mod head;
 mod jobs;
 mod params;
 mod probes;
+mod range;
 mod spec_query;
 
 pub use super::state::AppState;
 pub(super) use body::DRAIN_MAX_BYTES;
-pub use body::{problem_for_plain_413, MULTIPART_SLACK};
+pub use body::{problem_for_plain_413, refuse_content_encoding, MULTIPART_SLACK};
 pub use curves::{fair_curve, CurveBody, CurveFrameView, CurveParamsView, CurveQuery, CurveResult};
 pub use events::{job_events, FrameEvent};
+pub use head::{refuse_oversized_head, MAX_HEADERS, MAX_HEADER_BYTES, MAX_URI_BYTES};
 pub use jobs::{
     cancel_job, create_job, delete_job, frame_mesh, get_job, job_result, list_frames, list_jobs,
     FrameList, JobList, JobView, LatestMetrics, Links, Progress,

@@ -25,8 +25,25 @@ pub fn spec_from_json(text: &[u8]) -> Result<JobSpec, Problem> {
         // The path names the field, an unknown one included (`filter.x`); a document that is
         // not a JSON object at all has none.
         let field = e.path().to_string();
-        let reason = clip(&e.into_inner().to_string());
-        let field = if field == "." || field.is_empty() {
+        let inner = e.into_inner();
+        // A JSON syntax error (a truncated document: "EOF while parsing an object") is the
+        // part's, wherever the parser stood: serde_path_to_error names the segment it was
+        // about to read `?`, which is no field a client can look up.
+        if inner.is_syntax() || inner.is_eof() {
+            return bad_field(
+                "params",
+                format!(
+                    "the `params` part is not valid JSON: {} (line {}, column {})",
+                    clip(&json_error_text(&inner)),
+                    inner.line(),
+                    inner.column()
+                ),
+            )
+            .with("line", inner.line())
+            .with("column", inner.column());
+        }
+        let reason = clip(&inner.to_string());
+        let field = if field == "." || field.is_empty() || field.contains('?') {
             "params".to_string()
         } else {
             field
@@ -36,6 +53,13 @@ pub fn spec_from_json(text: &[u8]) -> Result<JobSpec, Problem> {
     de.end()
         .map_err(|e| bad_field("params", format!("trailing characters after the JSON: {e}")))?;
     Ok(spec)
+}
+
+/// serde_json's message without its own " at line L column C" (the caller says where).
+fn json_error_text(e: &serde_json::Error) -> String {
+    let text = e.to_string();
+    let suffix = format!(" at line {} column {}", e.line(), e.column());
+    text.strip_suffix(&suffix).unwrap_or(&text).to_string()
 }
 
 /// 400 `invalid_parameter` naming `field`, as the core's own parameter errors do.
@@ -125,9 +149,31 @@ pub(super) fn query_str<T: serde::de::DeserializeOwned>(raw: &str) -> Result<T, 
                 format!("invalid query string: {}", clip(&inner)),
             )
         } else {
-            bad_field(&field, clip(&inner))
+            let value = form_urlencoded::parse(raw.as_bytes())
+                .find(|(k, _)| *k == field)
+                .map(|(_, v)| v.into_owned());
+            match (expected(&inner), value) {
+                (Some(what), Some(value)) => {
+                    bad_field(&field, format!("must be {what}, got `{}`", clip(&value)))
+                }
+                _ => bad_field(&field, clip(&inner)),
+            }
         }
     })
+}
+
+/// What a query value had to be, from the message of the std parser that refused it: the
+/// parsers' own words ("invalid digit found in string") name neither the value nor the type.
+/// Every integer in the query strings [`query_str`] reads is a `usize`.
+fn expected(message: &str) -> Option<&'static str> {
+    match message {
+        "invalid digit found in string"
+        | "cannot parse integer from empty string"
+        | "number too large to fit in target type" => Some("a non-negative integer"),
+        "invalid float literal" | "cannot parse float from empty string" => Some("a number"),
+        "provided string was not `true` or `false`" => Some("`true` or `false`"),
+        _ => None,
+    }
 }
 
 /// The name in serde's "unknown field `x`, expected …".
@@ -150,5 +196,52 @@ pub(super) fn parse_out_format(q: &FormatQuery) -> Result<Option<Format>, Proble
             )
             .with("field", "format")
         }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn refusal<T: std::fmt::Debug>(r: Result<T, Problem>) -> serde_json::Value {
+        serde_json::to_value(r.expect_err("refused")).expect("json")
+    }
+
+    /// Issue 42: a truncated `params` part is the part's syntax error, named `params` with
+    /// where it broke off, not the `?` of the segment the parser was about to read.
+    #[test]
+    fn a_truncated_params_part_names_params() {
+        let p = refusal(spec_from_json(br#"{"steps": 3, "filter": {"sigma""#));
+        assert_eq!(p["field"], "params", "{p}");
+        assert_eq!(
+            p["detail"],
+            "invalid parameter `params`: the `params` part is not valid JSON: EOF while \
+             parsing an object (line 1, column 31)"
+        );
+        assert_eq!(
+            (p["line"].as_u64(), p["column"].as_u64()),
+            (Some(1), Some(31))
+        );
+        // A type error still names its field.
+        assert_eq!(
+            refusal(spec_from_json(br#"{"steps": "x"}"#))["field"],
+            "steps"
+        );
+    }
+
+    /// Issue 42: a bad integer says what was expected and echoes the value.
+    #[test]
+    fn bad_query_integers_say_what_is_expected() {
+        let p = refusal(query_str::<FramesQuery>("from_step=-1"));
+        assert_eq!(p["field"], "from_step");
+        assert_eq!(
+            p["detail"],
+            "invalid parameter `from_step`: must be a non-negative integer, got `-1`"
+        );
+        let p = refusal(query_str::<FramesQuery>("page_size=&from_step=2"));
+        assert_eq!(
+            p["detail"],
+            "invalid parameter `page_size`: must be a non-negative integer, got ``"
+        );
     }
 }

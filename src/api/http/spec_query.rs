@@ -265,11 +265,11 @@ fn json_value(field: &str, scalar: Scalar, text: &str) -> Result<Value, Problem>
     let not = |what: &str| bad_field(field, format!("expected {what}, got `{}`", clip(text)));
     Ok(match scalar {
         Scalar::String => Value::String(text.to_string()),
-        Scalar::Boolean => match text {
-            "true" => Value::Bool(true),
-            "false" => Value::Bool(false),
-            _ => return Err(not("`true` or `false`")),
-        },
+        // Any case, as the names (`method=MCF`, `boundary=Fixed`): a query value is text,
+        // and `True` is what Python's `str(True)` sends.
+        Scalar::Boolean if text.eq_ignore_ascii_case("true") => Value::Bool(true),
+        Scalar::Boolean if text.eq_ignore_ascii_case("false") => Value::Bool(false),
+        Scalar::Boolean => return Err(not("`true` or `false`")),
         Scalar::Integer => match (text.parse::<u64>(), text.parse::<i64>()) {
             (Ok(n), _) => Value::from(n),
             (_, Ok(n)) => Value::from(n),
@@ -522,6 +522,19 @@ mod tests {
         };
         assert_eq!(s, want);
         assert_eq!(spec("").expect("defaults"), JobSpec::default());
+    }
+
+    /// Issue 42: one rule for the names the API defines, any case, booleans included.
+    #[test]
+    fn names_and_booleans_are_read_in_any_case() {
+        let s =
+            spec("method=Conformal&boundary=FIXED&safeguard=True&exactness=FALSE").expect("a spec");
+        assert_eq!(s.method, willow::flow::Method::Conformal);
+        assert_eq!(s.boundary, BoundarySpec::Fixed);
+        assert!(s.safeguard && !s.exactness);
+        for query in ["safeguard=yes", "safeguard=1", "method=Conformale"] {
+            assert!(spec(query).is_err(), "{query}");
+        }
     }
 
     /// Each refusal names the parameter.

@@ -248,6 +248,15 @@ fn parse_corner(
                 let i: i64 = s
                     .parse()
                     .map_err(|_| parse_error(line_no, &format!("bad index {s:?}")))?;
+                // 0 is no index at all (OBJ counts from 1, or back from -1), not one past the
+                // end: a syntax error of this line, not a face to report by its number.
+                if i == 0 {
+                    let what = ["", "vt ", "vn "][slot];
+                    return Err(parse_error(
+                        line_no,
+                        &format!("OBJ {what}indices start at 1, got 0"),
+                    ));
+                }
                 // Positive indices are 1-based and may point forward; negative ones count
                 // back from the elements read so far.
                 let index = if i > 0 {

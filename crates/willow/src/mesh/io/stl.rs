@@ -57,9 +57,58 @@ impl Welder {
 pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, StlSource), MeshError> {
     if super::format::is_binary_stl(bytes) {
         read_binary(bytes, limits)
+    } else if let Some(e) = binary_length_mismatch(bytes) {
+        Err(e)
     } else {
         read_ascii(bytes, limits)
     }
+}
+
+/// The error for a binary STL whose length is not the one its triangle count gives, or `None`
+/// when the bytes are better read as ASCII STL (or as the text they are, for its error).
+///
+/// The length is the only sure sign of a binary STL, and it failed; so the bytes are taken
+/// for a broken binary STL when they are not text: invalid UTF-8 or a NUL byte, which the
+/// little-endian floats of any real binary STL have and an ASCII one never does. A binary
+/// header may itself begin with `solid` (many exporters write it), so that word decides
+/// nothing; without this, a truncated binary file was reported as "not UTF-8 text".
+fn binary_length_mismatch(bytes: &[u8]) -> Option<MeshError> {
+    let is_text = !bytes.contains(&0) && std::str::from_utf8(bytes).is_ok();
+    if is_text || super::format::foreign_content(bytes).is_some() {
+        return None;
+    }
+    let len = bytes.len() as u64;
+    let Some(count) = bytes.get(80..84) else {
+        return Some(MeshError::parse(
+            FORMAT,
+            format!(
+                "a binary STL has an {BINARY_HEADER}-byte header with its triangle count, \
+                 but the file has only {len} bytes (and it is not ASCII STL text)"
+            ),
+        ));
+    };
+    let n = u64::from(u32::from_le_bytes([count[0], count[1], count[2], count[3]]));
+    let want = BINARY_HEADER as u64 + BINARY_TRIANGLE as u64 * n;
+    let body = len - BINARY_HEADER as u64;
+    let whole = body / BINARY_TRIANGLE as u64;
+    let extra = body % BINARY_TRIANGLE as u64;
+    let hint = if len < want {
+        "truncated, or the count is wrong".to_string()
+    } else {
+        "bytes after the last triangle, or the count is wrong".to_string()
+    };
+    let holds = if extra == 0 {
+        format!("{whole} triangles")
+    } else {
+        format!("{whole} triangles and {extra} bytes")
+    };
+    Some(MeshError::parse(
+        FORMAT,
+        format!(
+            "binary STL header says {n} triangles ({BINARY_HEADER} + {BINARY_TRIANGLE}·{n} = \
+             {want} bytes) but the file has {len} bytes, room for {holds} ({hint})"
+        ),
+    ))
 }
 
 fn f32_at(bytes: &[u8], at: usize) -> f64 {
@@ -359,4 +408,64 @@ pub(crate) fn write_new(asset: &Asset, positions: &[[f64; 3]]) -> Result<Vec<u8>
         out.extend_from_slice(&[0, 0]);
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A binary STL of `n` triangles (all corners at the origin but the count's own), its
+    /// header beginning with `header`.
+    fn binary(header: &[u8], n: u32) -> Vec<u8> {
+        let mut b = vec![0u8; 80];
+        b[..header.len()].copy_from_slice(header);
+        b.extend_from_slice(&n.to_le_bytes());
+        for t in 0..n {
+            b.extend_from_slice(&[0u8; 12]);
+            for k in 0..3u32 {
+                for d in 0..3u32 {
+                    let x = (t * 9 + k * 3 + d) as f32 + 0.5;
+                    b.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+            b.extend_from_slice(&[0, 0]);
+        }
+        b
+    }
+
+    fn message(bytes: &[u8]) -> String {
+        match read(bytes, &Limits::default()) {
+            Ok(_) => panic!("read"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    /// Issue 42: a binary STL with a wrong triangle count names the count and the size, not
+    /// "not UTF-8 text", whether its header begins with `solid` or not.
+    #[test]
+    fn a_binary_stl_with_a_wrong_count_names_the_count_and_the_size() {
+        for header in [&b"binary"[..], b"solid exported by a CAD tool"] {
+            let mut short = binary(header, 3);
+            short.truncate(84 + 50 * 2 + 10);
+            assert_eq!(
+                message(&short),
+                "cannot parse STL: binary STL header says 3 triangles (84 + 50·3 = 234 bytes) \
+                 but the file has 194 bytes, room for 2 triangles and 10 bytes (truncated, or \
+                 the count is wrong)"
+            );
+            let mut long = binary(header, 2);
+            long.extend_from_slice(&[0u8; 50]);
+            assert_eq!(
+                message(&long),
+                "cannot parse STL: binary STL header says 2 triangles (84 + 50·2 = 184 bytes) \
+                 but the file has 234 bytes, room for 3 triangles (bytes after the last \
+                 triangle, or the count is wrong)"
+            );
+        }
+        assert!(message(&[1u8, 0, 2]).contains("only 3 bytes"));
+        // Whole files still read, and ASCII text still gets the ASCII reader's errors.
+        assert!(read(&binary(b"solid x", 2), &Limits::default()).is_ok());
+        assert!(message(b"solid x\nfacet normal 0 0 x\n").contains("line 2"));
+        assert!(message(b"hello world").contains("expected `solid`"));
+    }
 }
