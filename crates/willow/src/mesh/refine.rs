@@ -18,9 +18,15 @@
 //! is shared with [`io::Asset::refined`](super::io::Asset::refined), which splits the file's
 //! own (UV-seamed) vertices the same way so textures survive.
 //!
-//! Memory is bounded: before a level is built, the faces it would make are checked against
-//! the caller's limits and [`MAX_REFINED_FACES`], and exceeding them is a
-//! [`MeshError::TooLarge`] naming `refine`.
+//! The work is decided before any is done ([`planned_levels`]): the default makes the fewest
+//! levels that reach [`DEFAULT_REFINED_FACES`] triangles (16k–64k, whatever the triangles'
+//! shape: the old rule, levels until the mean edge reached the length of a 16k-triangle
+//! tiling's, made 327,680 triangles of a 12 KB stretched ellipsoid, whose long edges stay
+//! long against its small area); a target edge makes `⌈log₂(mean edge / target)⌉` (each
+//! level halves the edges). The plan's triangle count (`F · 4^levels`) is checked against the
+//! caller's limits and [`MAX_REFINED_FACES`] before the first level ([`check_plan`]), so an
+//! upload that would refine past them is refused at once, with a [`MeshError::TooLarge`]
+//! naming `refine`, not after seconds of refining.
 
 use super::generate::mean_edge_length;
 use super::{Limits, Mesh, MeshError};
@@ -228,6 +234,39 @@ pub fn check_level(faces: usize, limits: &Limits) -> Result<(), MeshError> {
     Ok(())
 }
 
+/// How many levels a refinement of `mesh` toward `target` (default: [`DEFAULT_REFINED_FACES`]
+/// triangles) makes (module docs); a bad target is refused, naming `refine`.
+pub fn planned_levels(mesh: &Mesh, target: Option<f64>) -> Result<usize, MeshError> {
+    let levels = match target {
+        None => {
+            let faces = mesh.face_count().max(1) as f64;
+            (DEFAULT_REFINED_FACES / faces).log(4.0).ceil().max(0.0)
+        }
+        Some(t) => {
+            check_target(t)?;
+            (mean_edge_length(mesh) / t).log2().ceil().max(0.0)
+        }
+    };
+    // At most 64 levels: past a handful the plan is refused by its size anyway.
+    Ok(levels.min(64.0) as usize)
+}
+
+/// Whether `levels` 1-to-4 splits of `faces` triangles stay within `limits` and
+/// [`MAX_REFINED_FACES`] (checked before the first level is built); the error names `refine`
+/// and the triangle count the plan would make.
+pub fn check_plan(faces: usize, levels: usize, limits: &Limits) -> Result<(), MeshError> {
+    let cap = limits.max_faces.min(MAX_REFINED_FACES);
+    let planned = faces.saturating_mul(4usize.saturating_pow(levels as u32));
+    if levels > 0 && planned > cap {
+        return Err(MeshError::TooLarge {
+            what: "triangles `refine` would make (subdivide less: a longer target edge)",
+            value: planned,
+            limit: cap,
+        });
+    }
+    Ok(())
+}
+
 /// Whether a split's vertex count (`V + E`) is within `limits`; the error names `refine`.
 pub fn check_vertices(vertices: usize, limits: &Limits) -> Result<(), MeshError> {
     if vertices > limits.max_vertices {
@@ -240,15 +279,15 @@ pub fn check_vertices(vertices: usize, limits: &Limits) -> Result<(), MeshError>
     Ok(())
 }
 
-/// Loop subdivision repeated until the mean edge length ([`mean_edge_length`]) is at most `target` (default:
-/// [`default_target_edge`]). Refuses, before allocating, a level past `limits` or
-/// [`MAX_REFINED_FACES`].
+/// Loop subdivision, [`planned_levels`] times: until the mean edge length
+/// ([`mean_edge_length`]) is about `target`, or by default to [`DEFAULT_REFINED_FACES`]
+/// triangles. Refuses, before any work, a plan past `limits` or [`MAX_REFINED_FACES`].
 pub fn refine(mesh: &Mesh, target: Option<f64>, limits: &Limits) -> Result<Refined, MeshError> {
-    let target = target.unwrap_or_else(|| default_target_edge(mesh));
-    check_target(target)?;
+    let planned = planned_levels(mesh, target)?;
+    check_plan(mesh.face_count(), planned, limits)?;
     let mut current = mesh.clone();
     let mut levels = Vec::new();
-    while mean_edge_length(&current) > target {
+    while levels.len() < planned {
         check_level(current.face_count(), limits)?;
         let split = midpoint_split(&current.triangles, current.vertex_count());
         check_vertices(current.vertex_count() + split.edges.len(), limits)?;

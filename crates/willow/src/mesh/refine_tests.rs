@@ -181,12 +181,14 @@ fn a_hostile_target_is_refused_before_allocating_and_names_refine() {
         max_faces: 1000,
         ..Limits::default()
     };
+    // Refused on its plan, before the first level: 80 · 4⁴ triangles, not the first level
+    // past the limit.
     let e = refine(&mesh, None, &small).expect_err("past the server's limit");
     assert!(
         matches!(
             e,
             MeshError::TooLarge {
-                value: 1280,
+                value: 20_480,
                 limit: 1000,
                 ..
             }
@@ -197,4 +199,31 @@ fn a_hostile_target_is_refused_before_allocating_and_names_refine() {
         let e = refine(&mesh, Some(bad), &Limits::default()).expect_err("bad target");
         assert!(e.to_string().contains("refine"), "{e}");
     }
+}
+
+/// Issue 42: the default counts triangles, whatever their shape. A needle (an icosphere
+/// stretched 50× along x: long edges on a small area) gets the same four levels as the
+/// round one, 20,480 triangles; the old rule (levels until the mean edge reached a 16k
+/// tiling's length) gave it seven, 327,680.
+#[test]
+fn the_default_aims_at_a_triangle_count_whatever_the_shape() {
+    let round = icosphere(1);
+    let mut needle = round.clone();
+    for p in &mut needle.positions {
+        p[0] *= 50.0;
+    }
+    for mesh in [&round, &needle] {
+        assert_eq!(planned_levels(mesh, None).expect("plan"), 4);
+        let r = refine(mesh, None, &Limits::default()).expect("refine");
+        assert_eq!(r.mesh.face_count(), 20_480);
+    }
+    // A target edge plans ⌈log₂(mean / target)⌉ levels, and a plan past the cap is refused
+    // by its size before anything is built.
+    let mean = mean_edge_length(&needle);
+    assert_eq!(planned_levels(&needle, Some(mean / 5.0)).expect("plan"), 3);
+    let e = refine(&needle, Some(mean / 1e6), &Limits::default()).expect_err("too fine");
+    assert!(
+        matches!(e, MeshError::TooLarge { value, .. } if value == 80 * 4usize.pow(20)),
+        "{e}"
+    );
 }

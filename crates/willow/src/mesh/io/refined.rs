@@ -25,9 +25,9 @@
 //!   Other formats are written new.
 
 use super::{Asset, Block, FileGeometry, Source, UNWELDED};
-use crate::mesh::refine::{check_level, check_target, check_vertices, loop_positions};
-use crate::mesh::refine::{default_target_edge, midpoint_split};
-use crate::mesh::{generate::mean_edge_length, Limits, Mesh, MeshError};
+use crate::mesh::refine::{check_level, check_plan, check_vertices, loop_positions};
+use crate::mesh::refine::{midpoint_split, planned_levels};
+use crate::mesh::{Limits, Mesh, MeshError};
 
 /// The file side of a refined asset: split vertex → file vertex, and each file vertex's
 /// stored position (local space), for those no triangle uses; and what writing the input's
@@ -83,25 +83,25 @@ pub struct Refinement {
 }
 
 impl Asset {
-    /// The asset Loop-subdivided until the surface's mean edge length is at most `target`
-    /// (default [`default_target_edge`]: about 16k triangles), with UVs, normals and the
+    /// The asset Loop-subdivided [`planned_levels`] times: until the surface's mean edge
+    /// length is about `target`, or by default to 16k–64k triangles, with UVs, normals and the
     /// file's numbering carried over (module docs). With no level needed, the asset itself.
     ///
-    /// Each level is checked against `limits` and [`MAX_REFINED_FACES`](crate::mesh::refine::MAX_REFINED_FACES)
-    /// before it is built; past them, a [`MeshError::TooLarge`] naming `refine`.
+    /// The plan is checked against `limits` and [`MAX_REFINED_FACES`](crate::mesh::refine::MAX_REFINED_FACES)
+    /// before any level is built; past them, a [`MeshError::TooLarge`] naming `refine`.
     pub fn refined(
         &self,
         target: Option<f64>,
         limits: &Limits,
     ) -> Result<(Asset, Refinement), MeshError> {
-        let target = target.unwrap_or_else(|| default_target_edge(&self.surface));
-        check_target(target)?;
+        let planned = planned_levels(&self.surface, target)?;
+        check_plan(self.surface.face_count(), planned, limits)?;
         let before = Refinement {
             levels: 0,
             vertices_before: self.file_vertex_count(),
             faces_before: self.surface.face_count(),
         };
-        if mean_edge_length(&self.surface) <= target {
+        if planned == 0 {
             return Ok((self.clone(), before));
         }
         let mut welded = self.surface.clone();
@@ -124,7 +124,7 @@ impl Asset {
             _ => None,
         };
         let mut levels = 0;
-        while mean_edge_length(&welded) > target {
+        while levels < planned {
             check_level(welded.face_count(), limits)?;
             let w = midpoint_split(&welded.triangles, welded.vertex_count());
             check_vertices(welded.vertex_count() + w.edges.len(), limits)?;
