@@ -396,6 +396,17 @@ impl FlowParams {
                 ));
             }
         }
+        if self.regions.len() > region::MAX_REGIONS {
+            return Err(invalid(
+                "region",
+                format!(
+                    "at most {} regions, got {}: name their union as fewer shapes or one \
+                     vertex list",
+                    region::MAX_REGIONS,
+                    self.regions.len()
+                ),
+            ));
+        }
         for r in &self.regions {
             r.validate().map_err(|reason| invalid("region", reason))?;
         }

@@ -38,6 +38,13 @@ use crate::metrics::StepMetrics;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 
+/// Most regions one flow may name. Matching costs regions × vertices (every sphere and box
+/// tests every vertex): 400k spheres on a 50k-vertex mesh took 22 s of a request's CPU
+/// (issue 42). 256 is far more than a person picks by hand or a pipeline sends (a union of
+/// a few shapes, or one vertex list), and bounds the matching at 256 passes over the
+/// vertices: half a second at the 2M-vertex limit.
+pub const MAX_REGIONS: usize = 256;
+
 /// One way to name vertices of the mesh, in its own units and numbering.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]

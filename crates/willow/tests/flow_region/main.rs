@@ -523,6 +523,21 @@ fn regions_that_cannot_be_faired_are_refused_by_name() {
         ),
         "radius",
     );
+    // Issue 42: a flood of regions is refused on its count, before any is matched (matching
+    // costs regions × vertices: 100k spheres would be 100k passes over spot's vertices).
+    let many = vec![EAR; willow::flow::region::MAX_REGIONS + 1];
+    refuse(
+        params(many.clone(), Seam::Smooth),
+        "at most 256 regions, got 257",
+    );
+    let flood = vec![EAR; 100_000];
+    assert!(matches!(
+        params(flood, Seam::Smooth).validate(),
+        Err(FlowError::InvalidParameter { name: "region", .. })
+    ));
+    // At the cap, the union is matched as before.
+    let at_cap = vec![EAR; willow::flow::region::MAX_REGIONS];
+    assert!(new_flow(&mesh, &params(at_cap, Seam::Smooth)).is_ok());
 }
 
 /// Euclidean distance from each vertex to the nearest vertex outside the region (an
