@@ -250,7 +250,11 @@ impl JobSpec {
     }
 
     /// Checks that need the uploaded file: vertex regions name vertices of its triangles, the
-    /// regions select some but not every vertex, one per-loop boundary angle per boundary loop.
+    /// regions select some but not every vertex, one per-loop boundary angle per boundary loop,
+    /// and the library's checks on the mesh's topology, resolution and size
+    /// ([`willow::flow::check_for_mesh`]: `cmcf` on a torus, a `feature_size` the mesh cannot
+    /// hold, `volume` where the border is held), so a job is refused now rather than failed
+    /// later.
     pub fn validate_for_asset(&self, asset: &Asset) -> Result<(), JobError> {
         let mesh = asset.surface();
         if !self.region.is_empty() {
@@ -276,16 +280,24 @@ impl JobSpec {
                 });
             }
         }
+        let topology = willow::mesh::topology::Topology::new(mesh);
         if let spec::BoundarySpec::Prescribed(p) = &self.boundary {
             if matches!(p.angles, spec::AnglesSpec::PerLoop(_)) {
-                let loops = willow::mesh::topology::Topology::new(mesh)
-                    .boundary_loops
-                    .len();
-                spec::check_loop_count(&self.boundary, loops)
+                spec::check_loop_count(&self.boundary, topology.boundary_loops.len())
                     .map_err(|(field, reason)| JobError::InvalidSpec { field, reason })?;
             }
         }
-        Ok(())
+        let params = self.flow_params_for(asset)?;
+        willow::flow::check_for_mesh(mesh, &topology, &params).map_err(|e| match e {
+            willow::flow::FlowError::InvalidParameter { name, reason } => JobError::InvalidSpec {
+                field: name,
+                reason,
+            },
+            other => JobError::InvalidSpec {
+                field: "params",
+                reason: other.to_string(),
+            },
+        })
     }
 
     /// The regions on the welded surface: vertex lists renumbered from the file's numbering.

@@ -569,3 +569,80 @@ async fn safeguard_option_frame_tau_and_no_progress_keeps_the_last_good_mesh() {
     assert_obj_result_is_frame(&text, &frame_positions(&last.data), 162);
     srv.stop().await;
 }
+
+/// Issue 42: every refusal the mesh's topology, resolution and size allow happens at
+/// submission: 400 naming the field, no job accepted to fail later.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn what_the_upload_shows_is_refused_at_submission_by_field() {
+    let srv = start(|_| {}).await;
+    let sphere = small_obj();
+    let cap = obj_text(&willow::mesh::generate::bumpy_cap(3, 0.06));
+    let torus = bumpy_torus_obj();
+    let cases: [(&str, &str, &str, &str); 9] = [
+        (
+            &torus,
+            "method=cmcf&steps=1",
+            "method",
+            "spherical topology",
+        ),
+        (&cap, "method=cmcf&steps=1", "method", "boundary loop"),
+        (
+            &sphere,
+            "steps=1&feature_size=1e-6",
+            "feature_size",
+            "resolution",
+        ),
+        (
+            &sphere,
+            "steps=1&feature_size=1e6",
+            "feature_size",
+            "larger than the mesh",
+        ),
+        (
+            &sphere,
+            "steps=1&feature_size=1e308",
+            "feature_size",
+            "larger than the mesh",
+        ),
+        (
+            &cap,
+            "steps=1&preserve=volume",
+            "preserve",
+            "border is held",
+        ),
+        (
+            &sphere,
+            "steps=1&preserve=volume&region.sphere=0,0,1,0.5",
+            "preserve",
+            "with a region",
+        ),
+        (
+            &sphere,
+            "method=taubin&steps=1&tau=1e-320",
+            "tau",
+            "at least",
+        ),
+        (
+            &sphere,
+            "method=taubin&steps=1&tau=1e-10",
+            "tau",
+            "at least",
+        ),
+    ];
+    for (mesh, query, field, words) in cases {
+        let (status, _, body) = srv.submit_obj(mesh, query).await;
+        assert_eq!(status, 400, "{query}: {body}");
+        assert_eq!(body["field"], field, "{query}: {body}");
+        let detail = body["detail"].as_str().expect("detail");
+        assert!(detail.contains(words), "{query}: {detail}");
+    }
+    // The same uploads with what they allow are accepted.
+    for (mesh, query) in [
+        (&sphere, "method=cmcf&steps=1"),
+        (&cap, "steps=1&preserve=volume&boundary=free"),
+        (&sphere, "method=taubin&steps=1&tau=1e-9"),
+    ] {
+        let (status, _, body) = srv.submit_obj(mesh, query).await;
+        assert_eq!(status, 202, "{query}: {body}");
+    }
+}

@@ -548,6 +548,10 @@ pub struct TaubinSmoothing {
     umbrella: Vec<[f64; 3]>,
 }
 
+/// The smallest Taubin λ (= τ) a flow takes ([`FlowParams::validate`]): below it a pass
+/// moves a unit mesh by less than rounding, and μ is no longer distinguishable from −λ.
+pub const MIN_TAUBIN_TAU: f64 = 1e-9;
+
 impl TaubinSmoothing {
     /// λ = τ and μ from the default pass band (see the type's docs).
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {

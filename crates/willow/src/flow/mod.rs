@@ -368,6 +368,18 @@ impl FlowParams {
                 ));
             }
         }
+        // λ = τ, μ = −λ / (1 − k_PB λ): below this μ rounds to −λ and the filter passes
+        // nothing (`tau=1e-320` was accepted, then failed naming `mu`).
+        if self.method == Method::Taubin && self.tau < classic::MIN_TAUBIN_TAU {
+            return Err(invalid(
+                "tau",
+                format!(
+                    "Taubin λ = τ must be at least {:e}, got {:e}",
+                    classic::MIN_TAUBIN_TAU,
+                    self.tau
+                ),
+            ));
+        }
         if self.method == Method::Taubin && self.preserve == Preserve::Volume {
             return Err(invalid(
                 "preserve",
@@ -714,6 +726,88 @@ impl StepProfile {
     pub fn counts(&self) -> &[(&'static str, f64)] {
         &self.counts
     }
+}
+
+/// The checks of `params` that need the mesh (its topology, resolution and size), cheap
+/// enough for a request path: a service runs them when a job is submitted, so that a job
+/// never fails later for what the upload already showed (issue 42: each of these was
+/// accepted, then failed). The flows' constructors keep their own guards.
+pub fn check_for_mesh(
+    mesh: &Mesh,
+    topology: &crate::mesh::topology::Topology,
+    params: &FlowParams,
+) -> Result<(), FlowError> {
+    let invalid = |name: &'static str, reason: String| FlowError::InvalidParameter { name, reason };
+    if params.method == Method::Cmcf {
+        if let Some((index, c)) = topology
+            .components
+            .iter()
+            .enumerate()
+            .find(|(_, c)| c.genus != 0 || !c.is_closed())
+        {
+            return Err(invalid(
+                "method",
+                format!(
+                    "`cmcf` applies only to spherical topology (closed, genus 0); component \
+                     {index} has genus {} and {} boundary loop(s)",
+                    c.genus,
+                    c.boundary_loops.len()
+                ),
+            ));
+        }
+    }
+    if params.method != Method::Conformal {
+        return Ok(());
+    }
+    if let Some(length) = params.feature_size {
+        feature::check_resolution(length, crate::mesh::generate::mean_edge_length(mesh))?;
+        let diagonal = bounding_diagonal(&mesh.positions);
+        if length > diagonal {
+            return Err(invalid(
+                "feature_size",
+                format!(
+                    "{length} is larger than the mesh itself (its bounding-box diagonal is \
+                     {diagonal:.6}): detail that large is its shape; leave feature_size out \
+                     to fair the whole shape"
+                ),
+            ));
+        }
+    }
+    // A region or a held border pins the surface's position and size, and the step does not
+    // rescale (`willmore::ConformalFlow::new`).
+    let held_border = params.boundary == Boundary::Fixed && !topology.boundary_loops.is_empty();
+    if params.preserve == Preserve::Volume && (held_border || !params.regions.is_empty()) {
+        return Err(invalid(
+            "preserve",
+            format!(
+                "`volume` cannot be kept {}: the held vertices pin position and size and the \
+                 flow does not rescale; use `area` or `none`{}",
+                if params.regions.is_empty() {
+                    "on an open surface whose border is held"
+                } else {
+                    "with a region"
+                },
+                if params.regions.is_empty() {
+                    " (or `boundary: free`, which lets the border move)"
+                } else {
+                    ""
+                }
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The length of the diagonal of the positions' axis-aligned bounding box.
+fn bounding_diagonal(positions: &[[f64; 3]]) -> f64 {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in positions {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt()
 }
 
 /// Build the flow `params.method` names on `mesh` (validated: see [`Mesh::new`]), with its
