@@ -7,10 +7,13 @@
 # (scripts/browser-test.sh: Debian's chromium, installed when missing, and playwright-core
 # from npm), then a short fuzzing run of every fuzz target (scripts/fuzz.sh --smoke: cargo-fuzz
 # pinned into target/fuzz-tools/) and schemathesis against the real server's OpenAPI document
-# (scripts/schemathesis.sh: pinned, from PyPI into target/schemathesis/).
+# (scripts/schemathesis.sh: pinned, from PyPI into target/schemathesis/), and the Python
+# package's pytest suite (scripts/python-package.sh: its pinned tools from PyPI into
+# target/python-package/, the wheel built by `pip install ./python`, once also into a fresh venv).
 # Extra arguments go to `cargo test` (e.g. `scripts/test.sh flow_conformal`) and then skip the
-# deployment lint, the browser tests, fuzzing and schemathesis; WILLOW_SKIP_DEPLOY_LINT=1,
-# WILLOW_SKIP_BROWSER_TESTS=1, WILLOW_SKIP_FUZZ=1 and WILLOW_SKIP_SCHEMATHESIS=1 skip each.
+# deployment lint, the browser tests, fuzzing, schemathesis and the Python package;
+# WILLOW_SKIP_DEPLOY_LINT=1, WILLOW_SKIP_BROWSER_TESTS=1, WILLOW_SKIP_FUZZ=1,
+# WILLOW_SKIP_SCHEMATHESIS=1 and WILLOW_SKIP_PYTHON=1 skip each.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -85,4 +88,10 @@ fi
 # schemathesis against /openapi.json of a real server (bounded to a few minutes).
 if [[ $# -eq 0 && "${WILLOW_SKIP_SCHEMATHESIS:-0}" != 1 ]]; then
     scripts/schemathesis.sh
+fi
+
+# The Python package willow-fair: pytest against the installed wheel and the CLI (a few
+# minutes: a release build of the extension and the CLI, then ~1 min of tests).
+if [[ $# -eq 0 && "${WILLOW_SKIP_PYTHON:-0}" != 1 ]]; then
+    WILLOW_PYTHON_FRESH=1 scripts/python-package.sh
 fi

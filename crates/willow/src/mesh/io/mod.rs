@@ -127,7 +127,9 @@ impl Source {
     /// Whether the file's vertex records are its split vertices one for one, in file order
     /// (PLY and OFF): a result in another indexed format then keeps that numbering.
     fn numbers_split_vertices(&self) -> bool {
-        matches!(self, Source::Ply(_) | Source::Off(_))
+        // Arrays made in code ([`Asset::from_indexed`]) number their vertices as given; for
+        // [`Asset::from_mesh`] split and welded vertices are one, so nothing changes there.
+        matches!(self, Source::Ply(_) | Source::Off(_) | Source::Code)
     }
 
     /// Per file vertex, its stored position, where file vertices are not split vertices.
@@ -412,6 +414,49 @@ impl Asset {
         })
     }
 
+    /// An asset for indexed triangle arrays made in code (a numpy array, trimesh, libigl),
+    /// welded exactly as a file's vertices are (module docs): vertices at the same exact
+    /// position join, so split copies (UV seams, an STL-like soup) move together, unless that
+    /// would make the surface non-manifold; vertices no triangle uses are left out of the
+    /// surface and keep their position. Its file vertices are the arrays' vertices, in their
+    /// order ([`Asset::file_to_welded`], [`Asset::file_world_positions`]); surface errors
+    /// come as [`MeshError::InFile`] in that numbering, and a new file written from it keeps
+    /// that numbering where the format has one (OBJ, glTF, GLB, PLY, OFF).
+    pub fn from_indexed(
+        positions: Vec<[f64; 3]>,
+        triangles: Vec<[usize; 3]>,
+        limits: &Limits,
+    ) -> Result<Asset, MeshError> {
+        let n = positions.len();
+        let mut out_of_range = super::error::Offenders::default();
+        for (f, t) in triangles.iter().enumerate() {
+            if t.iter().any(|&v| v >= n) {
+                out_of_range.push(f);
+            }
+        }
+        if !out_of_range.is_empty() {
+            return Err(MeshError::IndexOutOfRange {
+                faces: out_of_range,
+                vertex_count: n,
+            });
+        }
+        let file = FileGeometry {
+            local: positions,
+            blocks: vec![Block {
+                start: 0,
+                len: n,
+                to_world: Affine::IDENTITY,
+                to_local: Affine::IDENTITY,
+            }],
+            triangles,
+            uvs: None,
+            normal_keys: None,
+            face_of_triangle: None,
+            copies: Vec::new(),
+        };
+        Asset::assemble(Format::Obj, file, Source::Code, limits, false)
+    }
+
     /// The welded, validated, consistently oriented surface in world space (glTF node
     /// transforms applied): what the flow moves.
     pub fn surface(&self) -> &Mesh {
@@ -642,7 +687,19 @@ impl Asset {
 
     /// Per file vertex position (see [`Asset::file_positions`]), in f64.
     pub(crate) fn file_positions_f64(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
-        let split = self.split_positions(positions);
+        self.per_file_vertex(self.split_positions(positions))
+    }
+
+    /// New welded world-space positions scattered to the file's vertex order (see
+    /// [`Asset::file_vertex_count`]) in world space and f64: the arrays a caller fairs and
+    /// writes back with the file's numbering (the Python package's `read`). Vertices no
+    /// triangle uses keep their stored position (OBJ `v` lines, which no transform moves).
+    pub fn file_world_positions(&self, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        self.per_file_vertex(self.split_world_positions(positions))
+    }
+
+    /// Split vertex positions gathered to file vertices.
+    fn per_file_vertex(&self, split: Vec<[f64; 3]>) -> Vec<[f64; 3]> {
         match (self.source.v_of_split(), self.source.stored_positions()) {
             (Some(v_of_split), Some(stored)) => {
                 // Every copy of a `v` line has the same stored position, hence one welded
