@@ -11,7 +11,6 @@ import { ARTIFACTS, launch, newKey, sharedMesh, startProxy, startServer, stats, 
 
 const spot = sharedMesh('spot_triangulated.obj');
 const spotTexture = sharedMesh('spot_texture.png');
-const skip = !spot || !spotTexture ? 'spot is not on this machine' : false;
 
 const TOKEN_TTL_S = 12;
 let server;
@@ -27,7 +26,6 @@ const requests = [];
 const pending = [];
 
 before(async () => {
-  if (skip) return;
   const made = newKey('web', 'browser-test');
   key = made.key;
   assert.match(key, /^wlw_/, 'willow keys new prints the key on its first line');
@@ -60,7 +58,7 @@ const shot = (name) => page.screenshot({ path: join(ARTIFACTS, `${name}.png`) })
 /** The browser's own console line for a refused request (the page shows its message instead). */
 const drop401 = () => problems.splice(0, problems.length, ...problems.filter((p) => !/status of 401/.test(p)));
 
-test('with --auth keys: the page asks for a key, then runs a job with streamed frames; the key never goes in a URL', { skip }, async () => {
+test('with --auth keys: the page asks for a key, then runs a job with streamed frames; the key never goes in a URL', async () => {
   // Before the key: the dashboard's 401 asks for it, and the key field has the focus.
   await page.goto(BASE + '/');
   const msg = page.locator('#auth-msg');
@@ -163,7 +161,7 @@ async function streamsReach(streams, count, timeoutMs) {
   }
 }
 
-test('with --auth keys: a dropped stream resumes by itself while its token is fresh (Last-Event-ID), with a new token once it is about to expire, and asks for a key when refused', { skip }, async () => {
+test('with --auth keys: a dropped stream resumes by itself while its token is fresh (Last-Event-ID), with a new token once it is about to expire, and asks for a key when refused', async () => {
   await page.fill('#api-key', key);
   await page.press('#api-key', 'Enter');
   await page.waitForFunction(() => document.getElementById('auth-msg').textContent === '');

@@ -12,7 +12,6 @@ const here = dirname(fileURLToPath(import.meta.url));
 const spot = sharedMesh('spot_triangulated.obj');
 const spotTexture = sharedMesh('spot_texture.png');
 const duck = sharedMesh('Duck.glb');
-const skip = !spot || !spotTexture ? 'spot is not on this machine' : false;
 
 let browser;
 let page;
@@ -54,7 +53,7 @@ async function uploadSpot(params = {}) {
   for (const [name, value] of Object.entries(params)) await page.fill(`[name="${name}"]`, String(value));
 }
 
-test('upload spot with its texture: at least 3 frames render, the canvas changes, the plots grow', { skip }, async () => {
+test('upload spot with its texture: at least 3 frames render, the canvas changes, the plots grow', async () => {
   await uploadSpot();
   assert.equal(await page.locator('#colour').inputValue(), 'texture');
   const s0 = await stats(page);
@@ -98,7 +97,7 @@ test('upload spot with its texture: at least 3 frames render, the canvas changes
   assertClean();
 });
 
-test('the result downloads as a valid GLB', { skip }, async () => {
+test('the result downloads as a valid GLB', async () => {
   const [download] = await Promise.all([page.waitForEvent('download'), page.click('#dl-glb')]);
   const file = join(ARTIFACTS, 'spot-result.glb');
   await download.saveAs(file);
@@ -123,7 +122,7 @@ test('the result downloads as a valid GLB', { skip }, async () => {
   assertClean();
 });
 
-test('the API\'s error is shown, its field highlighted', { skip }, async () => {
+test('the API\'s error is shown, its field highlighted', async () => {
   await uploadSpot({ tau: 1.5 });
   await page.click('#submit');
   const error = page.locator('#form-error');
@@ -143,7 +142,7 @@ test('the API\'s error is shown, its field highlighted', { skip }, async () => {
   assertClean();
 });
 
-test('denoising options: the defaults as placeholders, each sent only once set, a bad one names its field, the job runs with them', { skip }, async () => {
+test('denoising options: the defaults as placeholders, each sent only once set, a bad one names its field, the job runs with them', async () => {
   await page.goto(BASE + '/');
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
@@ -186,7 +185,7 @@ test('denoising options: the defaults as placeholders, each sent only once set, 
   assertClean();
 });
 
-test('a dropped connection and a reload mid-run resume the stream; cancel the job; the dashboard shows the states', { skip }, async () => {
+test('a dropped connection and a reload mid-run resume the stream; cancel the job; the dashboard shows the states', async () => {
   // Long enough to reload and cancel while it runs: small steps.
   await uploadSpot({ steps: 2000, tau: 0.02 });
   // Every step: a flow that has settled would otherwise end `converged` before the test acts.
@@ -258,7 +257,7 @@ test('a dropped connection and a reload mid-run resume the stream; cancel the jo
   assertClean();
 });
 
-test('a textured GLB shows its embedded texture and flows', { skip: !duck && 'Duck.glb is not on this machine' }, async () => {
+test('a textured GLB shows its embedded texture and flows', async () => {
   await page.goto(BASE + '/');
   await page.waitForFunction(() => document.querySelector('select[name=method]').options.length > 0);
   // The conformal flow's frames (the default method leaves the clean duck alone).

@@ -9,7 +9,6 @@ import { join } from 'node:path';
 import { ARTIFACTS, URL_BASE, launch, paramsPart, sharedMesh, waitStats, watchedPage } from './support.mjs';
 
 const spot = sharedMesh('spot_triangulated.obj');
-const skip = !spot ? 'spot is not on this machine' : false;
 
 let browser;
 let page;
@@ -50,7 +49,7 @@ function objVertices(text) {
   return text.split('\n').filter((l) => /^v\s/.test(l)).map((l) => l.trim().split(/\s+/).slice(1, 4).map(Number));
 }
 
-test('a group of the uploaded OBJ is picked from its names, tinted, sent as {group} and only it moves', { skip }, async () => {
+test('a group of the uploaded OBJ is picked from its names, tinted, sent as {group} and only it moves', async () => {
   const grouped = spotWithGroups(readFileSync(spot, 'utf8'));
   const dir = mkdtempSync(join(tmpdir(), 'willow-groups-'));
   const file = join(dir, 'spot_groups.obj');
@@ -128,7 +127,7 @@ test('a group of the uploaded OBJ is picked from its names, tinted, sent as {gro
 
 const duck = sharedMesh('Duck.glb');
 
-test('a glTF offers its node and mesh names as groups, each with the vertices of its triangles', { skip: !duck && 'Duck.glb is not on this machine' }, async () => {
+test('a glTF offers its node and mesh names as groups, each with the vertices of its triangles', async () => {
   // The test's own reading of the GLB: the JSON chunk, then the index accessor in the BIN chunk.
   const bytes = readFileSync(duck);
   const jsonLength = bytes.readUInt32LE(12);

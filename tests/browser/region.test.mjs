@@ -10,7 +10,6 @@ import { ARTIFACTS, URL_BASE, launch, paramsPart, sharedMesh, stats, waitStats, 
 
 const spot = sharedMesh('spot_triangulated.obj');
 const spotTexture = sharedMesh('spot_texture.png');
-const skip = !spot || !spotTexture ? 'spot is not on this machine' : false;
 
 let browser;
 let page;
@@ -77,7 +76,7 @@ function objTriangles(text) {
   return out;
 }
 
-test('a sphere region picked by mouse on the view moves only what it holds; before/after and distance colours', { skip }, async () => {
+test('a sphere region picked by mouse on the view moves only what it holds; before/after and distance colours', async () => {
   await page.goto(URL_BASE + '/');
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));
@@ -230,7 +229,7 @@ test('a sphere region picked by mouse on the view moves only what it holds; befo
   assert.deepEqual(problems, [], 'console errors or requests to other hosts');
 });
 
-test('the outcome and its reason are shown when the job ends; distance, volume, scale-distortion and W-vector plots appear once frames carry them', { skip }, async () => {
+test('the outcome and its reason are shown when the job ends; distance, volume, scale-distortion and W-vector plots appear once frames carry them', async () => {
   // Until the server reports them, its answers are given the fields of the API's contract
   // (job: `outcome`, `outcome_reason`; frames: `deviation_max`, `deviation_mean`, `volume`):
   // the job JSON, the stream's `done` event (the same JSON) and the frames' metrics.
@@ -289,7 +288,7 @@ test('the outcome and its reason are shown when the job ends; distance, volume, 
 
 const duck = sharedMesh('Duck.glb');
 
-test('a region picked on a glTF with a scaled node is in world space: the server moves what the page tints', { skip: !duck && 'Duck.glb is not on this machine' }, async () => {
+test('a region picked on a glTF with a scaled node is in world space: the server moves what the page tints', async () => {
   await page.goto(URL_BASE + '/');
   await page.setInputFiles('#files', [duck]);
   await page.waitForFunction(() => /texture \(embedded\)/.test(document.getElementById('file-info').textContent));
@@ -345,7 +344,7 @@ test('a region picked on a glTF with a scaled node is in world space: the server
   assert.deepEqual(problems, [], 'console errors or requests to other hosts');
 });
 
-test('shape and stopping controls: each is sent only once set, the detail size is a ring of that diameter, two regions go as a list, an error names its field, Clear drops the regions', { skip }, async () => {
+test('shape and stopping controls: each is sent only once set, the detail size is a ring of that diameter, two regions go as a list, an error names its field, Clear drops the regions', async () => {
   await page.goto(URL_BASE + '/');
   await page.setInputFiles('#files', [spot, spotTexture]);
   await page.waitForFunction(() => /texture spot_texture\.png/.test(document.getElementById('file-info').textContent));

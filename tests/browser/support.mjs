@@ -14,14 +14,14 @@ export const URL_BASE = process.env.WILLOW_URL || 'http://127.0.0.1:8080';
 export const ARTIFACTS = process.env.WILLOW_ARTIFACTS || resolve(here, '../../target/browser-artifacts');
 
 /** `$WILLOW_SHARED_MESHES`, else ../shared/meshes beside the checkout, else /work/shared/meshes
- * (as tests/mesh_support does); null when none has `name`. */
+ * (as crates/willow/tests/mesh_support does). Throws when none has `name`: a test that needs
+ * a shared mesh fails without it, it is never skipped (issue 41). */
 export function sharedMesh(name) {
   const dirs = process.env.WILLOW_SHARED_MESHES
     ? [process.env.WILLOW_SHARED_MESHES]
     : [resolve(here, '../../../shared/meshes'), '/work/shared/meshes'];
   for (const d of dirs) if (existsSync(join(d, name))) return join(d, name);
-  console.log(`note: ${name} not found in ${dirs.join(', ')}`);
-  return null;
+  throw new Error(`${name} is needed by the browser tests and is not in ${dirs.join(', ')}; set WILLOW_SHARED_MESHES`);
 }
 
 /** Headless chromium from Debian with a fresh profile: software WebGL (SwiftShader), no
