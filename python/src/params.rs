@@ -69,6 +69,8 @@ pub fn flow_params(json: &str) -> PyResult<FlowParams> {
             unknown.join(", ")
         )));
     }
+    let mut map = map;
+    resolve_auto_boundary(&mut map);
     let mut params: FlowParams = serde_json::from_value(Value::Object(map)).map_err(|e| {
         let message = e.to_string();
         if message.starts_with("invalid type") {
@@ -81,4 +83,32 @@ pub fn flow_params(json: &str) -> PyResult<FlowParams> {
         params.threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     }
     Ok(params)
+}
+
+/// `boundary: "auto"`, the CLI's default (`willow_service::jobs::spec::BoundarySpec::Auto`,
+/// which the library does not have): `fixed` under the conformal flow without regions, where
+/// a free border of an open scan crumples (issue 39); `free` otherwise, where the flow keeps
+/// the border itself. Closed surfaces ignore either.
+fn resolve_auto_boundary(map: &mut Map<String, Value>) {
+    let auto = map
+        .get("boundary")
+        .and_then(Value::as_str)
+        .is_some_and(|b| b.eq_ignore_ascii_case("auto"));
+    if !auto {
+        return;
+    }
+    let conformal = map
+        .get("method")
+        .and_then(Value::as_str)
+        .is_some_and(|m| m.eq_ignore_ascii_case("conformal"));
+    let regions = map
+        .get("regions")
+        .and_then(Value::as_array)
+        .is_some_and(|r| !r.is_empty());
+    let resolved = if conformal && !regions {
+        "fixed"
+    } else {
+        "free"
+    };
+    map.insert("boundary".into(), Value::String(resolved.into()));
 }

@@ -157,6 +157,31 @@ def test_defaults_are_the_cli_defaults():
     d = willow_fair.defaults()
     assert d["method"] == "denoise" and d["steps"] == 10 and d["threads"] == 0
     assert d["tau"] == 0.5 and d["preserve"] == "area" and d["until_converged"] is True
+    assert d["boundary"] == "auto"
+
+
+def bumpy_patch(n=16):
+    """An open n × n grid over [-1, 1]², a bump in the middle, its border on z = 0."""
+    x, y = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(-1, 1, n + 1), indexing="ij")
+    z = 0.4 * np.exp(-4 * (x**2 + y**2)) * (1 - x**2) * (1 - y**2)
+    V = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    idx = lambda i, j: i * (n + 1) + j  # noqa: E731
+    F = []
+    for i in range(n):
+        for j in range(n):
+            F += [[idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)], [idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)]]
+    border = (np.abs(V[:, 0]) == 1) | (np.abs(V[:, 1]) == 1)
+    return V, np.array(F, dtype=np.int64), border
+
+
+def test_the_conformal_flow_holds_an_open_border_unless_asked_free():
+    V, F, border = bumpy_patch()
+    held = willow_fair.fair(V, F, **CONFORMAL)
+    assert np.array_equal(held.vertices[border], V[border]), "auto holds the border"
+    assert not np.array_equal(held.vertices, V), "and fairs the rest"
+    free = willow_fair.fair(V, F, boundary="free", **CONFORMAL)
+    moved = np.linalg.norm(free.vertices[border] - V[border], axis=1).max()
+    assert moved > 1e-3, f"free: the border moved {moved}"
 
 
 # --- Flow and fair ------------------------------------------------------------------------

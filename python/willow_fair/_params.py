@@ -24,7 +24,7 @@ LIBRARY_DEFAULTS: Dict[str, Any] = json.loads(_native.flow_params_defaults())
 # The fields of the nested parameters: {"denoise": [...], "filter": ["sigma", "k"]}.
 NESTED: Dict[str, List[str]] = json.loads(_native.nested_fields())
 # Where the CLI's defaults differ from the library's: `fair(V, F)` is `willow fair in -o out`.
-CLI_DEFAULTS: Dict[str, Any] = {"method": "denoise", "threads": 0}
+CLI_DEFAULTS: Dict[str, Any] = {"method": "denoise", "threads": 0, "boundary": "auto"}
 # The CLI's prescribed-boundary flags, gathered into `boundary`.
 BOUNDARY_KEYWORDS = ("frame_angle", "boundary_rotation", "boundary_axis")
 # `fair`'s step count, the CLI's `--steps` default (a `Flow` has no limit unless given one).
