@@ -78,6 +78,26 @@ pub(crate) struct FileGeometry {
 }
 
 impl FileGeometry {
+    /// One untransformed block over `local`, with no UVs, normals or face numbers: what
+    /// every format but glTF starts from.
+    pub(crate) fn one_block(local: Vec<[f64; 3]>, triangles: Vec<[usize; 3]>) -> Self {
+        let len = local.len();
+        FileGeometry {
+            local,
+            blocks: vec![Block {
+                start: 0,
+                len,
+                to_world: Affine::IDENTITY,
+                to_local: Affine::IDENTITY,
+            }],
+            triangles,
+            uvs: None,
+            normal_keys: None,
+            face_of_triangle: None,
+            copies: Vec::new(),
+        }
+    }
+
     /// Split vertices read from the file (not copies made by `repair`).
     pub(crate) fn read_count(&self) -> usize {
         self.local.len() - self.copies.len()
@@ -389,20 +409,7 @@ impl Asset {
         let file_triangles = mesh.triangles.clone();
         let surface = Mesh::with_limits(mesh.positions, mesh.triangles, limits)?;
         let n = surface.vertex_count();
-        let file = FileGeometry {
-            local: surface.positions.clone(),
-            blocks: vec![Block {
-                start: 0,
-                len: n,
-                to_world: Affine::IDENTITY,
-                to_local: Affine::IDENTITY,
-            }],
-            triangles: file_triangles,
-            uvs: None,
-            normal_keys: None,
-            face_of_triangle: None,
-            copies: Vec::new(),
-        };
+        let file = FileGeometry::one_block(surface.positions.clone(), file_triangles);
         Ok(Asset {
             format: Format::Obj,
             surface,
@@ -440,20 +447,7 @@ impl Asset {
                 vertex_count: n,
             });
         }
-        let file = FileGeometry {
-            local: positions,
-            blocks: vec![Block {
-                start: 0,
-                len: n,
-                to_world: Affine::IDENTITY,
-                to_local: Affine::IDENTITY,
-            }],
-            triangles,
-            uvs: None,
-            normal_keys: None,
-            face_of_triangle: None,
-            copies: Vec::new(),
-        };
+        let file = FileGeometry::one_block(positions, triangles);
         Asset::assemble(Format::Obj, file, Source::Code, limits, false)
     }
 

@@ -15,7 +15,7 @@
 //! malformed line is a [`MeshError`] naming its (1-based) line number.
 
 use super::text::{coordinate, lines_with_offsets, splice, triple, utf8};
-use super::{normalize_or_z, Affine, Asset, Block, FileGeometry, Limits, MeshError, UNWELDED};
+use super::{normalize_or_z, Asset, FileGeometry, Limits, MeshError, UNWELDED};
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::ops::Range;
@@ -480,20 +480,11 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, ObjSo
             .map(|&(_, _, vn)| vn.map_or(u64::MAX, |i| i as u64))
             .collect()
     });
-    let n = local.len();
     let file = FileGeometry {
-        local,
-        blocks: vec![Block {
-            start: 0,
-            len: n,
-            to_world: Affine::IDENTITY,
-            to_local: Affine::IDENTITY,
-        }],
-        triangles,
         uvs,
         normal_keys,
         face_of_triangle: Some(face_of_triangle),
-        copies: Vec::new(),
+        ..FileGeometry::one_block(local, triangles)
     };
     let src = ObjSource {
         text: text.to_owned(),

@@ -6,7 +6,7 @@
 //! (recomputed): colours, UVs, face lines with their colours, comments and layout stay.
 
 use super::text::{lines_with_offsets, splice, triple, utf8};
-use super::{Affine, Asset, Block, FileGeometry, Limits, MeshError};
+use super::{Asset, FileGeometry, Limits, MeshError};
 use std::fmt::Write as _;
 use std::ops::Range;
 
@@ -182,19 +182,11 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, OffSo
         });
     }
     let file = FileGeometry {
-        local,
-        blocks: vec![Block {
-            start: 0,
-            len: nv,
-            to_world: Affine::IDENTITY,
-            to_local: Affine::IDENTITY,
-        }],
-        triangles,
         uvs: has_uv.then_some(uvs),
         // One normal per vertex: each vertex is its own smooth group.
         normal_keys: has_normals.then(|| (0..nv as u64).collect()),
         face_of_triangle: Some(face_of_triangle),
-        copies: Vec::new(),
+        ..FileGeometry::one_block(local, triangles)
     };
     let src = OffSource {
         text: text.to_owned(),

@@ -13,7 +13,7 @@
 //! into, and has not been released since 2020.
 
 use super::text::{coordinate, splice, utf8, Words};
-use super::{Affine, Asset, Block, FileGeometry, Limits, MeshError};
+use super::{Asset, FileGeometry, Limits, MeshError};
 use std::collections::HashMap;
 use std::fmt::Write as _;
 
@@ -494,20 +494,11 @@ pub(crate) fn read(bytes: &[u8], limits: &Limits) -> Result<(FileGeometry, PlySo
             })
             .collect()
     });
-    let n = local.len();
     let file = FileGeometry {
-        local,
-        blocks: vec![Block {
-            start: 0,
-            len: n,
-            to_world: Affine::IDENTITY,
-            to_local: Affine::IDENTITY,
-        }],
-        triangles,
         uvs: uv.map(|_| uvs),
         normal_keys,
         face_of_triangle: Some(face_of_triangle),
-        copies: Vec::new(),
+        ..FileGeometry::one_block(local, triangles)
     };
     let src = PlySource {
         bytes: bytes.to_vec(),

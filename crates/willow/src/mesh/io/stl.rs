@@ -13,7 +13,7 @@
 //! ASCII text that writing back keeps.
 
 use super::text::{splice, triple, utf8, Words};
-use super::{cross, normalize_or_z, sub, Affine, Asset, Block, FileGeometry, Limits, MeshError};
+use super::{cross, normalize_or_z, sub, Asset, FileGeometry, Limits, MeshError};
 use std::collections::HashMap;
 use std::ops::Range;
 
@@ -298,21 +298,7 @@ fn finish(
         });
     }
     limits.check_vertices(welder.positions.len())?;
-    let n = welder.positions.len();
-    Ok(FileGeometry {
-        local: welder.positions,
-        blocks: vec![Block {
-            start: 0,
-            len: n,
-            to_world: Affine::IDENTITY,
-            to_local: Affine::IDENTITY,
-        }],
-        triangles,
-        uvs: None,
-        normal_keys: None,
-        face_of_triangle: None,
-        copies: Vec::new(),
-    })
+    Ok(FileGeometry::one_block(welder.positions, triangles))
 }
 
 /// Unit normal of each file triangle, wound like the oriented surface, in new positions.
