@@ -1,20 +1,8 @@
 //! Issue 42, item 5: the error details (each refusal says what was wrong, in a problem body)
 //! and `Range` on mesh downloads.
 
+use super::errors::problem;
 use super::*;
-
-/// The status and problem body of a response; fails unless it is problem+json.
-async fn problem(res: reqwest::Response) -> (u16, serde_json::Value) {
-    let status = res.status().as_u16();
-    assert_eq!(
-        res.headers()
-            .get("content-type")
-            .and_then(|v| v.to_str().ok()),
-        Some("application/problem+json"),
-        "status {status}"
-    );
-    (status, res.json().await.expect("problem json"))
-}
 
 fn detail(p: &serde_json::Value) -> &str {
     p["detail"].as_str().unwrap_or_default()

@@ -19,7 +19,7 @@ enum Says {
 }
 
 /// The status and body of a problem response; fails unless it is problem+json.
-async fn problem(res: reqwest::Response) -> (u16, serde_json::Value) {
+pub(crate) async fn problem(res: reqwest::Response) -> (u16, serde_json::Value) {
     let status = res.status().as_u16();
     assert_eq!(
         res.headers()
