@@ -184,6 +184,52 @@ def test_the_conformal_flow_holds_an_open_border_unless_asked_free():
     assert moved > 1e-3, f"free: the border moved {moved}"
 
 
+
+def chamfered_cylinder(segments=64, step=0.1):
+    """A cylinder of radius 1, height 2, both rims chamfered at 45°: four crease rings."""
+    profile = [(0.0, 0.0), (0.8, 0.0), (1.0, 0.2), (1.0, 1.8), (0.8, 2.0), (0.0, 2.0)]
+    points = []
+    for (r0, z0), (r1, z1) in zip(profile, profile[1:]):
+        pieces = max(1, int(np.ceil(np.hypot(r1 - r0, z1 - z0) / step)))
+        points += [(r0 + (r1 - r0) * k / pieces, z0 + (z1 - z0) * k / pieces) for k in range(pieces)]
+    points.append(profile[-1])
+    V, rows = [], []
+    for r, z in points:
+        if r == 0.0:
+            rows.append([len(V)])
+            V.append((0.0, 0.0, z))
+        else:
+            rows.append(list(range(len(V), len(V) + segments)))
+            a = 2 * np.pi * np.arange(segments) / segments
+            V += [(r * np.cos(t), r * np.sin(t), z) for t in a]
+    F = []
+    at = lambda row, j: row[0] if len(row) == 1 else row[j % segments]  # noqa: E731
+    for lower, upper in zip(rows, rows[1:]):
+        for j in range(segments):
+            a, b, c, d = at(lower, j), at(lower, j + 1), at(upper, j + 1), at(upper, j)
+            if a != b:
+                F.append((a, b, c))
+            if c != d:
+                F.append((a, c, d))
+    return np.array(V, dtype=np.float64), np.array(F, dtype=np.int64)
+
+
+def test_feature_angle_holds_a_parts_creases():
+    V, F = chamfered_cylinder()
+    held = willow_fair.fair(V, F, tau=0.05, **CONFORMAL)
+    assert all(m["crease_edges"] == 4 * 64 for m in held.metrics), held.metrics[-1]
+    rims = np.isclose(np.hypot(V[:, 0], V[:, 1]), 1.0) & (np.isclose(V[:, 2], 0.2) | np.isclose(V[:, 2], 1.8))
+    assert rims.sum() == 2 * 64
+    assert np.array_equal(held.vertices[rims], V[rims]), "crease vertices stay"
+    assert not np.array_equal(held.vertices, V), "the patches between them are faired"
+    across = willow_fair.fair(V, F, tau=0.05, feature_angle="none", **CONFORMAL)
+    assert "crease_edges" not in across.metrics[-1]
+    assert not np.array_equal(across.vertices[rims], V[rims])
+    with pytest.raises(ValueError, match="between 0 and 180"):
+        willow_fair.fair(V, F, feature_angle=200.0, **CONFORMAL)
+    with pytest.raises(ValueError, match="expected `auto`, `none` or an angle"):
+        willow_fair.fair(V, F, feature_angle="sharp", **CONFORMAL)
+
 # --- Flow and fair ------------------------------------------------------------------------
 
 

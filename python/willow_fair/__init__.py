@@ -43,6 +43,9 @@ CLI's, ``denoise``: ``method="conformal"`` is the paper's Willmore flow.
 - ``measure_deviation`` (False): report ``deviation_max``/``deviation_mean`` every step.
 - ``feature_size`` (None, model units): remove the detail below this length (conformal).
 - ``falloff`` (None, model units): blend a region's motion to zero over this width.
+- ``feature_angle`` ("auto"): sharp edges kept sharp: "auto" (30°, only on parts with long
+  chains of sharp edges), "none", or an angle in degrees; the conformal flow holds them
+  (metrics' ``crease_edges`` counts them).
 - ``denoise_iterations`` (None: read off the mesh), ``denoise_vertex_iterations`` (10),
   ``denoise_sigma_r`` (0.35, unit-normal difference), ``denoise_radius`` (2.0, mean
   centroid distances), ``denoise_guided`` (True): method "denoise"'s filter.

@@ -44,6 +44,25 @@ pub enum RegionSchema {
     Group(String),
 }
 
+/// Which edges are creases: an angle in degrees (0 < angle < 180), or `auto` / `none`.
+#[derive(ToSchema)]
+#[schema(as = FeatureAngle)]
+#[serde(untagged)]
+pub enum FeatureAngleSchema {
+    /// Edges sharper than this many degrees.
+    Degrees(f64),
+    /// `auto` (30°, only where a part has creases) or `none`.
+    Named(FeatureAngleName),
+}
+
+/// The named feature angles.
+#[derive(ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum FeatureAngleName {
+    Auto,
+    None,
+}
+
 /// How a region meets the surface around it.
 #[derive(ToSchema)]
 #[schema(as = Seam)]

@@ -1,7 +1,7 @@
 //! `willow fair INPUT -o OUTPUT [--steps N] [--tau T] [--iterations K] [--method M]
 //! [--frames-dir DIR] [--json] [--no-safeguard] [--preserve area|volume|none]
 //! [--max-deviation D] [--measure-deviation] [--until-willmore W] [--all-steps]
-//! [--feature-size L] [--falloff F]
+//! [--feature-size L] [--falloff F] [--feature-angle auto|none|A]
 //! [--region-sphere X,Y,Z,R] [--region-box ..] [--region-vertices FILE] [--region-group NAME]
 //! [--seam fixed|smooth]`: the contract other tools rely on.
 //!
@@ -27,6 +27,7 @@ use std::process::ExitCode;
 use willow::flow::region::{resolve_groups, Region, Seam};
 use willow::flow::stopping::{Event, Outcome, Run};
 use willow::flow::{new_flow, FlowError, Method, Preserve};
+use willow::mesh::creases::FeatureAngle;
 use willow::mesh::io::{Asset, Format, Limits};
 use willow_service::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use willow_service::jobs::JobSpec;
@@ -42,7 +43,8 @@ Output:
   q_area_mean, q_p95, q_max, closure_residual, eigen_residual, area, step_ms, tau, rejected,
   volume, deviation_max, deviation_mean, willmore_energy_vector (Σ|Lf|²/4A, the |Δf| form;
   willmore_energy is the signed, normal-projected one), log_area_ratio_p1, log_area_ratio_p99,
-  collapsed_triangles (scale distortion against the input), then a last line
+  collapsed_triangles (scale distortion against the input), crease_edges (the creases held or
+  found, with --feature-angle), then a last line
   {\"outcome\": ..., \"reason\": ...}.
   Input and output formats may differ; a PLY or OFF keeps its vertex numbering in every output
   format. A file with bowties or degenerate faces is repaired (stderr says what changed, in
@@ -231,6 +233,13 @@ pub struct FairArgs {
     /// Blend a region's motion to zero over this width (model units) toward its border.
     #[arg(long, value_name = "F", allow_negative_numbers = true)]
     pub falloff: Option<f64>,
+    /// Keep sharp edges sharp: edges whose faces meet at more than this many degrees, in
+    /// chains of 8 or more, read off the denoised surface, are creases; the conformal flow
+    /// holds them and fairs the patches between. `auto` (30°, only on parts that have such
+    /// chains), `none`, or an angle (0 < A < 180).
+    #[arg(long, value_name = "A", default_value = "auto", allow_negative_numbers = true,
+          value_parser = FeatureAngle::parse)]
+    pub feature_angle: FeatureAngle,
 }
 
 /// The vertex numbers of a `--region-vertices` file.
@@ -397,6 +406,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         seam: args.seam,
         repair: !args.no_repair,
         refine: args.refine,
+        feature_angle: args.feature_angle,
         denoise: willow_service::jobs::spec::DenoiseSpec {
             iterations: args.denoise_iterations,
             vertex_iterations: args.denoise_vertex_iterations,

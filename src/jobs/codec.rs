@@ -119,7 +119,7 @@ pub const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
 /// step has it: a metric added later takes the next tag, and a row without it reads as `None`.
 type OptionalMetric = (u8, fn(&StepMetrics) -> Option<f64>);
 
-const OPTIONAL_METRICS: [OptionalMetric; 7] = [
+const OPTIONAL_METRICS: [OptionalMetric; 8] = [
     (1, |m| m.volume),
     (2, |m| m.deviation_max),
     (3, |m| m.deviation_mean),
@@ -127,6 +127,7 @@ const OPTIONAL_METRICS: [OptionalMetric; 7] = [
     (5, |m| m.log_area_ratio_p1),
     (6, |m| m.log_area_ratio_p99),
     (7, |m| m.collapsed_triangles.map(f64::from)),
+    (8, |m| m.crease_edges.map(f64::from)),
 ];
 
 /// The binary form of [`StepMetrics`]: [`METRICS_BYTES`], then the optional metrics the step
@@ -205,6 +206,7 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
         log_area_ratio_p1: None,
         log_area_ratio_p99: None,
         collapsed_triangles: None,
+        crease_edges: None,
     };
     if b.len() > METRICS_BYTES {
         for entry in b[METRICS_BYTES..].chunks_exact(9) {
@@ -220,6 +222,7 @@ pub fn decode_metrics(b: &[u8]) -> Result<StepMetrics, JobError> {
                 6 => m.log_area_ratio_p99 = v,
                 // A count, stored as the f64 it converts to exactly (below 2^53).
                 7 => m.collapsed_triangles = v.map(|c| c as u32),
+                8 => m.crease_edges = v.map(|c| c as u32),
                 tag => return Err(bad(format!("unknown optional metric {tag}"))),
             }
         }
@@ -705,6 +708,7 @@ mod tests {
             log_area_ratio_p1: None,
             log_area_ratio_p99: None,
             collapsed_triangles: None,
+            crease_edges: None,
         };
         let blob = encode_metrics(&m);
         assert_eq!(blob.len(), METRICS_BYTES);
@@ -825,6 +829,7 @@ mod tests {
                 log_area_ratio_p1: None,
                 log_area_ratio_p99: None,
                 collapsed_triangles: None,
+                crease_edges: None,
             },
             positions: vec![[1.0, -2.0, 3.5], [0.1, 0.2, f64::MIN_POSITIVE]],
             next_tau: 0.25,

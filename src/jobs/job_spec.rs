@@ -119,6 +119,15 @@ pub struct JobSpec {
     pub callback_url: Option<String>,
     /// The filter of method `denoise`; other methods refuse anything but its defaults.
     pub denoise: spec::DenoiseSpec,
+    // `willow::flow::creases`, `willow::mesh::creases`.
+    /// Sharp edges kept sharp: edges whose faces meet at more than this many degrees (0 < angle
+    /// < 180), in chains of 8 or more, read off the denoised surface, are creases. `auto` (the
+    /// default: 30°) finds the creases of CAD parts and none on organic meshes; `none` fairs
+    /// across every edge. The conformal flow holds the crease vertices and fairs the smooth
+    /// patches between them (not with a `prescribed` or `cmc` boundary, or `preserve: volume`);
+    /// `denoise` reports the creases it sharpened. Each frame's `crease_edges` counts them.
+    #[schema(value_type = crate::api::schema::FeatureAngleSchema)]
+    pub feature_angle: willow::mesh::creases::FeatureAngle,
 }
 
 impl Default for JobSpec {
@@ -152,6 +161,7 @@ impl Default for JobSpec {
             refine: false,
             callback_url: None,
             denoise: spec::DenoiseSpec::from_flow(flow.denoise),
+            feature_angle: flow.feature_angle,
         }
     }
 }
@@ -363,6 +373,7 @@ impl JobSpec {
             feature_size: self.feature_size,
             falloff: self.falloff,
             denoise: self.denoise.to_flow(),
+            feature_angle: self.feature_angle,
         }
     }
 

@@ -256,3 +256,94 @@ fn fair_a_named_group_with_a_falloff() {
         }
     }
 }
+
+/// `--feature-angle`: a chamfered cylinder's four crease rings are held by the conformal flow
+/// (every crease vertex written back to the bit, `crease_edges` on every JSON line); `none`
+/// fairs across them; an angle out of range or a word is refused, exit 2, naming the flag.
+#[test]
+fn fair_keeps_the_creases_of_a_part() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let part = willow::mesh::generate::revolved(
+        &[
+            [0.0, 0.0],
+            [0.8, 0.0],
+            [1.0, 0.2],
+            [1.0, 1.8],
+            [0.8, 2.0],
+            [0.0, 2.0],
+        ],
+        0.1,
+        64,
+    );
+    let mut text = String::new();
+    for p in &part.positions {
+        text += &format!("v {:?} {:?} {:?}\n", p[0], p[1], p[2]);
+    }
+    for t in &part.triangles {
+        text += &format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1);
+    }
+    let input = dir.path().join("part.obj");
+    std::fs::write(&input, text).expect("write part");
+    let out = dir.path().join("out.obj");
+    let run = |angle: &str| {
+        willow()
+            .args(["fair", input.to_str().expect("utf-8"), "-o"])
+            .arg(&out)
+            .args(["--method", "conformal", "--tau", "0.05", "--steps", "3"])
+            .args(["--all-steps", "--json", "--feature-angle", angle])
+            .output()
+            .expect("run willow")
+    };
+    let held = run("auto");
+    assert!(
+        held.status.success(),
+        "{}",
+        String::from_utf8_lossy(&held.stderr)
+    );
+    let lines = json_lines(&held);
+    assert!(!lines.is_empty(), "{:?}", outcome(&held));
+    assert!(
+        lines.iter().all(|l| l["crease_edges"] == 4 * 64),
+        "{lines:?}"
+    );
+    // The output's `v` lines, in the file's numbering (the input's: the generator's).
+    let now: Vec<[f64; 3]> = std::fs::read_to_string(&out)
+        .expect("output")
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .map(|t| t.parse().expect("a number"))
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect();
+    assert_eq!(now.len(), part.vertex_count());
+    let topology = willow::mesh::topology::Topology::new(&part);
+    let creases = willow::mesh::creases::detect_creases(
+        &part.positions,
+        &part.triangles,
+        &topology,
+        willow::mesh::creases::FeatureAngle::Auto,
+    );
+    let kept = (0..part.vertex_count())
+        .filter(|&v| creases.vertices[v])
+        .all(|v| now[v] == part.positions[v]);
+    assert!(kept, "every crease vertex is written back as it was");
+
+    let across = run("none");
+    assert!(across.status.success());
+    assert!(json_lines(&across)
+        .iter()
+        .all(|l| l.get("crease_edges").is_none()));
+    for bad in ["180", "sharp"] {
+        let refused = run(bad);
+        assert_eq!(refused.status.code(), Some(2), "--feature-angle {bad}");
+        let stderr = String::from_utf8_lossy(&refused.stderr);
+        assert!(
+            stderr.contains("feature-angle") || stderr.contains("feature_angle"),
+            "{bad}: {stderr}"
+        );
+    }
+}

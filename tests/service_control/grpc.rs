@@ -210,6 +210,21 @@ async fn bad_controls_are_invalid_arguments_naming_the_field() {
             },
             "params.feature_size",
         ),
+        (
+            v1::JobParams {
+                feature_angle: Some("sharp".into()),
+                ..Default::default()
+            },
+            "params.feature_angle",
+        ),
+        (
+            v1::JobParams {
+                method: v1::Method::Conformal as i32,
+                feature_angle: Some("200".into()),
+                ..Default::default()
+            },
+            "params.feature_angle",
+        ),
     ];
     for (params, field) in cases {
         let status = client

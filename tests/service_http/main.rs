@@ -6,6 +6,7 @@
 mod service_http_support;
 
 mod body;
+mod creases;
 mod curves;
 mod details;
 mod errors;

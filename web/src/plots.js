@@ -37,6 +37,8 @@ const SERIES = [
     ] },
   { el: 'plot-collapsed', title: 'collapsed triangles', log: false, optional: true,
     series: [{ label: 'collapsed', key: 'collapsed_triangles', stroke: '#b71c1c', points: { show: true, size: 5 } }] },
+  { el: 'plot-creases', title: 'crease edges kept', log: false, optional: true,
+    series: [{ label: 'crease edges', key: 'crease_edges', stroke: '#6a1b9a', points: { show: true, size: 5 } }] },
 ];
 
 /** Tick labels of a log axis: plain numbers from 0.01 up, powers of ten below (uPlot's default

@@ -2,7 +2,7 @@
 // (press on the model, drag out a radius: a sphere, or a cube of that half-size in box mode),
 // its numbers editable in the form; or a named group of the file's faces, picked from a list
 // of the uploaded file's own `g`/`o` (glTF node and mesh) names; the detail size shown as a ring on the model; preserve,
-// max_deviation, until_willmore, falloff. Each parameter is sent only when the user set it:
+// max_deviation, until_willmore, falloff, feature_angle. Each parameter is sent only when the user set it:
 // leaving a field empty leaves the server's default (and a server that does not know the
 // parameter is never asked about it).
 import { Vector3 } from 'three';
@@ -292,6 +292,11 @@ export class RegionControls {
       if (el.validity.badInput) throw new FieldError(name, `invalid parameter \`${name}\`: not a number`);
       if (el.value.trim() !== '') out[name] = Number(el.value);
     }
+    const angle = e.feature_angle.value.trim();
+    if (angle !== '') {
+      // A number goes as one (the API takes both forms); `auto`/`none` as text.
+      out.feature_angle = /^[0-9.]+$/.test(angle) && Number.isFinite(Number(angle)) ? Number(angle) : angle;
+    }
     if (e.preserve.value) out.preserve = e.preserve.value;
     if (e.measure_deviation.checked) out.measure_deviation = true;
     if (e.all_steps.checked) out.until_converged = false;
@@ -329,6 +334,7 @@ export class RegionControls {
     }
     if (p.seam) e.seam.value = p.seam;
     for (const name of OPTIONAL_NUMBERS) e[name].value = p[name] ?? '';
+    e.feature_angle.value = p.feature_angle === undefined || p.feature_angle === 'auto' ? '' : String(p.feature_angle);
     e.preserve.value = typeof p.preserve === 'string' ? p.preserve : '';
     e.measure_deviation.checked = p.measure_deviation === true;
     e.all_steps.checked = p.until_converged === false;

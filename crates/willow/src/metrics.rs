@@ -91,6 +91,11 @@ pub struct StepMetrics {
     /// whose area is not finite): collapsed, whatever their angles say.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub collapsed_triangles: Option<u32>,
+    /// Crease edges the flow holds sharp (the conformal flow) or found sharpened (`denoise`)
+    /// at this step ([`crate::flow::creases`], [`crate::flow::Flow::creases`]); `None` where
+    /// the flow keeps no creases.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crease_edges: Option<u32>,
 }
 
 /// A triangle whose share of the total area is below this fraction of its share in the input
@@ -298,6 +303,7 @@ impl StepReporter {
             log_area_ratio_p1: Some(0.0),
             log_area_ratio_p99: Some(0.0),
             collapsed_triangles: Some(0),
+            crease_edges: None,
         }
     }
 
@@ -376,6 +382,7 @@ impl StepReporter {
             log_area_ratio_p1: Some(p1),
             log_area_ratio_p99: Some(p99),
             collapsed_triangles: Some(collapsed),
+            crease_edges: None,
         }
     }
 }

@@ -49,7 +49,7 @@ struct Generic {
 static GENERIC: LazyLock<Vec<Generic>> = LazyLock::new(generic_parameters);
 
 /// The top-level fields with compact forms of their own (see [`Compact`]).
-const COMPACT_FIELDS: [&str; 2] = ["boundary", "region"];
+const COMPACT_FIELDS: [&str; 3] = ["boundary", "region", "feature_angle"];
 
 fn generic_parameters() -> Vec<Generic> {
     let root = serde_json::to_value(JobSpec::schema()).unwrap_or_default();
@@ -166,6 +166,9 @@ fn parameter_schema(property: &Value, target: &Value) -> Value {
 struct Compact {
     /// `free` (default), `fixed`, `cmc` or `prescribed`. Conformal flow only.
     boundary: Option<String>,
+    /// Sharp edges kept sharp: `auto` (the default), `none`, or an angle in degrees
+    /// (0 < angle < 180): edges whose faces meet at more than it are creases.
+    feature_angle: Option<String>,
     /// Prescribed vectors: φ in radians, |φ| ≤ 1.5 (default 0).
     #[serde(rename = "boundary.prescribed.frame_angle")]
     #[param(rename = "boundary.prescribed.frame_angle")]
@@ -335,6 +338,10 @@ impl Compact {
     fn apply(self, spec: &mut JobSpec) -> Result<(), Problem> {
         if let Some(boundary) = self.boundary()? {
             spec.boundary = boundary;
+        }
+        if let Some(text) = &self.feature_angle {
+            spec.feature_angle = willow::mesh::creases::FeatureAngle::parse(text)
+                .map_err(|reason| bad_field("feature_angle", reason))?;
         }
         spec.region = query_regions(
             self.region_sphere.as_deref(),

@@ -10,6 +10,7 @@
 use super::classic::ClassicSurface;
 use super::{Flow, FlowError, FlowParams, FlowState};
 use crate::denoise::Denoiser;
+use crate::mesh::creases::detect_creases;
 use crate::mesh::topology::Topology;
 use crate::mesh::Mesh;
 use crate::metrics::StepMetrics;
@@ -30,6 +31,9 @@ pub struct DenoiseFlow {
     params: FlowParams,
     /// The metrics of the last step (the input's before any).
     last: StepMetrics,
+    /// The creases of the current surface under `params.feature_angle` (vertex pairs),
+    /// found again after every step: the filter sharpens them as the noise goes.
+    creases: Vec<[usize; 2]>,
 }
 
 impl DenoiseFlow {
@@ -38,7 +42,9 @@ impl DenoiseFlow {
         let topology = Topology::new(mesh);
         let denoiser = Self::denoiser(mesh, &topology, params);
         let surface = ClassicSurface::new(mesh, &topology, None, params.deviation_threads());
+        let creases = Self::find_creases(&mesh.positions, &mesh.triangles, &topology, params);
         Ok(DenoiseFlow {
+            creases,
             last: surface.initial,
             surface,
             denoiser,
@@ -46,6 +52,15 @@ impl DenoiseFlow {
             topology,
             params: params.clone(),
         })
+    }
+
+    fn find_creases(
+        positions: &[[f64; 3]],
+        triangles: &[[usize; 3]],
+        topology: &Topology,
+        params: &FlowParams,
+    ) -> Vec<[usize; 2]> {
+        detect_creases(positions, triangles, topology, params.feature_angle).vertex_pairs(topology)
     }
 
     fn denoiser(mesh: &Mesh, topology: &Topology, params: &FlowParams) -> Denoiser {
@@ -66,6 +81,13 @@ impl Flow for DenoiseFlow {
             self.denoiser.iterate(&mut self.surface.positions);
         }
         self.last = self.surface.finish_step(start, "denoising")?;
+        self.creases = Self::find_creases(
+            &self.surface.positions,
+            &self.mesh.triangles,
+            &self.topology,
+            &self.params,
+        );
+        self.last = super::creases::with_crease_count(self.last, &self.creases);
         Ok(self.last)
     }
 
@@ -74,7 +96,11 @@ impl Flow for DenoiseFlow {
     }
 
     fn initial_metrics(&self) -> StepMetrics {
-        self.surface.initial
+        super::creases::with_crease_count(self.surface.initial, &self.creases)
+    }
+
+    fn creases(&self) -> &[[usize; 2]] {
+        &self.creases
     }
 
     fn finished(&self) -> Option<String> {
@@ -118,6 +144,12 @@ impl Flow for DenoiseFlow {
             ));
         }
         self.surface.restore(&positions, state.metrics.step);
+        self.creases = Self::find_creases(
+            &positions,
+            &self.mesh.triangles,
+            &self.topology,
+            &self.params,
+        );
         self.last = state.metrics;
         Ok(())
     }

@@ -6,6 +6,7 @@
 
 pub mod classic;
 pub mod constraints;
+pub mod creases;
 pub mod denoise;
 pub mod dirac;
 pub mod dirichlet;
@@ -295,6 +296,12 @@ pub struct FlowParams {
     /// The filter of [`Method::Denoise`] ([`crate::denoise::DenoiseParams`]); its default
     /// reads the iteration count off the mesh. Other methods refuse anything else.
     pub denoise: crate::denoise::DenoiseParams,
+    /// Sharp edges kept sharp ([`creases`]): edges whose faces meet at more than this angle,
+    /// in chains long enough to be a part's creases ([`crate::mesh::creases`]), read off the
+    /// denoised surface. The conformal flow holds their vertices where they are and fairs
+    /// each smooth patch between them; `denoise` reports the creases it sharpened. The
+    /// default (`auto`) finds the creases of CAD parts and none on organic meshes.
+    pub feature_angle: crate::mesh::creases::FeatureAngle,
 }
 
 impl FlowParams {
@@ -486,6 +493,16 @@ impl FlowParams {
                 "blends a region's motion toward its border: it needs a region".into(),
             ));
         }
+        self.feature_angle
+            .validate()
+            .map_err(|reason| invalid("feature_angle", reason))?;
+        if let crate::mesh::creases::FeatureAngle::Degrees(_) = self.feature_angle {
+            // `auto` steps aside where creases cannot be held; an angle the caller named is
+            // refused there instead of being ignored.
+            if let Some(reason) = creases::unheld_reason(self) {
+                return Err(invalid("feature_angle", reason));
+            }
+        }
         // The library names the whole `boundary` (its errors always have); the job service
         // reports the field path that `PrescribedVectors::validate` gives.
         if let Boundary::Prescribed(p) = &self.boundary {
@@ -537,6 +554,7 @@ impl Default for FlowParams {
             feature_size: None,
             falloff: None,
             denoise: crate::denoise::DenoiseParams::default(),
+            feature_angle: crate::mesh::creases::FeatureAngle::Auto,
         }
     }
 }
@@ -619,6 +637,13 @@ pub trait Flow: Send {
     fn checkpoint(&self) -> Option<FlowState> {
         None
     }
+
+    /// The crease edges the flow keeps sharp or found (vertex pairs; [`creases`]): held by
+    /// the conformal flow, sharpened by `denoise`. Empty without creases.
+    fn creases(&self) -> &[[usize; 2]] {
+        &[]
+    }
+
     /// Put a flow freshly built on the same input and parameters back where
     /// [`Flow::checkpoint`] left another one. Every quantity a step reads is recomputed from
     /// the surface (the inverse iteration starts from λ = 1 each step, App. G) or put back
@@ -823,6 +848,9 @@ pub fn new_flow(mesh: &Mesh, params: &FlowParams) -> Result<Box<dyn Flow>, FlowE
             &mesh.triangles,
             params.safeguard,
         ))
+    }
+    if let Some(flow) = creases::crease_flow(mesh, params)? {
+        return Ok(flow);
     }
     if !params.regions.is_empty() {
         return Ok(Box::new(region::RegionFlow::new(mesh, params)?));

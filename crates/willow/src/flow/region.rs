@@ -421,6 +421,8 @@ pub struct RegionFlow {
     /// Submesh vertices inside the region: the only ones ever written back.
     moving: Vec<usize>,
     positions: Vec<[f64; 3]>,
+    /// The crease edges held ([`super::creases`]), as vertex pairs of the whole mesh.
+    creases: Vec<[usize; 2]>,
 }
 
 impl RegionFlow {
@@ -446,7 +448,18 @@ impl RegionFlow {
                 "the region selects every vertex: leave it out to fair the whole surface".into(),
             ));
         }
-        let sub = submesh(mesh, &selected, params.seam.held_rings());
+        Self::with_moving(mesh, params, &selected)
+    }
+
+    /// The flow of the vertices marked `moving` (a region's selection, less the creases it
+    /// holds), everything else held as the seam says.
+    pub fn with_moving(
+        mesh: &Mesh,
+        params: &FlowParams,
+        moving: &[bool],
+    ) -> Result<Self, FlowError> {
+        let selected = moving;
+        let sub = submesh(mesh, selected, params.seam.held_rings());
         let inner_params = FlowParams {
             regions: Vec::new(),
             // The falloff reaches the inner flow as its weights (`blend` below).
@@ -482,7 +495,13 @@ impl RegionFlow {
             to_full: sub.to_full,
             moving,
             positions: mesh.positions.clone(),
+            creases: Vec::new(),
         })
+    }
+
+    /// Records the crease edges this flow holds, for [`Flow::creases`].
+    pub fn set_creases(&mut self, creases: Vec<[usize; 2]>) {
+        self.creases = creases;
     }
 
     fn write_back(&mut self) {
@@ -497,7 +516,7 @@ impl Flow for RegionFlow {
     fn step(&mut self) -> Result<StepMetrics, FlowError> {
         let metrics = self.inner.step()?;
         self.write_back();
-        Ok(metrics)
+        Ok(super::creases::with_crease_count(metrics, &self.creases))
     }
 
     fn positions(&self) -> &[[f64; 3]] {
@@ -505,7 +524,7 @@ impl Flow for RegionFlow {
     }
 
     fn initial_metrics(&self) -> StepMetrics {
-        self.inner.initial_metrics()
+        super::creases::with_crease_count(self.inner.initial_metrics(), &self.creases)
     }
 
     fn profile(&self) -> Option<&StepProfile> {
@@ -526,6 +545,10 @@ impl Flow for RegionFlow {
 
     fn last_refusal(&self) -> Option<String> {
         self.inner.last_refusal()
+    }
+
+    fn creases(&self) -> &[[usize; 2]] {
+        &self.creases
     }
 
     /// The whole surface's positions (so a resumed job writes the whole file), with the inner

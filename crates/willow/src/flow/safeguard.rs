@@ -650,6 +650,7 @@ mod tests {
                 log_area_ratio_p1: None,
                 log_area_ratio_p99: None,
                 collapsed_triangles: None,
+                crease_edges: None,
             }
         }
     }

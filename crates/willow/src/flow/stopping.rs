@@ -212,6 +212,11 @@ impl Run {
         self.flow.as_ref()
     }
 
+    /// The flow, given back once the run is over (or abandoned).
+    pub fn into_flow(self) -> Box<dyn Flow> {
+        self.flow
+    }
+
     /// The metrics of the surface the flow is on.
     pub fn last_metrics(&self) -> &StepMetrics {
         &self.last

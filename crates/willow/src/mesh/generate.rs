@@ -169,6 +169,62 @@ pub fn irregular_sphere(subdivisions: usize, seed: u64) -> Mesh {
     mesh
 }
 
+/// A closed surface of revolution about the z axis: the `profile` polyline of `(r, z)`
+/// points, from a point on the axis (r = 0) to another, each segment split into pieces at
+/// most `step` long, turned in `segments` steps. The vertices where the profile turns are
+/// rings of creases (of the profile's turning angle); a run of short segments approximates
+/// a fillet. Outward-oriented; what the crease tests make their CAD parts from.
+pub fn revolved(profile: &[[f64; 2]], step: f64, segments: usize) -> Mesh {
+    let mut points: Vec<[f64; 2]> = Vec::new();
+    for w in profile.windows(2) {
+        let (a, b) = (w[0], w[1]);
+        let length = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+        let pieces = ((length / step).ceil() as usize).max(1);
+        for k in 0..pieces {
+            let t = k as f64 / pieces as f64;
+            points.push([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
+        }
+    }
+    if let Some(&last) = profile.last() {
+        points.push(last);
+    }
+    let mut positions = Vec::new();
+    // Each profile point's vertices: one on the axis, else a ring of `segments`.
+    let mut rows: Vec<Vec<usize>> = Vec::new();
+    for &[r, z] in &points {
+        if r.abs() < 1e-12 {
+            rows.push(vec![positions.len()]);
+            positions.push([0.0, 0.0, z]);
+        } else {
+            let start = positions.len();
+            for j in 0..segments {
+                let angle = std::f64::consts::TAU * j as f64 / segments as f64;
+                positions.push([r * angle.cos(), r * angle.sin(), z]);
+            }
+            rows.push((start..start + segments).collect());
+        }
+    }
+    let mut triangles = Vec::new();
+    for w in rows.windows(2) {
+        let (lower, upper) = (&w[0], &w[1]);
+        let at = |row: &Vec<usize>, j: usize| row[if row.len() == 1 { 0 } else { j % segments }];
+        for j in 0..segments {
+            let (a, b) = (at(lower, j), at(lower, j + 1));
+            let (c, d) = (at(upper, j + 1), at(upper, j));
+            if a != b {
+                triangles.push([a, b, c]);
+            }
+            if c != d {
+                triangles.push([a, c, d]);
+            }
+        }
+    }
+    Mesh {
+        positions,
+        triangles,
+    }
+}
+
 /// `mesh` with independent Gaussian noise of standard deviation `relative` × the mean edge
 /// length added to every coordinate: what a scan or a careless export uploads. Deterministic
 /// for a given `seed`; connectivity is unchanged.

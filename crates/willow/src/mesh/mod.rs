@@ -11,6 +11,7 @@
 //! - [`io`]: OBJ, glTF, GLB, STL, PLY and OFF in and out ([`io::Asset`], [`io::Format`]).
 //! - [`generate`]: meshes made in code for tests and benchmarks.
 
+pub mod creases;
 pub mod error;
 pub mod generate;
 pub mod io;

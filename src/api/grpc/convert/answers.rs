@@ -65,6 +65,11 @@ pub(super) fn params_pb(spec: &JobSpec) -> v1::JobParams {
         repair: Some(spec.repair),
         refine: Some(spec.refine),
         callback_url: spec.callback_url.clone(),
+        feature_angle: Some(match spec.feature_angle {
+            willow::mesh::creases::FeatureAngle::Auto => "auto".to_string(),
+            willow::mesh::creases::FeatureAngle::None => "none".to_string(),
+            willow::mesh::creases::FeatureAngle::Degrees(d) => d.to_string(),
+        }),
         denoise: Some(v1::DenoiseParams {
             iterations: spec.denoise.iterations.map(count),
             vertex_iterations: Some(count(spec.denoise.vertex_iterations)),
@@ -141,6 +146,7 @@ pub(super) fn metrics_pb(m: &StepMetrics) -> v1::StepMetrics {
         log_area_ratio_p1: m.log_area_ratio_p1,
         log_area_ratio_p99: m.log_area_ratio_p99,
         collapsed_triangles: m.collapsed_triangles,
+        crease_edges: m.crease_edges,
     }
 }
 
