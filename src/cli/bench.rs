@@ -34,6 +34,8 @@ in the machine's speed during the run moves both medians alike instead of the ra
 their times and ratios (docs/denoise.md). --genus [MESH]: the conformal step on a surface of
 higher genus (default botijo_genus5_irregular) with and without its exactness constraints,
 against a generated genus-0 irregular sphere of the same size, at the same τ, in one run.
+--creases: crease detection and the conformal step with a generated CAD part's creases held,
+beside the same flow across them (feature_angle none), in one run.
 Current figures: docs/measurements.md.";
 
 #[derive(Args, Debug)]
@@ -57,6 +59,10 @@ pub struct BenchArgs {
     /// size (issue 4); MESH defaults to botijo_genus5_irregular from ../shared/meshes.
     #[arg(long, conflicts_with = "json")]
     pub genus: bool,
+    /// Instead: the cost of keeping creases (issue 40): detection, and the conformal step
+    /// with a generated CAD part's creases held beside the same flow across them.
+    #[arg(long, conflicts_with_all = ["json", "genus"])]
+    pub creases: bool,
     /// Instead: the denoising benchmark (issue 39) on every `<Name>_Noisy.obj` /
     /// `<Name>_Original.obj` pair in DIR (e.g. ../shared/meshes/denoise): θ and Dv of the
     /// noisy input, of Willow's defaults and of Taubin-10 measured in the same run, with
@@ -176,6 +182,9 @@ const REGION_SHARE: f64 = 0.05;
 pub fn run(args: BenchArgs) -> ExitCode {
     if let Some(dir) = &args.denoise {
         return super::bench_denoise::run(dir);
+    }
+    if args.creases {
+        return super::bench_creases::run(args.steps);
     }
     if args.genus {
         return super::bench_genus::run(args.meshes.first().map(PathBuf::as_path), args.steps);
@@ -646,7 +655,7 @@ impl FrameDeviation {
 }
 
 /// Where a flow's last step went: its phases in ms, then its counts.
-fn profile_of(flow: &dyn willow::flow::Flow) -> Vec<(String, f64)> {
+pub(super) fn profile_of(flow: &dyn willow::flow::Flow) -> Vec<(String, f64)> {
     flow.profile()
         .map(|p| {
             let phases = p.phases().iter().map(|&(n, ms)| (format!("{n} ms"), ms));

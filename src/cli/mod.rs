@@ -1,6 +1,7 @@
 //! Subcommands of the `willow` binary, one per file: parse, then apply.
 
 pub mod bench;
+pub mod bench_creases;
 pub mod bench_denoise;
 pub mod bench_genus;
 pub mod curve;
