@@ -347,8 +347,8 @@ fn feature_angles_the_flow_cannot_hold_are_refused_and_auto_steps_aside() {
     )
     .expect("mcf");
     assert!(flow.creases().is_empty());
-    // A part that is nothing but creases and their bands leaves nothing to fair: a clear
-    // refusal. (The chamfered cylinder with no vertex between its profile's corners: each
+    // A part that is nothing but creases and their bands leaves nothing to fair: with
+    // an angle named, a clear refusal. (The chamfered cylinder with no vertex between its profile's corners: each
     // of its four rings is a crease, every other vertex a pole next to one.)
     let coarse = revolved(
         &[
@@ -363,7 +363,10 @@ fn feature_angles_the_flow_cannot_hold_are_refused_and_auto_steps_aside() {
         SEGMENTS,
     );
     let edge = mean_edge_length(&coarse);
-    match new_flow(&coarse, &conformal(FeatureAngle::Auto)) {
+    // `auto` steps aside there: the flow holds nothing.
+    let flow = new_flow(&coarse, &conformal(FeatureAngle::Auto)).expect("auto");
+    assert!(flow.creases().is_empty());
+    match new_flow(&coarse, &conformal(FeatureAngle::Degrees(30.0))) {
         Err(FlowError::InvalidParameter { name, reason }) => {
             assert_eq!(name, "feature_angle");
             assert!(reason.contains("nothing is left"), "{reason}");

@@ -142,6 +142,12 @@ pub(crate) fn crease_flow(
         *m &= !c;
     }
     if !moving.iter().any(|&m| m) {
+        // A tessellation so coarse that every vertex is on a crease band: `auto` steps aside
+        // (the flow then finds it `already_fair`, or fairs it as it would without creases);
+        // an angle the caller named is refused.
+        if params.feature_angle == FeatureAngle::Auto {
+            return Ok(None);
+        }
         return Err(invalid(
             "feature_angle",
             format!(
