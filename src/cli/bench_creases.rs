@@ -11,7 +11,7 @@ use std::time::Instant;
 use willow::flow::creases::held_creases;
 use willow::flow::{new_flow, FlowParams, Method};
 use willow::mesh::creases::FeatureAngle;
-use willow::mesh::generate::revolved;
+use willow::mesh::generate::chamfered_cylinder;
 use willow::mesh::{Mesh, Topology};
 
 const TAU: f64 = 0.05;
@@ -19,18 +19,7 @@ const TAU: f64 = 0.05;
 /// The chamfered cylinder at about `segments`² / 2 vertices.
 fn part(segments: usize) -> Mesh {
     let step = std::f64::consts::TAU / segments as f64;
-    revolved(
-        &[
-            [0.0, 0.0],
-            [0.8, 0.0],
-            [1.0, 0.2],
-            [1.0, 1.8],
-            [0.8, 2.0],
-            [0.0, 2.0],
-        ],
-        step,
-        segments,
-    )
+    chamfered_cylinder(step, segments)
 }
 
 /// What one flow measured: setup and median step (ms), the creases it held, and where its

@@ -14,12 +14,9 @@ use std::time::Instant;
 use willow::denoise::score::{score, Score};
 use willow::flow::classic::TaubinSmoothing;
 use willow::flow::stopping::{Event, Run};
-use willow::flow::{new_flow, Flow};
+use willow::flow::new_flow;
 use willow::mesh::io::{Asset, Format, Limits};
 use willow_service::jobs::JobSpec;
-
-/// MeshLab's Taubin default: 10 iterations of λ 0.5, μ −0.53.
-const TAUBIN: (f64, f64, usize) = (0.5, -0.53, 10);
 
 struct Row {
     name: String,
@@ -67,12 +64,8 @@ fn measure(noisy_path: &Path, clean_path: &Path, name: String) -> Result<Row, St
 
     let start = Instant::now();
     let noisy_again = read(noisy_path)?;
-    let (lambda, mu, iterations) = TAUBIN;
-    let mut taubin = TaubinSmoothing::with_factors(noisy_again.surface(), lambda, mu)
+    let taubin = TaubinSmoothing::meshlab_default(noisy_again.surface())
         .map_err(|e| format!("{name}: {e}"))?;
-    for _ in 0..iterations {
-        taubin.step().map_err(|e| format!("{name}: {e}"))?;
-    }
     let taubin_ms = start.elapsed().as_secs_f64() * 1e3;
     Ok(Row {
         vertices: mesh.vertex_count(),
@@ -80,11 +73,7 @@ fn measure(noisy_path: &Path, clean_path: &Path, name: String) -> Result<Row, St
         willow,
         willow_ms,
         outcome: outcome.name().to_string(),
-        taubin: score(
-            taubin.positions(),
-            &reference.positions,
-            &reference.triangles,
-        ),
+        taubin: score(&taubin, &reference.positions, &reference.triangles),
         taubin_ms,
         name,
     })

@@ -2,24 +2,26 @@
 
 use super::*;
 
+/// The `v` lines of an OBJ text, in order: the file's vertex numbering.
+fn v_lines(text: &str) -> Vec<[f64; 3]> {
+    text.lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .map(|t| t.parse().expect("a number"))
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect()
+}
+
 /// `--region-sphere` and `--region-vertices` fair spot's ear alone: every `v` line outside is
 /// written back to the bit, and the outcome line closes the run; bad region flags exit 2
 /// naming the flag or the region.
 #[test]
 fn fair_moves_only_the_named_region() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let v_lines = |text: &str| -> Vec<[f64; 3]> {
-        text.lines()
-            .filter_map(|l| l.strip_prefix("v "))
-            .map(|l| {
-                let c: Vec<f64> = l
-                    .split_whitespace()
-                    .map(|t| t.parse().expect("a number"))
-                    .collect();
-                [c[0], c[1], c[2]]
-            })
-            .collect()
-    };
     let input = v_lines(&std::fs::read_to_string(spot()).expect("spot"));
     let (c, r) = ([0.40, 0.72, -0.20], 0.15);
     let in_ear = |p: &[f64; 3]| (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>() <= r * r;
@@ -126,18 +128,7 @@ fn fair_removes_detail_below_the_feature_size() {
     let end = outcome(&out);
     assert_eq!(end["outcome"], "feature_scale_reached", "{end}");
     assert!(json_lines(&out).len() < 40);
-    let written: Vec<[f64; 3]> = std::fs::read_to_string(&output)
-        .expect("output")
-        .lines()
-        .filter_map(|l| l.strip_prefix("v "))
-        .map(|l| {
-            let c: Vec<f64> = l
-                .split_whitespace()
-                .filter_map(|t| t.parse().ok())
-                .collect();
-            [c[0], c[1], c[2]]
-        })
-        .collect();
+    let written = v_lines(&std::fs::read_to_string(&output).expect("output"));
     let extent = |axis: usize| {
         let (lo, hi) = written.iter().fold((f64::MAX, f64::MIN), |(lo, hi), q| {
             (lo.min(q[axis]), hi.max(q[axis]))
@@ -263,18 +254,7 @@ fn fair_a_named_group_with_a_falloff() {
 #[test]
 fn fair_keeps_the_creases_of_a_part() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let part = willow::mesh::generate::revolved(
-        &[
-            [0.0, 0.0],
-            [0.8, 0.0],
-            [1.0, 0.2],
-            [1.0, 1.8],
-            [0.8, 2.0],
-            [0.0, 2.0],
-        ],
-        0.1,
-        64,
-    );
+    let part = willow::mesh::generate::chamfered_cylinder(0.1, 64);
     let mut text = String::new();
     for p in &part.positions {
         text += &format!("v {:?} {:?} {:?}\n", p[0], p[1], p[2]);
@@ -307,18 +287,7 @@ fn fair_keeps_the_creases_of_a_part() {
         "{lines:?}"
     );
     // The output's `v` lines, in the file's numbering (the input's: the generator's).
-    let now: Vec<[f64; 3]> = std::fs::read_to_string(&out)
-        .expect("output")
-        .lines()
-        .filter_map(|l| l.strip_prefix("v "))
-        .map(|l| {
-            let c: Vec<f64> = l
-                .split_whitespace()
-                .map(|t| t.parse().expect("a number"))
-                .collect();
-            [c[0], c[1], c[2]]
-        })
-        .collect();
+    let now = v_lines(&std::fs::read_to_string(&out).expect("output"));
     assert_eq!(now.len(), part.vertex_count());
     let topology = willow::mesh::topology::Topology::new(&part);
     let creases = willow::mesh::creases::detect_creases(

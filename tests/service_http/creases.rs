@@ -7,18 +7,7 @@ use super::*;
 /// A cylinder of radius 1 and height 2, both rims chamfered at 45°: four crease rings of 64
 /// edges (the library's test part).
 fn chamfered_cylinder_obj() -> String {
-    obj_text(&willow::mesh::generate::revolved(
-        &[
-            [0.0, 0.0],
-            [0.8, 0.0],
-            [1.0, 0.2],
-            [1.0, 1.8],
-            [0.8, 2.0],
-            [0.0, 2.0],
-        ],
-        0.1,
-        64,
-    ))
+    obj_text(&willow::mesh::generate::chamfered_cylinder(0.1, 64))
 }
 
 async fn run(srv: &TestServer, obj: &str, query: &str) -> serde_json::Value {
@@ -70,28 +59,10 @@ async fn creases_are_held_counted_and_reported_back() {
         (serde_json::json!(30), serde_json::json!(30.0)),
         (serde_json::json!("none"), serde_json::json!("none")),
     ] {
-        let form = reqwest::multipart::Form::new()
-            .part(
-                "mesh",
-                reqwest::multipart::Part::text(part.clone())
-                    .file_name("part.obj")
-                    .mime_str("model/obj")
-                    .expect("mime"),
-            )
-            .text(
-                "params",
-                serde_json::json!({"method": "conformal", "steps": 1, "feature_angle": params})
-                    .to_string(),
-            );
-        let res = srv
-            .client
-            .post(srv.url("/v1/jobs"))
-            .multipart(form)
-            .send()
-            .await
-            .expect("POST multipart");
-        assert_eq!(res.status(), 202);
-        let job: serde_json::Value = res.json().await.expect("json");
+        let params =
+            serde_json::json!({"method": "conformal", "steps": 1, "feature_angle": params});
+        let (status, job) = srv.submit_obj_with_params(&part, &params.to_string()).await;
+        assert_eq!(status, 202, "{job}");
         assert_eq!(job["params"]["feature_angle"], reported, "{job}");
     }
 }

@@ -290,26 +290,15 @@ async fn every_flow_option_reaches_the_flow_and_is_reported_back() {
         serde_json::json!({"prescribed": {"frame_angle": 0.0, "axis": "tangent", "angles": {"uniform": -0.1}}})
     );
     for view in [&done, &prescribed] {
-        let form = reqwest::multipart::Form::new()
-            .part(
-                "mesh",
-                reqwest::multipart::Part::text(if view["vertex_count"] == done["vertex_count"] {
-                    sphere.clone()
-                } else {
-                    cap.clone()
-                })
-                .file_name("m.obj"),
-            )
-            .text("params", view["params"].to_string());
-        let res = srv
-            .client
-            .post(srv.url("/v1/jobs"))
-            .multipart(form)
-            .send()
-            .await
-            .expect("POST multipart");
-        assert_eq!(res.status(), 202);
-        let again: serde_json::Value = res.json().await.expect("json");
+        let mesh = if view["vertex_count"] == done["vertex_count"] {
+            &sphere
+        } else {
+            &cap
+        };
+        let (status, again) = srv
+            .submit_obj_with_params(mesh, &view["params"].to_string())
+            .await;
+        assert_eq!(status, 202);
         assert_eq!(again["params"], view["params"], "round trip");
         let (_, polled) = srv
             .get_json(&format!("/v1/jobs/{}", again["id"].as_str().expect("id")))

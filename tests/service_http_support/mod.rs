@@ -274,6 +274,30 @@ impl TestServer {
         (status, headers, json)
     }
 
+    /// POST `obj` as the `mesh` part of a multipart upload with `params` (JSON text) as its
+    /// `params` part; returns (status, json).
+    pub async fn submit_obj_with_params(
+        &self,
+        obj: &str,
+        params: &str,
+    ) -> (reqwest::StatusCode, serde_json::Value) {
+        let form = reqwest::multipart::Form::new()
+            .part(
+                "mesh",
+                reqwest::multipart::Part::text(obj.to_string()).file_name("m.obj"),
+            )
+            .text("params", params.to_string());
+        let res = self
+            .client
+            .post(self.url("/v1/jobs"))
+            .multipart(form)
+            .send()
+            .await
+            .expect("POST multipart");
+        let status = res.status();
+        (status, res.json().await.unwrap_or(serde_json::Value::Null))
+    }
+
     /// GET `path` (panics naming it if the request cannot be sent).
     pub async fn get(&self, path: &str) -> reqwest::Response {
         self.client

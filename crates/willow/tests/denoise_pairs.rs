@@ -6,7 +6,7 @@
 use willow::denoise::score::{crowded_share, dihedral_angles, score, Score};
 use willow::flow::classic::TaubinSmoothing;
 use willow::flow::stopping::{Event, Outcome, Run};
-use willow::flow::{new_flow, Flow, FlowParams, Method};
+use willow::flow::{new_flow, FlowParams, Method};
 use willow::geometry::bvh::Bvh;
 use willow::mesh::generate::mean_edge_length;
 use willow::mesh::io::{Asset, Format, Limits};
@@ -65,13 +65,8 @@ fn run(mesh: &Mesh, params: &FlowParams) -> (Vec<[f64; 3]>, Outcome, String) {
     }
 }
 
-/// MeshLab's default Taubin smoothing: 10 iterations of λ 0.5, μ −0.53.
 fn taubin(mesh: &Mesh) -> Vec<[f64; 3]> {
-    let mut flow = TaubinSmoothing::with_factors(mesh, 0.5, -0.53).expect("taubin");
-    for _ in 0..10 {
-        flow.step().expect("taubin step");
-    }
-    flow.positions().to_vec()
+    TaubinSmoothing::meshlab_default(mesh).expect("taubin")
 }
 
 #[test]

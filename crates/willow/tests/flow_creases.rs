@@ -12,28 +12,16 @@ use willow::flow::creases::{crease_band, held_creases};
 use willow::flow::stopping::{Event, Run};
 use willow::flow::{new_flow, Boundary, Flow, FlowError, FlowParams, Method, Preserve};
 use willow::mesh::creases::{detect_creases, edge_dihedral_angles, FeatureAngle};
-use willow::mesh::generate::{icosphere, mean_edge_length, revolved};
+use willow::mesh::generate::{self, icosphere, mean_edge_length, revolved};
 use willow::mesh::topology::Topology;
 use willow::mesh::Mesh;
 
 const SEGMENTS: usize = 64;
 const STEP: f64 = 0.1;
 
-/// A cylinder of radius 1 and height 2 whose two rims are chamfered at 45° (0.2 wide): four
-/// rings of 45° creases, flat disks and the cylinder between them.
+/// The library's chamfered cylinder (four rings of 45° creases) at the tests' resolution.
 fn chamfered_cylinder() -> Mesh {
-    revolved(
-        &[
-            [0.0, 0.0],
-            [0.8, 0.0],
-            [1.0, 0.2],
-            [1.0, 1.8],
-            [0.8, 2.0],
-            [0.0, 2.0],
-        ],
-        STEP,
-        SEGMENTS,
-    )
+    generate::chamfered_cylinder(STEP, SEGMENTS)
 }
 
 /// A shaft: radius 1 up to z = 1, a shoulder in to radius 0.6 through a concave fillet of
@@ -99,11 +87,7 @@ fn defaults() -> FlowParams {
 }
 
 fn taubin(mesh: &Mesh) -> Vec<[f64; 3]> {
-    let mut flow = TaubinSmoothing::with_factors(mesh, 0.5, -0.53).expect("taubin");
-    for _ in 0..10 {
-        flow.step().expect("taubin step");
-    }
-    flow.positions().to_vec()
+    TaubinSmoothing::meshlab_default(mesh).expect("taubin")
 }
 
 #[test]
@@ -350,18 +334,7 @@ fn feature_angles_the_flow_cannot_hold_are_refused_and_auto_steps_aside() {
     // A part that is nothing but creases and their bands leaves nothing to fair: with
     // an angle named, a clear refusal. (The chamfered cylinder with no vertex between its profile's corners: each
     // of its four rings is a crease, every other vertex a pole next to one.)
-    let coarse = revolved(
-        &[
-            [0.0, 0.0],
-            [0.8, 0.0],
-            [1.0, 0.2],
-            [1.0, 1.8],
-            [0.8, 2.0],
-            [0.0, 2.0],
-        ],
-        10.0,
-        SEGMENTS,
-    );
+    let coarse = generate::chamfered_cylinder(10.0, SEGMENTS);
     let edge = mean_edge_length(&coarse);
     // `auto` steps aside there: the flow holds nothing.
     let flow = new_flow(&coarse, &conformal(FeatureAngle::Auto)).expect("auto");

@@ -552,6 +552,11 @@ pub struct TaubinSmoothing {
 /// moves a unit mesh by less than rounding, and μ is no longer distinguishable from −λ.
 pub const MIN_TAUBIN_TAU: f64 = 1e-9;
 
+/// MeshLab's Taubin defaults ([`TaubinSmoothing::meshlab_default`]).
+pub const MESHLAB_LAMBDA: f64 = 0.5;
+pub const MESHLAB_MU: f64 = -0.53;
+pub const MESHLAB_ITERATIONS: usize = 10;
+
 impl TaubinSmoothing {
     /// λ = τ and μ from the default pass band (see the type's docs).
     pub fn new(mesh: &Mesh, params: &FlowParams) -> Result<Self, FlowError> {
@@ -576,6 +581,16 @@ impl TaubinSmoothing {
     /// amplified.
     pub fn with_factors(mesh: &Mesh, lambda: f64, mu: f64) -> Result<Self, FlowError> {
         Self::build(mesh, lambda, mu, None)
+    }
+
+    /// MeshLab's default Taubin smoothing (10 iterations of λ 0.5, μ −0.53) of `mesh`: the
+    /// yardstick the denoising benchmarks and tests measure against (issue 39).
+    pub fn meshlab_default(mesh: &Mesh) -> Result<Vec<[f64; 3]>, FlowError> {
+        let mut flow = Self::with_factors(mesh, MESHLAB_LAMBDA, MESHLAB_MU)?;
+        for _ in 0..MESHLAB_ITERATIONS {
+            flow.step()?;
+        }
+        Ok(flow.positions().to_vec())
     }
 
     fn build(

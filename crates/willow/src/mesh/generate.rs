@@ -225,6 +225,25 @@ pub fn revolved(profile: &[[f64; 2]], step: f64, segments: usize) -> Mesh {
     }
 }
 
+/// The CAD part of the crease tests and benchmarks: a cylinder of radius 1 and height 2 whose
+/// rims are chamfered at 45° (0.2 wide), [`revolved`] with pieces at most `step` long and
+/// `segments` around: four rings of 45° creases between flat disks, the chamfers and the
+/// cylinder.
+pub fn chamfered_cylinder(step: f64, segments: usize) -> Mesh {
+    revolved(
+        &[
+            [0.0, 0.0],
+            [0.8, 0.0],
+            [1.0, 0.2],
+            [1.0, 1.8],
+            [0.8, 2.0],
+            [0.0, 2.0],
+        ],
+        step,
+        segments,
+    )
+}
+
 /// `mesh` with independent Gaussian noise of standard deviation `relative` × the mean edge
 /// length added to every coordinate: what a scan or a careless export uploads. Deterministic
 /// for a given `seed`; connectivity is unchanged.
