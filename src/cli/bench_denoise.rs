@@ -13,8 +13,8 @@ use std::process::ExitCode;
 use std::time::Instant;
 use willow::denoise::score::{score, Score};
 use willow::flow::classic::TaubinSmoothing;
-use willow::flow::stopping::{Event, Run};
 use willow::flow::new_flow;
+use willow::flow::stopping::{Event, Run};
 use willow::mesh::io::{Asset, Format, Limits};
 use willow_service::jobs::JobSpec;
 
