@@ -167,24 +167,23 @@ impl RenderHold {
                 Some(p) => p.merge(more),
                 None => self.permit = Some(more),
             }
+            RENDERING_BYTES.fetch_add((want - self.units) * UNIT, Ordering::Relaxed);
+            self.memory
+                .rendering
+                .fetch_add(want - self.units, Ordering::Relaxed);
         } else if want < self.units {
+            // Counted off before the units go back: a download that takes them the moment
+            // they are free must never be seen beside a render still counting them (the
+            // render-budget test once read 256 KiB held + the whole budget rendering).
+            RENDERING_BYTES.fetch_sub((self.units - want) * UNIT, Ordering::Relaxed);
+            self.memory
+                .rendering
+                .fetch_sub(self.units - want, Ordering::Relaxed);
             if let Some(p) = &mut self.permit {
                 drop(p.split((self.units - want) as usize));
             }
         } else {
             return Ok(());
-        }
-        let (old, new) = (self.units, want);
-        if new > old {
-            RENDERING_BYTES.fetch_add((new - old) * UNIT, Ordering::Relaxed);
-            self.memory
-                .rendering
-                .fetch_add(new - old, Ordering::Relaxed);
-        } else {
-            RENDERING_BYTES.fetch_sub((old - new) * UNIT, Ordering::Relaxed);
-            self.memory
-                .rendering
-                .fetch_sub(old - new, Ordering::Relaxed);
         }
         self.units = want;
         Ok(())
