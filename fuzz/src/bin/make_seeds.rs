@@ -136,6 +136,7 @@ fn make_seeds() -> Result<(), Error> {
                     radius: Some(1.5),
                     guided: Some(false),
                 }),
+                feature_angle: Some("45".into()),
             }),
             request_id: "3f2504e0-4f89-41d3-9a0c-0305e82c3301".into(),
         },
