@@ -13,6 +13,7 @@ pub mod dirichlet;
 pub mod exactness;
 pub mod feature;
 pub mod filter;
+pub mod holes;
 pub mod mobius;
 pub mod prescribed;
 pub mod region;

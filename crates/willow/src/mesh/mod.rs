@@ -14,6 +14,7 @@
 pub mod creases;
 pub mod error;
 pub mod generate;
+pub mod holes;
 pub mod io;
 pub mod refine;
 pub mod topology;

@@ -1,0 +1,206 @@
+//! Fairing the patches [`crate::mesh::holes`] closed holes with, so each meets the surface
+//! tangent-continuously (G1) while the surface around it stays exactly where it was.
+//!
+//! 1. **A thin-plate start** ([`bilaplacian_fair`]): the new vertices minimize
+//!    `Σ_v |(L f)_v|² / A_v` over the patch *and its loop*, `L` the cotan Laplacian of the
+//!    filled surface. Counting the loop's vertices, whose Laplacians reach one ring into the
+//!    surface, is what makes the patch leave the loop along the surface's tangent plane
+//!    (Desbrun et al. 1999; Liepa 2003, §3.3; CGAL's fairing of the same energy).
+//! 2. **The conformal flow** of the patch alone (§6.3.3, the region machinery of
+//!    [`super::region`]): every vertex of the surface is held, the seam `smooth` keeps the
+//!    held ring's curvature, so the Willmore energy of the patch falls while its border frames
+//!    stay the surface's: the paper's prescribed-frame boundary (§6.3.1) with the frames read
+//!    off the surface itself.
+
+use super::region::RegionFlow;
+use super::{Flow, FlowError, FlowParams, Method};
+use crate::geometry::operators::corner_cotangents;
+use crate::linalg::solver::Cholesky;
+use crate::mesh::holes::Filled;
+use crate::mesh::Mesh;
+
+/// Positions with the `free` vertices moved to the thin-plate (bi-Laplacian) minimizer with
+/// every other vertex fixed (module docs, step 1).
+pub fn bilaplacian_fair(mesh: &Mesh, free: &[bool]) -> Result<Vec<[f64; 3]>, FlowError> {
+    let n = mesh.vertex_count();
+    let numerical = |reason: String| FlowError::Numerical { step: 0, reason };
+    let mut unknown = vec![usize::MAX; n];
+    let mut count = 0;
+    for v in 0..n {
+        if free[v] {
+            unknown[v] = count;
+            count += 1;
+        }
+    }
+    let mut positions = mesh.positions.clone();
+    if count == 0 {
+        return Ok(positions);
+    }
+    // Rows of the energy: free vertices and every vertex next to one.
+    let cot = corner_cotangents(mesh);
+    let mut in_rows = free.to_vec();
+    let mut area = vec![0.0; n];
+    for t in &mesh.triangles {
+        let a = triangle_area(mesh, *t);
+        for &v in t {
+            area[v] += a / 3.0;
+        }
+        if t.iter().any(|&v| free[v]) {
+            for &v in t {
+                in_rows[v] = true;
+            }
+        }
+    }
+    // L as rows: (L f)_v = Σ_j w_vj (f_j − f_v), w = ½(cot α + cot β).
+    let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
+    for (t, c) in mesh.triangles.iter().zip(&cot) {
+        if !t.iter().any(|&v| in_rows[v]) {
+            continue;
+        }
+        for k in 0..3 {
+            let (a, b) = (t[(k + 1) % 3], t[(k + 2) % 3]);
+            let w = 0.5 * c[k];
+            for (x, y) in [(a, b), (b, a)] {
+                if in_rows[x] {
+                    rows[x].push((y, w));
+                    rows[x].push((x, -w));
+                }
+            }
+        }
+    }
+    // K = Aᵀ D A and r = −Aᵀ D b, with A the rows' free columns, b their fixed part applied
+    // to the fixed positions, D = 1/area.
+    let mut triplets = Vec::new();
+    let mut rhs = vec![0.0; 3 * count];
+    for v in 0..n {
+        if !in_rows[v] {
+            continue;
+        }
+        if area[v].is_nan() || area[v] <= 0.0 {
+            return Err(numerical(format!("vertex {v} next to a hole has no area")));
+        }
+        let d = 1.0 / area[v];
+        let mut free_part: Vec<(usize, f64)> = Vec::new();
+        let mut fixed = [0.0; 3];
+        for &(j, w) in &rows[v] {
+            if free[j] {
+                match free_part.iter_mut().find(|(u, _)| *u == unknown[j]) {
+                    Some(slot) => slot.1 += w,
+                    None => free_part.push((unknown[j], w)),
+                }
+            } else {
+                for k in 0..3 {
+                    fixed[k] += w * mesh.positions[j][k];
+                }
+            }
+        }
+        for &(i, wi) in &free_part {
+            for &(j, wj) in &free_part {
+                triplets.push(faer::sparse::Triplet::new(i, j, d * wi * wj));
+            }
+            for k in 0..3 {
+                rhs[k * count + i] -= d * wi * fixed[k];
+            }
+        }
+    }
+    let k_matrix = faer::sparse::SparseColMat::try_new_from_triplets(count, count, &triplets)
+        .map_err(|e| numerical(format!("the patch system: {e:?}")))?;
+    let mut cholesky = Cholesky::<f64>::analyze_pattern(k_matrix.symbolic(), 3)
+        .map_err(|e| numerical(e.to_string()))?;
+    cholesky
+        .factorize_matrix(k_matrix.as_ref())
+        .map_err(|e| numerical(format!("the patch system: {e}")))?;
+    cholesky.solve_in_place(&mut rhs, 3);
+    for v in 0..n {
+        if free[v] {
+            let i = unknown[v];
+            let p = [rhs[i], rhs[count + i], rhs[2 * count + i]];
+            if !p.iter().all(|x| x.is_finite()) {
+                return Err(numerical(
+                    "the patch system gave a non-finite position".into(),
+                ));
+            }
+            positions[v] = p;
+        }
+    }
+    Ok(positions)
+}
+
+fn triangle_area(mesh: &Mesh, t: [usize; 3]) -> f64 {
+    use crate::geometry::vec3::{cross, norm, sub};
+    let p = &mesh.positions;
+    0.5 * norm(cross(sub(p[t[1]], p[t[0]]), sub(p[t[2]], p[t[0]])))
+}
+
+/// A conformal step that lowers the patch's W by less than this share ends the fairing.
+const SETTLED: f64 = 1e-4;
+
+/// What [`fair_holes`] did.
+#[derive(Clone, Debug)]
+pub struct FairedHoles {
+    pub mesh: Mesh,
+    /// Conformal steps taken on the patches (0 when no patch has an inner vertex).
+    pub steps: usize,
+    /// Willmore energy of the patches' region before and after the conformal steps.
+    pub willmore_before: f64,
+    pub willmore_after: f64,
+}
+
+/// Fairs the patches of `filled` (module docs): the thin-plate start, then up to `steps` steps
+/// of the conformal flow with every vertex of the surface held. `params` gives the flow its
+/// τ and safeguard; its regions, boundary and method are replaced.
+pub fn fair_holes(
+    filled: &Filled,
+    params: &FlowParams,
+    steps: usize,
+) -> Result<FairedHoles, FlowError> {
+    let free = filled.new_vertex_mask();
+    let start = Mesh {
+        positions: bilaplacian_fair(&filled.mesh, &free)?,
+        triangles: filled.mesh.triangles.clone(),
+    };
+    if !free.iter().any(|&f| f) || steps == 0 {
+        return Ok(FairedHoles {
+            mesh: start,
+            steps: 0,
+            willmore_before: 0.0,
+            willmore_after: 0.0,
+        });
+    }
+    let flow_params = FlowParams {
+        method: Method::Conformal,
+        regions: Vec::new(),
+        seam: super::region::Seam::Smooth,
+        until_converged: true,
+        feature_angle: crate::mesh::creases::FeatureAngle::None,
+        ..params.clone()
+    };
+    let mut flow = RegionFlow::with_moving(&start, &flow_params, &free)?;
+    let willmore_before = flow.initial_metrics().willmore_energy;
+    let mut willmore_after = willmore_before;
+    let mut taken = 0;
+    for _ in 0..steps {
+        match flow.step() {
+            Ok(m) => {
+                taken += 1;
+                let settled = m.willmore_energy > willmore_after * (1.0 - SETTLED);
+                willmore_after = m.willmore_energy;
+                if settled {
+                    break;
+                }
+            }
+            // The safeguard found no better patch: the last accepted one stands.
+            Err(FlowError::NoProgress { .. }) => break,
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(FairedHoles {
+        mesh: Mesh {
+            positions: flow.positions().to_vec(),
+            triangles: start.triangles,
+        },
+        steps: taken,
+        willmore_before,
+        willmore_after,
+    })
+}
