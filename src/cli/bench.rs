@@ -35,7 +35,10 @@ their times and ratios (docs/denoise.md). --genus [MESH]: the conformal step on 
 higher genus (default botijo_genus5_irregular) with and without its exactness constraints,
 against a generated genus-0 irregular sphere of the same size, at the same τ, in one run.
 --creases: crease detection and the conformal step with a generated CAD part's creases held,
-beside the same flow across them (feature_angle none), in one run.
+beside the same flow across them (feature_angle none), in one run. --holes [DIR] [--cgal PY]:
+three holes cut into spot and the genus-2 surface (DIR: the shared meshes) and the stanford
+bunny's five, filled by Willow and by CGAL in one run: patch distance to the cut surface,
+seam angle, folds and time.
 Current figures: docs/measurements.md.";
 
 #[derive(Args, Debug)]
@@ -63,6 +66,15 @@ pub struct BenchArgs {
     /// with a generated CAD part's creases held beside the same flow across them.
     #[arg(long, conflicts_with_all = ["json", "genus"])]
     pub creases: bool,
+    /// Instead: hole filling (issue 40): three holes cut into spot and the genus-2 surface
+    /// and the stanford bunny's own five, closed by Willow and, with `--cgal PYTHON`, by
+    /// CGAL's `triangulate_refine_and_fair_hole` in the same run.
+    #[arg(long, conflicts_with_all = ["json", "genus", "creases"])]
+    pub holes: bool,
+    /// With --holes: a Python with CGAL's bindings (scripts/cgal-fill-holes-setup.sh prints
+    /// one), to measure CGAL on the same holed files.
+    #[arg(long, value_name = "PYTHON", requires = "holes")]
+    pub cgal: Option<PathBuf>,
     /// Instead: the denoising benchmark (issue 39) on every `<Name>_Noisy.obj` /
     /// `<Name>_Original.obj` pair in DIR (e.g. ../shared/meshes/denoise): θ and Dv of the
     /// noisy input, of Willow's defaults and of Taubin-10 measured in the same run, with
@@ -185,6 +197,12 @@ pub fn run(args: BenchArgs) -> ExitCode {
     }
     if args.creases {
         return super::bench_creases::run(args.steps);
+    }
+    if args.holes {
+        return super::bench_holes::run(
+            args.meshes.first().map(PathBuf::as_path),
+            args.cgal.as_deref(),
+        );
     }
     if args.genus {
         return super::bench_genus::run(args.meshes.first().map(PathBuf::as_path), args.steps);

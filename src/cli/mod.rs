@@ -4,6 +4,7 @@ pub mod bench;
 pub mod bench_creases;
 pub mod bench_denoise;
 pub mod bench_genus;
+pub mod bench_holes;
 pub mod curve;
 pub mod fair;
 pub mod keys;
