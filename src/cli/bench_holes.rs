@@ -33,7 +33,7 @@ struct Case {
     diagonal: f64,
 }
 
-struct Result_ {
+struct Filling {
     new_vertices: usize,
     quality: PatchQuality,
     seconds: f64,
@@ -92,7 +92,7 @@ fn quality(mesh: &Mesh, case: &Case) -> PatchQuality {
     )
 }
 
-fn willow(case: &Case) -> Result<Result_, String> {
+fn willow(case: &Case) -> Result<Filling, String> {
     let mut best = f64::INFINITY;
     let mut last = None;
     for _ in 0..3 {
@@ -105,7 +105,7 @@ fn willow(case: &Case) -> Result<Result_, String> {
         last = Some(faired.mesh);
     }
     let mesh = last.ok_or("no run")?;
-    Ok(Result_ {
+    Ok(Filling {
         new_vertices: mesh.vertex_count() - case.holed.vertex_count(),
         quality: quality(&mesh, case),
         seconds: best,
@@ -156,7 +156,7 @@ fn read_plain_obj(path: &Path) -> Result<Mesh, String> {
     Mesh::new(positions, triangles).map_err(|e| format!("{}: {e}", path.display()))
 }
 
-fn cgal(case: &Case, python: &Path, dir: &Path, index: usize) -> Result<Result_, String> {
+fn cgal(case: &Case, python: &Path, dir: &Path, index: usize) -> Result<Filling, String> {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/cgal-fill-holes.py");
     let input = dir.join(format!("holed-{index}.obj"));
     let output = dir.join(format!("cgal-{index}.obj"));
@@ -180,7 +180,7 @@ fn cgal(case: &Case, python: &Path, dir: &Path, index: usize) -> Result<Result_,
         .as_f64()
         .ok_or("the CGAL script's report has no seconds")?;
     let mesh = read_plain_obj(&output)?;
-    Ok(Result_ {
+    Ok(Filling {
         new_vertices: mesh.vertex_count() - case.holed.vertex_count(),
         quality: quality(&mesh, case),
         seconds,
@@ -188,7 +188,7 @@ fn cgal(case: &Case, python: &Path, dir: &Path, index: usize) -> Result<Result_,
     })
 }
 
-fn print_row(who: &str, r: &Result_, case: &Case) {
+fn print_row(who: &str, r: &Filling, case: &Case) {
     let distance = if case.removed.is_some() {
         format!("{:>8.3}", 1e3 * r.quality.mean_distance / case.diagonal)
     } else {

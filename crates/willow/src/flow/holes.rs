@@ -14,7 +14,7 @@
 
 use super::region::RegionFlow;
 use super::{Flow, FlowError, FlowParams, Method};
-use crate::geometry::operators::corner_cotangents;
+use crate::geometry::operators::{corner_cotangents_into, triangle_area};
 use crate::linalg::solver::Cholesky;
 use crate::mesh::holes::Filled;
 use crate::mesh::Mesh;
@@ -36,26 +36,32 @@ pub fn bilaplacian_fair(mesh: &Mesh, free: &[bool]) -> Result<Vec<[f64; 3]>, Flo
     if count == 0 {
         return Ok(positions);
     }
-    // Rows of the energy: free vertices and every vertex next to one.
-    let cot = corner_cotangents(mesh);
+    // Rows of the energy: free vertices and every vertex next to one. Only the faces around
+    // them are measured: a small hole in a large scan costs its neighbourhood, not the scan.
     let mut in_rows = free.to_vec();
-    let mut area = vec![0.0; n];
     for t in &mesh.triangles {
-        let a = triangle_area(mesh, *t);
-        for &v in t {
-            area[v] += a / 3.0;
-        }
         if t.iter().any(|&v| free[v]) {
             for &v in t {
                 in_rows[v] = true;
             }
         }
     }
+    let near: Vec<[usize; 3]> = mesh
+        .triangles
+        .iter()
+        .filter(|t| t.iter().any(|&v| in_rows[v]))
+        .copied()
+        .collect();
+    let mut cot = vec![[0.0; 3]; near.len()];
+    corner_cotangents_into(&mesh.positions, &near, &mut cot);
+    let mut area = vec![0.0; n];
     // L as rows: (L f)_v = Σ_j w_vj (f_j − f_v), w = ½(cot α + cot β).
     let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
-    for (t, c) in mesh.triangles.iter().zip(&cot) {
-        if !t.iter().any(|&v| in_rows[v]) {
-            continue;
+    for (t, c) in near.iter().zip(&cot) {
+        let p = &mesh.positions;
+        let a = triangle_area(p[t[0]], p[t[1]], p[t[2]]);
+        for &v in t {
+            area[v] += a / 3.0;
         }
         for k in 0..3 {
             let (a, b) = (t[(k + 1) % 3], t[(k + 2) % 3]);
@@ -124,12 +130,6 @@ pub fn bilaplacian_fair(mesh: &Mesh, free: &[bool]) -> Result<Vec<[f64; 3]>, Flo
         }
     }
     Ok(positions)
-}
-
-fn triangle_area(mesh: &Mesh, t: [usize; 3]) -> f64 {
-    use crate::geometry::vec3::{cross, norm, sub};
-    let p = &mesh.positions;
-    0.5 * norm(cross(sub(p[t[1]], p[t[0]]), sub(p[t[2]], p[t[0]])))
 }
 
 /// A conformal step that lowers the patch's W by less than this share ends the fairing.
