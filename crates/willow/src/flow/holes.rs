@@ -16,8 +16,9 @@ use super::region::RegionFlow;
 use super::{Flow, FlowError, FlowParams, Method};
 use crate::geometry::operators::{corner_cotangents_into, triangle_area};
 use crate::linalg::solver::Cholesky;
-use crate::mesh::holes::Filled;
-use crate::mesh::Mesh;
+use crate::mesh::holes::{fill_holes, Filled, HoleSize};
+use crate::mesh::io::Asset;
+use crate::mesh::{Limits, Mesh, MeshError};
 
 /// Positions with the `free` vertices moved to the thin-plate (bi-Laplacian) minimizer with
 /// every other vertex fixed (module docs, step 1).
@@ -202,5 +203,74 @@ pub fn fair_holes(
         steps: taken,
         willmore_before,
         willmore_after,
+    })
+}
+
+/// Conformal steps [`fill_asset_holes`] gives each job's patches (they settle in 5–15).
+pub const PATCH_STEPS: usize = 20;
+
+/// What [`fill_asset_holes`] did.
+#[derive(Clone, Debug)]
+pub struct AssetHoles {
+    /// The asset with its patches appended ([`Asset::with_patches`]).
+    pub asset: Asset,
+    /// Holes closed, and the vertices and triangles their patches added.
+    pub filled: usize,
+    pub new_vertices: usize,
+    pub new_triangles: usize,
+    /// Loops left open because the size did not admit them, as their vertex counts.
+    pub left_open: Vec<usize>,
+    /// Conformal steps the patches took (0: the thin-plate start stands).
+    pub steps: usize,
+}
+
+/// Fills every hole of `asset` that `size` admits ([`crate::mesh::holes::fill_holes`]),
+/// fairs the patches ([`fair_holes`], τ from `params`), and appends them to the asset, its
+/// file's vertices and faces keeping their numbers. Deterministic: the same upload and
+/// parameters give the same patches, so a service can read the file again and find them.
+///
+/// A conformal stage that fails numerically leaves the thin-plate patch (already G1; `steps`
+/// is then 0); only a failure of the thin-plate solve itself is an error.
+pub fn fill_asset_holes(
+    asset: &Asset,
+    size: HoleSize,
+    params: &FlowParams,
+    limits: &Limits,
+) -> Result<AssetHoles, MeshError> {
+    let filled = fill_holes(asset.surface(), size, limits)?;
+    let left_open = filled.left_open.clone();
+    if filled.holes.is_empty() {
+        return Ok(AssetHoles {
+            asset: asset.clone(),
+            filled: 0,
+            new_vertices: 0,
+            new_triangles: 0,
+            left_open,
+            steps: 0,
+        });
+    }
+    let patch_params = FlowParams {
+        safeguard: true,
+        ..params.clone()
+    };
+    let (positions, steps) = match fair_holes(&filled, &patch_params, PATCH_STEPS) {
+        Ok(f) => (f.mesh.positions, f.steps),
+        Err(_) => {
+            let free = filled.new_vertex_mask();
+            let start =
+                bilaplacian_fair(&filled.mesh, &free).map_err(|e| MeshError::Unsupported {
+                    detail: format!("fill_holes: the patches could not be faired: {e}"),
+                })?;
+            (start, 0)
+        }
+    };
+    let asset = asset.with_patches(&filled, positions, limits)?;
+    Ok(AssetHoles {
+        asset,
+        filled: filled.holes.len(),
+        new_vertices: filled.mesh.vertex_count() - filled.original_vertices,
+        new_triangles: filled.mesh.face_count() - filled.original_triangles,
+        left_open,
+        steps,
     })
 }

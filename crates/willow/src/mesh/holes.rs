@@ -29,9 +29,9 @@ pub const MAX_DP_LOOP: usize = 300;
 /// corner (√2 in his paper, the value CGAL uses).
 const DENSITY: f64 = std::f64::consts::SQRT_2;
 
-/// Which boundary loops count as holes to fill.
-#[derive(Clone, Copy, Debug, PartialEq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
+/// Which boundary loops count as holes to fill. In JSON, as in [`HoleSize::parse`]: `"all"`,
+/// an integer (boundary vertices) or a decimal number (model units), as a number or a string.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub enum HoleSize {
     /// Every boundary loop.
     #[default]
@@ -74,6 +74,45 @@ impl HoleSize {
             HoleSize::Vertices(n) => vertices.len() <= n,
             HoleSize::Extent(d) => loop_extent(positions, vertices) <= d,
         }
+    }
+}
+
+impl std::fmt::Display for HoleSize {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            HoleSize::Any => f.write_str("all"),
+            HoleSize::Vertices(n) => write!(f, "{n} boundary vertices"),
+            HoleSize::Extent(d) => write!(f, "{d} model units across"),
+        }
+    }
+}
+
+impl serde::Serialize for HoleSize {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match *self {
+            HoleSize::Any => s.serialize_str("all"),
+            HoleSize::Vertices(n) => s.serialize_u64(n as u64),
+            HoleSize::Extent(d) => s.serialize_f64(d),
+        }
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for HoleSize {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(serde::Deserialize)]
+        #[serde(untagged)]
+        enum Form<'a> {
+            Count(u64),
+            Length(f64),
+            Text(std::borrow::Cow<'a, str>),
+        }
+        let parsed = match Form::deserialize(d)? {
+            Form::Count(n) => HoleSize::parse(&n.to_string()),
+            Form::Length(x) if x.is_finite() && x > 0.0 => Ok(HoleSize::Extent(x)),
+            Form::Length(x) => HoleSize::parse(&x.to_string()),
+            Form::Text(t) => HoleSize::parse(&t),
+        };
+        parsed.map_err(serde::de::Error::custom)
     }
 }
 

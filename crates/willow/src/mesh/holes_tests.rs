@@ -13,6 +13,22 @@ fn hole_sizes_parse_as_counts_lengths_or_all() {
 }
 
 #[test]
+fn hole_sizes_read_json_numbers_as_counts_or_lengths_and_round_trip() {
+    let read = |j: &str| serde_json::from_str::<HoleSize>(j);
+    assert_eq!(read("\"all\"").unwrap(), HoleSize::Any);
+    assert_eq!(read("50").unwrap(), HoleSize::Vertices(50));
+    assert_eq!(read("0.25").unwrap(), HoleSize::Extent(0.25));
+    assert_eq!(read("\"0.25\"").unwrap(), HoleSize::Extent(0.25));
+    for bad in ["2", "-3", "0.0", "\"ten\"", "null", "[]"] {
+        assert!(read(bad).is_err(), "{bad} read");
+    }
+    for size in [HoleSize::Any, HoleSize::Vertices(7), HoleSize::Extent(1.0)] {
+        let text = serde_json::to_string(&size).unwrap();
+        assert_eq!(read(&text).unwrap(), size, "{text}");
+    }
+}
+
+#[test]
 fn a_planar_loop_is_closed_flat_with_its_minimal_triangulation() {
     // A square annulus' inner square: the dynamic program closes it with two triangles in the
     // plane (dihedral 0 against the flat surround).

@@ -20,6 +20,7 @@
 //! against [`Limits`] before allocation, and every malformed input is a [`MeshError`].
 
 mod affine;
+mod filled;
 mod format;
 mod gltf;
 mod groups;

@@ -55,6 +55,13 @@ pub(crate) struct RefinedSource {
     pub(crate) v_colours: Option<Vec<Option<[f64; 3]>>>,
     /// The input's notes and what refining could not carry (`gltf::refined::dropped`).
     pub(crate) notes: Vec<String>,
+    /// Triangles the subdivision made; those after them are hole patches
+    /// ([`Asset::with_patches`]), each written after the input's faces.
+    pub(crate) base_triangles: usize,
+    /// Per patch triangle: the input triangle beside its hole, whose winding it is written in.
+    pub(crate) patch_roots: Vec<usize>,
+    /// Per patch triangle: the input block (glTF primitive's POSITION accessor) it joins.
+    pub(crate) patch_blocks: Vec<usize>,
 }
 
 /// A per-vertex attribute interpolated linearly like the UVs: `width` numbers per split
@@ -70,7 +77,10 @@ pub(crate) struct Varying {
 impl RefinedSource {
     /// The input triangle `c` (a refined triangle) descends from.
     pub(crate) fn root(&self, c: usize) -> usize {
-        c >> (2 * self.levels)
+        match c.checked_sub(self.base_triangles) {
+            Some(k) => self.patch_roots.get(k).copied().unwrap_or(0),
+            None => c >> (2 * self.levels),
+        }
     }
 }
 
@@ -104,6 +114,24 @@ impl Asset {
         if planned == 0 {
             return Ok((self.clone(), before));
         }
+        let asset = self.subdivided(planned, limits)?;
+        Ok((
+            asset,
+            Refinement {
+                levels: planned,
+                ..before
+            },
+        ))
+    }
+
+    /// The asset split `planned` times (0: the same surface, with a refined asset's
+    /// bookkeeping, which is what [`Asset::with_patches`] appends to).
+    pub(crate) fn subdivided(&self, planned: usize, limits: &Limits) -> Result<Asset, MeshError> {
+        let before = Refinement {
+            levels: 0,
+            vertices_before: self.file_vertex_count(),
+            faces_before: self.surface.face_count(),
+        };
         let mut welded = self.surface.clone();
         let mut split_tris = self.oriented_split_triangles();
         let mut to_welded = self.to_welded.clone();
@@ -244,6 +272,7 @@ impl Asset {
             }
             v.values = out;
         }
+        let split_tris_len = split_tris.len();
         let triangles: Vec<[usize; 3]> = split_tris
             .iter()
             .map(|t| t.map(|sv| renumber[sv]))
@@ -313,10 +342,13 @@ impl Asset {
                 varyings,
                 v_colours,
                 notes: self.refined_notes(),
+                base_triangles: split_tris_len,
+                patch_roots: Vec::new(),
+                patch_blocks: Vec::new(),
             }),
             repairs: self.repairs.clone(),
         };
-        Ok((asset, Refinement { levels, ..before }))
+        Ok(asset)
     }
 }
 

@@ -256,7 +256,7 @@ pub(crate) fn write(
     let mut done: Vec<(usize, usize)> = Vec::new();
     let mut uv_done: Vec<usize> = Vec::new();
     let mut skinned_meshes: Vec<usize> = Vec::new();
-    for run in &src.runs {
+    for (run_index, run) in src.runs.iter().enumerate() {
         if done.contains(&(run.mesh, run.primitive)) {
             continue;
         }
@@ -278,8 +278,16 @@ pub(crate) fn write(
         };
         let per = 1usize << (2 * r.levels);
         let children = run.triangles.start * per..run.triangles.end * per;
-        let mut index_bytes = Vec::with_capacity(children.len() * 12);
-        for c in children.clone() {
+        // Hole patches join the first primitive drawing their block (`filled.rs`).
+        let first_of_block = src.runs.iter().position(|x| x.block == run.block) == Some(run_index);
+        let patches: Vec<usize> = if first_of_block {
+            r.patch_triangles(run.block).collect()
+        } else {
+            Vec::new()
+        };
+        let count = children.len() + patches.len();
+        let mut index_bytes = Vec::with_capacity(count * 12);
+        for c in children.chain(patches) {
             let t = asset
                 .file
                 .triangles
@@ -301,7 +309,7 @@ pub(crate) fn write(
             .and_then(Value::as_array_mut)
             .ok_or_else(|| malformed("accessors"))?;
         accessors.push(json!({"bufferView": view, "componentType": UNSIGNED_INT,
-            "count": children.len() * 3, "type": "SCALAR"}));
+            "count": count * 3, "type": "SCALAR"}));
         let indices = accessors.len() - 1;
 
         let prim = doc["meshes"][run.mesh]["primitives"][run.primitive]
