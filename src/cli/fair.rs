@@ -24,10 +24,12 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use willow::flow::holes::fill_asset_holes;
 use willow::flow::region::{resolve_groups, Region, Seam};
 use willow::flow::stopping::{Event, Outcome, Run};
-use willow::flow::{new_flow, FlowError, Method, Preserve};
+use willow::flow::{new_flow, FlowError, FlowParams, Method, Preserve};
 use willow::mesh::creases::FeatureAngle;
+use willow::mesh::holes::HoleSize;
 use willow::mesh::io::{Asset, Format, Limits};
 use willow_service::jobs::spec::{AnglesSpec, AxisSpec, BoundarySpec, FilterSpec, PrescribedSpec};
 use willow_service::jobs::JobSpec;
@@ -139,6 +141,19 @@ pub struct FairArgs {
     /// about 16k triangles.
     #[arg(long, requires = "refine")]
     pub refine_edge: Option<f64>,
+    /// Close holes before the flow (after --refine): every boundary loop up to MAX, which is
+    /// `all` (the default when MAX is left out), an integer (the loop's boundary vertices) or
+    /// a decimal (its extent in model units, e.g. 0.25). Each patch is triangulated, refined
+    /// to the surrounding edge length and faired G1 against the surface; the output has the
+    /// file's vertices and faces first, then the patches'.
+    #[arg(
+        long,
+        value_name = "MAX",
+        num_args = 0..=1,
+        default_missing_value = "all",
+        value_parser = HoleSize::parse
+    )]
+    pub fill_holes: Option<HoleSize>,
     /// Write every intermediate mesh here, as `frame_NNNN.<ext>` (the output's format).
     #[arg(long)]
     pub frames_dir: Option<PathBuf>,
@@ -354,6 +369,34 @@ pub fn run(args: FairArgs) -> ExitCode {
     } else {
         asset
     };
+    let asset = match args.fill_holes {
+        Some(size) => {
+            match fill_asset_holes(&asset, size, &FlowParams::default(), &Limits::default()) {
+                Ok(r) => {
+                    eprintln!(
+                        "filled {}: {} holes closed ({} vertices, {} triangles appended), {} \
+                         left open{}",
+                        args.input.display(),
+                        r.filled,
+                        r.new_vertices,
+                        r.new_triangles,
+                        r.left_open.len(),
+                        if r.left_open.is_empty() {
+                            String::new()
+                        } else {
+                            format!(" (loops of {:?} vertices, larger than {size})", r.left_open)
+                        }
+                    );
+                    for note in r.asset.notes().iter().filter(|n| n.contains("no UVs")) {
+                        eprintln!("note: {}: {note}", args.input.display());
+                    }
+                    r.asset
+                }
+                Err(e) => return fail(EXIT_BAD_INPUT, format!("--fill-holes: {e}")),
+            }
+        }
+        None => asset,
+    };
     // The CLI maps onto the same job spec as HTTP and gRPC, and is checked by the same rules.
     let boundary = match args.boundary {
         BoundaryArg::Auto => BoundarySpec::Auto,
@@ -406,6 +449,7 @@ pub fn run(args: FairArgs) -> ExitCode {
         seam: args.seam,
         repair: !args.no_repair,
         refine: args.refine,
+        fill_holes: args.fill_holes,
         feature_angle: args.feature_angle,
         denoise: willow_service::jobs::spec::DenoiseSpec {
             iterations: args.denoise_iterations,

@@ -5,6 +5,7 @@ use super::error::JobError;
 use super::model::Config;
 use super::spec;
 use serde::{Deserialize, Serialize};
+use willow::flow::holes::fill_asset_holes;
 use willow::flow::region::{Region, Seam};
 use willow::flow::{FlowParams, Method, Preserve};
 use willow::mesh::io::{Asset, Format};
@@ -128,6 +129,16 @@ pub struct JobSpec {
     /// `denoise` reports the creases it sharpened. Each frame's `crease_edges` counts them.
     #[schema(value_type = crate::api::schema::FeatureAngleSchema)]
     pub feature_angle: willow::mesh::creases::FeatureAngle,
+    // `willow::flow::holes::fill_asset_holes`, after `repair` and `refine`.
+    /// Close the upload's holes before the flow: every boundary loop up to this size (`all`, an
+    /// integer: boundary vertices, or a decimal: the loop's extent in model units, e.g. `0.25`)
+    /// gets a patch (minimal-dihedral triangulation, refined to the surrounding edge length,
+    /// faired by the conformal flow with the surface's frames held along the loop: G1). The
+    /// file's vertices and faces keep their numbers, the patches' are appended (UVs
+    /// interpolated, or absent with a note where a UV seam runs into the hole); frames then
+    /// carry `vertex_count` positions and frame 0 says `connectivity_changed`. Null: no filling.
+    #[schema(value_type = Option<String>, example = "all")]
+    pub fill_holes: Option<willow::mesh::holes::HoleSize>,
 }
 
 impl Default for JobSpec {
@@ -162,12 +173,14 @@ impl Default for JobSpec {
             callback_url: None,
             denoise: spec::DenoiseSpec::from_flow(flow.denoise),
             feature_angle: flow.feature_angle,
+            fill_holes: None,
         }
     }
 }
 
 impl JobSpec {
-    /// The uploaded file as this job reads it: repaired, then refined, when it asks for it.
+    /// The uploaded file as this job reads it: repaired, refined and its holes filled, when it
+    /// asks for them.
     /// Deterministic, so the admission, the worker and every download see the same mesh.
     pub fn read_asset(
         &self,
@@ -180,11 +193,24 @@ impl JobSpec {
         } else {
             Asset::read(bytes, format, limits)?
         };
-        if self.refine {
-            Ok(asset.refined(None, limits)?.0)
+        let asset = if self.refine {
+            asset.refined(None, limits)?.0
         } else {
-            Ok(asset)
+            asset
+        };
+        match self.fill_holes {
+            Some(size) => {
+                let params = FlowParams::default();
+                Ok(fill_asset_holes(&asset, size, &params, limits)?.asset)
+            }
+            None => Ok(asset),
         }
+    }
+
+    /// Whether frame 0's mesh differs from the upload's (refined, holes filled): its
+    /// `connectivity_changed`, telling a client to fetch the faces.
+    pub fn changes_connectivity(&self) -> bool {
+        self.refine || self.fill_holes.is_some()
     }
 
     /// Check every field against the server's limits; the error names the field.

@@ -228,7 +228,7 @@ pub struct Frame {
     /// Vertex positions after the step, in the uploaded file's vertex order, when this step
     /// keeps positions ([`JobSpec::keeps_positions`]). Shared, so fan-out copies no vertices.
     pub positions: Option<Arc<FramePositions>>,
-    /// Step 0 of a job with `refine`: the mesh is the refined one, not the upload (its faces
+    /// Step 0 of a job with `refine` or `fill_holes`: the mesh is not the upload (its faces
     /// from `GET /v1/jobs/{id}/frames/0`; its vertices the file's own, then the new ones). Set
     /// by the watcher ([`Jobs::watch`](super::Jobs::watch)) from the job's spec.
     pub connectivity_changed: bool,

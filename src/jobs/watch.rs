@@ -196,7 +196,7 @@ pub(super) async fn watch(
     } else {
         Some(live)
     };
-    let (watch, tx) = channel(floor, status.spec.refine);
+    let (watch, tx) = channel(floor, status.spec.changes_connectivity());
     tokio::spawn(async move {
         match run_watcher(jobs, id.clone(), from_step, status, live, &tx).await {
             // The last events must be taken in time too.

@@ -318,3 +318,70 @@ fn a_numerical_failure_still_writes_the_last_sound_surface() {
         std::fs::read(&kept_out).expect("written")
     );
 }
+
+#[test]
+fn fill_holes_closes_the_stanford_bunnys_five_holes_and_a_size_keeps_the_large_ones() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bunny = match std::env::var_os("WILLOW_SHARED_MESHES") {
+        Some(d) => std::path::PathBuf::from(d).join("stanford-bunny.obj"),
+        None => std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../shared/meshes/stanford-bunny.obj"),
+    };
+    assert!(
+        bunny.exists(),
+        "the shared bunny is missing: {}",
+        bunny.display()
+    );
+    let input_v = std::fs::read_to_string(&bunny)
+        .expect("bunny")
+        .lines()
+        .filter(|l| l.starts_with("v "))
+        .count();
+    let out = dir.path().join("out.obj");
+    let run = |extra: &[&str]| {
+        willow()
+            .args(["fair", "--method", "mcf", "--steps", "1"])
+            .arg(&bunny)
+            .arg("-o")
+            .arg(&out)
+            .args(extra)
+            .output()
+            .expect("run willow")
+    };
+    let boundary_edges = |text: &str| {
+        let mut count = std::collections::HashMap::new();
+        for l in text.lines().filter(|l| l.starts_with("f ")) {
+            let v: Vec<usize> = l
+                .split_whitespace()
+                .skip(1)
+                .map(|c| c.split('/').next().and_then(|x| x.parse().ok()).expect("f"))
+                .collect();
+            for k in 0..v.len() {
+                let (a, b) = (v[k], v[(k + 1) % v.len()]);
+                *count.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+            }
+        }
+        count.values().filter(|&&c| c == 1).count()
+    };
+
+    let all = run(&["--fill-holes"]);
+    let stderr = String::from_utf8_lossy(&all.stderr);
+    assert_eq!(all.status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("5 holes closed"), "{stderr}");
+    let text = std::fs::read_to_string(&out).expect("output");
+    assert_eq!(boundary_edges(&text), 0, "every hole closed");
+    assert!(text.lines().filter(|l| l.starts_with("v ")).count() > input_v);
+
+    // The bunny's loops have 22–80 boundary vertices: 40 keeps the two largest open.
+    let some = run(&["--fill-holes", "40"]);
+    let stderr = String::from_utf8_lossy(&some.stderr);
+    assert_eq!(some.status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("3 holes closed"), "{stderr}");
+    assert!(stderr.contains("2 left open"), "{stderr}");
+    let text = std::fs::read_to_string(&out).expect("output");
+    assert_eq!(boundary_edges(&text), 42 + 80);
+
+    let bad = run(&["--fill-holes", "big"]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("hole size"));
+}

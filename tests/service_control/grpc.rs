@@ -225,6 +225,20 @@ async fn bad_controls_are_invalid_arguments_naming_the_field() {
             },
             "params.feature_angle",
         ),
+        (
+            v1::JobParams {
+                fill_holes: Some("2".into()),
+                ..Default::default()
+            },
+            "params.fill_holes",
+        ),
+        (
+            v1::JobParams {
+                fill_holes: Some("-0.5".into()),
+                ..Default::default()
+            },
+            "params.fill_holes",
+        ),
     ];
     for (params, field) in cases {
         let status = client

@@ -597,3 +597,160 @@ async fn refine_subdivides_a_coarse_cylinder_and_frame_zero_says_so() {
     }
     srv.stop().await;
 }
+
+/// A UV-mapped latitude–longitude sphere (`n` around, `n / 2` down) with its north cap's fan
+/// left out: one hole of `n` boundary vertices, every corner in one chart.
+fn holed_uv_sphere_obj(n: usize) -> (String, usize, usize) {
+    let rows = n / 2;
+    let mut s = String::new();
+    // Ring r (1..rows) at polar angle π r / rows; the south pole last. Seam column n repeats
+    // column 0 in UV only.
+    for r in 1..rows {
+        let theta = std::f64::consts::PI * r as f64 / rows as f64;
+        for i in 0..n {
+            let phi = 2.0 * std::f64::consts::PI * i as f64 / n as f64;
+            s += &format!(
+                "v {} {} {}\n",
+                theta.sin() * phi.cos(),
+                theta.sin() * phi.sin(),
+                theta.cos()
+            );
+        }
+    }
+    s += "v 0 0 -1\n";
+    let vertices = (rows - 1) * n + 1;
+    for r in 1..rows {
+        for i in 0..=n {
+            s += &format!(
+                "vt {} {}\n",
+                i as f64 / n as f64,
+                1.0 - r as f64 / rows as f64
+            );
+        }
+    }
+    s += "vt 0.5 0\n";
+    let v = |r: usize, i: usize| (r - 1) * n + i % n + 1;
+    let t = |r: usize, i: usize| (r - 1) * (n + 1) + i + 1;
+    let mut faces = 0;
+    for r in 1..rows - 1 {
+        for i in 0..n {
+            let (a, b, c, d) = ((r, i), (r, i + 1), (r + 1, i + 1), (r + 1, i));
+            for tri in [[a, d, c], [a, c, b]] {
+                s += "f";
+                for (rr, ii) in tri {
+                    s += &format!(" {}/{}", v(rr, ii), t(rr, ii));
+                }
+                s += "\n";
+                faces += 1;
+            }
+        }
+    }
+    let south = (rows - 1) * n + 1;
+    let south_t = (rows - 1) * (n + 1) + 1;
+    for i in 0..n {
+        let r = rows - 1;
+        s += &format!(
+            "f {}/{} {south}/{south_t} {}/{}\n",
+            v(r, i),
+            t(r, i),
+            v(r, i + 1),
+            t(r, i + 1)
+        );
+        faces += 1;
+    }
+    (s, vertices, faces)
+}
+
+/// `fill_holes` (issue 40 item 2): the job runs on the filled mesh, closed, with the file's
+/// vertices and faces first; frame 0 says the connectivity changed and carries the patch's
+/// vertices after the file's; the result's patch has UVs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fill_holes_closes_the_hole_and_frame_zero_says_so() {
+    let srv = start(|_| {}).await;
+    let (obj, upload_vertices, upload_faces) = holed_uv_sphere_obj(24);
+    let (st, _, job) = srv
+        .submit_obj(
+            &obj,
+            "steps=1&fill_holes=all&method=mcf&until_converged=false",
+        )
+        .await;
+    assert_eq!(st, 202, "{job}");
+    assert_eq!(job["params"]["fill_holes"], "all");
+    let vertex_count = job["vertex_count"].as_u64().expect("vertex_count") as usize;
+    let face_count = job["face_count"].as_u64().expect("face_count") as usize;
+    assert!(vertex_count > upload_vertices, "{job}");
+    // Closed genus 0: F = 2V − 4.
+    assert_eq!(face_count, 2 * vertex_count - 4, "{job}");
+    assert!(face_count > upload_faces);
+    let id = job["id"].as_str().expect("id").to_string();
+    let done = srv.poll_until(&id, JOB_TIMEOUT, is_terminal).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+
+    let res = srv.get(&format!("/v1/jobs/{id}/events")).await;
+    let events = read_sse(res, JOB_TIMEOUT).await;
+    let frames: Vec<&Sse> = events.iter().filter(|e| e.event == "frame").collect();
+    assert_eq!(
+        frames[0].data["connectivity_changed"], true,
+        "{:?}",
+        frames[0]
+    );
+    let b64 = frames[0].data["positions_b64"].as_str().expect("positions");
+    let bytes =
+        base64::Engine::decode(&base64::engine::general_purpose::STANDARD, b64).expect("base64");
+    let frame0 = f32_triples(&bytes);
+    assert_eq!(frame0.len(), vertex_count);
+    let upload = obj_vertices(&obj);
+    for (a, b) in upload.iter().zip(&frame0) {
+        for k in 0..3 {
+            assert!(
+                (a[k] - b[k] as f64).abs() < 1e-6,
+                "the file's vertices come first"
+            );
+        }
+    }
+    // The patch closes the north pole: its vertices lie near the sphere's cap.
+    assert!(
+        frame0[upload_vertices..].iter().all(|p| p[2] > 0.8),
+        "the patch is where the hole was"
+    );
+
+    let res = srv.get(&format!("/v1/jobs/{id}/result?format=obj")).await;
+    assert_eq!(res.status(), 200);
+    let text = res.text().await.expect("body");
+    let faces: Vec<&str> = text.lines().filter(|l| l.starts_with("f ")).collect();
+    assert_eq!(faces.len(), face_count);
+    // The longitude seam runs into the polar hole, so its loop's corners lie on two charts:
+    // the file's faces keep their UVs, the patch has none, and the job says so.
+    let with_uv = |f: &&str| f.split_whitespace().skip(1).all(|c| c.contains('/'));
+    assert!(
+        faces[..upload_faces].iter().all(with_uv),
+        "the file's faces keep their UVs"
+    );
+    assert!(
+        !faces[upload_faces..].iter().any(with_uv),
+        "the patch is written without UVs"
+    );
+    let notes = job["notes"].as_array().expect("notes");
+    assert!(
+        notes
+            .iter()
+            .any(|n| n.as_str().is_some_and(|n| n.contains("no UVs"))),
+        "{notes:?}"
+    );
+
+    // A size that admits no hole leaves the upload as it was.
+    let (st, _, job) = srv
+        .submit_obj(&obj, "steps=1&fill_holes=5&method=mcf")
+        .await;
+    assert_eq!(st, 202, "{job}");
+    assert_eq!(
+        job["face_count"].as_u64(),
+        Some(upload_faces as u64),
+        "{job}"
+    );
+    // A size that is no size is refused at submission, naming the field.
+    let (st, _, problem) = srv.submit_obj(&obj, "fill_holes=2").await;
+    assert_eq!(st, 400, "{problem}");
+    assert_eq!(problem["field"], "fill_holes", "{problem}");
+    srv.stop().await;
+}

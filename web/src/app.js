@@ -346,11 +346,12 @@ async function startWatch(id) {
   w.format = job.input_format;
   updateJob(job);
   const fresh = !!upload && upload.jobId === id;
-  if (fresh && !job.params.refine) {
+  const reshaped = job.params.refine || (job.params.fill_holes !== undefined && job.params.fill_holes !== null);
+  if (fresh && !reshaped) {
     // Just submitted from this page: the model on screen is the job's input.
     w.modelReady = true;
   } else if (fresh) {
-    // Refined: the job runs on a subdivided mesh (its frames say connectivity_changed), so
+    // Refined or filled: the job runs on another mesh (its frames say connectivity_changed), so
     // the model on screen is frame 0's, once the job has started.
     if (job.state === 'queued') w.modelDeferred = true;
     else loadModel(w);

@@ -2,7 +2,7 @@
 // (press on the model, drag out a radius: a sphere, or a cube of that half-size in box mode),
 // its numbers editable in the form; or a named group of the file's faces, picked from a list
 // of the uploaded file's own `g`/`o` (glTF node and mesh) names; the detail size shown as a ring on the model; preserve,
-// max_deviation, until_willmore, falloff, feature_angle. Each parameter is sent only when the user set it:
+// max_deviation, until_willmore, falloff, feature_angle, fill_holes. Each parameter is sent only when the user set it:
 // leaving a field empty leaves the server's default (and a server that does not know the
 // parameter is never asked about it).
 import { Vector3 } from 'three';
@@ -301,6 +301,8 @@ export class RegionControls {
     if (e.measure_deviation.checked) out.measure_deviation = true;
     if (e.all_steps.checked) out.until_converged = false;
     if (e.refine.checked) out.refine = true;
+    const holes = e.fill_holes.value.trim();
+    if (holes !== '') out.fill_holes = holes;
     return out;
   }
 
@@ -339,6 +341,7 @@ export class RegionControls {
     e.measure_deviation.checked = p.measure_deviation === true;
     e.all_steps.checked = p.until_converged === false;
     e.refine.checked = p.refine === true;
+    e.fill_holes.value = p.fill_holes === undefined || p.fill_holes === null ? '' : String(p.fill_holes);
     this.fromForm();
   }
 }

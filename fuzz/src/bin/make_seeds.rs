@@ -137,6 +137,7 @@ fn make_seeds() -> Result<(), Error> {
                     guided: Some(false),
                 }),
                 feature_angle: Some("45".into()),
+                fill_holes: Some("120".into()),
             }),
             request_id: "3f2504e0-4f89-41d3-9a0c-0305e82c3301".into(),
         },

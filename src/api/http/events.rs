@@ -40,7 +40,8 @@ pub struct FrameEvent {
     /// around the origin, where `positions_b64` holds the coordinates themselves.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub origin: Option<[f64; 3]>,
-    /// Present (true) on step 0 of a job with `refine`: the positions are the refined mesh's
+    /// Present (true) on step 0 of a job with `refine` or `fill_holes`: the positions are the
+    /// refined or filled mesh's
     /// (the file's vertices, then the new ones), not the upload's; fetch its faces and UVs
     /// from `GET /v1/jobs/{id}/frames/0`.
     #[serde(skip_serializing_if = "std::ops::Not::not")]

@@ -70,6 +70,11 @@ pub(super) fn params_pb(spec: &JobSpec) -> v1::JobParams {
             willow::mesh::creases::FeatureAngle::None => "none".to_string(),
             willow::mesh::creases::FeatureAngle::Degrees(d) => d.to_string(),
         }),
+        fill_holes: spec.fill_holes.map(|size| match size {
+            willow::mesh::holes::HoleSize::Any => "all".to_string(),
+            willow::mesh::holes::HoleSize::Vertices(n) => n.to_string(),
+            willow::mesh::holes::HoleSize::Extent(d) => format!("{d:?}"),
+        }),
         denoise: Some(v1::DenoiseParams {
             iterations: spec.denoise.iterations.map(count),
             vertex_iterations: Some(count(spec.denoise.vertex_iterations)),

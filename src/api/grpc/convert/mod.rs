@@ -208,6 +208,12 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
         spec.refine = v;
     }
     spec.callback_url = p.callback_url.filter(|u| !u.is_empty());
+    if let Some(text) = p.fill_holes.as_deref().filter(|t| !t.is_empty()) {
+        spec.fill_holes = Some(
+            willow::mesh::holes::HoleSize::parse(text)
+                .map_err(|reason| bad_request("params.fill_holes", reason))?,
+        );
+    }
     if let Some(text) = p.feature_angle.as_deref().filter(|t| !t.is_empty()) {
         spec.feature_angle = willow::mesh::creases::FeatureAngle::parse(text)
             .map_err(|reason| bad_request("params.feature_angle", reason))?;
