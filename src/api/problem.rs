@@ -174,6 +174,15 @@ impl From<JobError> for Problem {
             }
             JobError::InvalidSpec { field, .. } => p.with("field", field),
             JobError::TooLarge { what, limit } => p.with("what", what).with("limit", limit),
+            JobError::RefineTooLarge {
+                what,
+                planned,
+                limit,
+            } => p
+                .with("field", "refine")
+                .with("what", what)
+                .with("planned", planned)
+                .with("limit", limit),
             JobError::InvalidCurve(curve) => {
                 use willow::curve::CurveError;
                 // Where in the input: a point index, or an OBJ line.

@@ -38,7 +38,9 @@ pub fn of_error(e: &JobError) -> Statuses {
         }
         // A mesh over a size limit: RESOURCE_EXHAUSTED as gRPC itself answers an oversized
         // message.
-        JobError::TooLarge { .. } => (StatusCode::PAYLOAD_TOO_LARGE, Code::ResourceExhausted),
+        JobError::TooLarge { .. } | JobError::RefineTooLarge { .. } => {
+            (StatusCode::PAYLOAD_TOO_LARGE, Code::ResourceExhausted)
+        }
         JobError::Conflict(_) => (StatusCode::CONFLICT, Code::FailedPrecondition),
         JobError::IdempotencyMismatch(_) => (StatusCode::UNPROCESSABLE_ENTITY, Code::AlreadyExists),
         JobError::ShuttingDown | JobError::Unavailable(_) | JobError::DownloadsBusy { .. } => {

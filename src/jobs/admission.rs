@@ -99,9 +99,7 @@ impl Jobs {
         let t = Instant::now();
         let parse_spec = spec.clone();
         let (vertex_count, face_count, repairs, notes) = tokio::task::spawn_blocking(move || {
-            let asset = parse_spec
-                .read_asset(&parse_data, format, &limits.mesh_limits())
-                .map_err(mesh_error)?;
+            let asset = parse_spec.read_asset(&parse_data, format, &limits.mesh_limits())?;
             let surface = asset.surface();
             parse_spec.validate_for_asset(&asset)?;
             if surface.vertex_count() > limits.max_vertices {

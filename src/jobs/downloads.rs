@@ -461,9 +461,7 @@ impl Jobs {
         let (input_format, limits) = (status.input_format, self.inner.config.limits.mesh_limits());
         let spec = status.spec.clone();
         tokio::task::spawn_blocking(move || {
-            let asset = spec
-                .read_asset(&input, input_format, &limits)
-                .map_err(JobError::InvalidMesh)?;
+            let asset = spec.read_asset(&input, input_format, &limits)?;
             asset
                 .write(&positions, format)
                 .map_err(|e| JobError::Internal(format!("writing {}: {e}", format_name(format))))

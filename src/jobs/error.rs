@@ -35,6 +35,17 @@ pub enum JobError {
     InvalidSpec { field: &'static str, reason: String },
     #[error("{what} exceeds the limit of {limit}")]
     TooLarge { what: &'static str, limit: u64 },
+    /// `refine` would make more `what` (triangles or vertices) than the limits allow: known
+    /// from the upload's size and the target edge before any level is built (issue 42).
+    #[error(
+        "`refine` would make {planned} {what}, more than the limit of {limit}: a longer \
+         `refine_edge` (each doubling makes a quarter of the triangles) or no `refine`"
+    )]
+    RefineTooLarge {
+        what: &'static str,
+        planned: u64,
+        limit: u64,
+    },
     #[error("{0}")]
     Conflict(String),
     #[error("idempotency key reused with a different request: {0}")]
@@ -102,7 +113,7 @@ impl JobError {
             JobError::QuotaExceeded { .. } => "quota_exceeded",
             JobError::InvalidMesh(e) => e.code(),
             JobError::InvalidSpec { .. } => "invalid_parameter",
-            JobError::TooLarge { .. } => "too_large",
+            JobError::TooLarge { .. } | JobError::RefineTooLarge { .. } => "too_large",
             JobError::Conflict(_) => "conflict",
             JobError::IdempotencyMismatch(_) => "idempotency_mismatch",
             JobError::ShuttingDown => "shutting_down",

@@ -2,6 +2,7 @@
 //! and, once the file is read, against the mesh) and the flow parameters it makes.
 
 use super::error::JobError;
+use super::mesh_error;
 use super::model::Config;
 use super::spec;
 use serde::{Deserialize, Serialize};
@@ -139,6 +140,12 @@ pub struct JobSpec {
     /// carry `vertex_count` positions and frame 0 says `connectivity_changed`. Null: no filling.
     #[schema(value_type = Option<String>, example = "all")]
     pub fill_holes: Option<willow::mesh::holes::HoleSize>,
+    // `willow::mesh::refine::planned_levels`: ⌈log₂(mean edge / refine_edge)⌉ levels.
+    /// With `refine`: the edge length (model units) to subdivide toward, instead of the ~16k
+    /// triangles of the default; each level halves the edges. The plan's size is known from
+    /// the upload before any level is built: past the server's limits the job is refused with
+    /// 413 and `field: refine`. Null: the default target.
+    pub refine_edge: Option<f64>,
 }
 
 impl Default for JobSpec {
@@ -174,6 +181,7 @@ impl Default for JobSpec {
             denoise: spec::DenoiseSpec::from_flow(flow.denoise),
             feature_angle: flow.feature_angle,
             fill_holes: None,
+            refine_edge: None,
         }
     }
 }
@@ -187,21 +195,40 @@ impl JobSpec {
         bytes: &[u8],
         format: Format,
         limits: &Limits,
-    ) -> Result<Asset, MeshError> {
+    ) -> Result<Asset, JobError> {
         let asset = if self.repair {
-            Asset::read_repaired(bytes, format, limits)?
+            Asset::read_repaired(bytes, format, limits)
         } else {
-            Asset::read(bytes, format, limits)?
-        };
+            Asset::read(bytes, format, limits)
+        }
+        .map_err(mesh_error)?;
         let asset = if self.refine {
-            asset.refined(None, limits)?.0
+            // Refused from the plan, before the first level (`Asset::refined`): the error
+            // names `refine`, the parameter that asked for the size.
+            asset
+                .refined(self.refine_edge, limits)
+                .map_err(|e| match e {
+                    MeshError::TooLarge { what, value, limit } => JobError::RefineTooLarge {
+                        what: if what.starts_with("vertices") {
+                            "vertices"
+                        } else {
+                            "triangles"
+                        },
+                        planned: value as u64,
+                        limit: limit as u64,
+                    },
+                    other => mesh_error(other),
+                })?
+                .0
         } else {
             asset
         };
         match self.fill_holes {
             Some(size) => {
                 let params = FlowParams::default();
-                Ok(fill_asset_holes(&asset, size, &params, limits)?.asset)
+                Ok(fill_asset_holes(&asset, size, &params, limits)
+                    .map_err(mesh_error)?
+                    .asset)
             }
             None => Ok(asset),
         }
@@ -241,6 +268,20 @@ impl JobSpec {
                     self.tau
                 ),
             );
+        }
+        if let Some(edge) = self.refine_edge {
+            if !self.refine {
+                return bad(
+                    "refine_edge",
+                    "is the target of `refine`: set `refine: true` too".into(),
+                );
+            }
+            if !edge.is_finite() || edge <= 0.0 {
+                return bad(
+                    "refine_edge",
+                    format!("must be a finite length > 0, got {edge}"),
+                );
+            }
         }
         if self.frame_interval == 0 {
             return bad("frame_interval", "must be at least 1".into());

@@ -159,6 +159,31 @@ async fn an_oversized_message_is_resource_exhausted_with_a_quota_failure() {
     );
 }
 
+/// A `refine` plan past the limits (issue 42 item 2): RESOURCE_EXHAUSTED at CreateJob, with
+/// the violation on `params.refine` and the planned size in the message.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refine_past_the_limits_is_refused_at_create_job_naming_refine() {
+    let (mut client, _dir) = client().await;
+    let mesh = generate::icosphere(2);
+    let params = v1::JobParams {
+        refine: Some(true),
+        refine_edge: Some(generate::mean_edge_length(&mesh) / 1e6),
+        ..Default::default()
+    };
+    let status = client
+        .create_job(request(&mesh, params))
+        .await
+        .expect_err("refused");
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    let fields: Vec<String> = status
+        .get_details_bad_request()
+        .map(|b| b.field_violations.into_iter().map(|v| v.field).collect())
+        .unwrap_or_default();
+    assert_eq!(fields, vec!["params.refine".to_string()], "{status:?}");
+    let planned = (320u64 * 4u64.pow(20)).to_string();
+    assert!(status.message().contains(&planned), "{status:?}");
+}
+
 /// Bad controls are INVALID_ARGUMENT naming the field.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_controls_are_invalid_arguments_naming_the_field() {
@@ -238,6 +263,21 @@ async fn bad_controls_are_invalid_arguments_naming_the_field() {
                 ..Default::default()
             },
             "params.fill_holes",
+        ),
+        (
+            v1::JobParams {
+                refine_edge: Some(0.1),
+                ..Default::default()
+            },
+            "params.refine_edge",
+        ),
+        (
+            v1::JobParams {
+                refine: Some(true),
+                refine_edge: Some(f64::NAN),
+                ..Default::default()
+            },
+            "params.refine_edge",
         ),
     ];
     for (params, field) in cases {

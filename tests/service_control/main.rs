@@ -520,6 +520,66 @@ fn uv_cylinder_obj(n: usize) -> String {
     s
 }
 
+/// Issue 42 item 2: `refine`'s size is known from the upload and the target edge, so a plan
+/// past the limits is refused at submission, before any level is built (413, `field:
+/// refine`), and `refine_edge` is a real parameter: the levels it asks for are the ones made.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refine_edge_sets_the_levels_and_a_plan_past_the_limits_is_refused_before_work() {
+    let srv = start(|_| {}).await;
+    // A needle ellipsoid (the campaign's 12 KB stretched one): 80 · 4 = 320 triangles whose
+    // long edges stay long.
+    let mut needle = generate::icosphere(2);
+    for p in &mut needle.positions {
+        p[0] *= 40.0;
+    }
+    let obj = obj_text(&needle);
+    let mean_edge = generate::mean_edge_length(&needle);
+    // ⌈log₂(mean edge / target)⌉ = 20 levels: 320 · 4²⁰ triangles, were it built.
+    let query = format!(
+        "steps=1&refine=true&refine_edge={}",
+        mean_edge / 1_000_000.0
+    );
+    let mut fastest = Duration::MAX;
+    for _ in 0..3 {
+        let t = std::time::Instant::now();
+        let (st, _, body) = srv.submit_obj(&obj, &query).await;
+        fastest = fastest.min(t.elapsed());
+        assert_eq!(st, 413, "{body}");
+        assert_eq!(body["field"], "refine", "{body}");
+        assert_eq!(body["what"], "triangles", "{body}");
+        assert_eq!(body["planned"].as_u64(), Some(320 * 4u64.pow(20)), "{body}");
+        let detail = body["detail"].as_str().expect("detail");
+        assert!(detail.contains("refine_edge"), "{detail}");
+    }
+    // Refused from the plan: no level was built (building one of 1.3M triangles and checking
+    // it took over a second before).
+    println!("refine refusal: {:.1} ms", fastest.as_secs_f64() * 1e3);
+    assert!(fastest < Duration::from_millis(100), "{fastest:?}");
+
+    // A target a third of the mean edge: ⌈log₂ 3⌉ = 2 levels, 16 children per triangle.
+    let (st, _, job) = srv
+        .submit_obj(
+            &obj,
+            &format!("steps=1&refine=true&refine_edge={}", mean_edge / 3.0),
+        )
+        .await;
+    assert_eq!(st, 202, "{job}");
+    assert_eq!(job["face_count"], 320 * 16, "{job}");
+    assert_eq!(job["params"]["refine_edge"], mean_edge / 3.0, "{job}");
+
+    for (query, words) in [
+        ("steps=1&refine_edge=0.1", "refine: true"),
+        ("steps=1&refine=true&refine_edge=-1", "> 0"),
+        ("steps=1&refine=true&refine_edge=0", "> 0"),
+    ] {
+        let (st, _, body) = srv.submit_obj(&obj, query).await;
+        assert_eq!(st, 400, "{query}: {body}");
+        assert_eq!(body["field"], "refine_edge", "{query}: {body}");
+        let detail = body["detail"].as_str().expect("detail");
+        assert!(detail.contains(words), "{query}: {detail}");
+    }
+}
+
 /// `refine` (issue 26 item 5): the job runs on the Loop-subdivided mesh, frame 0 says the
 /// connectivity changed and carries the refined vertices (the file's own first), and the
 /// result has the refined faces with the UVs interpolated.

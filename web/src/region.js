@@ -9,7 +9,7 @@ import { Vector3 } from 'three';
 import { Overlays } from './overlay.js';
 
 /** Lengths and numbers sent only when typed in. */
-const OPTIONAL_NUMBERS = ['falloff', 'feature_size', 'max_deviation', 'until_willmore'];
+const OPTIONAL_NUMBERS = ['falloff', 'feature_size', 'max_deviation', 'until_willmore', 'refine_edge'];
 
 class FieldError extends Error {
   constructor(field, detail) { super(detail); this.problem = { field, detail }; }

@@ -138,6 +138,7 @@ fn make_seeds() -> Result<(), Error> {
                 }),
                 feature_angle: Some("45".into()),
                 fill_holes: Some("120".into()),
+                refine_edge: Some(0.05),
             }),
             request_id: "3f2504e0-4f89-41d3-9a0c-0305e82c3301".into(),
         },

@@ -164,6 +164,14 @@ pub(super) fn job_error(err: JobError, mesh_field: &str) -> Status {
                 format!("must be at most {limit} (the server's limit)"),
             );
         }
+        // The refinement the request asks for, too large: its parameter named.
+        JobError::RefineTooLarge { what, limit, .. } => {
+            details.add_quota_failure_violation(
+                format!("refined {what}"),
+                format!("refined {what} exceed the limit of {limit}"),
+            );
+            details.add_bad_request_violation("params.refine", cap_detail(err.to_string()));
+        }
         // A mesh over a size limit: the limit named, and no RetryInfo (retrying cannot help).
         JobError::TooLarge { what, limit } => {
             details

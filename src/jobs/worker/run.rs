@@ -7,8 +7,8 @@ use super::super::codec::{
 };
 use super::super::ports::{BlobKey, Fence};
 use super::super::{
-    mesh_error, now_ms, FailureCode, Frame, FramePositions, Inner, JobError, JobEvent, JobId,
-    JobState, JobStatus,
+    now_ms, FailureCode, Frame, FramePositions, Inner, JobError, JobEvent, JobId, JobState,
+    JobStatus,
 };
 use super::{finish, thread_budget, Outcome};
 use std::sync::atomic::Ordering;
@@ -324,14 +324,11 @@ fn read_asset(inner: &Inner, rt: &Handle, status: &JobStatus) -> Result<Asset, J
     let bytes = rt.block_on(inner.backend.blobs.get(key))?.ok_or_else(|| {
         JobError::Internal(format!("the input of job `{}` is missing", status.id))
     })?;
-    status
-        .spec
-        .read_asset(
-            &bytes,
-            status.input_format,
-            &inner.config.limits.mesh_limits(),
-        )
-        .map_err(mesh_error)
+    status.spec.read_asset(
+        &bytes,
+        status.input_format,
+        &inner.config.limits.mesh_limits(),
+    )
 }
 
 /// Put `flow` on the job's checkpoint, if it has a usable one; the checkpoint (its metrics

@@ -64,6 +64,7 @@ pub(super) fn params_pb(spec: &JobSpec) -> v1::JobParams {
         falloff: spec.falloff,
         repair: Some(spec.repair),
         refine: Some(spec.refine),
+        refine_edge: spec.refine_edge,
         callback_url: spec.callback_url.clone(),
         feature_angle: Some(match spec.feature_angle {
             willow::mesh::creases::FeatureAngle::Auto => "auto".to_string(),

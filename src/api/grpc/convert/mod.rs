@@ -207,6 +207,7 @@ pub(super) fn spec_from_pb(params: Option<v1::JobParams>) -> Result<JobSpec, Sta
     if let Some(v) = p.refine {
         spec.refine = v;
     }
+    spec.refine_edge = p.refine_edge;
     spec.callback_url = p.callback_url.filter(|u| !u.is_empty());
     if let Some(text) = p.fill_holes.as_deref().filter(|t| !t.is_empty()) {
         spec.fill_holes = Some(
