@@ -434,6 +434,7 @@ async fn specs_stored_before_the_flow_options_load_with_defaults() {
         "DROP TRIGGER tenant_usage_job_in; DROP TRIGGER tenant_usage_job_received;
          DROP TRIGGER tenant_usage_job_state;
          DROP TRIGGER tenant_usage_job_expired; DROP TRIGGER tenant_usage_job_out;
+         DROP TRIGGER tenant_usage_job_planned;
          DROP TRIGGER tenant_usage_upload_in; DROP TRIGGER tenant_usage_upload_out;
          DROP TRIGGER tenant_usage_rendered_in; DROP TRIGGER tenant_usage_rendered_out;
          DROP TABLE rendered;

@@ -240,10 +240,13 @@ async fn nats_quotas_hold_across_nodes_and_are_recounted_at_connect() {
 async fn nats_stored_bytes_are_counted_and_given_back() {
     let dir = tempfile::tempdir().expect("dir");
     let nats = Nats::start(dir.path());
+    // An upload's charge is its size; a job's, its input and what its frames, checkpoint
+    // and result may store. Room for the upload and one job, or for two jobs.
     let size = small_obj().len() as u64;
+    let job = size + service_http_support::small_plan(&spec(1));
     let quotas = TenantQuotas {
         max_live_jobs: 0,
-        max_stored_bytes: 2 * size + size / 2,
+        max_stored_bytes: 2 * job + size / 2,
         uploads_per_minute: 0,
     };
     // Node one's results and uploads expire 2 s after they finish or arrive; its own
@@ -270,7 +273,7 @@ async fn nats_stored_bytes_are_counted_and_given_back() {
         .expect("within the bytes");
     bytes_refused(
         one.submit(&a, obj(small_obj()), spec(1), None).await,
-        2 * size,
+        size + job,
     );
     one.wait(&a, &first.id, Duration::from_secs(60))
         .await
@@ -285,7 +288,7 @@ async fn nats_stored_bytes_are_counted_and_given_back() {
         .expect("wait");
     bytes_refused(
         one.submit(&a, obj(small_obj()), spec(1), None).await,
-        2 * size,
+        size + job,
     );
     core_one.shutdown(Duration::from_secs(2)).await;
 
@@ -353,5 +356,49 @@ async fn nats_rendered_downloads_count_in_stored_bytes() {
     )
     .await;
     assert_rendered_downloads_count_in_stored_bytes(&jobs, &tenant("alpha"), ttl).await;
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// Kept frames count in `stored_bytes` on NATS as on SQLite: the job's objects in the blob
+/// bucket, measured, stay within the tenant's quota.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_kept_frames_stay_within_the_stored_bytes_quota() {
+    use futures::StreamExt;
+    use service_http_support::kept_frames::{
+        assert_kept_frames_stay_within_the_quota, FRAMES_QUOTA,
+    };
+    let dir = tempfile::tempdir().expect("dir");
+    let nats = Nats::start(dir.path());
+    let (jobs, core) = start(
+        &nats,
+        &dir.path().join("node"),
+        TenantQuotas {
+            max_live_jobs: 0,
+            max_stored_bytes: FRAMES_QUOTA,
+            uploads_per_minute: 0,
+        },
+    )
+    .await;
+    let client = async_nats::connect(nats.url()).await.expect("connect");
+    let bucket = async_nats::jetstream::new(client)
+        .get_object_store(willow_service::jobs::nats::OBJECT_BUCKET)
+        .await
+        .expect("the blob bucket");
+    let measure = |id: String| {
+        let bucket = bucket.clone();
+        async move {
+            let prefix = format!("jobs/{id}/");
+            let mut list = bucket.list().await.expect("list");
+            let mut bytes = 0u64;
+            while let Some(info) = list.next().await {
+                let info = info.expect("an object");
+                if info.name.starts_with(&prefix) && !info.deleted {
+                    bytes += info.size as u64;
+                }
+            }
+            bytes
+        }
+    };
+    assert_kept_frames_stay_within_the_quota(&jobs, &tenant("alpha"), measure).await;
     core.shutdown(Duration::from_secs(1)).await;
 }

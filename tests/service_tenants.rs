@@ -5,7 +5,7 @@
 mod service_http_support;
 
 use service_http_support::{
-    assert_stored_upload_jobs_receive_no_mesh, obj, slow_obj, small_obj, spec, Capture,
+    assert_stored_upload_jobs_receive_no_mesh, obj, slow_obj, small_obj, small_plan, spec, Capture,
 };
 use std::time::Duration;
 use willow::mesh::io::Format;
@@ -210,6 +210,8 @@ async fn quotas_are_per_tenant_and_named() {
     // Uploads per minute (jobs and stored uploads both count) and stored bytes.
     let dir = tempfile::tempdir().expect("dir");
     let size = small_obj().len() as u64;
+    // A job's charge: its input and what its frames, checkpoint and result may store.
+    let job = size + small_plan(&spec(1));
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
             max_live_jobs: 0,
@@ -257,7 +259,7 @@ async fn quotas_are_per_tenant_and_named() {
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
             max_live_jobs: 0,
-            max_stored_bytes: 2 * size + size / 2,
+            max_stored_bytes: 2 * job + job / 2,
             uploads_per_minute: 0,
         }
     }))
@@ -280,8 +282,8 @@ async fn quotas_are_per_tenant_and_named() {
             used: Some(used),
             ..
         }) => {
-            assert_eq!(limit, 2 * size + size / 2);
-            assert_eq!(used, 2 * size, "the bytes of A's two inputs");
+            assert_eq!(limit, 2 * job + job / 2);
+            assert_eq!(used, 2 * job, "the bytes of A's two jobs");
         }
         other => panic!("expected the stored_bytes quota, got {other:?}"),
     }
@@ -460,4 +462,44 @@ async fn rendered_downloads_count_in_stored_bytes() {
     .expect("start");
     assert_rendered_downloads_count_in_stored_bytes(&jobs, &tenant("alpha"), ttl).await;
     core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// Kept frames count in `stored_bytes` (issue 42 item 1): the job's files in the data dir,
+/// measured, stay within the tenant's quota.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kept_frames_stay_within_the_stored_bytes_quota() {
+    use service_http_support::kept_frames::{
+        assert_kept_frames_stay_within_the_quota, FRAMES_QUOTA,
+    };
+    let dir = tempfile::tempdir().expect("dir");
+    let (jobs, core) = Jobs::start(config(dir.path(), |c| {
+        c.quotas = TenantQuotas {
+            max_live_jobs: 0,
+            max_stored_bytes: FRAMES_QUOTA,
+            uploads_per_minute: 0,
+        };
+    }))
+    .await
+    .expect("start");
+    let root = dir.path().to_path_buf();
+    let measure = |id: String| {
+        let job_dir = root.join("jobs").join(id);
+        async move { files_bytes(&job_dir) }
+    };
+    assert_kept_frames_stay_within_the_quota(&jobs, &tenant("alpha"), measure).await;
+    core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// The bytes of every file under `dir`.
+fn files_bytes(dir: &std::path::Path) -> u64 {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .map(|e| match e.file_type() {
+            Ok(t) if t.is_dir() => files_bytes(&e.path()),
+            _ => e.metadata().map_or(0, |m| m.len()),
+        })
+        .sum()
 }

@@ -104,6 +104,9 @@ pub(crate) async fn port_phases(
                 repairs: None,
                 notes: Vec::new(),
                 input_bytes: data.len() as u64,
+                // What the admission would reserve for frames (`jobs::stored`); the store's
+                // cost does not depend on it.
+                planned_bytes: 0,
                 received: true,
                 quotas: bench_quotas(),
                 created_at: willow_service::jobs::now_ms(),

@@ -87,8 +87,8 @@ pub struct ServeArgs {
     /// Per tenant: queued plus running jobs at most (0 = no limit).
     #[arg(long, default_value_t = 32)]
     pub tenant_max_live_jobs: usize,
-    /// Per tenant: MiB of uploaded meshes kept (inputs of unexpired jobs and stored uploads;
-    /// 0 = no limit).
+    /// Per tenant: MiB kept (stored uploads; unexpired jobs' inputs and what they may store:
+    /// kept frames, checkpoint, result, metrics, stored renderings; 0 = no limit).
     #[arg(long, default_value_t = 1024)]
     pub tenant_max_stored_mib: u64,
     /// Per tenant: meshes received (jobs and uploads) in any minute (0 = no limit).

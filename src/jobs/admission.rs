@@ -98,37 +98,45 @@ impl Jobs {
         let parse_data = data.clone();
         let t = Instant::now();
         let parse_spec = spec.clone();
-        let (vertex_count, face_count, repairs, notes) = tokio::task::spawn_blocking(move || {
-            let asset = parse_spec.read_asset(&parse_data, format, &limits.mesh_limits())?;
-            let surface = asset.surface();
-            parse_spec.validate_for_asset(&asset)?;
-            if surface.vertex_count() > limits.max_vertices {
-                return Err(JobError::TooLarge {
-                    what: "vertices",
-                    limit: limits.max_vertices as u64,
-                });
-            }
-            if surface.face_count() > limits.max_faces {
-                return Err(JobError::TooLarge {
-                    what: "faces",
-                    limit: limits.max_faces as u64,
-                });
-            }
-            // Only what changed: repair is the default, and a file that needed none says
-            // nothing about it.
-            let repairs =
-                Some(asset.repairs().clone()).filter(|r| parse_spec.repair && !r.is_empty());
-            Ok((
-                asset.file_vertex_count(),
-                surface.face_count(),
-                repairs,
-                asset.notes(),
-            ))
-        })
-        .await
-        .map_err(join_err)??;
+        let (vertex_count, face_count, sizes, repairs, notes) =
+            tokio::task::spawn_blocking(move || {
+                let asset = parse_spec.read_asset(&parse_data, format, &limits.mesh_limits())?;
+                let surface = asset.surface();
+                parse_spec.validate_for_asset(&asset)?;
+                if surface.vertex_count() > limits.max_vertices {
+                    return Err(JobError::TooLarge {
+                        what: "vertices",
+                        limit: limits.max_vertices as u64,
+                    });
+                }
+                if surface.face_count() > limits.max_faces {
+                    return Err(JobError::TooLarge {
+                        what: "faces",
+                        limit: limits.max_faces as u64,
+                    });
+                }
+                // Only what changed: repair is the default, and a file that needed none says
+                // nothing about it.
+                let repairs =
+                    Some(asset.repairs().clone()).filter(|r| parse_spec.repair && !r.is_empty());
+                let sizes = super::stored::JobSizes {
+                    file_vertices: asset.file_vertex_count(),
+                    surface_vertices: surface.vertex_count(),
+                };
+                Ok((
+                    asset.file_vertex_count(),
+                    surface.face_count(),
+                    sizes,
+                    repairs,
+                    asset.notes(),
+                ))
+            })
+            .await
+            .map_err(join_err)??;
         let telemetry = &self.inner.telemetry;
         telemetry.phase("parse", t);
+        let planned_bytes = super::stored::planned_bytes(&spec, sizes);
+        self.check_job_fits_quota(&spec, sizes, data.len() as u64, planned_bytes)?;
 
         let id = JobId::random();
         let data_len = data.len() as u64;
@@ -156,6 +164,7 @@ impl Jobs {
             repairs: repairs.clone(),
             notes,
             input_bytes: data_len,
+            planned_bytes,
             received,
             // Set by `admit`.
             quotas: super::TenantQuotas::default(),
@@ -271,6 +280,44 @@ impl Jobs {
             used: Some(over.used),
             retry_after_secs,
         }
+    }
+
+    /// Refuse a job that could not fit in its tenant's `stored_bytes` quota even alone: its
+    /// input fits, but with what its frames would store ([`super::stored`]) it passes the
+    /// whole quota, so it is a request to change (fewer kept frames), not a wait. 400 on
+    /// `frame_interval`, with the interval that would fit.
+    fn check_job_fits_quota(
+        &self,
+        spec: &JobSpec,
+        sizes: super::stored::JobSizes,
+        input_bytes: u64,
+        planned_bytes: u64,
+    ) -> Result<(), JobError> {
+        let limit = self.inner.config.quotas.max_stored_bytes;
+        let total = input_bytes.saturating_add(planned_bytes);
+        // An input past the quota by itself is the quota's own refusal (`QuotaExceeded`, with
+        // the usage), as for an upload.
+        if limit == 0 || total <= limit || input_bytes > limit {
+            return Ok(());
+        }
+        let frames = super::stored::kept_frames(spec, spec.steps);
+        let hint = match super::stored::interval_that_fits(spec, sizes, input_bytes, limit) {
+            Some(k) => {
+                format!("keep fewer frames: frame_interval={k} fits, or include_positions=false")
+            }
+            None => "even keeping only the first and last frames it does not fit: fewer \
+                     steps or a smaller mesh"
+                .to_string(),
+        };
+        Err(JobError::InvalidSpec {
+            field: "frame_interval",
+            reason: format!(
+                "the job would store {total} bytes ({input_bytes} of input, {frames} kept frames \
+                 of {} bytes each, its checkpoint, result and step metrics), more than the \
+                 tenant's whole stored_bytes quota of {limit}: {hint}",
+                sizes.frame_bytes()
+            ),
+        })
     }
 
     /// Refuse an upload of `bytes` that `tenant`'s quotas have no room for.

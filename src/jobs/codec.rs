@@ -119,6 +119,9 @@ pub const METRICS_BYTES: usize = METRICS_V1_BYTES + 8 + 4;
 /// step has it: a metric added later takes the next tag, and a row without it reads as `None`.
 type OptionalMetric = (u8, fn(&StepMetrics) -> Option<f64>);
 
+/// The most bytes [`encode_metrics`] writes: every optional metric present.
+pub const MAX_METRICS_BYTES: usize = METRICS_BYTES + 9 * OPTIONAL_METRICS.len();
+
 const OPTIONAL_METRICS: [OptionalMetric; 8] = [
     (1, |m| m.volume),
     (2, |m| m.deviation_max),
@@ -134,6 +137,7 @@ const OPTIONAL_METRICS: [OptionalMetric; 8] = [
 /// has (`OPTIONAL_METRICS`). Binary and not JSON because a metric may legitimately be NaN or
 /// infinite, which JSON cannot carry.
 pub fn encode_metrics(m: &StepMetrics) -> Vec<u8> {
+    // `MAX_METRICS_BYTES` bounds this.
     let mut out = Vec::with_capacity(METRICS_BYTES + 9 * OPTIONAL_METRICS.len());
     out.extend_from_slice(&(m.step as u64).to_le_bytes());
     for v in [
@@ -284,7 +288,7 @@ pub fn bytes_to_f32s(b: &[u8]) -> Result<Vec<[f32; 3]>, JobError> {
 const FRAME_ORIGIN_MAGIC: &[u8; 4] = b"WFO1";
 /// The magic and three f64: 28 bytes, so such a blob's length is 4 mod 12 while a plain f32
 /// blob's (every blob before origins, and every blob of a model around the origin) is 0 mod 12.
-const FRAME_ORIGIN_HEADER: usize = 4 + 24;
+pub const FRAME_ORIGIN_HEADER: usize = 4 + 24;
 
 /// A frame as stored: for a zero origin the plain f32 xyz it always was; otherwise
 /// [`FRAME_ORIGIN_MAGIC`], the origin as three little-endian f64, then the f32 offsets.

@@ -54,6 +54,7 @@ pub mod ports;
 pub mod render_memory;
 pub mod spec;
 pub mod storage;
+pub mod stored;
 pub mod telemetry;
 pub mod watch;
 pub mod webhooks;

@@ -125,9 +125,15 @@ pub struct JobStatus {
     pub vertex_count: usize,
     /// Triangles of the welded surface.
     pub face_count: usize,
-    /// Size of the uploaded file: what the job counts against its tenant's storage quota.
+    /// Size of the uploaded file: counted against its tenant's storage quota.
     #[serde(default)]
     pub input_bytes: u64,
+    /// What the job may store besides its input (kept frames, checkpoint, result, a metrics
+    /// row per step: [`super::stored`]), counted against its tenant's storage quota from
+    /// submission; brought down to what it kept when it stops early, to 0 when it ends
+    /// without starting. 0 in records from before it.
+    #[serde(default)]
+    pub planned_bytes: u64,
     /// Metrics of the latest completed step (step 0 = the input) once the job has started.
     pub latest: Option<StepMetrics>,
     /// Why the job failed or was cancelled, for people; on a succeeded job, why it stopped
@@ -394,7 +400,8 @@ pub struct Config {
 pub struct TenantQuotas {
     /// Queued plus running jobs.
     pub max_live_jobs: usize,
-    /// Bytes of uploaded meshes kept (inputs of unexpired jobs and stored uploads).
+    /// Bytes kept: stored uploads, and unexpired jobs' inputs, what they may store besides
+    /// ([`super::stored`]: kept frames, checkpoint, result, metrics) and stored renderings.
     pub max_stored_bytes: u64,
     /// Meshes received (job submissions and stored uploads) in any 60 s.
     pub uploads_per_minute: usize,

@@ -44,6 +44,9 @@ pub struct NewJob {
     pub notes: Vec<String>,
     /// Size of the uploaded file (the tenant's storage quota counts it).
     pub input_bytes: u64,
+    /// What the job may store besides its input ([`super::stored::planned_bytes`]): the
+    /// quota counts it too, from the insert on.
+    pub planned_bytes: u64,
     /// Whether the mesh came with this request. A job made from a stored upload receives no
     /// mesh: its upload was counted toward `uploads_per_minute` when it arrived, so the job
     /// neither counts there again nor is refused by that quota.
@@ -298,6 +301,11 @@ pub trait JobStore: Send + Sync + 'static {
     /// The job's checkpoint now holds `step` (the worker under `fence` wrote it): progress
     /// that survives the worker, for [`JobStore::delivered`]. Fenced as `record_frame`.
     async fn checkpointed(&self, id: &str, step: usize, fence: &Fence) -> Result<(), JobError>;
+    /// The running job (held by `fence`) stored at most `bytes` besides its input: its
+    /// [`JobStatus::planned_bytes`](super::JobStatus::planned_bytes), and its tenant's
+    /// `stored_bytes` with it, come down to that (never up: the plan is the bound the quota
+    /// admitted). Called as a job that stopped before its last step ends.
+    async fn settle_planned(&self, id: &str, bytes: u64, fence: &Fence) -> Result<(), JobError>;
     /// A delivery of the job to the worker under `fence` (just started): how many
     /// deliveries in a row, this one included, found no checkpoint newer than the delivery
     /// before them saw. 1 when the job is new, was handed back in order, or its last run got

@@ -2,6 +2,7 @@
 //! loopback port, an SSE reader, polling.
 #![allow(dead_code)]
 
+pub mod kept_frames;
 pub mod rendered;
 pub mod slow_socket;
 
@@ -21,6 +22,18 @@ pub fn obj_text(mesh: &Mesh) -> String {
         s.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
     }
     s
+}
+
+/// What a job on [`small_obj`] may store besides its input ([`willow_service::jobs::stored`]).
+pub fn small_plan(spec: &willow_service::jobs::JobSpec) -> u64 {
+    let vertices = generate::bumpy_sphere(2, 0.1).vertex_count();
+    willow_service::jobs::stored::planned_bytes(
+        spec,
+        willow_service::jobs::stored::JobSizes {
+            file_vertices: vertices,
+            surface_vertices: vertices,
+        },
+    )
 }
 
 /// A small bumpy sphere (162 vertices): a few steps take milliseconds.

@@ -57,6 +57,11 @@ pub async fn take(download: MeshDownload) -> (Vec<u8>, bool) {
     }
 }
 
+/// What a job stores besides its input, as its tenant's quota counts it (`jobs::stored`).
+async fn planned(jobs: &Jobs, who: &Caller, id: &str) -> u64 {
+    jobs.get(who, id).await.expect("get").planned_bytes
+}
+
 async fn succeeded(jobs: &Jobs, who: &Caller, text: String) -> String {
     let id = jobs
         .submit(who, obj(text), spec(1), None)
@@ -79,9 +84,12 @@ pub async fn assert_rendered_downloads_count_in_stored_bytes(
     a: &Caller,
     ttl: Duration,
 ) {
-    let input = small_obj().len() as u64;
     let id = succeeded(jobs, a, small_obj()).await;
-    assert_eq!(stored_bytes(jobs, a).await, input, "the input alone");
+    // The input and the frames, checkpoint and result its single step kept.
+    let kept = planned(jobs, a, &id).await;
+    assert!(kept > 0);
+    let input = small_obj().len() as u64 + kept;
+    assert_eq!(stored_bytes(jobs, a).await, input, "the job alone");
     // Rendered in memory (not stored): the bytes every download must be, and their sizes.
     let obj_bytes = jobs.result(a, &id, Format::Obj).await.expect("OBJ");
     let ply_bytes = jobs.result(a, &id, Format::Ply).await.expect("PLY");
@@ -128,7 +136,8 @@ pub async fn assert_rendered_downloads_count_in_stored_bytes(
 
     // Fill the quota to one byte short of the PLY rendering: its download is still served,
     // whole from memory, and counts nothing.
-    let filler_len = RENDERED_QUOTA - used - (ply_bytes.len() as u64 - 1);
+    // (The filler's mesh is the small sphere's: the same plan.)
+    let filler_len = RENDERED_QUOTA - used - kept - (ply_bytes.len() as u64 - 1);
     let filler = succeeded(jobs, a, padded_obj(filler_len as usize)).await;
     let full = RENDERED_QUOTA - ply_bytes.len() as u64 + 1;
     assert_eq!(stored_bytes(jobs, a).await, full);

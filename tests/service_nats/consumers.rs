@@ -30,7 +30,17 @@ async fn sse_watchers_blob_reads_leave_no_consumers_behind() {
     let d = dir.path();
     let nats = Nats::start(d);
     let url = nats.url();
-    let api = Node::spawn(d, "api", Some(&url), &NodeOpts::api());
+    // Two 9,000-step jobs keeping every frame hold ~1.7 GB of the tenant's stored bytes
+    // (`jobs::stored`): room for them, this test is about consumers.
+    let api = Node::spawn(
+        d,
+        "api",
+        Some(&url),
+        &NodeOpts {
+            extra: vec!["--tenant-max-stored-mib".into(), "4096".into()],
+            ..NodeOpts::api()
+        },
+    );
     let worker = Node::spawn(
         d,
         "worker",

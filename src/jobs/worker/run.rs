@@ -92,6 +92,10 @@ pub(super) fn run_job(
         Err(e) => return Err(e),
     };
     let spec = &running.spec;
+    let sizes = super::super::stored::JobSizes {
+        file_vertices: asset.file_vertex_count(),
+        surface_vertices: asset.surface().vertex_count(),
+    };
     let mut params = match spec.flow_params_for(&asset) {
         Ok(p) => p,
         // Admission checked the regions against this file; a stored job from before a change
@@ -246,6 +250,12 @@ pub(super) fn run_job(
     };
     let flow = run.flow();
     tracing::info!(outcome = outcome.name(), %reason, "flow ended");
+    if step <= spec.steps {
+        // Stopped before its last step (`step` was not taken): it kept the frames up to
+        // `step - 1`, and the quota gets the rest of its plan back.
+        let kept = super::super::stored::kept_bytes(spec, sizes, step - 1);
+        rt.block_on(backend.store.settle_planned(id, kept, fence))?;
+    }
     // A run that took all its steps says nothing more; any other ending is the job's note
     // (`JobStatus::error_code` on a succeeded job, and so its `outcome`).
     let stopped_early = FailureCode::of_outcome(outcome).map(|code| (code, reason));

@@ -34,7 +34,7 @@ pub struct SqliteStore {
 const STATUS_COLUMNS: &str =
     "id, state, spec, input_format, vertex_count, face_count, step, latest, \
      error, error_code, created_at, started_at, finished_at, expires_at, expired, seq, \
-     tenant, input_bytes, report";
+     tenant, input_bytes, report, planned_bytes";
 
 /// The `report` column: what reading the upload changed or could not keep, as JSON (NULL when
 /// there is nothing, and in rows from before the column).
@@ -89,6 +89,7 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
     let tenant: String = r.get(16)?;
     let input_bytes = get_u64(17)?.unwrap_or(0);
     let report: Option<String> = r.get(18)?;
+    let planned_bytes = get_u64(19)?.unwrap_or(0);
     Ok((|| {
         let state = JobState::parse(&state)
             .ok_or_else(|| JobError::Internal(format!("unknown stored state `{state}`")))?;
@@ -114,6 +115,7 @@ fn row_to_status(r: &rusqlite::Row<'_>) -> rusqlite::Result<Result<Row, JobError
                 vertex_count: vertex_count.max(0) as usize,
                 face_count: face_count.max(0) as usize,
                 input_bytes,
+                planned_bytes,
                 latest,
                 error,
                 error_code,
@@ -251,14 +253,16 @@ impl SqliteStore {
                 let admitting = Admitting::Job {
                     received: job.received,
                 };
-                if let Some(over) = over_quota(&job.quotas, &usage, job.input_bytes, admitting) {
+                let bytes = job.input_bytes.saturating_add(job.planned_bytes);
+                if let Some(over) = over_quota(&job.quotas, &usage, bytes, admitting) {
                     return Ok(Inserted::OverQuota(over));
                 }
             }
             tx.prepare_cached(
                 "INSERT INTO jobs (id, state, spec, input_format, vertex_count, face_count, created_at,
-                                   tenant, input_bytes, received, callback_pending, report)
-                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
+                                   tenant, input_bytes, received, callback_pending, report,
+                                   planned_bytes)
+                 VALUES (?1, 'queued', ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)",
             )?
             .execute(params![
                     job.id,
@@ -271,7 +275,8 @@ impl SqliteStore {
                     ms(job.input_bytes),
                     job.received,
                     job.spec.callback_url.is_some(),
-                    report
+                    report,
+                    ms(job.planned_bytes)
                 ],
             )?;
             if let Some((key, hash)) = &job.idempotency {

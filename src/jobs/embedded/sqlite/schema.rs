@@ -37,7 +37,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     report          TEXT,
     checkpoint_step INTEGER,
     delivery_checkpoint INTEGER,
-    stalled_deliveries INTEGER NOT NULL DEFAULT 0
+    stalled_deliveries INTEGER NOT NULL DEFAULT 0,
+    planned_bytes   INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_expiry ON jobs(expires_at) WHERE expired = 0;
@@ -72,7 +73,7 @@ CREATE TABLE IF NOT EXISTS uploads (
 /// Columns added after the first release, with their definitions: databases from before them
 /// get them at open (SQLite has no `ADD COLUMN IF NOT EXISTS`). Rows from before tenants
 /// belong to the default tenant.
-const ADDED_COLUMNS: [(&str, &str, &str); 10] = [
+const ADDED_COLUMNS: [(&str, &str, &str); 11] = [
     ("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0"),
     ("jobs", "tenant", "TEXT NOT NULL DEFAULT 'default'"),
     ("jobs", "input_bytes", "INTEGER NOT NULL DEFAULT 0"),
@@ -85,6 +86,8 @@ const ADDED_COLUMNS: [(&str, &str, &str); 10] = [
     ("jobs", "checkpoint_step", "INTEGER"),
     ("jobs", "delivery_checkpoint", "INTEGER"),
     ("jobs", "stalled_deliveries", "INTEGER NOT NULL DEFAULT 0"),
+    // What the job may store besides its input (`jobs::stored`), counted with it.
+    ("jobs", "planned_bytes", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 /// The statement a trigger runs for a mesh received (a job or an upload row `NEW`): what
@@ -113,7 +116,8 @@ macro_rules! receive_into_windows {
 /// `tenant_usage` is what each tenant's quotas check, one row per tenant so that an
 /// admission reads one row however many jobs the tenant keeps (`cargo bench --bench
 /// service_load`, part 8: counting the rows cost 5–10% of a submission at 8 clients):
-/// - `bytes`: inputs of unexpired jobs and uploads, and the downloads rendered and stored
+/// - `bytes`: inputs of unexpired jobs and uploads, what those jobs may store besides
+///   (`planned_bytes`: frames, checkpoint, result; `jobs::stored`), the downloads rendered and stored
 ///   for unexpired jobs (`rendered`, one row per stored rendering: a rendering is counted
 ///   once however often it is charged);
 /// - `live`: queued and running jobs;
@@ -159,7 +163,7 @@ CREATE TRIGGER tenant_usage_job_in AFTER INSERT ON jobs
 BEGIN
     INSERT INTO tenant_usage (tenant) VALUES (NEW.tenant) ON CONFLICT (tenant) DO NOTHING;
     UPDATE tenant_usage SET
-        bytes = bytes + (CASE WHEN NEW.expired = 0 THEN NEW.input_bytes ELSE 0 END),
+        bytes = bytes + (CASE WHEN NEW.expired = 0 THEN NEW.input_bytes + NEW.planned_bytes ELSE 0 END),
         live = live + (NEW.state IN ('queued', 'running'))
     WHERE tenant = NEW.tenant;
 END;
@@ -182,13 +186,21 @@ DROP TRIGGER IF EXISTS tenant_usage_job_expired;
 CREATE TRIGGER tenant_usage_job_expired AFTER UPDATE OF expired ON jobs
 WHEN OLD.expired = 0 AND NEW.expired != 0
 BEGIN
-    UPDATE tenant_usage SET bytes = bytes - OLD.input_bytes WHERE tenant = OLD.tenant;
+    UPDATE tenant_usage SET bytes = bytes - OLD.input_bytes - OLD.planned_bytes
+    WHERE tenant = OLD.tenant;
+END;
+DROP TRIGGER IF EXISTS tenant_usage_job_planned;
+CREATE TRIGGER tenant_usage_job_planned AFTER UPDATE OF planned_bytes ON jobs
+WHEN OLD.expired = 0 AND NEW.expired = 0 AND OLD.planned_bytes != NEW.planned_bytes
+BEGIN
+    UPDATE tenant_usage SET bytes = bytes + NEW.planned_bytes - OLD.planned_bytes
+    WHERE tenant = NEW.tenant;
 END;
 DROP TRIGGER IF EXISTS tenant_usage_job_out;
 CREATE TRIGGER tenant_usage_job_out AFTER DELETE ON jobs
 BEGIN
     UPDATE tenant_usage SET
-        bytes = bytes - (CASE WHEN OLD.expired = 0 THEN OLD.input_bytes ELSE 0 END),
+        bytes = bytes - (CASE WHEN OLD.expired = 0 THEN OLD.input_bytes + OLD.planned_bytes ELSE 0 END),
         live = live - (OLD.state IN ('queued', 'running'))
     WHERE tenant = OLD.tenant;
 END;
@@ -225,7 +237,7 @@ END;
 pub(super) const RECOUNT_USAGE: &str = "
 INSERT INTO tenant_usage (tenant, bytes, live, window_start, window_count, previous_count)
     SELECT tenant, SUM(b), SUM(l), ?1, SUM(c >= ?1), SUM(c >= ?1 - 60000 AND c < ?1) FROM (
-        SELECT tenant, (CASE WHEN expired = 0 THEN input_bytes ELSE 0 END) AS b,
+        SELECT tenant, (CASE WHEN expired = 0 THEN input_bytes + planned_bytes ELSE 0 END) AS b,
                (state IN ('queued', 'running')) AS l,
                (CASE WHEN received != 0 THEN created_at ELSE 0 END) AS c FROM jobs
         UNION ALL SELECT tenant, size, 0, created_at FROM uploads

@@ -152,7 +152,10 @@ impl JobStore for SqliteStore {
             let (code, msg) = error.unzip();
             let code = code.map(FailureCode::as_str);
             let n = s.conn()?.execute(
-                "UPDATE jobs SET state = ?2, error_code = ?3, error = ?4, finished_at = ?5, expires_at = ?6
+                // A job that never started stored nothing but its input: its plan goes
+                // (`tenant_usage_job_planned` gives the bytes back).
+                "UPDATE jobs SET state = ?2, error_code = ?3, error = ?4, finished_at = ?5, expires_at = ?6,
+                                 planned_bytes = CASE WHEN started_at IS NULL THEN 0 ELSE planned_bytes END
                  WHERE id = ?1 AND state IN ('queued', 'running')",
                 params![id, state.as_str(), code, msg, ms(at), ms(expires_at)],
             )?;
@@ -183,6 +186,20 @@ impl JobStore for SqliteStore {
             s.conn()?.execute(
                 "UPDATE jobs SET checkpoint_step = ?2 WHERE id = ?1 AND state = 'running'",
                 params![id, i64::try_from(step).unwrap_or(i64::MAX)],
+            )?;
+            Ok(())
+        })
+        .await
+    }
+
+    async fn settle_planned(&self, id: &str, bytes: u64, _fence: &Fence) -> Result<(), JobError> {
+        let id = id.to_string();
+        self.blocking(move |s| {
+            // `tenant_usage_job_planned` moves the tenant's bytes with it.
+            s.conn()?.execute(
+                "UPDATE jobs SET planned_bytes = ?2
+                 WHERE id = ?1 AND state = 'running' AND planned_bytes > ?2",
+                params![id, ms(bytes)],
             )?;
             Ok(())
         })

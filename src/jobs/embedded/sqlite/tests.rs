@@ -17,6 +17,8 @@ fn job(tenant: &str, bytes: u64, at: u64) -> NewJob {
         repairs: None,
         notes: Vec::new(),
         input_bytes: bytes,
+        // What its frames may store: counted with the input (`jobs::stored`).
+        planned_bytes: bytes / 2,
         received: true,
         created_at: at,
         quotas: TenantQuotas {
@@ -108,11 +110,22 @@ async fn triggers_keep_tenant_usage_equal_to_a_recount() {
     // a[0] and u1 expire; a[2] is deleted.
     store.sweep_expired(now + 2).await.expect("sweep");
     store.delete("a", &a[2]).await.expect("delete");
+    // a[3] runs and stops early: its plan (200) comes down to what it kept (50); never up.
+    store.start(&a[3], &fence, now).await.expect("start");
+    store
+        .settle_planned(&a[3], 50, &fence)
+        .await
+        .expect("settle");
+    store
+        .settle_planned(&a[3], 500, &fence)
+        .await
+        .expect("settle");
 
     let kept = usage_rows(&store);
     let usage = store.usage("a", now).await.expect("usage");
     assert_eq!(usage.live_jobs, 2);
-    assert_eq!(usage.stored_bytes, 600);
+    // a[1] and a[3]: 200 + 400 of input, 100 + 50 planned (a[3]'s settled).
+    assert_eq!(usage.stored_bytes, 750);
     assert_eq!(
         usage.uploads_last_minute,
         MinuteWindows {
@@ -134,14 +147,15 @@ async fn triggers_keep_tenant_usage_equal_to_a_recount() {
         rows.iter().map(|r| (r.0.clone(), r.1, r.2)).collect()
     };
     assert_eq!(held(&kept), held(&recounted));
-    // By hand: a keeps a[1] (queued, 200) and a[3] (queued, 400); b keeps its cancelled
-    // job (50) and u2 (80).
+    // By hand: a keeps a[1] (queued, 200 + 100 planned) and a[3] (running, 400 + 50
+    // settled); b keeps its cancelled job (50: it never started, so its plan went) and u2
+    // (80); c its job (25 + 12).
     assert_eq!(
         held(&kept),
         [
-            ("a".into(), 600, 2),
+            ("a".into(), 750, 2),
             ("b".into(), 130, 0),
-            ("c".into(), 25, 1)
+            ("c".into(), 37, 1)
         ]
     );
     // Nothing received: c's windows stay empty, in the triggers' rows and the recount's.

@@ -77,12 +77,15 @@ struct Record {
 }
 
 impl Record {
-    /// What the job counts in its tenant's bytes while unexpired: its upload and its stored
-    /// renderings.
+    /// What the job counts in its tenant's bytes while unexpired: its upload, what it may
+    /// store besides (`jobs::stored`) and its stored renderings.
     fn stored_bytes(&self) -> u64 {
-        self.rendered
-            .values()
-            .fold(self.status.input_bytes, |a, b| a.saturating_add(*b))
+        self.rendered.values().fold(
+            self.status
+                .input_bytes
+                .saturating_add(self.status.planned_bytes),
+            |a, b| a.saturating_add(*b),
+        )
     }
 }
 

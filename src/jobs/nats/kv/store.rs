@@ -23,6 +23,7 @@ impl JobStore for KvStore {
         // are one compare-and-set, so concurrent admissions on any nodes cannot overshoot.
         let mut over = None;
         let now = now_ms();
+        let bytes = job.input_bytes.saturating_add(job.planned_bytes);
         self.update_usage(&job.tenant, |u| {
             over = job
                 .quotas
@@ -31,14 +32,14 @@ impl JobStore for KvStore {
                     let admitting = Admitting::Job {
                         received: job.received,
                     };
-                    over_quota(&job.quotas, &u.usage(now), job.input_bytes, admitting)
+                    over_quota(&job.quotas, &u.usage(now), bytes, admitting)
                 })
                 .flatten();
             if over.is_some() {
                 return false;
             }
             u.live += 1;
-            u.bytes = u.bytes.saturating_add(job.input_bytes);
+            u.bytes = u.bytes.saturating_add(bytes);
             if job.received {
                 u.windows.receive(job.created_at);
             }
@@ -51,7 +52,7 @@ impl JobStore for KvStore {
         match self.create_job(&job).await {
             Ok(inserted @ Inserted::New(_)) => Ok(inserted),
             other => {
-                self.release(&job.tenant, job.input_bytes).await?;
+                self.release(&job.tenant, bytes).await?;
                 other
             }
         }
@@ -293,6 +294,7 @@ impl JobStore for KvStore {
         expires_at: u64,
         fence: Option<&Fence>,
     ) -> Result<Option<JobStatus>, JobError> {
+        let mut released = 0;
         let rec = self
             .update(id, |r| {
                 if r.status.state.is_terminal() {
@@ -300,6 +302,12 @@ impl JobStore for KvStore {
                 }
                 if let Some(fence) = fence {
                     fenced(id, r, fence)?;
+                }
+                // A job that never started stored nothing but its input: its plan goes.
+                released = 0;
+                if r.status.started_at.is_none() && !r.expired {
+                    released = r.status.planned_bytes;
+                    r.status.planned_bytes = 0;
                 }
                 r.hold = None;
                 r.status.state = state;
@@ -315,6 +323,7 @@ impl JobStore for KvStore {
             // This node made the job terminal: it alone counts it off.
             self.update_usage(&r.status.tenant, |u| {
                 u.live = u.live.saturating_sub(1);
+                u.bytes = u.bytes.saturating_sub(released);
                 true
             })
             .await?;
@@ -346,6 +355,31 @@ impl JobStore for KvStore {
         })
         .await?;
         fence.renewed(at);
+        Ok(())
+    }
+
+    async fn settle_planned(&self, id: &str, bytes: u64, fence: &Fence) -> Result<(), JobError> {
+        let mut released = 0;
+        let rec = self
+            .update(id, |r| {
+                fenced(id, r, fence)?;
+                released = r.status.planned_bytes.saturating_sub(bytes);
+                if released == 0 || r.expired {
+                    return Ok(false);
+                }
+                r.status.planned_bytes = bytes;
+                Ok(true)
+            })
+            .await?;
+        // The record first, then the count: a node lost between the two leaves the tenant
+        // counted high (the safe side) until the next recount.
+        if let Some(r) = rec.filter(|_| released > 0) {
+            self.update_usage(&r.status.tenant, |u| {
+                u.bytes = u.bytes.saturating_sub(released);
+                true
+            })
+            .await?;
+        }
         Ok(())
     }
 

@@ -195,6 +195,7 @@ impl KvStore {
             vertex_count: job.vertex_count,
             face_count: job.face_count,
             input_bytes: job.input_bytes,
+            planned_bytes: job.planned_bytes,
             latest: None,
             error: None,
             error_code: None,
