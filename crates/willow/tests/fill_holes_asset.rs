@@ -3,7 +3,7 @@
 //! coordinates of a patch continue the chart around it. The written files are read back by
 //! a small OBJ reader of this test's own, so the check does not lean on the writer's reader.
 
-use willow::flow::holes::fill_asset_holes;
+use willow::flow::holes::{fill_asset_holes, AssetHoles};
 use willow::flow::FlowParams;
 use willow::mesh::holes::HoleSize;
 use willow::mesh::io::{Asset, Format};
@@ -111,6 +111,12 @@ fn vertex_uvs(obj: &Obj) -> Vec<Option<[f64; 2]>> {
     uv
 }
 
+/// The asset's holes up to `size` filled at the defaults.
+fn fill(asset: &Asset, size: HoleSize) -> AssetHoles {
+    fill_asset_holes(asset, size, &FlowParams::default(), &Limits::default())
+        .expect("the holes fill")
+}
+
 #[test]
 fn a_filled_obj_keeps_its_numbering_and_continues_its_texture() {
     let (text, removed, original) = holed_spot(IN_CHART);
@@ -118,13 +124,7 @@ fn a_filled_obj_keeps_its_numbering_and_continues_its_texture() {
     let asset = Asset::read(text.as_bytes(), Format::Obj, &Limits::default()).unwrap();
     assert_eq!(Topology::new(asset.surface()).boundary_loops.len(), 1);
 
-    let r = fill_asset_holes(
-        &asset,
-        HoleSize::Any,
-        &FlowParams::default(),
-        &Limits::default(),
-    )
-    .unwrap();
+    let r = fill(&asset, HoleSize::Any);
     assert_eq!(r.filled, 1);
     assert!(
         r.new_vertices > 5,
@@ -193,13 +193,7 @@ fn a_filled_glb_keeps_its_primitive_and_reads_back_closed() {
     let glb = obj.write(&obj.surface().positions, Format::Glb).unwrap();
     let asset = Asset::read(&glb, Format::Glb, &Limits::default()).unwrap();
     let before = asset.file_triangles().len();
-    let r = fill_asset_holes(
-        &asset,
-        HoleSize::Any,
-        &FlowParams::default(),
-        &Limits::default(),
-    )
-    .unwrap();
+    let r = fill(&asset, HoleSize::Any);
     assert_eq!(r.filled, 1);
     let written = r
         .asset
@@ -228,13 +222,7 @@ fn a_filled_glb_keeps_its_primitive_and_reads_back_closed() {
 fn a_hole_size_limit_leaves_the_file_as_it_was() {
     let (text, _, _) = holed_spot(IN_CHART);
     let asset = Asset::read(text.as_bytes(), Format::Obj, &Limits::default()).unwrap();
-    let r = fill_asset_holes(
-        &asset,
-        HoleSize::Vertices(3),
-        &FlowParams::default(),
-        &Limits::default(),
-    )
-    .unwrap();
+    let r = fill(&asset, HoleSize::Vertices(3));
     assert_eq!(r.filled, 0);
     assert_eq!(r.left_open.len(), 1);
     let written = r
@@ -253,13 +241,7 @@ fn a_hole_size_limit_leaves_the_file_as_it_was() {
 fn a_patch_across_a_uv_seam_is_written_without_uvs_and_says_so() {
     let (text, _, original) = holed_spot(ON_SEAM);
     let asset = Asset::read(text.as_bytes(), Format::Obj, &Limits::default()).unwrap();
-    let r = fill_asset_holes(
-        &asset,
-        HoleSize::Any,
-        &FlowParams::default(),
-        &Limits::default(),
-    )
-    .unwrap();
+    let r = fill(&asset, HoleSize::Any);
     assert_eq!(r.filled, 1);
     let notes = r.asset.notes();
     assert!(
