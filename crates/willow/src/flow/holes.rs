@@ -21,120 +21,190 @@ use crate::mesh::io::Asset;
 use crate::mesh::{Limits, Mesh, MeshError};
 
 /// Positions with the `free` vertices moved to the thin-plate (bi-Laplacian) minimizer with
-/// every other vertex fixed (module docs, step 1).
-pub fn bilaplacian_fair(mesh: &Mesh, free: &[bool]) -> Result<Vec<[f64; 3]>, FlowError> {
-    let n = mesh.vertex_count();
-    let numerical = |reason: String| FlowError::Numerical { step: 0, reason };
-    let mut unknown = vec![usize::MAX; n];
-    let mut count = 0;
-    for v in 0..n {
-        if free[v] {
-            unknown[v] = count;
-            count += 1;
-        }
-    }
+/// every other vertex fixed (module docs, step 1), in `passes` solves: each pass measures
+/// the cotan weights and areas on the previous pass's patch. One pass is Liepa's and CGAL's
+/// fairing, whose weights are those of the flat, freshly refined patch; measuring them again
+/// on the curved patch is what brings it to the surface that was there (three passes: spot's
+/// cut holes 3.13‰ → 2.00‰ of the diagonal from the cut surface, the seam 5.1° → 3.9°).
+pub fn bilaplacian_fair(
+    mesh: &Mesh,
+    free: &[bool],
+    passes: usize,
+) -> Result<Vec<[f64; 3]>, FlowError> {
     let mut positions = mesh.positions.clone();
-    if count == 0 {
+    let Some(mut patch) = ThinPlate::new(mesh, free) else {
         return Ok(positions);
-    }
-    // Rows of the energy: free vertices and every vertex next to one. Only the faces around
-    // them are measured: a small hole in a large scan costs its neighbourhood, not the scan.
-    let mut in_rows = free.to_vec();
-    for t in &mesh.triangles {
-        if t.iter().any(|&v| free[v]) {
-            for &v in t {
-                in_rows[v] = true;
-            }
-        }
-    }
-    let near: Vec<[usize; 3]> = mesh
-        .triangles
-        .iter()
-        .filter(|t| t.iter().any(|&v| in_rows[v]))
-        .copied()
-        .collect();
-    let mut cot = vec![[0.0; 3]; near.len()];
-    corner_cotangents_into(&mesh.positions, &near, &mut cot);
-    let mut area = vec![0.0; n];
-    // L as rows: (L f)_v = Σ_j w_vj (f_j − f_v), w = ½(cot α + cot β).
-    let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
-    for (t, c) in near.iter().zip(&cot) {
-        let p = &mesh.positions;
-        let a = triangle_area(p[t[0]], p[t[1]], p[t[2]]);
-        for &v in t {
-            area[v] += a / 3.0;
-        }
-        for k in 0..3 {
-            let (a, b) = (t[(k + 1) % 3], t[(k + 2) % 3]);
-            let w = 0.5 * c[k];
-            for (x, y) in [(a, b), (b, a)] {
-                if in_rows[x] {
-                    rows[x].push((y, w));
-                    rows[x].push((x, -w));
-                }
-            }
-        }
-    }
-    // K = Aᵀ D A and r = −Aᵀ D b, with A the rows' free columns, b their fixed part applied
-    // to the fixed positions, D = 1/area.
-    let mut triplets = Vec::new();
-    let mut rhs = vec![0.0; 3 * count];
-    for v in 0..n {
-        if !in_rows[v] {
-            continue;
-        }
-        if area[v].is_nan() || area[v] <= 0.0 {
-            return Err(numerical(format!("vertex {v} next to a hole has no area")));
-        }
-        let d = 1.0 / area[v];
-        let mut free_part: Vec<(usize, f64)> = Vec::new();
-        let mut fixed = [0.0; 3];
-        for &(j, w) in &rows[v] {
-            if free[j] {
-                match free_part.iter_mut().find(|(u, _)| *u == unknown[j]) {
-                    Some(slot) => slot.1 += w,
-                    None => free_part.push((unknown[j], w)),
-                }
-            } else {
-                for k in 0..3 {
-                    fixed[k] += w * mesh.positions[j][k];
-                }
-            }
-        }
-        for &(i, wi) in &free_part {
-            for &(j, wj) in &free_part {
-                triplets.push(faer::sparse::Triplet::new(i, j, d * wi * wj));
-            }
-            for k in 0..3 {
-                rhs[k * count + i] -= d * wi * fixed[k];
-            }
-        }
-    }
-    let k_matrix = faer::sparse::SparseColMat::try_new_from_triplets(count, count, &triplets)
-        .map_err(|e| numerical(format!("the patch system: {e:?}")))?;
-    let mut cholesky = Cholesky::<f64>::analyze_pattern(k_matrix.symbolic(), 3)
-        .map_err(|e| numerical(e.to_string()))?;
-    cholesky
-        .factorize_matrix(k_matrix.as_ref())
-        .map_err(|e| numerical(format!("the patch system: {e}")))?;
-    cholesky.solve_in_place(&mut rhs, 3);
-    for v in 0..n {
-        if free[v] {
-            let i = unknown[v];
-            let p = [rhs[i], rhs[count + i], rhs[2 * count + i]];
-            if !p.iter().all(|x| x.is_finite()) {
-                return Err(numerical(
-                    "the patch system gave a non-finite position".into(),
-                ));
-            }
-            positions[v] = p;
-        }
+    };
+    for _ in 0..passes {
+        patch.solve(&mut positions)?;
     }
     Ok(positions)
 }
 
+/// The part of a mesh the thin-plate energy of its free vertices reaches, in local numbers:
+/// a small hole in a large scan costs its neighbourhood, not the scan.
+struct ThinPlate {
+    /// Local vertex → mesh vertex; the free ones first (`0..count`).
+    to_mesh: Vec<usize>,
+    count: usize,
+    /// Local vertices whose Laplacian is a row of the energy: the free vertices and every
+    /// vertex next to one.
+    in_rows: Vec<bool>,
+    /// The triangles around the rows, in local numbers.
+    near: Vec<[usize; 3]>,
+    /// The factorization, its symbolic analysis (most of its cost on a patch) made by the
+    /// first pass and reused: the system's pattern is the connectivity's.
+    cholesky: Option<Cholesky<f64>>,
+}
+
+impl ThinPlate {
+    fn new(mesh: &Mesh, free: &[bool]) -> Option<ThinPlate> {
+        let n = mesh.vertex_count();
+        let mut row = free.to_vec();
+        for t in &mesh.triangles {
+            if t.iter().any(|&v| free[v]) {
+                for &v in t {
+                    row[v] = true;
+                }
+            }
+        }
+        let near_mesh: Vec<[usize; 3]> = mesh
+            .triangles
+            .iter()
+            .filter(|t| t.iter().any(|&v| row[v]))
+            .copied()
+            .collect();
+        let mut local = vec![usize::MAX; n];
+        let mut to_mesh: Vec<usize> = (0..n).filter(|&v| free[v]).collect();
+        let count = to_mesh.len();
+        if count == 0 {
+            return None;
+        }
+        for (i, &v) in to_mesh.iter().enumerate() {
+            local[v] = i;
+        }
+        for t in &near_mesh {
+            for &v in t {
+                if local[v] == usize::MAX {
+                    local[v] = to_mesh.len();
+                    to_mesh.push(v);
+                }
+            }
+        }
+        let in_rows = to_mesh.iter().map(|&v| row[v]).collect();
+        let near = near_mesh
+            .iter()
+            .map(|t| [local[t[0]], local[t[1]], local[t[2]]])
+            .collect();
+        Some(ThinPlate {
+            to_mesh,
+            count,
+            in_rows,
+            near,
+            cholesky: None,
+        })
+    }
+
+    /// One solve with the weights and areas of `positions`; writes the free vertices.
+    fn solve(&mut self, positions: &mut [[f64; 3]]) -> Result<(), FlowError> {
+        let numerical = |reason: String| FlowError::Numerical { step: 0, reason };
+        let count = self.count;
+        let p: Vec<[f64; 3]> = self.to_mesh.iter().map(|&v| positions[v]).collect();
+        let is_free = |v: usize| v < count;
+        let mut cot = vec![[0.0; 3]; self.near.len()];
+        corner_cotangents_into(&p, &self.near, &mut cot);
+        let mut area = vec![0.0; p.len()];
+        // L as rows: (L f)_v = Σ_j w_vj (f_j − f_v), w = ½(cot α + cot β).
+        let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); p.len()];
+        for (t, c) in self.near.iter().zip(&cot) {
+            let a = triangle_area(p[t[0]], p[t[1]], p[t[2]]);
+            for &v in t {
+                area[v] += a / 3.0;
+            }
+            for k in 0..3 {
+                let (a, b) = (t[(k + 1) % 3], t[(k + 2) % 3]);
+                let w = 0.5 * c[k];
+                for (x, y) in [(a, b), (b, a)] {
+                    if self.in_rows[x] {
+                        rows[x].push((y, w));
+                        rows[x].push((x, -w));
+                    }
+                }
+            }
+        }
+        // K = Aᵀ D A and r = −Aᵀ D b, with A the rows' free columns, b their fixed part
+        // applied to the fixed positions, D = 1/area.
+        let mut triplets = Vec::new();
+        let mut rhs = vec![0.0; 3 * count];
+        let mut free_part: Vec<(usize, f64)> = Vec::new();
+        for v in 0..p.len() {
+            if !self.in_rows[v] {
+                continue;
+            }
+            if area[v].is_nan() || area[v] <= 0.0 {
+                return Err(numerical(format!(
+                    "vertex {} next to a hole has no area",
+                    self.to_mesh[v]
+                )));
+            }
+            let d = 1.0 / area[v];
+            free_part.clear();
+            let mut fixed = [0.0; 3];
+            for &(j, w) in &rows[v] {
+                if is_free(j) {
+                    match free_part.iter_mut().find(|(u, _)| *u == j) {
+                        Some(slot) => slot.1 += w,
+                        None => free_part.push((j, w)),
+                    }
+                } else {
+                    for k in 0..3 {
+                        fixed[k] += w * p[j][k];
+                    }
+                }
+            }
+            for &(i, wi) in &free_part {
+                for &(j, wj) in &free_part {
+                    triplets.push(faer::sparse::Triplet::new(i, j, d * wi * wj));
+                }
+                for k in 0..3 {
+                    rhs[k * count + i] -= d * wi * fixed[k];
+                }
+            }
+        }
+        let k_matrix = faer::sparse::SparseColMat::try_new_from_triplets(count, count, &triplets)
+            .map_err(|e| numerical(format!("the patch system: {e:?}")))?;
+        let cholesky = match &mut self.cholesky {
+            Some(c) => c,
+            None => self.cholesky.insert(
+                Cholesky::<f64>::analyze_pattern(k_matrix.symbolic(), 3)
+                    .map_err(|e| numerical(e.to_string()))?,
+            ),
+        };
+        cholesky
+            .factorize_matrix(k_matrix.as_ref())
+            .map_err(|e| numerical(format!("the patch system: {e}")))?;
+        cholesky.solve_in_place(&mut rhs, 3);
+        for i in 0..count {
+            let q = [rhs[i], rhs[count + i], rhs[2 * count + i]];
+            if !q.iter().all(|x| x.is_finite()) {
+                return Err(numerical(
+                    "the patch system gave a non-finite position".into(),
+                ));
+            }
+            positions[self.to_mesh[i]] = q;
+        }
+        Ok(())
+    }
+}
+
+/// Thin-plate passes of the start ([`bilaplacian_fair`]). On spot's cut holes the patch is
+/// 3.13‰, 2.24‰, 2.00‰ from the cut surface after 1, 2, 3 passes, and 1.97‰ after 5.
+pub const THIN_PLATE_PASSES: usize = 3;
+
 /// A conformal step that lowers the patch's W by less than this share ends the fairing.
-const SETTLED: f64 = 1e-4;
+/// From the thin-plate start the flow settles in 2–3 steps; the patch after 20 steps at
+/// 1e-4 was 0.2% closer to the cut surface, at six times the cost.
+const SETTLED: f64 = 1e-3;
 
 /// What [`fair_holes`] did.
 #[derive(Clone, Debug)]
@@ -157,7 +227,7 @@ pub fn fair_holes(
 ) -> Result<FairedHoles, FlowError> {
     let free = filled.new_vertex_mask();
     let start = Mesh {
-        positions: bilaplacian_fair(&filled.mesh, &free)?,
+        positions: bilaplacian_fair(&filled.mesh, &free, THIN_PLATE_PASSES)?,
         triangles: filled.mesh.triangles.clone(),
     };
     if !free.iter().any(|&f| f) || steps == 0 {
@@ -257,10 +327,11 @@ pub fn fill_asset_holes(
         Ok(f) => (f.mesh.positions, f.steps),
         Err(_) => {
             let free = filled.new_vertex_mask();
-            let start =
-                bilaplacian_fair(&filled.mesh, &free).map_err(|e| MeshError::Unsupported {
+            let start = bilaplacian_fair(&filled.mesh, &free, THIN_PLATE_PASSES).map_err(|e| {
+                MeshError::Unsupported {
                     detail: format!("fill_holes: the patches could not be faired: {e}"),
-                })?;
+                }
+            })?;
             (start, 0)
         }
     };

@@ -155,3 +155,34 @@ fn square_frame() -> (Mesh, Vec<usize>) {
     let mesh = Mesh::new(positions, triangles).unwrap();
     (mesh, vec![id(1, 1), id(2, 1), id(1, 2), id(2, 2)])
 }
+
+#[test]
+fn half_edges_grouped_by_edge_match_a_map_of_every_edge() {
+    let sphere = icosphere(2);
+    let mut triangles = sphere.triangles.clone();
+    triangles.remove(7);
+    let mesh = Mesh {
+        positions: sphere.positions,
+        triangles,
+    };
+    let mut expected: std::collections::BTreeMap<(usize, usize), Vec<u64>> = Default::default();
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            let halves = expected.entry((a.min(b), a.max(b))).or_default();
+            halves.push((3 * f + k) as u64);
+        }
+    }
+    let mut seen = Vec::new();
+    HalfEdgesByEdge::new(&mesh).for_each_edge(|a, b, halves| {
+        let low: Vec<u64> = halves.iter().map(|h| h & 0xffff_ffff).collect();
+        seen.push(((a, b), low));
+    });
+    let expected: Vec<_> = expected.into_iter().collect();
+    assert_eq!(
+        seen, expected,
+        "every edge once, in order, with its half-edges"
+    );
+    let alone = seen.iter().filter(|(_, h)| h.len() == 1).count();
+    assert_eq!(alone, 3, "the removed face leaves three border edges");
+}
