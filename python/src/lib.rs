@@ -6,6 +6,7 @@
 mod arrays;
 mod errors;
 mod flow;
+mod holes;
 mod io;
 mod metrics;
 mod params;
@@ -15,6 +16,7 @@ use pyo3::prelude::*;
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<flow::NativeFlow>()?;
+    m.add_function(wrap_pyfunction!(holes::fill_holes, m)?)?;
     m.add_function(wrap_pyfunction!(io::read, m)?)?;
     m.add_function(wrap_pyfunction!(io::write, m)?)?;
     m.add_function(wrap_pyfunction!(params::flow_params_defaults, m)?)?;

@@ -6,6 +6,8 @@ filtering), from the Rust library ``willow``:
 
 - ``fair(V, F, **params) -> Result``: a whole run, as ``willow fair in.obj -o out.obj``;
 - ``Flow(V, F, **params)``: the same flow one ``step()`` at a time, its factorization kept;
+- ``fill_holes(V, F, max=None) -> Filled``: holes closed by fair patches that meet the
+  surface smoothly (``willow fair --fill-holes``), new vertices and faces appended;
 - ``read(path)`` / ``write(path, V, F, like=path)``: OBJ, glTF, GLB, STL, PLY and OFF, in the
   file's own vertex numbering;
 - ``willow_fair.trimesh.fair_trimesh(mesh, **params)``: a trimesh adapter (imported on first
@@ -58,6 +60,7 @@ NaN, an index out of range). A flow that fails while stepping raises ``FlowError
 from __future__ import annotations
 
 import importlib
+import numbers
 import os
 from dataclasses import dataclass, field
 from typing import Any, Dict, Iterator, List, NamedTuple, Optional, Union
@@ -69,6 +72,8 @@ from . import _params
 
 __all__ = [
     "fair",
+    "fill_holes",
+    "Filled",
     "Flow",
     "Result",
     "Mesh",
@@ -212,6 +217,41 @@ def fair(V: Any, F: Any, *, steps: int = _params.STEPS, **params: Any) -> Result
     outcome, reason = flow.outcome, flow.reason
     assert outcome is not None and reason is not None  # run() returns once the run is over
     return Result(flow.vertices, outcome, reason, metrics, flow.initial_metrics)
+
+
+class Filled(NamedTuple):
+    """``fill_holes``' result: ``V, F, filled, left_open = fill_holes(V, F)``."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    #: Holes closed.
+    filled: int
+    #: The boundary vertex counts of the loops ``max`` left open.
+    left_open: List[int]
+
+
+def fill_holes(V: Any, F: Any, *, max: Union[None, int, float] = None) -> Filled:
+    """Close the holes of a mesh, as ``willow fair --fill-holes [MAX]`` does.
+
+    Every boundary loop up to ``max`` (``None``: all; an int: at most that many boundary
+    vertices, at least 3; a float: a loop whose bounding box diagonal is at most that, model
+    units) is triangulated (Liepa's minimal dihedral rule), refined to the surrounding edge
+    length and faired: a thin-plate start, then the conformal flow with the surface's tangent
+    planes held along the loop, so the patch meets the surface G1. The caller's vertices keep
+    their positions and numbers and its faces their order; the patches' vertices and faces
+    are appended. The GIL is released while it runs.
+    """
+    if max is None:
+        size = "all"
+    elif isinstance(max, bool) or not isinstance(max, numbers.Real):
+        raise TypeError(f"max must be None, an int or a float, got {type(max).__name__}")
+    elif isinstance(max, numbers.Integral):
+        size = str(int(max))
+    else:
+        # A float is a length even when it is whole (3.0): repr keeps the point or exponent.
+        size = repr(float(max))
+    V2, F2, filled, left_open = _native.fill_holes(_vertices(V), _faces(F), size)
+    return Filled(V2, F2, filled, list(left_open))
 
 
 class Mesh(NamedTuple):

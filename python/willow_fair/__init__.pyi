@@ -118,6 +118,14 @@ def fair(
     denoise_guided: bool = True,
 ) -> Result: ...
 
+class Filled(NamedTuple):
+    vertices: npt.NDArray[np.float64]
+    faces: npt.NDArray[np.int64]
+    filled: int
+    left_open: List[int]
+
+def fill_holes(V: Vertices, F: Faces, *, max: Union[None, int, float] = None) -> Filled: ...
+
 class Mesh(NamedTuple):
     vertices: Vertices
     faces: npt.NDArray[np.int64]

@@ -30,6 +30,11 @@ class Flow:
     @property
     def last_metrics(self) -> Dict[str, Any]: ...
 
+def fill_holes(
+    vertices: npt.NDArray[np.float64],
+    faces: npt.NDArray[np.int32] | npt.NDArray[np.int64],
+    size: str = "all",
+) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], int, List[int]]: ...
 def read(path: str) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]: ...
 def write(
     path: str,
