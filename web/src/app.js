@@ -348,7 +348,14 @@ async function startWatch(id) {
   const fresh = !!upload && upload.jobId === id;
   const reshaped = job.params.refine || (job.params.fill_holes !== undefined && job.params.fill_holes !== null);
   if (fresh && !reshaped) {
-    // Just submitted from this page: the model on screen is the job's input.
+    // Just submitted from this page: the job's input is the upload. A filled or refined job
+    // before it may have left its own mesh on screen: draw the upload's again.
+    if (view.model !== upload.model) {
+      const bitmaps = await textureBitmaps(upload.model, upload.texture);
+      if (w.closed) return;
+      view.setModel(upload.model, bitmaps);
+      view.setColour($('colour').value);
+    }
     w.modelReady = true;
   } else if (fresh) {
     // Refined or filled: the job runs on another mesh (its frames say connectivity_changed), so
