@@ -61,7 +61,8 @@ test('fill_holes: a refused size names its field, `all` closes the hole and the 
   assert.equal(sent[0].fill_holes, '2');
   await page.fill('[name="fill_holes"]', 'all');
   await page.click('#submit');
-  const done = await waitStats(page, () => window.willowStats.state === 'succeeded');
+  // The job can finish before frame 0 (the filled mesh) is fetched and drawn: wait for both.
+  const done = await waitStats(page, () => window.willowStats.state === 'succeeded' && window.willowStats.modelJobId === window.willowStats.jobId);
   assert.equal(sent[1].fill_holes, 'all');
   // The patch is refined to the surrounding edge length: more triangles than the cut took.
   assert.ok(
@@ -72,7 +73,7 @@ test('fill_holes: a refused size names its field, `all` closes the hole and the 
   // Without fill_holes the field is not sent, and the upload's mesh is drawn again.
   await page.fill('[name="fill_holes"]', '');
   await page.click('#submit');
-  const plain = await waitStats(page, (id) => window.willowStats.jobId !== id && window.willowStats.state === 'succeeded', done.jobId);
+  const plain = await waitStats(page, (id) => window.willowStats.jobId !== id && window.willowStats.state === 'succeeded' && window.willowStats.modelJobId === window.willowStats.jobId, done.jobId);
   assert.equal(sent[2].fill_holes, undefined);
   assert.equal(plain.triangleCount, holed.triangles);
   await page.unroute(jobsUrl);

@@ -9,7 +9,7 @@ import { View } from './view.js';
 
 /** Timings and counters, read by the browser tests and the 100k-triangle timing script. */
 const stats = {
-  jobId: null, state: null, framesReceived: 0, framesApplied: 0, lastStep: -1,
+  jobId: null, modelJobId: null, state: null, framesReceived: 0, framesApplied: 0, lastStep: -1,
   lastApplyMs: 0, maxApplyMs: 0, applyMsTotal: 0, lastDecodeMs: 0,
   lastRenderMs: 0, maxRenderMs: 0, renderMsTotal: 0, renderCount: 0,
   plotPoints: 0, vertexCount: 0, triangleCount: 0, reconnects: 0,
@@ -312,7 +312,7 @@ function stopWatching() {
 function resetJobUi() {
   stats.framesReceived = stats.framesApplied = 0;
   stats.lastStep = -1;
-  stats.state = stats.jobId = null;
+  stats.state = stats.jobId = stats.modelJobId = null;
   $('job-title').textContent = 'no job';
   $('state').textContent = '';
   $('state').className = 'badge';
@@ -357,11 +357,12 @@ async function startWatch(id) {
       view.setColour($('colour').value);
     }
     w.modelReady = true;
+    stats.modelJobId = id;
   } else if (fresh) {
     // Refined or filled: the job runs on another mesh (its frames say connectivity_changed), so
-    // the model on screen is frame 0's, once the job has started.
-    if (job.state === 'queued') w.modelDeferred = true;
-    else loadModel(w);
+    // the model on screen is frame 0's. The job computes that mesh after it starts, so it is
+    // fetched when the stream delivers the first frame, not at once.
+    w.modelDeferred = true;
   } else {
     upload = null;
     fillForm(job.params);
@@ -408,6 +409,8 @@ async function loadModel(w) {
       $('colour').value = bitmaps.some(Boolean) ? 'texture' : $('colour').value === 'texture' ? 'plain' : $('colour').value;
       view.setColour($('colour').value);
       w.modelReady = true;
+      // Which job's mesh is on screen: tests wait for it, not only for the job's state.
+      stats.modelJobId = w.id;
       schedule(w);
       return;
     } catch (e) {
