@@ -385,7 +385,11 @@ mod tests {
         let mut expected: Vec<usize> = (0..triangles.len() * 3).collect();
         expected.sort_by_key(|&h| key(h));
         assert_eq!(table.half_edges, expected);
-        let e01 = table.edges.iter().position(|&e| e == [0, 1]).expect("edge 0-1");
+        let e01 = table
+            .edges
+            .iter()
+            .position(|&e| e == [0, 1])
+            .expect("edge 0-1");
         assert_eq!(table.faces_of(e01).len(), 4);
         let faces: Vec<usize> = table.faces_of(e01).iter().map(|&h| h / 3).collect();
         assert_eq!(faces, vec![0, 1, 2, 3]);
