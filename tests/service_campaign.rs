@@ -21,6 +21,7 @@ async fn a_thousand_submissions_from_fifty_clients_see_only_202_and_429_and_lose
         c.queue_capacity = 64;
         // One tenant sends the whole burst: the queue, not a quota, is what pushes back here.
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: 0,
             uploads_per_minute: 0,

@@ -56,6 +56,7 @@ async fn nats_tenants_are_isolated_and_the_queue_is_fair() {
         &nats,
         &dir.path().join("node"),
         TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 8,
             max_stored_bytes: 0,
             uploads_per_minute: 0,
@@ -154,6 +155,7 @@ async fn nats_quotas_hold_across_nodes_and_are_recounted_at_connect() {
     let dir = tempfile::tempdir().expect("dir");
     let nats = Nats::start(dir.path());
     let quotas = TenantQuotas {
+        server_max_stored_bytes: 0,
         max_live_jobs: 5,
         max_stored_bytes: 0,
         uploads_per_minute: 0,
@@ -245,6 +247,7 @@ async fn nats_stored_bytes_are_counted_and_given_back() {
     let size = small_obj().len() as u64;
     let job = size + service_http_support::small_plan(&spec(1));
     let quotas = TenantQuotas {
+        server_max_stored_bytes: 0,
         max_live_jobs: 0,
         max_stored_bytes: 2 * job + size / 2,
         uploads_per_minute: 0,
@@ -321,6 +324,7 @@ async fn nats_jobs_from_a_stored_upload_do_not_count_as_meshes_received() {
     let dir = tempfile::tempdir().expect("dir");
     let nats = Nats::start(dir.path());
     let quotas = TenantQuotas {
+        server_max_stored_bytes: 0,
         max_live_jobs: 0,
         max_stored_bytes: 0,
         uploads_per_minute: 2,
@@ -345,6 +349,7 @@ async fn nats_rendered_downloads_count_in_stored_bytes() {
         &nats,
         &dir.path().join("node"),
         TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: RENDERED_QUOTA,
             uploads_per_minute: 0,
@@ -373,6 +378,7 @@ async fn nats_kept_frames_stay_within_the_stored_bytes_quota() {
         &nats,
         &dir.path().join("node"),
         TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: FRAMES_QUOTA,
             uploads_per_minute: 0,
@@ -401,4 +407,62 @@ async fn nats_kept_frames_stay_within_the_stored_bytes_quota() {
     };
     assert_kept_frames_stay_within_the_quota(&jobs, &tenant("alpha"), measure).await;
     core.shutdown(Duration::from_secs(1)).await;
+}
+
+/// The server's disk budget over NATS is the cluster's: tenant A fills it through node one,
+/// and tenant B is refused on node two, named `server_stored_bytes`; A's delete gives B room.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_server_disk_budget_is_shared_by_tenants_and_nodes() {
+    let dir = tempfile::tempdir().expect("dir");
+    let nats = Nats::start(dir.path());
+    let size = small_obj().len() as u64;
+    let job = size + service_http_support::small_plan(&spec(1));
+    let budget = 2 * job + size - 1;
+    let quotas = TenantQuotas {
+        server_max_stored_bytes: budget,
+        max_live_jobs: 0,
+        max_stored_bytes: 100 * job,
+        uploads_per_minute: 0,
+    };
+    let (one, core_one) = start_with(&nats, &dir.path().join("one"), quotas.clone(), |_| {}).await;
+    let (two, core_two) = start_with(&nats, &dir.path().join("two"), quotas, |_| {}).await;
+    let (a, b) = (tenant("alpha"), tenant("beta"));
+    let mut ids = Vec::new();
+    for _ in 0..2 {
+        ids.push(
+            one.submit(&a, obj(small_obj()), spec(1), None)
+                .await
+                .expect("within the budget")
+                .id,
+        );
+    }
+    match two.submit(&b, obj(small_obj()), spec(1), None).await {
+        Err(JobError::QuotaExceeded {
+            quota: "server_stored_bytes",
+            limit,
+            used: Some(used),
+            ..
+        }) => {
+            assert_eq!(limit, budget);
+            assert_eq!(used, 2 * job, "A's two jobs, admitted by the other node");
+        }
+        other => panic!("expected the server's disk budget, got {other:?}"),
+    }
+    assert!(matches!(
+        two.store_upload(&b, small_obj().into(), willow::mesh::io::Format::Obj)
+            .await,
+        Err(JobError::QuotaExceeded {
+            quota: "server_stored_bytes",
+            ..
+        })
+    ));
+    one.wait(&a, &ids[0], Duration::from_secs(60))
+        .await
+        .expect("wait");
+    one.delete(&a, &ids[0]).await.expect("delete");
+    two.submit(&b, obj(small_obj()), spec(1), None)
+        .await
+        .expect("room after A's delete");
+    core_one.shutdown(Duration::from_secs(2)).await;
+    core_two.shutdown(Duration::from_secs(2)).await;
 }

@@ -44,6 +44,7 @@ async fn jobs_from_a_stored_upload_do_not_count_as_meshes_received() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: 0,
             uploads_per_minute: 2,
@@ -168,6 +169,7 @@ async fn quotas_are_per_tenant_and_named() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 2,
             max_stored_bytes: 0,
             uploads_per_minute: 0,
@@ -214,6 +216,7 @@ async fn quotas_are_per_tenant_and_named() {
     let job = size + small_plan(&spec(1));
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: 0,
             uploads_per_minute: 3,
@@ -258,6 +261,7 @@ async fn quotas_are_per_tenant_and_named() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: 2 * job + job / 2,
             uploads_per_minute: 0,
@@ -362,6 +366,7 @@ async fn concurrent_submissions_do_not_overshoot_a_quota() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 5,
             max_stored_bytes: 0,
             uploads_per_minute: 0,
@@ -451,6 +456,7 @@ async fn rendered_downloads_count_in_stored_bytes() {
     let ttl = Duration::from_secs(30);
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: RENDERED_QUOTA,
             uploads_per_minute: 0,
@@ -474,6 +480,7 @@ async fn kept_frames_stay_within_the_stored_bytes_quota() {
     let dir = tempfile::tempdir().expect("dir");
     let (jobs, core) = Jobs::start(config(dir.path(), |c| {
         c.quotas = TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: FRAMES_QUOTA,
             uploads_per_minute: 0,
@@ -502,4 +509,72 @@ fn files_bytes(dir: &std::path::Path) -> u64 {
             _ => e.metadata().map_or(0, |m| m.len()),
         })
         .sum()
+}
+
+/// The server's disk budget is shared: tenant A, within its own quota, fills it; then B (with
+/// nothing stored) is refused too, named `server_stored_bytes`, for jobs and uploads alike;
+/// deleting A's job gives the room back to B.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_disk_budget_is_shared_by_every_tenant() {
+    let dir = tempfile::tempdir().expect("dir");
+    let size = small_obj().len() as u64;
+    let job = size + small_plan(&spec(1));
+    // Two of A's jobs fit, and then not even an upload more.
+    let budget = 2 * job + size - 1;
+    let (jobs, core) = Jobs::start(config(dir.path(), |c| {
+        c.quotas = TenantQuotas {
+            server_max_stored_bytes: budget,
+            max_live_jobs: 0,
+            max_stored_bytes: 100 * job,
+            uploads_per_minute: 0,
+        }
+    }))
+    .await
+    .expect("start");
+    let (a, b) = (tenant("alpha"), tenant("beta"));
+    let mut ids = Vec::new();
+    for _ in 0..2 {
+        ids.push(
+            jobs.submit(&a, obj(small_obj()), spec(1), None)
+                .await
+                .expect("within the budget")
+                .id,
+        );
+    }
+    fn is_server_budget<T>(r: &Result<T, JobError>, budget: u64, used_by_a: u64) -> bool {
+        matches!(
+            r,
+            Err(JobError::QuotaExceeded {
+                quota: "server_stored_bytes",
+                limit,
+                used: Some(used),
+                ..
+            }) if *limit == budget && *used == used_by_a
+        )
+    }
+    let refused = jobs.submit(&b, obj(small_obj()), spec(1), None).await;
+    assert!(
+        is_server_budget(&refused, budget, 2 * job),
+        "B's job: {refused:?}"
+    );
+    let refused = jobs
+        .store_upload(&b, bytes::Bytes::from(small_obj()), Format::Obj)
+        .await;
+    assert!(
+        is_server_budget(&refused, budget, 2 * job),
+        "B's upload: {refused:?}"
+    );
+    // 507 and RESOURCE_EXHAUSTED at the edge, not the tenant's 429.
+    let statuses = willow_service::api::status::of_error(refused.as_ref().expect_err("refused"));
+    assert_eq!(statuses.http.as_u16(), 507);
+    assert_eq!(statuses.grpc, tonic::Code::ResourceExhausted);
+    // A's finished job deleted: its bytes are the room B gets.
+    jobs.wait(&a, &ids[0], Duration::from_secs(60))
+        .await
+        .expect("wait");
+    jobs.delete(&a, &ids[0]).await.expect("delete");
+    jobs.submit(&b, obj(small_obj()), spec(1), None)
+        .await
+        .expect("room after A's delete");
+    core.shutdown(Duration::from_secs(1)).await;
 }

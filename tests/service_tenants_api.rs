@@ -346,6 +346,7 @@ async fn http_page_tokens_are_the_tenants_own() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_quota_is_named_and_per_tenant() {
     let (server, keys) = start(TenantQuotas {
+        server_max_stored_bytes: 0,
         max_live_jobs: 2,
         ..TenantQuotas::default()
     })
@@ -451,6 +452,7 @@ fn inline() -> v1::create_job_request::Mesh {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn grpc_tenants_cannot_reach_each_others_jobs_uploads_or_operations() {
     let (server, keys) = start(TenantQuotas {
+        server_max_stored_bytes: 0,
         max_live_jobs: 3,
         ..TenantQuotas::default()
     })

@@ -16,6 +16,7 @@ pub(crate) async fn auth_overhead(obj: &str) {
     );
     println!();
     let off = willow_service::jobs::TenantQuotas {
+        server_max_stored_bytes: 0,
         max_live_jobs: 0,
         max_stored_bytes: 0,
         uploads_per_minute: 0,

@@ -46,6 +46,7 @@ pub(crate) fn pct(sorted: &[f64], p: f64) -> f64 {
 /// never refuse: the load here is one tenant's, far beyond the defaults.
 pub(crate) fn bench_quotas() -> willow_service::jobs::TenantQuotas {
     willow_service::jobs::TenantQuotas {
+        server_max_stored_bytes: 0,
         max_live_jobs: 1 << 30,
         max_stored_bytes: 1 << 50,
         uploads_per_minute: 1 << 30,

@@ -91,6 +91,11 @@ pub struct ServeArgs {
     /// kept frames, checkpoint, result, metrics, stored renderings; 0 = no limit).
     #[arg(long, default_value_t = 1024)]
     pub tenant_max_stored_mib: u64,
+    /// The whole server: MiB kept by every tenant together, counted as
+    /// `--tenant-max-stored-mib` counts them; past it submissions and uploads of every tenant
+    /// answer 507 `quota_exceeded`, quota `server_stored_bytes` (0 = no budget).
+    #[arg(long, default_value_t = 0)]
+    pub disk_budget_mib: u64,
     /// Per tenant: meshes received (jobs and uploads) in any minute (0 = no limit).
     #[arg(long, default_value_t = 120)]
     pub tenant_uploads_per_minute: usize,
@@ -366,6 +371,7 @@ impl ServeArgs {
         }
         c.webhook_max_attempts = self.webhook_max_attempts;
         c.quotas = crate::jobs::TenantQuotas {
+            server_max_stored_bytes: self.disk_budget_mib.saturating_mul(1 << 20),
             max_live_jobs: self.tenant_max_live_jobs,
             max_stored_bytes: self.tenant_max_stored_mib.saturating_mul(1 << 20),
             uploads_per_minute: self.tenant_uploads_per_minute,

@@ -25,6 +25,12 @@ pub fn of_error(e: &JobError) -> Statuses {
         }
         // gRPC has no "gone": NOT_FOUND, with ErrorInfo `EXPIRED`.
         JobError::Gone(_) => (StatusCode::GONE, Code::NotFound),
+        // The server's disk budget, not the caller's quota: what the request needs cannot be
+        // stored (507, RFC 4918 §11.5), for any tenant, until stored data expires.
+        JobError::QuotaExceeded {
+            quota: "server_stored_bytes",
+            ..
+        } => (StatusCode::INSUFFICIENT_STORAGE, Code::ResourceExhausted),
         JobError::QueueFull { .. } | JobError::QuotaExceeded { .. } | JobError::Busy { .. } => {
             (StatusCode::TOO_MANY_REQUESTS, Code::ResourceExhausted)
         }

@@ -269,6 +269,13 @@ impl Jobs {
             used = over.used,
             "tenant quota spent"
         );
+        if over.quota == "server_stored_bytes" {
+            tracing::warn!(
+                limit = over.limit,
+                used = over.used,
+                "the server's disk budget is spent: refusing every tenant's new work"
+            );
+        }
         let retry_after_secs = match over.quota {
             "live_jobs" => self.retry_after_secs(),
             "uploads_per_minute" => 60,
@@ -326,7 +333,10 @@ impl Jobs {
         if !quotas.any() {
             return Ok(());
         }
-        let usage = self.inner.backend.store.usage(tenant, now_ms()).await?;
+        let mut usage = self.inner.backend.store.usage(tenant, now_ms()).await?;
+        if quotas.server_max_stored_bytes > 0 {
+            usage.server_stored_bytes = self.inner.backend.store.server_stored_bytes().await?;
+        }
         match over_quota(quotas, &usage, bytes, Admitting::Upload) {
             Some(over) => Err(self.over_quota(tenant, over)),
             None => Ok(()),

@@ -405,11 +405,18 @@ pub struct TenantQuotas {
     pub max_stored_bytes: u64,
     /// Meshes received (job submissions and stored uploads) in any 60 s.
     pub uploads_per_minute: usize,
+    /// Not per tenant: the server's disk budget, every tenant's stored bytes together (as
+    /// `max_stored_bytes` counts them). Past it every tenant is refused with 507
+    /// `quota_exceeded`, quota `server_stored_bytes`, so one tenant within its own quota
+    /// cannot fill the disk the others share. 0: no budget.
+    pub server_max_stored_bytes: u64,
 }
 
 impl Default for TenantQuotas {
     fn default() -> Self {
         TenantQuotas {
+            // Off: the operator knows the disk (`--disk-budget-mib`).
+            server_max_stored_bytes: 0,
             // Half the default queue: one tenant's burst leaves room for the others (the
             // queue's fair order does the rest).
             max_live_jobs: 32,

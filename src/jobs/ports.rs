@@ -120,13 +120,25 @@ pub fn over_quota(
     if q.max_stored_bytes > 0 && usage.stored_bytes.saturating_add(bytes) > q.max_stored_bytes {
         return over("stored_bytes", q.max_stored_bytes, usage.stored_bytes);
     }
+    if q.server_max_stored_bytes > 0
+        && usage.server_stored_bytes.saturating_add(bytes) > q.server_max_stored_bytes
+    {
+        return over(
+            "server_stored_bytes",
+            q.server_max_stored_bytes,
+            usage.server_stored_bytes,
+        );
+    }
     None
 }
 
 impl TenantQuotas {
     /// Whether any quota is on (else usage need not be counted).
     pub fn any(&self) -> bool {
-        self.max_live_jobs > 0 || self.max_stored_bytes > 0 || self.uploads_per_minute > 0
+        self.max_live_jobs > 0
+            || self.max_stored_bytes > 0
+            || self.uploads_per_minute > 0
+            || self.server_max_stored_bytes > 0
     }
 }
 
@@ -149,6 +161,9 @@ pub struct Usage {
     /// Meshes received (uploads, and jobs that brought theirs) in the minute before the `now` of
     /// [`JobStore::usage`] (the SQLite store estimates the sliding minute from two fixed ones).
     pub uploads_last_minute: usize,
+    /// Every tenant's `stored_bytes` together (for [`super::TenantQuotas::server_max_stored_bytes`];
+    /// 0 when that is off, and not counted then).
+    pub server_stored_bytes: u64,
 }
 
 /// A minute, in unix ms.
@@ -353,6 +368,9 @@ pub trait JobStore: Send + Sync + 'static {
     async fn upload(&self, tenant: &str, id: &str) -> Result<Format, JobError>;
     /// What `tenant` holds at `now` (unix ms), with the meshes it sent in the minute before.
     async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError>;
+    /// Every tenant's stored bytes together (the server's disk budget,
+    /// [`super::TenantQuotas::server_max_stored_bytes`]).
+    async fn server_stored_bytes(&self) -> Result<u64, JobError>;
     /// Terminal, unexpired jobs whose `callback_url` has not been settled, oldest first (at
     /// most `limit`): what [`super::webhooks`] still has to deliver. Kept in the record, so a
     /// restart (or another node) finds them again.
@@ -732,5 +750,58 @@ mod tests {
         assert_eq!(w, windows(t + MIN, 1, 3), "older than the windows");
         w.receive(t + 3 * MIN + 1);
         assert_eq!(w, windows(t + 3 * MIN, 1, 0), "after a quiet minute");
+    }
+
+    /// The server's disk budget refuses whoever would pass it, though that tenant is well
+    /// within its own quota; a download rendered is charged to it as well; off at 0.
+    #[test]
+    fn the_server_budget_counts_every_tenant() {
+        let q = TenantQuotas {
+            server_max_stored_bytes: 1_000,
+            max_live_jobs: 0,
+            max_stored_bytes: 1 << 40,
+            uploads_per_minute: 0,
+        };
+        let usage = Usage {
+            stored_bytes: 10,
+            server_stored_bytes: 900,
+            ..Usage::default()
+        };
+        assert_eq!(
+            over_quota(&q, &usage, 100, Admitting::Upload),
+            None,
+            "exactly full"
+        );
+        for admitting in [
+            Admitting::Upload,
+            Admitting::Job { received: true },
+            Admitting::Rendered,
+        ] {
+            assert_eq!(
+                over_quota(&q, &usage, 101, admitting),
+                Some(OverQuota {
+                    quota: "server_stored_bytes",
+                    limit: 1_000,
+                    used: 900,
+                }),
+                "{admitting:?}"
+            );
+        }
+        let off = TenantQuotas {
+            server_max_stored_bytes: 0,
+            ..q
+        };
+        assert_eq!(over_quota(&off, &usage, 1 << 30, Admitting::Upload), None);
+        assert!(off.any(), "the tenant's own quota is still on");
+        let only_server = TenantQuotas {
+            server_max_stored_bytes: 1,
+            max_live_jobs: 0,
+            max_stored_bytes: 0,
+            uploads_per_minute: 0,
+        };
+        assert!(
+            only_server.any(),
+            "usage must be counted for the server budget alone"
+        );
     }
 }

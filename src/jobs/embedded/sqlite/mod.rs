@@ -391,11 +391,20 @@ fn usage_on(conn: &Connection, tenant: &str, now: u64) -> Result<Usage, JobError
             Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?))
         })
         .optional()?;
-    let Some((bytes, live, window_start, current, previous)) = row else {
-        return Ok(Usage::default());
-    };
+    // One row per tenant: the sum is cheap, and inside an admission's transaction it is
+    // exact across tenants too (the server's disk budget).
+    let server: i64 = conn
+        .prepare_cached("SELECT COALESCE(SUM(bytes), 0) FROM tenant_usage")?
+        .query_row([], |r| r.get(0))?;
     let n = |v: i64| u64::try_from(v).unwrap_or(0);
+    let Some((bytes, live, window_start, current, previous)) = row else {
+        return Ok(Usage {
+            server_stored_bytes: n(server),
+            ..Usage::default()
+        });
+    };
     Ok(Usage {
+        server_stored_bytes: n(server),
         live_jobs: usize::try_from(n(live)).unwrap_or(usize::MAX),
         stored_bytes: n(bytes),
         uploads_last_minute: MinuteWindows {

@@ -453,6 +453,11 @@ impl JobStore for SqliteStore {
         .await
     }
 
+    async fn server_stored_bytes(&self) -> Result<u64, JobError> {
+        self.blocking(move |s| Ok(usage_on(&*s.conn()?, "", 0)?.server_stored_bytes))
+            .await
+    }
+
     async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError> {
         let tenant = tenant.to_string();
         self.blocking(move |s| usage_on(&*s.conn()?, &tenant, now))

@@ -22,6 +22,7 @@ fn job(tenant: &str, bytes: u64, at: u64) -> NewJob {
         received: true,
         created_at: at,
         quotas: TenantQuotas {
+            server_max_stored_bytes: 0,
             max_live_jobs: 0,
             max_stored_bytes: 0,
             uploads_per_minute: 0,

@@ -217,6 +217,8 @@ impl UsageEntry {
             live_jobs: usize::try_from(self.live).unwrap_or(usize::MAX),
             stored_bytes: self.bytes,
             uploads_last_minute: self.windows.last_minute(now),
+            // Filled in by the caller that needs it ([`KvStore::server_stored_bytes`]).
+            server_stored_bytes: 0,
         }
     }
 }

@@ -24,6 +24,7 @@ impl JobStore for KvStore {
         let mut over = None;
         let now = now_ms();
         let bytes = job.input_bytes.saturating_add(job.planned_bytes);
+        let server = self.server_bytes_for(&job.quotas).await?;
         self.update_usage(&job.tenant, |u| {
             over = job
                 .quotas
@@ -32,7 +33,11 @@ impl JobStore for KvStore {
                     let admitting = Admitting::Job {
                         received: job.received,
                     };
-                    over_quota(&job.quotas, &u.usage(now), bytes, admitting)
+                    let usage = Usage {
+                        server_stored_bytes: server,
+                        ..u.usage(now)
+                    };
+                    over_quota(&job.quotas, &usage, bytes, admitting)
                 })
                 .flatten();
             if over.is_some() {
@@ -462,10 +467,15 @@ impl JobStore for KvStore {
         let tenant = rec.status.tenant.clone();
         let mut over = None;
         let now = now_ms();
+        let server = self.server_bytes_for(quotas).await?;
         self.update_usage(&tenant, |u| {
+            let usage = Usage {
+                server_stored_bytes: server,
+                ..u.usage(now)
+            };
             over = quotas
                 .any()
-                .then(|| over_quota(quotas, &u.usage(now), bytes, Admitting::Rendered))
+                .then(|| over_quota(quotas, &usage, bytes, Admitting::Rendered))
                 .flatten();
             if over.is_some() {
                 return false;
@@ -696,5 +706,21 @@ impl JobStore for KvStore {
 
     async fn usage(&self, tenant: &str, now: u64) -> Result<Usage, JobError> {
         Ok(self.usage_entry(tenant).await?.0.usage(now))
+    }
+
+    async fn server_stored_bytes(&self) -> Result<u64, JobError> {
+        self.sum_stored_bytes().await
+    }
+}
+
+impl KvStore {
+    /// The server's stored bytes when `quotas` has a budget to check them against, else 0
+    /// (not read).
+    async fn server_bytes_for(&self, quotas: &TenantQuotas) -> Result<u64, JobError> {
+        if quotas.server_max_stored_bytes > 0 {
+            self.sum_stored_bytes().await
+        } else {
+            Ok(0)
+        }
     }
 }

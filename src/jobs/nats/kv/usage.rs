@@ -33,6 +33,30 @@ impl KvStore {
         }
     }
 
+    /// Every tenant's stored bytes together, for the server's disk budget: one KV read per
+    /// tenant, so only asked for when the budget is on. Not one compare-and-set with the
+    /// tenant's own count (that stays exact): admissions of different tenants racing on
+    /// different nodes can pass the budget by what they add together, and the next admission
+    /// sees it.
+    pub(super) async fn sum_stored_bytes(&self) -> Result<u64, JobError> {
+        let mut total = 0u64;
+        for k in self.keys("usage.").await? {
+            let entry = retry(|| async {
+                self.nats
+                    .kv
+                    .entry(&k)
+                    .await
+                    .map_err(|e| nats_err("reading a tenant's usage", e))
+            })
+            .await?;
+            if let Some(e) = entry.filter(|e| !e.value.is_empty()) {
+                let u: UsageEntry = from_json(&e.value)?;
+                total = total.saturating_add(u.bytes);
+            }
+        }
+        Ok(total)
+    }
+
     /// Write `entry` over `revision` (`None`: create it); `false` when another node wrote
     /// first.
     pub(super) async fn put_usage(
