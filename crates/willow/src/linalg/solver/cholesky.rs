@@ -4,7 +4,7 @@
 
 use super::*;
 use crate::linalg::ordering::Ordering;
-use crate::linalg::supernodal::{NotPositive, Scalar, SupernodalLlt};
+use crate::linalg::supernodal::{NotPositive, Scalar, SolveScratch, SupernodalLlt};
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltError;
 use faer::sparse::linalg::cholesky::{
@@ -81,7 +81,7 @@ pub struct Cholesky<T> {
     threads: usize,
     /// Scratch of the quaternionic solve ([`SupernodalLlt::solve_quaternionic`]), sized by
     /// [`Cholesky::set_quaternionic`].
-    solve_scratch: Vec<[f64; 4]>,
+    solve_scratch: SolveScratch<T>,
 }
 
 impl<T: Scalar> Cholesky<T> {
@@ -236,7 +236,7 @@ impl<T: Scalar> Cholesky<T> {
         Ok(Cholesky {
             supernodal,
             threads: 1,
-            solve_scratch: Vec::new(),
+            solve_scratch: SolveScratch::default(),
             factor: zeros(symbolic.len_val())?,
             triangle_values: zeros(gather.len())?,
             permuted_rhs: zeros(n * nrhs)?,
@@ -255,8 +255,39 @@ impl<T: Scalar> Cholesky<T> {
     /// Let numeric factorizations use up to `threads` threads (1: the calling thread only).
     /// The factor is bitwise the same for any count: only independent subtrees of the
     /// elimination tree run concurrently.
+    /// Quaternionic solves of large factors run their two parts concurrently
+    /// ([`SupernodalLlt::plan_solves`]), bitwise the same as on one thread.
     pub fn set_threads(&mut self, threads: usize) {
         self.threads = threads.max(1);
+        self.plan_solves();
+    }
+
+    /// Splits quaternionic solves whatever the factor's size, run on `threads` (the split's
+    /// tests, on meshes too small for [`Cholesky::set_threads`] to split them); returns the
+    /// parts a solve now has and whether they run concurrently.
+    #[cfg(test)]
+    pub(crate) fn split_solves_of_any_size(&mut self, threads: usize) -> (usize, bool) {
+        self.threads = threads.max(1);
+        match (&mut self.supernodal, self.symbolic.raw()) {
+            (Some(kernel), SymbolicCholeskyRaw::Supernodal(symbolic)) if kernel.quaternionic() => {
+                kernel.plan_solves_above(symbolic, self.threads, 0);
+                self.solve_scratch = kernel.solve_scratch(symbolic);
+                kernel.solve_parts()
+            }
+            _ => (1, false),
+        }
+    }
+
+    /// Plans the quaternionic solves for the current thread count, with their scratch.
+    fn plan_solves(&mut self) {
+        if let (Some(kernel), SymbolicCholeskyRaw::Supernodal(symbolic)) =
+            (&mut self.supernodal, self.symbolic.raw())
+        {
+            if kernel.quaternionic() {
+                kernel.plan_solves(symbolic, self.threads);
+                self.solve_scratch = kernel.solve_scratch(symbolic);
+            }
+        }
     }
 
     /// The matrices factored from now on are complex forms of quaternion Hermitian ones, as
@@ -270,7 +301,7 @@ impl<T: Scalar> Cholesky<T> {
             (Some(kernel), SymbolicCholeskyRaw::Supernodal(symbolic)) => {
                 let quaternionic = kernel.set_quaternionic(symbolic);
                 if quaternionic {
-                    self.solve_scratch = vec![[0.0; 4]; kernel.solve_scratch_len()];
+                    self.plan_solves();
                 }
                 quaternionic
             }

@@ -38,7 +38,7 @@
 //! The dense kernels (faer's gemm behind a strided view, the narrow off-diagonal
 //! solve) are in `kernels.rs`; figures are in `docs/performance.md`.
 
-use std::ops::Sub;
+use std::ops::{AddAssign, Sub};
 
 use faer::dyn_stack::MemBuffer;
 use faer::linalg::cholesky::llt::factor::cholesky_in_place_scratch;
@@ -49,6 +49,9 @@ use faer::{c32, c64, Par};
 
 mod parallel;
 use parallel::*;
+mod solve;
+use solve::SolvePlan;
+pub use solve::SolveScratch;
 mod quaternionic;
 use quaternionic::*;
 mod kernels;
@@ -73,7 +76,7 @@ mod sealed {
 
 /// The scalars the flows factor: real Laplacians and the complex form of the Dirac matrix.
 /// Sealed: f64, c64 and c32 only.
-pub trait Scalar: ComplexField + Copy + Sub<Output = Self> + sealed::ZeroBits {
+pub trait Scalar: ComplexField + Copy + AddAssign + Sub<Output = Self> + sealed::ZeroBits {
     #[cfg(target_arch = "x86_64")]
     const GEMM_TYPE: private_gemm_x86::DType;
     /// The real part of a diagonal entry of a Cholesky factor (real and positive).
@@ -193,6 +196,9 @@ pub struct SupernodalLlt {
     /// The solve's gathers and scatters read these (a quarter of the bytes of faer's row
     /// indices) and move each pair as one 32-byte value.
     pair_rows: Vec<u32>,
+    /// How a quaternionic solve splits over threads ([`SupernodalLlt::plan_solves`]); `None`:
+    /// on the calling thread.
+    solve_plan: Option<SolvePlan>,
 }
 
 /// The scratch of one thread of the numeric factorization.
@@ -247,10 +253,7 @@ struct Shared<'a> {
     descendants: &'a [usize],
     a_ptr: &'a [usize],
     a_position: &'a [u32],
-    child_ptr: &'a [usize],
-    children: &'a [usize],
     first: &'a [usize],
-    subtree_cost: &'a [f64],
     quaternionic: bool,
 }
 
@@ -425,6 +428,7 @@ impl SupernodalLlt {
             last_pieces: 1,
             quaternionic: false,
             pair_rows: Vec::new(),
+            solve_plan: None,
         })
     }
 
@@ -509,120 +513,6 @@ impl SupernodalLlt {
         self.quaternionic
     }
 
-    /// The length of the scratch [`SupernodalLlt::solve_quaternionic`] needs: the widest
-    /// supernode and the most rows below one, in vertex pairs.
-    pub fn solve_scratch_len(&self) -> usize {
-        (self.max_pattern + self.max_width).div_ceil(2)
-    }
-
-    /// `x ← (L Lᴴ)⁻¹ x` for a quaternionic factor `l` (in faer's supernodal storage, of the
-    /// matrix this kernel was analyzed for), one right-hand side. Below the diagonal blocks it
-    /// reads the even columns only: with `(p, q) = (L[2u, 2w], L[2u + 1, 2w])` the odd column
-    /// holds `(−q̄, p̄)` ([`SupernodalLlt::set_quaternionic`]). A solve streams the factor
-    /// through memory twice, so half the columns is about half the time. `scratch` holds at
-    /// least [`SupernodalLlt::solve_scratch_len`] lanes.
-    pub fn solve_quaternionic<T: Scalar>(
-        &self,
-        symbolic: &SymbolicSupernodalCholesky<usize>,
-        l: &[T],
-        x: &mut [T],
-        scratch: &mut [[f64; 4]],
-    ) {
-        assert!(self.quaternionic && x.len() == symbolic.nrows());
-        assert!(2 * scratch.len() >= self.max_pattern + self.max_width);
-        let begin = symbolic.supernode_begin();
-        let end = symbolic.supernode_end();
-        let row_ptr = symbolic.col_ptr_for_row_idx();
-        let val_ptr = symbolic.col_ptr_for_val();
-        let pairs_of = |s: usize| &self.pair_rows[row_ptr[s] / 2..row_ptr[s + 1] / 2];
-        // L y = b: each vertex pair of a supernode is divided by its real diagonal, then its
-        // even column (and with it the odd one) is taken off the rows below, in the
-        // supernode and under it. The diagonal blocks' (2w + 1, 2w) entries are the zeros
-        // of the quaternionic factor (rounding in the computed one) and are not read.
-        let n_supernodes = symbolic.n_supernodes();
-        for s in 0..n_supernodes {
-            let (start, width) = (begin[s], end[s] - begin[s]);
-            let nrows = width + (row_ptr[s + 1] - row_ptr[s]);
-            let block = &l[val_ptr[s]..val_ptr[s + 1]];
-            let pairs = pairs_of(s);
-            let ahead = s + SOLVE_PREFETCH_AHEAD;
-            if ahead < n_supernodes {
-                prefetch_even_columns(
-                    &l[val_ptr[ahead]..val_ptr[ahead + 1]],
-                    end[ahead] - begin[ahead],
-                );
-            }
-            if s + 1 < n_supernodes {
-                prefetch_pairs(x, pairs_of(s + 1));
-            }
-            // The supernode's own pairs, then the pairs below it: the rows of its columns.
-            let lanes = &mut scratch[..nrows / 2];
-            gather_pairs(x, start / 2..(start + width) / 2, &mut lanes[..width / 2]);
-            gather_pairs(
-                x,
-                pairs.iter().map(|&p| p as usize),
-                &mut lanes[width / 2..],
-            );
-            for w in 0..width / 2 {
-                let column = &block[2 * w * nrows..][..nrows];
-                let inverse = 1.0 / column[2 * w].diagonal();
-                let (lane, after_w) = lanes[w..].split_at_mut(1);
-                let lane = lane[0].map(|v| v * inverse);
-                // SAFETY: the kernel is only built on CPUs with AVX2 and FMA.
-                unsafe {
-                    quaternion_column_product(
-                        &column[2 * w + 2..],
-                        (lane[0], lane[1]),
-                        (lane[2], lane[3]),
-                        after_w,
-                    );
-                }
-                lanes[w] = lane;
-            }
-            scatter_pairs(x, start / 2..(start + width) / 2, &lanes[..width / 2]);
-            scatter_pairs(x, pairs.iter().map(|&p| p as usize), &lanes[width / 2..]);
-        }
-        // Lᴴ x = y, in reverse: each pair takes the adjoint products of its even column with
-        // the rows below, then is divided by its diagonal.
-        for s in (0..n_supernodes).rev() {
-            let (start, width) = (begin[s], end[s] - begin[s]);
-            let nrows = width + (row_ptr[s + 1] - row_ptr[s]);
-            let block = &l[val_ptr[s]..val_ptr[s + 1]];
-            let pairs = pairs_of(s);
-            if let Some(ahead) = s.checked_sub(SOLVE_PREFETCH_AHEAD) {
-                prefetch_even_columns(
-                    &l[val_ptr[ahead]..val_ptr[ahead + 1]],
-                    end[ahead] - begin[ahead],
-                );
-            }
-            if s > 0 {
-                prefetch_pairs(x, pairs_of(s - 1));
-            }
-            let lanes = &mut scratch[..nrows / 2];
-            gather_pairs(x, start / 2..(start + width) / 2, &mut lanes[..width / 2]);
-            gather_pairs(
-                x,
-                pairs.iter().map(|&p| p as usize),
-                &mut lanes[width / 2..],
-            );
-            for w in (0..width / 2).rev() {
-                let column = &block[2 * w * nrows..][..nrows];
-                let (to_w, after_w) = lanes.split_at_mut(w + 1);
-                // SAFETY: as above.
-                let (a0, a1) = unsafe { quaternion_column_adjoint(&column[2 * w + 2..], after_w) };
-                let inverse = 1.0 / column[2 * w].diagonal();
-                let lane = &mut to_w[w];
-                *lane = [
-                    (lane[0] - a0.0) * inverse,
-                    (lane[1] - a0.1) * inverse,
-                    (lane[2] - a1.0) * inverse,
-                    (lane[3] - a1.1) * inverse,
-                ];
-            }
-            scatter_pairs(x, start / 2..(start + width) / 2, &lanes[..width / 2]);
-        }
-    }
-
     /// Subtrees the last factorization ran concurrently (1: it ran on one thread).
     pub fn last_pieces(&self) -> usize {
         self.last_pieces
@@ -657,10 +547,7 @@ impl SupernodalLlt {
             descendants: &self.descendants,
             a_ptr: &self.a_ptr,
             a_position: &self.a_position,
-            child_ptr: &self.child_ptr,
-            children: &self.children,
             first: &self.first,
-            subtree_cost: &self.subtree_cost,
             quaternionic: self.quaternionic,
         };
         let job = Job {
@@ -674,7 +561,13 @@ impl SupernodalLlt {
             self.last_pieces = 1;
             return job.factor_range(0..n_supernodes, l, 0, &mut workspaces[0]);
         }
-        let (pieces, top) = subtree_mapping(&shared, &self.roots, threads);
+        let (pieces, top) = subtree_mapping(
+            |r| self.subtree_cost[r],
+            &self.child_ptr,
+            &self.children,
+            &self.roots,
+            threads,
+        );
         self.last_pieces = pieces.len();
         let val_ptr = symbolic.col_ptr_for_val();
         // Each piece's subtree owns a contiguous run of the factor; cut `l` into those runs.

@@ -11,13 +11,15 @@ pub(super) type Run<'a, T> = (std::ops::Range<usize>, usize, &'a mut [T]);
 /// Geist and Ng's subtree-to-thread mapping: starting from the roots, the heaviest subtree
 /// is replaced by its children (its root joins the sequential top) until the subtrees, dealt
 /// longest first to the least loaded thread, keep every thread within 10% of an even share.
-/// Returns each subtree's root with its thread, and the top supernodes, ascending.
+/// Returns each subtree's root with its thread, and the top supernodes, ascending. `cost`
+/// is a subtree's work (flops for the factorization, factor values for a solve).
 pub(super) fn subtree_mapping(
-    shared: &Shared<'_>,
+    cost: impl Fn(usize) -> f64,
+    child_ptr: &[usize],
+    children: &[usize],
     roots: &[usize],
     threads: usize,
 ) -> (Vec<(usize, usize)>, Vec<usize>) {
-    let cost = |r: usize| shared.subtree_cost[r];
     let mut pieces: Vec<usize> = roots.to_vec();
     let mut top = Vec::new();
     // A separator splits into a few children at most; this bounds the loop on any tree.
@@ -35,7 +37,7 @@ pub(super) fn subtree_mapping(
         let Some(&heaviest) = pieces.first() else {
             break;
         };
-        let kids = &shared.children[shared.child_ptr[heaviest]..shared.child_ptr[heaviest + 1]];
+        let kids = &children[child_ptr[heaviest]..child_ptr[heaviest + 1]];
         if makespan <= 1.1 * total / threads as f64 || kids.is_empty() {
             break;
         }
