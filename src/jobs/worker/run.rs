@@ -96,6 +96,16 @@ pub(super) fn run_job(
         file_vertices: asset.file_vertex_count(),
         surface_vertices: asset.surface().vertex_count(),
     };
+    // A run that ends before its last step, however it ends (cancelled, past its deadline,
+    // failed), kept the frames up to `last`: the quota gets the rest of its plan back now,
+    // not when the job expires. Best effort: a store that does not answer leaves the tenant
+    // counted high, the safe side, until the job is deleted or expires.
+    let settle = |last: usize| {
+        let kept = super::super::stored::kept_bytes(spec, sizes, last);
+        if let Err(e) = rt.block_on(backend.store.settle_planned(id, kept, fence)) {
+            tracing::warn!(error = %e, last, "the plan of a run that ended early was not settled");
+        }
+    };
     let mut params = match spec.flow_params_for(&asset) {
         Ok(p) => p,
         // Admission checked the regions against this file; a stored job from before a change
@@ -196,6 +206,7 @@ pub(super) fn run_job(
     let mut run = match run {
         Ok(r) => r,
         Err(e) => {
+            settle(first - 1);
             return fail_flow(inner, rt, id, fence, &e);
         }
     };
@@ -203,6 +214,9 @@ pub(super) fn run_job(
     let mut step = first;
     let (outcome, reason) = loop {
         if let Some(stop) = check(step - 1).filter(|_| !run.is_over()) {
+            if matches!(stop, Stop::Cancelled(_) | Stop::Deadline(_)) {
+                settle(step - 1);
+            }
             return stopped(inner, rt, id, stop, &running, Some(&run), fence);
         }
         let t = Instant::now();
@@ -216,6 +230,7 @@ pub(super) fn run_job(
             Ok(Event::Stopped { outcome, reason }) => break (outcome, reason),
             Err(e) => {
                 tracing::warn!(step, error = %e, "flow failed");
+                settle(step - 1);
                 return fail_flow(inner, rt, id, fence, &e);
             }
         };
@@ -226,6 +241,7 @@ pub(super) fn run_job(
         // Accepted safeguarded steps are finite by construction; with the safeguard off a
         // diverging flow may not be, and nothing non-finite is streamed or stored.
         if let Some(bad) = first_non_finite(run.flow().positions()) {
+            settle(step - 1);
             return fail(
                 inner,
                 rt,
@@ -251,10 +267,8 @@ pub(super) fn run_job(
     let flow = run.flow();
     tracing::info!(outcome = outcome.name(), %reason, "flow ended");
     if step <= spec.steps {
-        // Stopped before its last step (`step` was not taken): it kept the frames up to
-        // `step - 1`, and the quota gets the rest of its plan back.
-        let kept = super::super::stored::kept_bytes(spec, sizes, step - 1);
-        rt.block_on(backend.store.settle_planned(id, kept, fence))?;
+        // Stopped before its last step (`step` was not taken).
+        settle(step - 1);
     }
     // A run that took all its steps says nothing more; any other ending is the job's note
     // (`JobStatus::error_code` on a succeeded job, and so its `outcome`).
