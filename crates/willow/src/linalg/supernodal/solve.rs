@@ -255,6 +255,27 @@ impl SupernodalLlt {
         });
     }
 
+    /// Supernode `s` of the factor `l` as both sweeps read it.
+    #[inline(always)]
+    fn panel<'a, T>(
+        &'a self,
+        symbolic: &SymbolicSupernodalCholesky<usize>,
+        l: &'a [T],
+        s: usize,
+    ) -> Panel<'a, T> {
+        let (start, end) = (symbolic.supernode_begin()[s], symbolic.supernode_end()[s]);
+        let row_ptr = symbolic.col_ptr_for_row_idx();
+        let val_ptr = symbolic.col_ptr_for_val();
+        let width = end - start;
+        Panel {
+            start,
+            width,
+            nrows: width + (row_ptr[s + 1] - row_ptr[s]),
+            block: &l[val_ptr[s]..val_ptr[s + 1]],
+            pairs: &self.pair_rows[row_ptr[s] / 2..row_ptr[s + 1] / 2],
+        }
+    }
+
     /// `L y = b` over the supernodes `range`, ascending: each vertex pair of a supernode is
     /// divided by its real diagonal, then its even column (and with it the odd one) is taken
     /// off the rows below, in the supernode and under it. The diagonal blocks' (2w + 1, 2w)
@@ -268,26 +289,22 @@ impl SupernodalLlt {
         scratch: &mut [[f64; 4]],
         range: Range<usize>,
     ) {
-        let begin = symbolic.supernode_begin();
-        let end = symbolic.supernode_end();
-        let row_ptr = symbolic.col_ptr_for_row_idx();
-        let val_ptr = symbolic.col_ptr_for_val();
-        let pairs_of = |s: usize| &self.pair_rows[row_ptr[s] / 2..row_ptr[s + 1] / 2];
         let n_supernodes = symbolic.n_supernodes();
         for s in range {
-            let (start, width) = (begin[s], end[s] - begin[s]);
-            let nrows = width + (row_ptr[s + 1] - row_ptr[s]);
-            let block = &l[val_ptr[s]..val_ptr[s + 1]];
-            let pairs = pairs_of(s);
+            let Panel {
+                start,
+                width,
+                nrows,
+                block,
+                pairs,
+            } = self.panel(symbolic, l, s);
             let ahead = s + SOLVE_PREFETCH_AHEAD;
             if ahead < n_supernodes {
-                prefetch_even_columns(
-                    &l[val_ptr[ahead]..val_ptr[ahead + 1]],
-                    end[ahead] - begin[ahead],
-                );
+                let next = self.panel(symbolic, l, ahead);
+                prefetch_even_columns(next.block, next.width);
             }
             if s + 1 < n_supernodes {
-                prefetch_pairs(x, pairs_of(s + 1));
+                prefetch_pairs(x, self.panel(symbolic, l, s + 1).pairs);
             }
             // The supernode's own pairs, then the pairs below it: the rows of its columns.
             let lanes = &mut scratch[..nrows / 2];
@@ -328,24 +345,20 @@ impl SupernodalLlt {
         scratch: &mut [[f64; 4]],
         range: Range<usize>,
     ) {
-        let begin = symbolic.supernode_begin();
-        let end = symbolic.supernode_end();
-        let row_ptr = symbolic.col_ptr_for_row_idx();
-        let val_ptr = symbolic.col_ptr_for_val();
-        let pairs_of = |s: usize| &self.pair_rows[row_ptr[s] / 2..row_ptr[s + 1] / 2];
         for s in range.rev() {
-            let (start, width) = (begin[s], end[s] - begin[s]);
-            let nrows = width + (row_ptr[s + 1] - row_ptr[s]);
-            let block = &l[val_ptr[s]..val_ptr[s + 1]];
-            let pairs = pairs_of(s);
+            let Panel {
+                start,
+                width,
+                nrows,
+                block,
+                pairs,
+            } = self.panel(symbolic, l, s);
             if let Some(ahead) = s.checked_sub(SOLVE_PREFETCH_AHEAD) {
-                prefetch_even_columns(
-                    &l[val_ptr[ahead]..val_ptr[ahead + 1]],
-                    end[ahead] - begin[ahead],
-                );
+                let next = self.panel(symbolic, l, ahead);
+                prefetch_even_columns(next.block, next.width);
             }
             if s > 0 {
-                prefetch_pairs(x, pairs_of(s - 1));
+                prefetch_pairs(x, self.panel(symbolic, l, s - 1).pairs);
             }
             let lanes = &mut scratch[..nrows / 2];
             gather_pairs(x, start / 2..(start + width) / 2, &mut lanes[..width / 2]);
@@ -371,4 +384,15 @@ impl SupernodalLlt {
             scatter_pairs(x, start / 2..(start + width) / 2, &lanes[..width / 2]);
         }
     }
+}
+
+/// One supernode in the factor: its first column and width, the rows of its panel (its own
+/// columns and those below), its values (column-major, `nrows` a column) and the vertex pairs
+/// of the rows below it.
+struct Panel<'a, T> {
+    start: usize,
+    width: usize,
+    nrows: usize,
+    block: &'a [T],
+    pairs: &'a [u32],
 }
